@@ -1,0 +1,483 @@
+//! Reading and writing images: OpenEXR (through `exr`), PNG/JPEG and Radiance
+//! HDR (through `image`). Every write goes to a temporary file in the target
+//! folder and is renamed into place, so a crash never leaves half a file.
+
+use std::io::{Cursor, Write};
+use std::path::{Path, PathBuf};
+
+use exr::prelude as x;
+use exr::prelude::{ReadChannels, ReadLayers};
+use glam::Vec3;
+use image::{ImageFormat, Rgb};
+
+use crate::color;
+use crate::error::{Result, SceneError};
+use crate::image::{count_non_finite, GrayImage, Image, RgbImage};
+
+/// Largest image side matflow accepts; anything bigger is treated as corrupt.
+pub const MAX_SIDE: usize = 1 << 14;
+
+/// Writes `bytes` to `path` atomically (temporary sibling + rename).
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    let dir = path
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    std::fs::create_dir_all(dir).map_err(|e| SceneError::io(dir, e))?;
+    let name = path
+        .file_name()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "out".into());
+    let tmp: PathBuf = dir.join(format!(".{name}.tmp-{}", std::process::id()));
+    let res = (|| -> std::io::Result<()> {
+        let mut f = std::fs::File::create(&tmp)?;
+        f.write_all(bytes)?;
+        f.sync_all()?;
+        std::fs::rename(&tmp, path)
+    })();
+    if let Err(e) = res {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(SceneError::io(path, e));
+    }
+    Ok(())
+}
+
+fn read_bytes(path: &Path) -> Result<Vec<u8>> {
+    std::fs::read(path).map_err(|e| SceneError::io(path, e))
+}
+
+fn check_size(path: &Path, w: usize, h: usize) -> Result<()> {
+    if w == 0 || h == 0 || w > MAX_SIDE || h > MAX_SIDE {
+        return Err(SceneError::invalid(
+            path,
+            format!("implausible image size {w}x{h} (each side must be 1..={MAX_SIDE})"),
+        ));
+    }
+    Ok(())
+}
+
+/// All channels of the first layer of an EXR file, as f32 planes keyed by
+/// channel name (e.g. "R", "G", "B", "Y").
+pub struct ExrChannels {
+    pub width: usize,
+    pub height: usize,
+    pub channels: Vec<(String, Vec<f32>)>,
+}
+
+impl ExrChannels {
+    pub fn get(&self, name: &str) -> Option<&[f32]> {
+        self.channels
+            .iter()
+            .find(|(n, _)| n == name)
+            .map(|(_, v)| v.as_slice())
+    }
+}
+
+pub fn read_exr_channels(path: &Path) -> Result<ExrChannels> {
+    let bytes = read_bytes(path)?;
+    let img = x::read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .first_valid_layer()
+        .all_attributes()
+        .from_buffered(Cursor::new(bytes))
+        .map_err(|e| SceneError::Decode {
+            path: path.into(),
+            message: e.to_string(),
+        })?;
+    let layer = img.layer_data;
+    let (w, h) = (layer.size.0, layer.size.1);
+    check_size(path, w, h)?;
+    let channels = layer
+        .channel_data
+        .list
+        .iter()
+        .map(|c| {
+            (
+                c.name.to_string(),
+                c.sample_data.values_as_f32().collect::<Vec<f32>>(),
+            )
+        })
+        .collect::<Vec<_>>();
+    for (name, v) in &channels {
+        if v.len() != w * h {
+            return Err(SceneError::invalid(
+                path,
+                format!("channel {name} is subsampled, which matflow does not support"),
+            ));
+        }
+    }
+    Ok(ExrChannels {
+        width: w,
+        height: h,
+        channels,
+    })
+}
+
+/// Reads an RGB EXR. A single-channel file (`Y` or any one channel) is
+/// replicated into RGB.
+pub fn read_exr_rgb(path: &Path) -> Result<RgbImage> {
+    let c = read_exr_channels(path)?;
+    let (w, h) = (c.width, c.height);
+    if let (Some(r), Some(g), Some(b)) = (c.get("R"), c.get("G"), c.get("B")) {
+        let data = (0..w * h).map(|i| Vec3::new(r[i], g[i], b[i])).collect();
+        return Ok(Image::from_vec(w, h, data));
+    }
+    if c.channels.len() == 1 || c.get("Y").is_some() {
+        let y = c.get("Y").unwrap_or(&c.channels[0].1);
+        return Ok(Image::from_vec(w, h, y.to_vec()).to_rgb());
+    }
+    Err(SceneError::invalid(
+        path,
+        format!(
+            "expected channels R,G,B or a single channel, found {:?}",
+            c.channels.iter().map(|(n, _)| n.as_str()).collect::<Vec<_>>()
+        ),
+    ))
+}
+
+/// Reads a single-channel EXR (`Y`, or the only channel, or the mean of RGB).
+pub fn read_exr_gray(path: &Path) -> Result<GrayImage> {
+    let c = read_exr_channels(path)?;
+    let (w, h) = (c.width, c.height);
+    if let Some(y) = c.get("Y") {
+        return Ok(Image::from_vec(w, h, y.to_vec()));
+    }
+    if c.channels.len() == 1 {
+        return Ok(Image::from_vec(w, h, c.channels[0].1.clone()));
+    }
+    let rgb = read_exr_rgb(path)?;
+    Ok(rgb.channel(0))
+}
+
+fn exr_encoding() -> x::Encoding {
+    x::Encoding {
+        compression: x::Compression::PIZ,
+        blocks: x::Blocks::ScanLines,
+        line_order: x::LineOrder::Increasing,
+    }
+}
+
+fn exr_to_bytes(path: &Path, image: impl FnOnce(&mut Cursor<Vec<u8>>) -> exr::error::UnitResult) -> Result<Vec<u8>> {
+    let mut cur = Cursor::new(Vec::new());
+    image(&mut cur).map_err(|e| SceneError::Encode {
+        path: path.into(),
+        message: e.to_string(),
+    })?;
+    Ok(cur.into_inner())
+}
+
+/// Writes linear RGB as a 32-bit float, PIZ-compressed scanline EXR.
+pub fn write_exr_rgb(path: &Path, img: &RgbImage) -> Result<()> {
+    let w = img.width;
+    let channels = x::SpecificChannels::rgb(|p: x::Vec2<usize>| {
+        let v = img.data[p.1 * w + p.0];
+        (v.x, v.y, v.z)
+    });
+    let image = x::Image::from_encoded_channels((img.width, img.height), exr_encoding(), channels);
+    let bytes = exr_to_bytes(path, |c| {
+        use x::WritableImage;
+        image.write().non_parallel().to_buffered(c)
+    })?;
+    write_atomic(path, &bytes)
+}
+
+/// Writes one float channel named `Y` (the reference's layout for depth).
+pub fn write_exr_gray(path: &Path, img: &GrayImage) -> Result<()> {
+    let chan = x::AnyChannel::new("Y", x::FlatSamples::F32(img.data.clone()));
+    let channels = x::AnyChannels::sort(smallvec_one(chan));
+    let image = x::Image::from_encoded_channels((img.width, img.height), exr_encoding(), channels);
+    let bytes = exr_to_bytes(path, |c| {
+        use x::WritableImage;
+        image.write().non_parallel().to_buffered(c)
+    })?;
+    write_atomic(path, &bytes)
+}
+
+fn smallvec_one<T>(v: T) -> x::SmallVec<[T; 4]> {
+    let mut s = x::SmallVec::new();
+    s.push(v);
+    s
+}
+
+/// Reads a Radiance HDR file. Files whose magic line is `#?RGBE` (as the
+/// reference writes them) are accepted as well as `#?RADIANCE`.
+pub fn read_hdr(path: &Path) -> Result<RgbImage> {
+    let mut bytes = read_bytes(path)?;
+    if bytes.starts_with(b"#?RGBE\n") {
+        let mut fixed = b"#?RADIANCE\n".to_vec();
+        fixed.extend_from_slice(&bytes[7..]);
+        bytes = fixed;
+    }
+    let img = image::load_from_memory_with_format(&bytes, ImageFormat::Hdr).map_err(|e| {
+        SceneError::Decode {
+            path: path.into(),
+            message: e.to_string(),
+        }
+    })?;
+    let rgb = img.to_rgb32f();
+    let (w, h) = (rgb.width() as usize, rgb.height() as usize);
+    check_size(path, w, h)?;
+    let data = rgb.pixels().map(|p| Vec3::new(p[0], p[1], p[2])).collect();
+    Ok(Image::from_vec(w, h, data))
+}
+
+/// Writes a Radiance HDR file (`#?RADIANCE`, RLE RGBE). Negative and
+/// non-finite values are written as 0.
+pub fn write_hdr(path: &Path, img: &RgbImage) -> Result<()> {
+    let px: Vec<Rgb<f32>> = img
+        .data
+        .iter()
+        .map(|v| {
+            let f = |c: f32| if c.is_finite() { c.max(0.0) } else { 0.0 };
+            Rgb([f(v.x), f(v.y), f(v.z)])
+        })
+        .collect();
+    let mut buf = Vec::new();
+    image::codecs::hdr::HdrEncoder::new(&mut buf)
+        .encode(&px, img.width, img.height)
+        .map_err(|e| SceneError::Encode {
+            path: path.into(),
+            message: e.to_string(),
+        })?;
+    write_atomic(path, &buf)
+}
+
+/// Reads an 8- or 16-bit PNG/JPEG as RGB values in [0, 1] (no transfer
+/// function applied). Gray and alpha channels are expanded/dropped.
+pub fn read_ldr_raw(path: &Path) -> Result<RgbImage> {
+    let bytes = read_bytes(path)?;
+    let img = image::load_from_memory(&bytes).map_err(|e| SceneError::Decode {
+        path: path.into(),
+        message: e.to_string(),
+    })?;
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    check_size(path, w, h)?;
+    let rgb = img.to_rgb32f();
+    let data = rgb.pixels().map(|p| Vec3::new(p[0], p[1], p[2])).collect();
+    Ok(Image::from_vec(w, h, data))
+}
+
+/// Reads a mask PNG: a pixel is set where its largest colour value is above
+/// one half and, for images with alpha, its alpha is above one half too.
+pub fn read_mask(path: &Path) -> Result<Image<bool>> {
+    let bytes = read_bytes(path)?;
+    let img = image::load_from_memory(&bytes).map_err(|e| SceneError::Decode {
+        path: path.into(),
+        message: e.to_string(),
+    })?;
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    check_size(path, w, h)?;
+    let has_alpha = img.color().has_alpha();
+    let rgba = img.to_rgba32f();
+    let data = rgba
+        .pixels()
+        .map(|p| {
+            let c = p[0].max(p[1]).max(p[2]) > 0.5;
+            if has_alpha {
+                c && p[3] > 0.5
+            } else {
+                c
+            }
+        })
+        .collect();
+    Ok(Image::from_vec(w, h, data))
+}
+
+/// Encodes linear RGB for display: clip to [0, 1], power 1/2.2, 8 bits (the
+/// reference's convention), and writes a PNG.
+pub fn write_png_gamma(path: &Path, img: &RgbImage) -> Result<()> {
+    let mut out = image::RgbImage::new(img.width as u32, img.height as u32);
+    for (o, v) in out.pixels_mut().zip(img.data.iter()) {
+        let g = color::linear_to_gamma3(*v);
+        *o = Rgb([color::to_u8(g.x), color::to_u8(g.y), color::to_u8(g.z)]);
+    }
+    let mut buf = Cursor::new(Vec::new());
+    out.write_to(&mut buf, ImageFormat::Png)
+        .map_err(|e| SceneError::Encode {
+            path: path.into(),
+            message: e.to_string(),
+        })?;
+    write_atomic(path, buf.get_ref())
+}
+
+/// Writes a map in [0, 1] (roughness, metallic) as an 8-bit PNG through the
+/// sRGB curve, as Mitsuba's bitmap writer did for the reference's `*Pred.png`.
+pub fn write_png_srgb_map(path: &Path, img: &GrayImage) -> Result<()> {
+    let mut out = image::RgbImage::new(img.width as u32, img.height as u32);
+    for (o, &v) in out.pixels_mut().zip(img.data.iter()) {
+        let b = color::to_u8(color::linear_to_srgb(v));
+        *o = Rgb([b, b, b]);
+    }
+    let mut buf = Cursor::new(Vec::new());
+    out.write_to(&mut buf, ImageFormat::Png)
+        .map_err(|e| SceneError::Encode {
+            path: path.into(),
+            message: e.to_string(),
+        })?;
+    write_atomic(path, buf.get_ref())
+}
+
+/// Rejects images holding NaN or Inf, naming the file and the pixel count.
+pub fn ensure_finite_rgb(path: &Path, img: &RgbImage) -> Result<()> {
+    let (count, (x, y)) = count_non_finite(img, |v: Vec3| v.is_finite());
+    if count > 0 {
+        return Err(SceneError::NonFinite {
+            path: path.into(),
+            count,
+            x,
+            y,
+        });
+    }
+    Ok(())
+}
+
+pub fn ensure_finite_gray(path: &Path, img: &GrayImage) -> Result<()> {
+    let (count, (x, y)) = count_non_finite(img, |v: f32| v.is_finite());
+    if count > 0 {
+        return Err(SceneError::NonFinite {
+            path: path.into(),
+            count,
+            x,
+            y,
+        });
+    }
+    Ok(())
+}
+
+/// Centre-crops to a square and resizes to `size`×`size` (bilinear, on the
+/// encoded values), then linearises with power 2.2 as the reference does.
+pub fn load_photo(path: &Path, size: usize) -> Result<RgbImage> {
+    let raw = read_ldr_raw(path)?;
+    Ok(prepare_photo(&raw, size).map(|v| {
+        Vec3::new(
+            color::gamma_to_linear(v.x),
+            color::gamma_to_linear(v.y),
+            color::gamma_to_linear(v.z),
+        )
+    }))
+}
+
+/// Centre crop to a square, then resize to `size`×`size` with bilinear
+/// (area-aware when shrinking) filtering.
+pub fn prepare_photo(img: &RgbImage, size: usize) -> RgbImage {
+    let side = img.width.min(img.height);
+    let x0 = (img.width - side) / 2;
+    let y0 = (img.height - side) / 2;
+    let crop = Image::from_fn(side, side, |x, y| img.get(x + x0, y + y0));
+    if side == size {
+        return crop;
+    }
+    resize_bilinear(&crop, size, size)
+}
+
+/// Bilinear resize with pixel-centre alignment (as OpenCV's INTER_LINEAR),
+/// prefiltered with a box when shrinking by more than 2× to avoid aliasing.
+pub fn resize_bilinear(img: &RgbImage, w: usize, h: usize) -> RgbImage {
+    let mut src = img.clone();
+    while src.width >= 2 * w && src.height >= 2 * h {
+        src = Image::from_fn(src.width / 2, src.height / 2, |x, y| {
+            (src.get(2 * x, 2 * y)
+                + src.get(2 * x + 1, 2 * y)
+                + src.get(2 * x, 2 * y + 1)
+                + src.get(2 * x + 1, 2 * y + 1))
+                * 0.25
+        });
+    }
+    let sx = src.width as f32 / w as f32;
+    let sy = src.height as f32 / h as f32;
+    Image::from_fn(w, h, |x, y| {
+        let fx = ((x as f32 + 0.5) * sx - 0.5).clamp(0.0, src.width as f32 - 1.0);
+        let fy = ((y as f32 + 0.5) * sy - 0.5).clamp(0.0, src.height as f32 - 1.0);
+        let x0 = fx.floor() as usize;
+        let y0 = fy.floor() as usize;
+        let x1 = (x0 + 1).min(src.width - 1);
+        let y1 = (y0 + 1).min(src.height - 1);
+        let tx = fx - x0 as f32;
+        let ty = fy - y0 as f32;
+        let a = src.get(x0, y0) * (1.0 - tx) + src.get(x1, y0) * tx;
+        let b = src.get(x0, y1) * (1.0 - tx) + src.get(x1, y1) * tx;
+        a * (1.0 - ty) + b * ty
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn test_rgb(w: usize, h: usize) -> RgbImage {
+        Image::from_fn(w, h, |x, y| {
+            Vec3::new(x as f32 * 0.25, y as f32 * 1.5 + 0.001, (x * y) as f32 * 100.0)
+        })
+    }
+
+    #[test]
+    fn exr_rgb_round_trip_is_exact() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("a.exr");
+        let img = test_rgb(13, 7);
+        write_exr_rgb(&p, &img).unwrap();
+        assert_eq!(read_exr_rgb(&p).unwrap(), img);
+    }
+
+    #[test]
+    fn exr_gray_round_trip_is_exact_and_named_y() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("d.exr");
+        let img = Image::from_fn(9, 5, |x, y| x as f32 * 3.25 - y as f32);
+        write_exr_gray(&p, &img).unwrap();
+        let c = read_exr_channels(&p).unwrap();
+        assert!(c.get("Y").is_some());
+        assert_eq!(read_exr_gray(&p).unwrap(), img);
+    }
+
+    #[test]
+    fn hdr_round_trip_within_rgbe_precision() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("e.hdr");
+        let img = Image::from_fn(32, 16, |x, y| {
+            Vec3::new(0.01 + x as f32, 1000.0 / (1.0 + y as f32), 0.5)
+        });
+        write_hdr(&p, &img).unwrap();
+        let back = read_hdr(&p).unwrap();
+        for (a, b) in img.data.iter().zip(back.data.iter()) {
+            assert!(((*a - *b).abs() / a.max_element()).max_element() < 0.01, "{a} {b}");
+        }
+        // The reference writes `#?RGBE`; it must be readable too.
+        let mut bytes = std::fs::read(&p).unwrap();
+        assert!(bytes.starts_with(b"#?RADIANCE\n"));
+        bytes.splice(0..11, b"#?RGBE\n".iter().copied());
+        std::fs::write(&p, &bytes).unwrap();
+        assert_eq!(read_hdr(&p).unwrap(), back);
+    }
+
+    #[test]
+    fn corrupt_files_give_errors_naming_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("broken.exr");
+        std::fs::write(&p, b"not an exr").unwrap();
+        let e = read_exr_rgb(&p).unwrap_err().to_string();
+        assert!(e.contains("broken.exr"), "{e}");
+        let e = read_hdr(&dir.path().join("missing.hdr")).unwrap_err().to_string();
+        assert!(e.contains("missing.hdr"), "{e}");
+    }
+
+    #[test]
+    fn non_finite_is_reported_with_count() {
+        let mut img = test_rgb(4, 4);
+        img.set(2, 1, Vec3::new(f32::NAN, 0.0, 0.0));
+        img.set(3, 3, Vec3::new(0.0, f32::INFINITY, 0.0));
+        let e = ensure_finite_rgb(Path::new("albedoPred.exr"), &img).unwrap_err().to_string();
+        assert!(e.contains("albedoPred.exr") && e.contains("2 pixel"), "{e}");
+    }
+
+    #[test]
+    fn photo_is_cropped_resized_and_linearised() {
+        let img = Image::from_fn(30, 20, |x, _| Vec3::splat(if x < 5 || x >= 25 { 1.0 } else { 0.5 }));
+        let out = prepare_photo(&img, 10);
+        assert_eq!((out.width, out.height), (10, 10));
+        // The bright side bands were cropped away.
+        assert!(out.data.iter().all(|v| (v.x - 0.5).abs() < 1e-6));
+    }
+}

@@ -1,0 +1,19 @@
+//! Scene data for matflow: images, colour transfer functions, the camera
+//! conventions of the reference implementation, EXR/PNG/HDR input and output,
+//! image metrics and the Materialist scene bundle (its folder layout).
+//!
+//! Everything here is plain data and file formats; no rendering.
+
+pub mod bundle;
+pub mod camera;
+pub mod color;
+pub mod error;
+pub mod image;
+pub mod io;
+pub mod metrics;
+
+
+pub use bundle::{Bundle, MaterialMaps, MaterialSource};
+pub use camera::Camera;
+pub use error::SceneError;
+pub use image::{GrayImage, Image, RgbImage};
