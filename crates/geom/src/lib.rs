@@ -1,1 +1,8 @@
+//! Geometry for matflow: the mesh rebuilt from a depth map (paper §3.1),
+//! PLY export, and the BVH with closest-hit and occlusion queries.
 
+pub mod bvh;
+pub mod mesh;
+
+pub use bvh::{Bvh, Hit};
+pub use mesh::TriMesh;
