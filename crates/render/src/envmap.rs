@@ -1,0 +1,364 @@
+//! The lat-long environment map in Mitsuba 3's `envmap` orientation, with
+//! bilinear lookup and importance sampling proportional to luminance × sin θ.
+//!
+//! Direction d ↦ u = atan2(d.x, −d.z)/2π (mod 1), v = acos(d.y)/π. Column j
+//! is centred at u = (j + ½)/W (lookup wraps in u); row i sits at
+//! θ = π·i/(H − 1): row 0 straight up, the last row straight down.
+//!
+//! Sampling works on the cells between texel centres: cell (r, c) spans rows
+//! r..r+1 and columns c..c+1 (wrapping), inside which the radiance is the
+//! bilinear blend of its four corner texels. A cell is chosen with
+//! probability ∝ mean corner luminance × its solid angle, then a direction
+//! uniformly in solid angle inside it. The pdf is therefore exact and
+//! positive wherever the radiance is.
+
+use std::f32::consts::PI;
+
+use glam::Vec3;
+use matflow_scene::color::luminance;
+use matflow_scene::RgbImage;
+
+use crate::RenderError;
+
+/// Values are clamped to this magnitude so no sum can overflow f32.
+pub const MAX_RADIANCE: f32 = 1e18;
+
+#[derive(Clone, Debug)]
+pub struct EnvMap {
+    width: usize,
+    height: usize,
+    texels: Vec<Vec3>,
+    /// Marginal CDF over cell rows (H − 1 rows), f64 normalised.
+    row_cdf: Vec<f64>,
+    /// Conditional CDF over columns per cell row (W per row).
+    col_cdf: Vec<f64>,
+    /// Probability of each cell, row-major ((H − 1) × W).
+    cell_prob: Vec<f32>,
+    /// Solid angle of the cells of each row.
+    row_solid_angle: Vec<f32>,
+    total_weight: f64,
+}
+
+/// Direction → (u, v) in [0, 1)².
+#[inline]
+pub fn dir_to_uv(d: Vec3) -> (f32, f32) {
+    let mut u = d.x.atan2(-d.z) * (0.5 / PI);
+    if u < 0.0 {
+        u += 1.0;
+    }
+    if u >= 1.0 {
+        u -= 1.0;
+    }
+    let v = d.y.clamp(-1.0, 1.0).acos() / PI;
+    (u, v)
+}
+
+/// (u, v) → unit direction.
+#[inline]
+pub fn uv_to_dir(u: f32, v: f32) -> Vec3 {
+    let phi = 2.0 * PI * u;
+    let theta = PI * v;
+    let (st, ct) = theta.sin_cos();
+    let (sp, cp) = phi.sin_cos();
+    Vec3::new(st * sp, ct, -st * cp)
+}
+
+impl EnvMap {
+    /// Builds the map. Rejects non-finite texels (naming the count) and maps
+    /// smaller than 2×2; negative values are clamped to zero.
+    pub fn new(img: &RgbImage) -> Result<EnvMap, RenderError> {
+        let (w, h) = (img.width, img.height);
+        if w < 2 || h < 2 {
+            return Err(RenderError::Invalid(format!(
+                "environment map must be at least 2x2, got {w}x{h}"
+            )));
+        }
+        let bad = img.data.iter().filter(|v| !v.is_finite()).count();
+        if bad > 0 {
+            return Err(RenderError::Invalid(format!(
+                "environment map has {bad} texel(s) with NaN or Inf"
+            )));
+        }
+        let texels: Vec<Vec3> = img
+            .data
+            .iter()
+            .map(|v| v.clamp(Vec3::ZERO, Vec3::splat(MAX_RADIANCE)))
+            .collect();
+        let rows = h - 1;
+        let dphi = 2.0 * std::f64::consts::PI / w as f64;
+        let mut row_solid_angle = Vec::with_capacity(rows);
+        let mut weights = vec![0f64; rows * w];
+        let lum: Vec<f64> = texels.iter().map(|&v| luminance(v) as f64).collect();
+        for r in 0..rows {
+            let t0 = std::f64::consts::PI * r as f64 / rows as f64;
+            let t1 = std::f64::consts::PI * (r + 1) as f64 / rows as f64;
+            let omega = dphi * (t0.cos() - t1.cos());
+            row_solid_angle.push(omega as f32);
+            for c in 0..w {
+                let c1 = (c + 1) % w;
+                let l = 0.25 * (lum[r * w + c] + lum[r * w + c1] + lum[(r + 1) * w + c] + lum[(r + 1) * w + c1]);
+                weights[r * w + c] = l * omega;
+            }
+        }
+        let total: f64 = weights.iter().sum();
+        let mut row_cdf = Vec::with_capacity(rows + 1);
+        let mut col_cdf = Vec::with_capacity(rows * (w + 1));
+        let mut cell_prob = vec![0f32; rows * w];
+        row_cdf.push(0.0);
+        let mut acc = 0.0;
+        for r in 0..rows {
+            let row = &weights[r * w..(r + 1) * w];
+            let rs: f64 = row.iter().sum();
+            acc += rs;
+            row_cdf.push(if total > 0.0 { acc / total } else { 0.0 });
+            let mut a = 0.0;
+            col_cdf.push(0.0);
+            for (c, &x) in row.iter().enumerate() {
+                a += x;
+                col_cdf.push(if rs > 0.0 { a / rs } else { (c + 1) as f64 / w as f64 });
+                if total > 0.0 {
+                    cell_prob[r * w + c] = (x / total) as f32;
+                }
+            }
+        }
+        Ok(EnvMap {
+            width: w,
+            height: h,
+            texels,
+            row_cdf,
+            col_cdf,
+            cell_prob,
+            row_solid_angle,
+            total_weight: total,
+        })
+    }
+
+    pub fn width(&self) -> usize {
+        self.width
+    }
+    pub fn height(&self) -> usize {
+        self.height
+    }
+    pub fn texels(&self) -> &[Vec3] {
+        &self.texels
+    }
+
+    /// False when the map is black everywhere (nothing to sample).
+    pub fn can_sample(&self) -> bool {
+        self.total_weight > 0.0 && self.total_weight.is_finite()
+    }
+
+    #[inline]
+    fn texel(&self, x: usize, y: usize) -> Vec3 {
+        self.texels[y * self.width + x]
+    }
+
+    /// Continuous texel coordinates and the cell containing d.
+    #[inline]
+    fn locate(&self, d: Vec3) -> (usize, usize, f32, f32) {
+        let (u, v) = dir_to_uv(d);
+        let x = u * self.width as f32 - 0.5;
+        let xf = x.floor();
+        let fx = x - xf;
+        let c = (xf as i64).rem_euclid(self.width as i64) as usize;
+        let y = v * (self.height - 1) as f32;
+        let r = (y.floor() as i64).clamp(0, self.height as i64 - 2) as usize;
+        let fy = (y - r as f32).clamp(0.0, 1.0);
+        (r, c, fx.clamp(0.0, 1.0), fy)
+    }
+
+    /// Radiance arriving from direction `d` (unit), bilinear.
+    #[inline]
+    pub fn eval(&self, d: Vec3) -> Vec3 {
+        let (r, c, fx, fy) = self.locate(d);
+        let c1 = (c + 1) % self.width;
+        let a = self.texel(c, r) * (1.0 - fx) + self.texel(c1, r) * fx;
+        let b = self.texel(c, r + 1) * (1.0 - fx) + self.texel(c1, r + 1) * fx;
+        a * (1.0 - fy) + b * fy
+    }
+
+    /// Solid-angle density of [`EnvMap::sample`] for direction `d`.
+    #[inline]
+    pub fn pdf(&self, d: Vec3) -> f32 {
+        if !self.can_sample() {
+            return 0.0;
+        }
+        let (r, c, _, _) = self.locate(d);
+        let omega = self.row_solid_angle[r];
+        if omega <= 0.0 {
+            return 0.0;
+        }
+        self.cell_prob[r * self.width + c] / omega
+    }
+
+    /// Samples a direction; returns (direction, radiance, pdf) or `None`
+    /// for a black map.
+    #[inline]
+    pub fn sample(&self, u1: f32, u2: f32) -> Option<(Vec3, Vec3, f32)> {
+        if !self.can_sample() {
+            return None;
+        }
+        let rows = self.height - 1;
+        let (r, ur) = sample_cdf(&self.row_cdf, u1 as f64);
+        let w = self.width;
+        let (c, uc) = sample_cdf(&self.col_cdf[r * (w + 1)..(r + 1) * (w + 1)], u2 as f64);
+        let p = self.cell_prob[r * w + c];
+        if p <= 0.0 {
+            return None;
+        }
+        // Uniform in solid angle inside the cell.
+        let t0 = PI * r as f32 / rows as f32;
+        let t1 = PI * (r + 1) as f32 / rows as f32;
+        let (c0, c1) = (t0.cos(), t1.cos());
+        let cos_t = (c0 + (c1 - c0) * uc as f32).clamp(-1.0, 1.0);
+        let u = ((c as f32 + 0.5 + ur as f32) / w as f32).rem_euclid(1.0);
+        let sin_t = (1.0 - cos_t * cos_t).max(0.0).sqrt();
+        let phi = 2.0 * PI * u;
+        let (sp, cp) = phi.sin_cos();
+        let d = Vec3::new(sin_t * sp, cos_t, -sin_t * cp);
+        let pdf = p / self.row_solid_angle[r];
+        Some((d, self.eval(d), pdf))
+    }
+}
+
+/// Inverts a CDF table (`cdf[0] = 0`, last = 1); returns the bin and the
+/// position of `u` inside it, in [0, 1).
+#[inline]
+fn sample_cdf(cdf: &[f64], u: f64) -> (usize, f64) {
+    let n = cdf.len() - 1;
+    // First index with cdf[i+1] > u.
+    let mut lo = 0usize;
+    let mut hi = n;
+    while lo < hi {
+        let mid = (lo + hi) / 2;
+        if cdf[mid + 1] <= u {
+            lo = mid + 1;
+        } else {
+            hi = mid;
+        }
+    }
+    let i = lo.min(n - 1);
+    // Skip empty bins at the end.
+    let (a, b) = (cdf[i], cdf[i + 1]);
+    let t = if b > a { ((u - a) / (b - a)).clamp(0.0, 1.0 - 1e-9) } else { 0.5 };
+    (i, t)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use matflow_scene::Image;
+
+    fn test_map() -> RgbImage {
+        Image::from_fn(32, 16, |x, y| {
+            let base = 0.05 + 0.02 * ((x * 7 + y * 3) % 5) as f32;
+            if (20..23).contains(&x) && (3..5).contains(&y) {
+                Vec3::new(40.0, 35.0, 30.0)
+            } else {
+                Vec3::new(base, base * 1.2, base * 1.5)
+            }
+        })
+    }
+
+    #[test]
+    fn orientation_matches_mitsuba() {
+        // u = 0 is straight ahead (−z), 0.25 is +x, 0.5 behind (+z), 0.75 is −x.
+        let cases = [(Vec3::NEG_Z, 0.0), (Vec3::X, 0.25), (Vec3::Z, 0.5), (Vec3::NEG_X, 0.75)];
+        for (d, u) in cases {
+            let (uu, v) = dir_to_uv(d);
+            assert!((uu - u).abs() < 1e-6, "{d}: {uu}");
+            assert!((v - 0.5).abs() < 1e-6);
+        }
+        assert!(dir_to_uv(Vec3::Y).1.abs() < 1e-6);
+        for (u, v) in [(0.1, 0.2), (0.6, 0.9), (0.99, 0.5)] {
+            let (uu, vv) = dir_to_uv(uv_to_dir(u, v));
+            assert!((uu - u).abs() < 1e-5 && (vv - v).abs() < 1e-5);
+        }
+    }
+
+    #[test]
+    fn texel_centres_reproduce_texels() {
+        let img = test_map();
+        let env = EnvMap::new(&img).unwrap();
+        for y in 1..15 {
+            for x in 0..32 {
+                let u = (x as f32 + 0.5) / 32.0;
+                let v = y as f32 / 15.0;
+                let got = env.eval(uv_to_dir(u, v));
+                assert!((got - img.get(x, y)).abs().max_element() < 1e-3 * (1.0 + img.get(x, y).max_element()), "({x},{y})");
+            }
+        }
+    }
+
+    #[test]
+    fn pdf_integrates_to_one_and_matches_sampling() {
+        let env = EnvMap::new(&test_map()).unwrap();
+        // Integrate pdf over the sphere with a fine (u, cos θ) grid.
+        let n = 1024;
+        let mut total = 0.0f64;
+        for i in 0..n {
+            for j in 0..n {
+                let u = (i as f32 + 0.5) / n as f32;
+                let ct = 1.0 - 2.0 * (j as f32 + 0.5) / n as f32;
+                let st = (1.0 - ct * ct).sqrt();
+                let phi = 2.0 * PI * u;
+                let d = Vec3::new(st * phi.sin(), ct, -st * phi.cos());
+                total += env.pdf(d) as f64;
+            }
+        }
+        total *= 4.0 * std::f64::consts::PI / (n * n) as f64;
+        assert!((total - 1.0).abs() < 2e-3, "∫pdf = {total}");
+        // Sampled directions report the same pdf as pdf() and radiance as eval().
+        let mut rng = crate::rng::Pcg32::new(3, 4);
+        for _ in 0..10_000 {
+            let (d, l, p) = env.sample(rng.next_f32(), rng.next_f32()).unwrap();
+            assert!((d.length() - 1.0).abs() < 1e-4);
+            let q = env.pdf(d);
+            assert!((p - q).abs() <= 1e-3 * p.max(q), "{p} vs {q}");
+            assert!((l - env.eval(d)).abs().max_element() < 1e-4);
+        }
+    }
+
+    #[test]
+    fn importance_sampled_irradiance_matches_quadrature() {
+        let env = EnvMap::new(&test_map()).unwrap();
+        // E = ∫ L(ω) max(0, ω·n) dω for n = +y, by sampling and by quadrature.
+        let n = Vec3::new(0.3, 0.8, -0.2).normalize();
+        let mut rng = crate::rng::Pcg32::new(11, 5);
+        let m = 200_000;
+        let mut est = 0.0f64;
+        for _ in 0..m {
+            let (d, l, p) = env.sample(rng.next_f32(), rng.next_f32()).unwrap();
+            est += (luminance(l) * d.dot(n).max(0.0) / p) as f64;
+        }
+        est /= m as f64;
+        let q = 1024;
+        let mut quad = 0.0f64;
+        for i in 0..q {
+            for j in 0..q {
+                let u = (i as f32 + 0.5) / q as f32;
+                let ct = 1.0 - 2.0 * (j as f32 + 0.5) / q as f32;
+                let st = (1.0 - ct * ct).sqrt();
+                let phi = 2.0 * PI * u;
+                let d = Vec3::new(st * phi.sin(), ct, -st * phi.cos());
+                quad += (luminance(env.eval(d)) * d.dot(n).max(0.0)) as f64;
+            }
+        }
+        quad *= 4.0 * std::f64::consts::PI / (q * q) as f64;
+        assert!((est - quad).abs() / quad < 0.01, "{est} vs {quad}");
+    }
+
+    #[test]
+    fn black_and_invalid_maps() {
+        let env = EnvMap::new(&Image::new(8, 4, Vec3::ZERO)).unwrap();
+        assert!(!env.can_sample());
+        assert!(env.sample(0.3, 0.3).is_none());
+        assert_eq!(env.pdf(Vec3::Y), 0.0);
+        let mut bad = Image::new(8, 4, Vec3::ONE);
+        bad.set(1, 1, Vec3::new(f32::NAN, 0.0, 0.0));
+        assert!(EnvMap::new(&bad).unwrap_err().to_string().contains("1 texel"));
+        let huge = EnvMap::new(&Image::new(8, 4, Vec3::splat(f32::MAX))).unwrap();
+        assert!(huge.eval(Vec3::X).is_finite());
+        assert!(huge.pdf(Vec3::X).is_finite() && huge.pdf(Vec3::X) > 0.0);
+    }
+}

@@ -1,0 +1,79 @@
+//! Sample warps and local shading frames.
+
+use glam::Vec3;
+use std::f32::consts::PI;
+
+/// Cosine-weighted hemisphere around +z; pdf = cos θ / π.
+#[inline]
+pub fn square_to_cosine_hemisphere(u1: f32, u2: f32) -> Vec3 {
+    // Concentric disk mapping (Shirley–Chiu).
+    let a = 2.0 * u1 - 1.0;
+    let b = 2.0 * u2 - 1.0;
+    let (r, phi) = if a == 0.0 && b == 0.0 {
+        (0.0, 0.0)
+    } else if a * a > b * b {
+        (a, (PI / 4.0) * (b / a))
+    } else {
+        (b, (PI / 2.0) - (PI / 4.0) * (a / b))
+    };
+    let x = r * phi.cos();
+    let y = r * phi.sin();
+    let z = (1.0 - x * x - y * y).max(0.0).sqrt();
+    Vec3::new(x, y, z)
+}
+
+/// Orthonormal basis with `n` as third axis (Duff et al. 2017).
+#[derive(Clone, Copy, Debug)]
+pub struct Frame {
+    pub s: Vec3,
+    pub t: Vec3,
+    pub n: Vec3,
+}
+
+impl Frame {
+    #[inline]
+    pub fn from_normal(n: Vec3) -> Frame {
+        let sign = 1.0f32.copysign(n.z);
+        let a = -1.0 / (sign + n.z);
+        let b = n.x * n.y * a;
+        Frame {
+            s: Vec3::new(1.0 + sign * n.x * n.x * a, sign * b, -sign * n.x),
+            t: Vec3::new(b, sign + n.y * n.y * a, -n.y),
+            n,
+        }
+    }
+    #[inline]
+    pub fn to_local(&self, v: Vec3) -> Vec3 {
+        Vec3::new(v.dot(self.s), v.dot(self.t), v.dot(self.n))
+    }
+    #[inline]
+    pub fn to_world(&self, v: Vec3) -> Vec3 {
+        self.s * v.x + self.t * v.y + self.n * v.z
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn frame_is_orthonormal() {
+        for n in [Vec3::Z, -Vec3::Z, Vec3::X, Vec3::new(0.3, -0.5, 0.8).normalize(), Vec3::new(1e-8, 0.0, -1.0).normalize()] {
+            let f = Frame::from_normal(n);
+            assert!((f.s.length() - 1.0).abs() < 1e-5 && (f.t.length() - 1.0).abs() < 1e-5);
+            assert!(f.s.dot(f.t).abs() < 1e-5 && f.s.dot(n).abs() < 1e-5 && f.t.dot(n).abs() < 1e-5);
+            let v = Vec3::new(0.2, 0.3, 0.9);
+            assert!((f.to_local(f.to_world(v)) - v).length() < 1e-5);
+        }
+    }
+
+    #[test]
+    fn cosine_samples_on_hemisphere() {
+        for i in 0..32 {
+            for j in 0..32 {
+                let v = square_to_cosine_hemisphere((i as f32 + 0.5) / 32.0, (j as f32 + 0.5) / 32.0);
+                assert!((v.length() - 1.0).abs() < 1e-5 && v.z >= 0.0);
+            }
+        }
+    }
+}
