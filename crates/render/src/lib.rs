@@ -1,1 +1,23 @@
+//! Forward rendering for matflow: the simplified Disney BRDF, the
+//! environment map with importance sampling, pixel filters and a path
+//! tracer over a depth-derived mesh whose materials live in screen space.
 
+pub mod bsdf;
+pub mod envmap;
+pub mod filter;
+pub mod integrator;
+pub mod rng;
+pub mod scene;
+pub mod warp;
+
+pub use bsdf::Material;
+pub use envmap::EnvMap;
+pub use filter::PixelFilter;
+pub use integrator::{render, RenderOptions, RenderOutput, RenderStats};
+pub use scene::RenderScene;
+
+#[derive(Debug, thiserror::Error)]
+pub enum RenderError {
+    #[error("{0}")]
+    Invalid(String),
+}

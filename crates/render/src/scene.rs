@@ -1,0 +1,89 @@
+//! What the path tracer needs: camera, mesh + BVH, screen-space materials
+//! and the environment map.
+
+use glam::{Vec2, Vec3};
+use matflow_geom::{vertex_normals, Bvh, TriMesh};
+use matflow_scene::{Camera, MaterialMaps};
+
+use crate::bsdf::Material;
+use crate::envmap::EnvMap;
+use crate::RenderError;
+
+pub struct RenderScene {
+    pub camera: Camera,
+    pub mesh: TriMesh,
+    pub bvh: Bvh,
+    pub face_normals: Vec<Vec3>,
+    /// Angle-weighted vertex normals (used only by the reference-compatible
+    /// sampling frame).
+    pub vertex_normals: Vec<Vec3>,
+    /// Screen-space materials, row-major, sanitised.
+    pub materials: Vec<Material>,
+    pub env: EnvMap,
+}
+
+impl RenderScene {
+    pub fn new(camera: Camera, mesh: TriMesh, maps: &MaterialMaps, env: EnvMap) -> Result<RenderScene, RenderError> {
+        if maps.width() != camera.width || maps.height() != camera.height {
+            return Err(RenderError::Invalid(format!(
+                "material maps are {}x{} but the camera is {}x{}",
+                maps.width(),
+                maps.height(),
+                camera.width,
+                camera.height
+            )));
+        }
+        let bvh = Bvh::build(&mesh);
+        let face_normals = (0..mesh.triangle_count()).map(|i| mesh.face_normal(i)).collect();
+        let vertex_normals = vertex_normals(&mesh);
+        let materials = (0..maps.albedo.data.len())
+            .map(|k| {
+                Material {
+                    albedo: maps.albedo.data[k],
+                    roughness: maps.roughness.data[k],
+                    metallic: maps.metallic.data[k],
+                }
+                .sanitized()
+            })
+            .collect();
+        Ok(RenderScene {
+            camera,
+            mesh,
+            bvh,
+            face_normals,
+            vertex_normals,
+            materials,
+            env,
+        })
+    }
+
+    /// Material of the pixel a camera-space point projects into (nearest,
+    /// as the reference looks materials up at every bounce).
+    #[inline]
+    pub fn material_at(&self, p: Vec3) -> Material {
+        match self.camera.project_to_pixel(p) {
+            Some((x, y)) => self.materials[y * self.camera.width + x],
+            None => Material {
+                albedo: Vec3::ZERO,
+                roughness: 1.0,
+                metallic: 0.0,
+            },
+        }
+    }
+
+    /// Interpolated vertex normal at a hit.
+    #[inline]
+    pub fn shading_normal(&self, prim: u32, u: f32, v: f32) -> Vec3 {
+        let t = self.mesh.indices[prim as usize];
+        let n = self.vertex_normals[t[0] as usize] * (1.0 - u - v)
+            + self.vertex_normals[t[1] as usize] * u
+            + self.vertex_normals[t[2] as usize] * v;
+        n.normalize_or(self.face_normals[prim as usize])
+    }
+
+    /// Film position of the camera ray through `film`.
+    #[inline]
+    pub fn camera_ray(&self, film: Vec2) -> Vec3 {
+        self.camera.film_to_dir(film).normalize()
+    }
+}
