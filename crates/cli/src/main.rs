@@ -1,1 +1,46 @@
-fn main() {}
+//! `matflow`: single-image inverse rendering and physically based editing.
+
+mod bench;
+mod commands;
+
+use anyhow::Result;
+use clap::{Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(name = "matflow", version, about = "Turn one photograph into an editable, physically based scene")]
+struct Cli {
+    #[command(subcommand)]
+    cmd: Cmd,
+}
+
+#[derive(Subcommand)]
+enum Cmd {
+    /// Path-trace a bundle (geometry from its depth) and write EXR + PNG.
+    Render(commands::RenderArgs),
+    /// Build the mesh from a bundle's depth and write it as binary PLY.
+    Mesh(commands::MeshArgs),
+    /// Generate a procedural scene bundle (room, objects, known materials)
+    /// and render its input image.
+    Synth(commands::SynthArgs),
+    /// Benchmarks that print numbers.
+    #[command(subcommand)]
+    Bench(bench::BenchCmd),
+}
+
+fn main() {
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_env("MATFLOW_LOG").unwrap_or_else(|_| "warn".into()))
+        .with_writer(std::io::stderr)
+        .init();
+    let cli = Cli::parse();
+    let res: Result<()> = match cli.cmd {
+        Cmd::Render(a) => commands::render(a),
+        Cmd::Mesh(a) => commands::mesh(a),
+        Cmd::Synth(a) => commands::synth(a),
+        Cmd::Bench(b) => bench::run(b),
+    };
+    if let Err(e) = res {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
+    }
+}

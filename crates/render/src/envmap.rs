@@ -362,3 +362,21 @@ mod tests {
         assert!(huge.pdf(Vec3::X).is_finite() && huge.pdf(Vec3::X) > 0.0);
     }
 }
+
+/// The layout the reference's optimisation loop gives Mitsuba when it
+/// assigns a W-column array to the emitter at run time: W − 1 longitude
+/// intervals, with columns 0 and W − 1 merged (averaged) into column 0.
+/// Its stored `rendered_img.exr` files were rendered this way.
+pub fn merge_seam_columns(img: &RgbImage) -> RgbImage {
+    let w = img.width;
+    if w < 3 {
+        return img.clone();
+    }
+    matflow_scene::Image::from_fn(w - 1, img.height, |x, y| {
+        if x == 0 {
+            (img.get(0, y) + img.get(w - 1, y)) * 0.5
+        } else {
+            img.get(x, y)
+        }
+    })
+}
