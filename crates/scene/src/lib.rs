@@ -11,6 +11,7 @@ pub mod error;
 pub mod image;
 pub mod io;
 pub mod metrics;
+pub mod synthetic;
 
 
 pub use bundle::{Bundle, MaterialMaps, MaterialSource};
