@@ -14,7 +14,12 @@ fn matflow(args: &[&str], threads: Option<usize>) -> Output {
 
 fn ok(o: &Output) -> String {
     let out = String::from_utf8_lossy(&o.stdout).into_owned();
-    assert!(o.status.success(), "matflow failed: {}\n{}", out, String::from_utf8_lossy(&o.stderr));
+    assert!(
+        o.status.success(),
+        "matflow failed: {}\n{}",
+        out,
+        String::from_utf8_lossy(&o.stderr)
+    );
     out
 }
 
@@ -24,7 +29,20 @@ fn s(p: &Path) -> &str {
 
 fn synth(dir: &Path) -> PathBuf {
     let b = dir.join("room");
-    ok(&matflow(&["synth", "--seed", "5", "--size", "48", "--spp", "4", "--out", s(&b)], None));
+    ok(&matflow(
+        &[
+            "synth",
+            "--seed",
+            "5",
+            "--size",
+            "48",
+            "--spp",
+            "4",
+            "--out",
+            s(&b),
+        ],
+        None,
+    ));
     b
 }
 
@@ -32,25 +50,63 @@ fn synth(dir: &Path) -> PathBuf {
 fn synth_then_render_writes_exr_png_and_summary() {
     let dir = tempfile::tempdir().unwrap();
     let b = synth(dir.path());
-    for f in ["gt_image.exr", "gt_image.png", "depth.exr", "albedoPred.exr", "roughnessPred.png", "metallicPred.png", "normalPred.exr", "ground_truth/albedo.exr", "ground_truth/envmap.hdr"] {
+    for f in [
+        "gt_image.exr",
+        "gt_image.png",
+        "depth.exr",
+        "albedoPred.exr",
+        "roughnessPred.png",
+        "metallicPred.png",
+        "normalPred.exr",
+        "ground_truth/albedo.exr",
+        "ground_truth/envmap.hdr",
+    ] {
         assert!(b.join(f).is_file(), "missing {f}");
     }
     let out = dir.path().join("r.exr");
     let text = ok(&matflow(
-        &["render", "--bundle", s(&b), "--materials", "ground_truth", "--spp", "8", "--depth", "3", "--compare", s(&b.join("gt_image.exr")), "--out", s(&out)],
+        &[
+            "render",
+            "--bundle",
+            s(&b),
+            "--materials",
+            "ground_truth",
+            "--spp",
+            "8",
+            "--depth",
+            "3",
+            "--compare",
+            s(&b.join("gt_image.exr")),
+            "--out",
+            s(&out),
+        ],
         None,
     ));
     assert!(text.contains("rendered 48x48 at 8 spp, depth 3"), "{text}");
     assert!(text.contains("Mrays/s"), "{text}");
     assert!(out.is_file() && dir.path().join("r.png").is_file());
     // Same scene, different seed and spp: close to the stored input image.
-    let psnr: f64 = text.split("PSNR (sRGB, gamma 2.2) against").nth(1).unwrap().split(": ").nth(1).unwrap().trim_end_matches(|c: char| !c.is_ascii_digit()).trim().parse().unwrap();
+    let psnr: f64 = text
+        .split("PSNR (sRGB, gamma 2.2) against")
+        .nth(1)
+        .unwrap()
+        .split(": ")
+        .nth(1)
+        .unwrap()
+        .trim_end_matches(|c: char| !c.is_ascii_digit())
+        .trim()
+        .parse()
+        .unwrap();
     assert!(psnr > 20.0, "{text}");
     // A PLY mesh export readable back.
     let ply = dir.path().join("m.ply");
-    let text = ok(&matflow(&["mesh", "--bundle", s(&b), "--out", s(&ply)], None));
+    let text = ok(&matflow(
+        &["mesh", "--bundle", s(&b), "--out", s(&ply)],
+        None,
+    ));
     assert!(text.contains("triangles"), "{text}");
-    let (pos, faces) = matflow_geom::mesh::read_ply_positions_faces(&std::fs::read(&ply).unwrap()).unwrap();
+    let (pos, faces) =
+        matflow_geom::mesh::read_ply_positions_faces(&std::fs::read(&ply).unwrap()).unwrap();
     assert!(!pos.is_empty() && !faces.is_empty());
 }
 
@@ -61,7 +117,20 @@ fn render_is_bit_identical_across_thread_counts_and_runs() {
     let mut bytes = Vec::new();
     for (k, t) in [1usize, 2, 2].iter().enumerate() {
         let out = dir.path().join(format!("r{k}.exr"));
-        ok(&matflow(&["render", "--bundle", s(&b), "--materials", "pred", "--spp", "4", "--out", s(&out)], Some(*t)));
+        ok(&matflow(
+            &[
+                "render",
+                "--bundle",
+                s(&b),
+                "--materials",
+                "pred",
+                "--spp",
+                "4",
+                "--out",
+                s(&out),
+            ],
+            Some(*t),
+        ));
         bytes.push(std::fs::read(&out).unwrap());
     }
     assert_eq!(bytes[0], bytes[1]);
@@ -72,7 +141,16 @@ fn render_is_bit_identical_across_thread_counts_and_runs() {
 fn bad_inputs_fail_with_messages_naming_the_problem() {
     let dir = tempfile::tempdir().unwrap();
     // Missing bundle folder.
-    let o = matflow(&["render", "--bundle", "/nonexistent/bundle", "--out", "/tmp/x.exr"], None);
+    let o = matflow(
+        &[
+            "render",
+            "--bundle",
+            "/nonexistent/bundle",
+            "--out",
+            "/tmp/x.exr",
+        ],
+        None,
+    );
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("/nonexistent/bundle"), "{err}");
@@ -82,19 +160,57 @@ fn bad_inputs_fail_with_messages_naming_the_problem() {
     albedo.data[10].x = f32::NAN;
     albedo.data[11].y = f32::INFINITY;
     matflow_scene::io::write_exr_rgb(&b.join("albedoPred.exr"), &albedo).unwrap();
-    let o = matflow(&["render", "--bundle", s(&b), "--materials", "pred", "--out", s(&dir.path().join("x.exr"))], None);
+    let o = matflow(
+        &[
+            "render",
+            "--bundle",
+            s(&b),
+            "--materials",
+            "pred",
+            "--out",
+            s(&dir.path().join("x.exr")),
+        ],
+        None,
+    );
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
-    assert!(err.contains("albedoPred.exr") && err.contains("2 pixel"), "{err}");
+    assert!(
+        err.contains("albedoPred.exr") && err.contains("2 pixel"),
+        "{err}"
+    );
     assert!(!dir.path().join("x.exr").exists());
     // Corrupt envmap file.
     let env = dir.path().join("bad.hdr");
     std::fs::write(&env, b"#?RADIANCE\ngarbage").unwrap();
-    let o = matflow(&["render", "--bundle", s(&b), "--materials", "ground_truth", "--envmap", s(&env), "--out", s(&dir.path().join("y.exr"))], None);
+    let o = matflow(
+        &[
+            "render",
+            "--bundle",
+            s(&b),
+            "--materials",
+            "ground_truth",
+            "--envmap",
+            s(&env),
+            "--out",
+            s(&dir.path().join("y.exr")),
+        ],
+        None,
+    );
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("bad.hdr"));
     // Unknown material source.
-    let o = matflow(&["render", "--bundle", s(&b), "--materials", "nope", "--out", "/tmp/z.exr"], None);
+    let o = matflow(
+        &[
+            "render",
+            "--bundle",
+            s(&b),
+            "--materials",
+            "nope",
+            "--out",
+            "/tmp/z.exr",
+        ],
+        None,
+    );
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("unknown material source"));
 }

@@ -108,10 +108,16 @@ fn bench_render(a: BenchRenderArgs) -> Result<()> {
         .map(|k| {
             let mut r = Pcg32::for_sample(1, k as u64, 0);
             let (jx, jy) = r.next_2d();
-            (Vec3::ZERO, scene.camera_ray(Vec2::new((k % w) as f32 + jx, (k / w) as f32 + jy)))
+            (
+                Vec3::ZERO,
+                scene.camera_ray(Vec2::new((k % w) as f32 + jx, (k / w) as f32 + jy)),
+            )
         })
         .collect();
-    let hits: Vec<Option<matflow_geom::Hit>> = primary.par_iter().map(|(o, d)| scene.bvh.intersect(*o, *d, 0.0, f32::INFINITY)).collect();
+    let hits: Vec<Option<matflow_geom::Hit>> = primary
+        .par_iter()
+        .map(|(o, d)| scene.bvh.intersect(*o, *d, 0.0, f32::INFINITY))
+        .collect();
     let incoherent: Vec<(Vec3, Vec3)> = primary
         .iter()
         .zip(hits.iter())
@@ -121,7 +127,8 @@ fn bench_render(a: BenchRenderArgs) -> Result<()> {
             let p = *o + *d * h.t;
             let n = scene.face_normals[h.prim as usize];
             let mut r = Pcg32::for_sample(2, k as u64, 0);
-            let l = Frame::from_normal(n).to_world(square_to_cosine_hemisphere(r.next_f32(), r.next_f32()));
+            let l = Frame::from_normal(n)
+                .to_world(square_to_cosine_hemisphere(r.next_f32(), r.next_f32()));
             Some((p + n * 1e-5 * (1.0 + p.abs().max_element()), l))
         })
         .collect();
@@ -150,9 +157,21 @@ fn bench_render(a: BenchRenderArgs) -> Result<()> {
                 .collect(),
         )
     };
-    println!("  primary closest-hit   {:8.2} Mrays/s ({} rays)", time_rays(&primary, false), primary.len());
-    println!("  incoherent closest-hit{:8.2} Mrays/s ({} rays)", time_rays(&incoherent, false), incoherent.len());
-    println!("  incoherent occlusion  {:8.2} Mrays/s ({} rays)", time_rays(&incoherent, true), incoherent.len());
+    println!(
+        "  primary closest-hit   {:8.2} Mrays/s ({} rays)",
+        time_rays(&primary, false),
+        primary.len()
+    );
+    println!(
+        "  incoherent closest-hit{:8.2} Mrays/s ({} rays)",
+        time_rays(&incoherent, false),
+        incoherent.len()
+    );
+    println!(
+        "  incoherent occlusion  {:8.2} Mrays/s ({} rays)",
+        time_rays(&incoherent, true),
+        incoherent.len()
+    );
 
     // Full renders.
     let opts = RenderOptions {
@@ -165,7 +184,10 @@ fn bench_render(a: BenchRenderArgs) -> Result<()> {
     let mut mrays = Vec::new();
     let mut last = None;
     for r in 0..runs {
-        let o = RenderOptions { seed: r as u64, ..opts };
+        let o = RenderOptions {
+            seed: r as u64,
+            ..opts
+        };
         let out = render(scene, &o, &|_, _| {});
         times.push(out.stats.seconds);
         mrays.push(out.stats.total_rays() as f64 / out.stats.seconds / 1e6);
@@ -181,13 +203,18 @@ fn bench_render(a: BenchRenderArgs) -> Result<()> {
         out.stats.total_rays() as f64 / 1e6
     );
     let stored = a.bundle.join("best_results/rendered_img.exr");
-    if stored.is_file() && !matflow_scene::Bundle::open(&a.bundle)?.rendered_img_is_gamma_encoded() {
+    if stored.is_file() && !matflow_scene::Bundle::open(&a.bundle)?.rendered_img_is_gamma_encoded()
+    {
         let reference = io::read_exr_rgb(&stored)?;
         if reference.same_size(&out.image) {
             println!(
                 "  PSNR vs stored rendered_img.exr (sRGB, gamma 2.2): {:.2} dB{}",
                 psnr_gamma(&out.image, &reference),
-                if a.reference_compat { " (reference-compatible frame)" } else { "" }
+                if a.reference_compat {
+                    " (reference-compatible frame)"
+                } else {
+                    ""
+                }
             );
         }
     }

@@ -5,7 +5,9 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use matflow_geom::{mesh_from_depth, DepthMesh, MeshParams};
-use matflow_render::{render as render_scene, EnvMap, PixelFilter, RenderOptions, RenderOutput, RenderScene};
+use matflow_render::{
+    render as render_scene, EnvMap, PixelFilter, RenderOptions, RenderOutput, RenderScene,
+};
 use matflow_scene::metrics::psnr_gamma;
 use matflow_scene::{io, Bundle, Camera, MaterialSource, RgbImage};
 
@@ -121,8 +123,14 @@ pub fn load_scene(
         );
     }
     let t0 = Instant::now();
-    let mesh = mesh_from_depth(&depth, &cam, &MeshParams { min_angle_deg: mesh_angle })
-        .with_context(|| format!("{}: meshing the depth map", bundle_dir.display()))?;
+    let mesh = mesh_from_depth(
+        &depth,
+        &cam,
+        &MeshParams {
+            min_angle_deg: mesh_angle,
+        },
+    )
+    .with_context(|| format!("{}: meshing the depth map", bundle_dir.display()))?;
     let mesh_seconds = t0.elapsed().as_secs_f64();
     let t1 = Instant::now();
     let scene = RenderScene::new(cam, mesh.mesh.clone(), &maps, env)?;
@@ -138,15 +146,21 @@ pub fn load_scene(
 pub fn progress_bar(total: u64, msg: &str) -> ProgressBar {
     let pb = ProgressBar::new(total);
     pb.set_style(
-        ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} tiles, {elapsed} elapsed, eta {eta}")
-            .unwrap()
-            .progress_chars("=> "),
+        ProgressStyle::with_template(
+            "{msg} [{bar:40}] {pos}/{len} tiles, {elapsed} elapsed, eta {eta}",
+        )
+        .unwrap()
+        .progress_chars("=> "),
     );
     pb.set_message(msg.to_string());
     pb
 }
 
-pub fn render_with_progress(scene: &RenderScene, opts: &RenderOptions, label: &str) -> RenderOutput {
+pub fn render_with_progress(
+    scene: &RenderScene,
+    opts: &RenderOptions,
+    label: &str,
+) -> RenderOutput {
     let ts = opts.tile_size.max(1);
     let tiles = scene.camera.width.div_ceil(ts) * scene.camera.height.div_ceil(ts);
     let pb = progress_bar(tiles as u64, label);
@@ -165,7 +179,13 @@ pub fn write_outputs(out: &Path, img: &RgbImage) -> Result<PathBuf> {
 
 pub fn render(a: RenderArgs) -> Result<()> {
     let t_all = Instant::now();
-    let loaded = load_scene(&a.bundle, a.materials, a.envmap.as_deref(), a.mesh_angle, a.reference_compat)?;
+    let loaded = load_scene(
+        &a.bundle,
+        a.materials,
+        a.envmap.as_deref(),
+        a.mesh_angle,
+        a.reference_compat,
+    )?;
     let opts = RenderOptions {
         spp: a.spp,
         max_depth: a.depth,
@@ -193,14 +213,21 @@ pub fn render(a: RenderArgs) -> Result<()> {
         png.display()
     );
     if s.discarded_samples > 0 {
-        eprintln!("warning: {} sample(s) with NaN/Inf radiance were dropped", s.discarded_samples);
+        eprintln!(
+            "warning: {} sample(s) with NaN/Inf radiance were dropped",
+            s.discarded_samples
+        );
     }
     if let Some(c) = &a.compare {
         let reference = io::read_exr_rgb(c)?;
         if !reference.same_size(&out.image) {
             bail!("{}: size differs from the render", c.display());
         }
-        println!("PSNR (sRGB, gamma 2.2) against {}: {:.2} dB", c.display(), psnr_gamma(&out.image, &reference));
+        println!(
+            "PSNR (sRGB, gamma 2.2) against {}: {:.2} dB",
+            c.display(),
+            psnr_gamma(&out.image, &reference)
+        );
     }
     Ok(())
 }
@@ -210,7 +237,13 @@ pub fn mesh(a: MeshArgs) -> Result<()> {
     let depth = bundle.load_depth()?;
     let cam = Camera::new(depth.width, depth.height);
     let t0 = Instant::now();
-    let m = mesh_from_depth(&depth, &cam, &MeshParams { min_angle_deg: a.angle })?;
+    let m = mesh_from_depth(
+        &depth,
+        &cam,
+        &MeshParams {
+            min_angle_deg: a.angle,
+        },
+    )?;
     let secs = t0.elapsed().as_secs_f64();
     let mut buf = Vec::new();
     m.mesh.write_ply(&mut buf, cam.width, cam.height)?;

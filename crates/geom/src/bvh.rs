@@ -52,7 +52,13 @@ pub struct Bvh {
 }
 
 #[inline(always)]
-fn intersect_tri(tri: &PrecompTri, o: Vec3A, d: Vec3A, tmin: f32, tmax: f32) -> Option<(f32, f32, f32)> {
+fn intersect_tri(
+    tri: &PrecompTri,
+    o: Vec3A,
+    d: Vec3A,
+    tmin: f32,
+    tmax: f32,
+) -> Option<(f32, f32, f32)> {
     let p = d.cross(tri.e2);
     let det = tri.e1.dot(p);
     if det == 0.0 || !det.is_finite() {
@@ -89,13 +95,21 @@ impl Bvh {
             if !(area2 > 0.0) || !area2.is_finite() {
                 continue;
             }
-            tris.push(Triangle { v0: a, v1: b, v2: c });
+            tris.push(Triangle {
+                v0: a,
+                v1: b,
+                v2: c,
+            });
             orig.push(i as u32);
         }
         let bvh = if tris.is_empty() {
             Bvh2::default()
         } else {
-            build_bvh2_from_tris(&tris, BvhBuildParams::medium_build(), &mut Duration::default())
+            build_bvh2_from_tris(
+                &tris,
+                BvhBuildParams::medium_build(),
+                &mut Duration::default(),
+            )
         };
         let mut pre = Vec::with_capacity(bvh.primitive_indices.len());
         let mut prim_ids = Vec::with_capacity(bvh.primitive_indices.len());
@@ -200,7 +214,13 @@ impl NextUp for f32 {
 }
 
 /// Brute-force closest hit over every triangle (the test oracle).
-pub fn brute_force_intersect(mesh: &TriMesh, origin: Vec3, dir: Vec3, tmin: f32, tmax: f32) -> Option<Hit> {
+pub fn brute_force_intersect(
+    mesh: &TriMesh,
+    origin: Vec3,
+    dir: Vec3,
+    tmin: f32,
+    tmax: f32,
+) -> Option<Hit> {
     let o = Vec3A::from(origin);
     let d = Vec3A::from(dir);
     let mut best: Option<Hit> = None;
@@ -250,7 +270,11 @@ mod tests {
         }
         fn dir(&mut self) -> Vec3 {
             loop {
-                let v = Vec3::new(self.f() * 2.0 - 1.0, self.f() * 2.0 - 1.0, self.f() * 2.0 - 1.0);
+                let v = Vec3::new(
+                    self.f() * 2.0 - 1.0,
+                    self.f() * 2.0 - 1.0,
+                    self.f() * 2.0 - 1.0,
+                );
                 let l = v.length();
                 if l > 0.1 && l <= 1.0 {
                     return v / l;
@@ -270,7 +294,11 @@ mod tests {
         let base = m.positions.len() as u32;
         for j in 0..=n {
             for i in 0..=n {
-                m.positions.push(Vec3::new(-4.0 + 8.0 * i as f32 / n as f32, -2.0, -4.0 + 8.0 * j as f32 / n as f32));
+                m.positions.push(Vec3::new(
+                    -4.0 + 8.0 * i as f32 / n as f32,
+                    -2.0,
+                    -4.0 + 8.0 * j as f32 / n as f32,
+                ));
             }
         }
         for j in 0..n {
@@ -294,7 +322,11 @@ mod tests {
         let mut hits = 0;
         for k in 0..4000 {
             let o = if k % 2 == 0 {
-                Vec3::new(rng.f() * 8.0 - 4.0, rng.f() * 8.0 - 4.0, rng.f() * 8.0 - 4.0)
+                Vec3::new(
+                    rng.f() * 8.0 - 4.0,
+                    rng.f() * 8.0 - 4.0,
+                    rng.f() * 8.0 - 4.0,
+                )
             } else {
                 // Axis-aligned rays straight at the planes.
                 Vec3::new(rng.f() * 6.0 - 3.0, 0.5, rng.f() * 6.0 - 3.0)
@@ -333,7 +365,10 @@ mod tests {
                 let d = (target - o).normalize();
                 let h = bvh.intersect(o, d, 1e-4, f32::INFINITY).expect("hit");
                 let p = o + d * h.t;
-                assert!((p.y + 2.0).abs() < 1e-3, "leaked through the floor at {target}: {p}");
+                assert!(
+                    (p.y + 2.0).abs() < 1e-3,
+                    "leaked through the floor at {target}: {p}"
+                );
             }
         }
     }

@@ -87,7 +87,11 @@ struct Grid<'a> {
 impl Grid<'_> {
     #[inline]
     fn point(&self, i: usize, j: usize, z: f64) -> DVec3 {
-        DVec3::new((j as f64 - self.cx) * z / self.f, -(i as f64 - self.cy) * z / self.f, -z)
+        DVec3::new(
+            (j as f64 - self.cx) * z / self.f,
+            -(i as f64 - self.cy) * z / self.f,
+            -z,
+        )
     }
     #[inline]
     fn p(&self, i: usize, j: usize) -> DVec3 {
@@ -115,7 +119,11 @@ fn view_angle_deg(a: DVec3, b: DVec3, c: DVec3) -> f64 {
 }
 
 /// Builds the mesh from camera-space depth `z` (0 = no geometry).
-pub fn mesh_from_depth(z: &GrayImage, cam: &Camera, params: &MeshParams) -> Result<DepthMesh, MeshError> {
+pub fn mesh_from_depth(
+    z: &GrayImage,
+    cam: &Camera,
+    params: &MeshParams,
+) -> Result<DepthMesh, MeshError> {
     let (w, h) = (z.width, z.height);
     if w != cam.width || h != cam.height {
         return Err(MeshError::Size {
@@ -167,7 +175,8 @@ pub fn mesh_from_depth(z: &GrayImage, cam: &Camera, params: &MeshParams) -> Resu
                     return NONE;
                 }
                 let p: Vec<DVec3> = nb.iter().map(|&(a, b)| g.p(a, b)).collect();
-                const FANS: [(usize, usize, isize, isize); 4] = [(1, 2, 1, 1), (2, 3, -1, 1), (3, 4, -1, -1), (4, 1, 1, -1)];
+                const FANS: [(usize, usize, isize, isize); 4] =
+                    [(1, 2, 1, 1), (2, 3, -1, 1), (3, 4, -1, -1), (4, 1, 1, -1)];
                 let zc = g.zz(i, j);
                 let mut best: Option<(usize, usize)> = None;
                 for (a, b, dr, dc) in FANS {
@@ -303,7 +312,11 @@ pub fn mesh_from_depth(z: &GrayImage, cam: &Camera, params: &MeshParams) -> Resu
                             stats.copies += 1;
                         }
                         idx[kmin] = copy_of[pix];
-                        let ang = view_angle_deg(pos64[idx[0] as usize], pos64[idx[1] as usize], pos64[idx[2] as usize]);
+                        let ang = view_angle_deg(
+                            pos64[idx[0] as usize],
+                            pos64[idx[1] as usize],
+                            pos64[idx[2] as usize],
+                        );
                         if ang > tau {
                             indices.push(idx);
                             if round == 0 {
@@ -402,7 +415,13 @@ mod tests {
     #[test]
     fn boundary_duplication_leaves_no_gap() {
         let n = 64;
-        let z = GrayImage::from_fn(n, n, |x, y| if (20..44).contains(&x) && (20..44).contains(&y) { 4.0 } else { 10.0 });
+        let z = GrayImage::from_fn(n, n, |x, y| {
+            if (20..44).contains(&x) && (20..44).contains(&y) {
+                4.0
+            } else {
+                10.0
+            }
+        });
         let c = cam(n);
         let m = mesh_from_depth(&z, &c, &MeshParams::default()).unwrap();
         assert!(m.stats.copies > 0, "{:?}", m.stats);
@@ -411,7 +430,10 @@ mod tests {
         let mut escaped = 0;
         for sy in 0..(n - 1) * 4 {
             for sx in 0..(n - 1) * 4 {
-                let film = Vec2::new(0.5 + 0.125 + sx as f32 * 0.25, 0.5 + 0.125 + sy as f32 * 0.25);
+                let film = Vec2::new(
+                    0.5 + 0.125 + sx as f32 * 0.25,
+                    0.5 + 0.125 + sy as f32 * 0.25,
+                );
                 let d = c.film_to_dir(film).normalize();
                 if bvh.intersect(Vec3::ZERO, d, 0.0, f32::INFINITY).is_none() {
                     escaped += 1;
@@ -438,9 +460,12 @@ mod tests {
     fn bad_depth_is_reported() {
         let mut z = GrayImage::new(8, 8, 1.0);
         z.set(3, 2, f32::NAN);
-        let e = mesh_from_depth(&z, &cam(8), &MeshParams::default()).unwrap_err().to_string();
+        let e = mesh_from_depth(&z, &cam(8), &MeshParams::default())
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("x=3, y=2"), "{e}");
-        let e = mesh_from_depth(&GrayImage::new(8, 4, 1.0), &cam(8), &MeshParams::default()).unwrap_err();
+        let e = mesh_from_depth(&GrayImage::new(8, 4, 1.0), &cam(8), &MeshParams::default())
+            .unwrap_err();
         assert!(matches!(e, MeshError::Size { .. }));
     }
 

@@ -1,10 +1,15 @@
 //! Geometry for matflow: the mesh rebuilt from a depth map (paper §3.1),
 //! PLY export, and the BVH with closest-hit and occlusion queries.
 
+// `!(x > 0.0)` is deliberate throughout: it is also true for NaN.
+#![allow(clippy::neg_cmp_op_on_partial_ord, clippy::needless_range_loop)]
+
 pub mod bvh;
 pub mod depth_mesh;
 pub mod mesh;
 
 pub use bvh::{Bvh, Hit};
-pub use depth_mesh::{mesh_from_depth, vertex_normals, DepthMesh, MeshError, MeshParams, MeshStats};
+pub use depth_mesh::{
+    mesh_from_depth, vertex_normals, DepthMesh, MeshError, MeshParams, MeshStats,
+};
 pub use mesh::TriMesh;

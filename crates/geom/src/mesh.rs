@@ -61,7 +61,12 @@ impl TriMesh {
     /// Binary little-endian PLY (x, y, z as float; faces as uchar count +
     /// int indices), readable by Blender and MeshLab. Film positions are
     /// written as texture coordinates `s, t` in [0, 1] when present.
-    pub fn write_ply(&self, w: &mut impl Write, width: usize, height: usize) -> std::io::Result<()> {
+    pub fn write_ply(
+        &self,
+        w: &mut impl Write,
+        width: usize,
+        height: usize,
+    ) -> std::io::Result<()> {
         let has_uv = self.film.len() == self.positions.len() && !self.film.is_empty();
         let mut header = String::new();
         header.push_str("ply\nformat binary_little_endian 1.0\ncomment made by matflow\n");
@@ -72,7 +77,8 @@ impl TriMesh {
         }
         header.push_str(&format!("element face {}\n", self.indices.len()));
         header.push_str("property list uchar int vertex_indices\nend_header\n");
-        let mut buf = Vec::with_capacity(header.len() + self.positions.len() * 20 + self.indices.len() * 13);
+        let mut buf =
+            Vec::with_capacity(header.len() + self.positions.len() * 20 + self.indices.len() * 13);
         buf.extend_from_slice(header.as_bytes());
         for (i, p) in self.positions.iter().enumerate() {
             for c in p.to_array() {

@@ -39,7 +39,12 @@ impl Material {
     pub fn sanitized(self) -> Material {
         let fin = |x: f32, d: f32| if x.is_finite() { x } else { d };
         Material {
-            albedo: Vec3::new(fin(self.albedo.x, 0.0), fin(self.albedo.y, 0.0), fin(self.albedo.z, 0.0)).clamp(Vec3::ZERO, Vec3::ONE),
+            albedo: Vec3::new(
+                fin(self.albedo.x, 0.0),
+                fin(self.albedo.y, 0.0),
+                fin(self.albedo.z, 0.0),
+            )
+            .clamp(Vec3::ZERO, Vec3::ONE),
             roughness: fin(self.roughness, 1.0).clamp(MIN_ROUGHNESS, 1.0),
             metallic: fin(self.metallic, 0.0).clamp(0.0, 1.0),
         }
@@ -114,7 +119,9 @@ pub fn sample(m: &Material, n: Vec3, v: Vec3, u_lobe: f32, u1: f32, u2: f32) -> 
     } else {
         let r = m.roughness.clamp(MIN_ROUGHNESS, 1.0);
         let a2 = r * r * r * r;
-        let cos_t = ((1.0 - u1) / (u1 * (a2 - 1.0) + 1.0)).clamp(0.0, 1.0).sqrt();
+        let cos_t = ((1.0 - u1) / (u1 * (a2 - 1.0) + 1.0))
+            .clamp(0.0, 1.0)
+            .sqrt();
         let sin_t = (1.0 - cos_t * cos_t).max(0.0).sqrt();
         let phi = 2.0 * PI * u2;
         let h = frame.to_world(Vec3::new(sin_t * phi.cos(), sin_t * phi.sin(), cos_t));
@@ -133,7 +140,11 @@ pub fn sample(m: &Material, n: Vec3, v: Vec3, u_lobe: f32, u1: f32, u2: f32) -> 
     if !weight.is_finite() {
         return None;
     }
-    Some(BsdfSample { dir: l, weight, pdf: p })
+    Some(BsdfSample {
+        dir: l,
+        weight,
+        pdf: p,
+    })
 }
 
 #[cfg(test)]
@@ -145,7 +156,11 @@ mod tests {
         let mut v = Vec::new();
         for &r in &[0.07, 0.2, 0.5, 1.0] {
             for &m in &[0.0, 0.5, 1.0] {
-                v.push(Material { albedo: Vec3::new(0.8, 0.5, 0.2), roughness: r, metallic: m });
+                v.push(Material {
+                    albedo: Vec3::new(0.8, 0.5, 0.2),
+                    roughness: r,
+                    metallic: m,
+                });
             }
         }
         v
@@ -184,14 +199,29 @@ mod tests {
                 continue; // too peaked for a uniform grid; see chi_square_sharp_lobe
             }
             for v in views().into_iter().take(3) {
-                let total: f64 = sphere_grid(2000).map(|(d, dw)| pdf(&m, Vec3::Z, v, d) as f64 * dw).sum();
+                let total: f64 = sphere_grid(2000)
+                    .map(|(d, dw)| pdf(&m, Vec3::Z, v, d) as f64 * dw)
+                    .sum();
                 let mut rng = Pcg32::new(4, 4);
                 let n = 200_000;
                 let produced = (0..n)
-                    .filter(|_| sample(&m, Vec3::Z, v, rng.next_f32(), rng.next_f32(), rng.next_f32()).is_some())
+                    .filter(|_| {
+                        sample(
+                            &m,
+                            Vec3::Z,
+                            v,
+                            rng.next_f32(),
+                            rng.next_f32(),
+                            rng.next_f32(),
+                        )
+                        .is_some()
+                    })
                     .count() as f64
                     / n as f64;
-                assert!((total - produced).abs() < 0.01, "{m:?} v={v}: ∫pdf {total} vs produced {produced}");
+                assert!(
+                    (total - produced).abs() < 0.01,
+                    "{m:?} v={v}: ∫pdf {total} vs produced {produced}"
+                );
                 if v == Vec3::Z {
                     assert!((total - 1.0).abs() < 0.01, "{m:?}: {total}");
                 }
@@ -246,8 +276,15 @@ mod tests {
                                 let x = (it as f64 + (a as f64 + 0.5) / sub as f64) / nt as f64;
                                 let ct = 1.0 - 2.0 * x * x;
                                 let st = (1.0 - ct * ct).max(0.0).sqrt();
-                                let phi = 2.0 * std::f64::consts::PI * (ip as f64 + (b as f64 + 0.5) / sub as f64) / np as f64;
-                                let d = Vec3::new((st * phi.cos()) as f32, (st * phi.sin()) as f32, ct as f32);
+                                let phi = 2.0
+                                    * std::f64::consts::PI
+                                    * (ip as f64 + (b as f64 + 0.5) / sub as f64)
+                                    / np as f64;
+                                let d = Vec3::new(
+                                    (st * phi.cos()) as f32,
+                                    (st * phi.sin()) as f32,
+                                    ct as f32,
+                                );
                                 // dω = d(cos θ) dφ = 4x dx dφ
                                 acc += pdf(&m, Vec3::Z, v, d) as f64 * 4.0 * x;
                             }
@@ -279,7 +316,10 @@ mod tests {
                 let z = 3.09;
                 let crit = k * (1.0 - 2.0 / (9.0 * k) + z * (2.0 / (9.0 * k)).sqrt()).powi(3);
                 assert!(produced > samples / 3, "{m:?}");
-                assert!(chi2 < crit, "{m:?} v={v}: chi2 {chi2:.1} > {crit:.1} (dof {dof})");
+                assert!(
+                    chi2 < crit,
+                    "{m:?} v={v}: chi2 {chi2:.1} > {crit:.1} (dof {dof})"
+                );
             }
         }
     }
@@ -290,11 +330,21 @@ mod tests {
         for m in materials() {
             for v in views() {
                 for _ in 0..200 {
-                    if let Some(s) = sample(&m, Vec3::Z, v, rng.next_f32(), rng.next_f32(), rng.next_f32()) {
+                    if let Some(s) = sample(
+                        &m,
+                        Vec3::Z,
+                        v,
+                        rng.next_f32(),
+                        rng.next_f32(),
+                        rng.next_f32(),
+                    ) {
                         let f = eval(&m, Vec3::Z, v, s.dir);
                         let p = pdf(&m, Vec3::Z, v, s.dir);
                         assert!((s.pdf - p).abs() <= 1e-4 * p);
-                        assert!((s.weight - f / (p + 1e-6)).abs().max_element() <= 1e-4 * (1.0 + s.weight.max_element()));
+                        assert!(
+                            (s.weight - f / (p + 1e-6)).abs().max_element()
+                                <= 1e-4 * (1.0 + s.weight.max_element())
+                        );
                     }
                 }
             }
@@ -316,7 +366,10 @@ mod tests {
                 let fba = eval(&m, Vec3::Z, b, a) / a.z;
                 let scale = fab.max_element().max(1.0);
                 // The 1e-6 guards of the reference break exact symmetry slightly.
-                assert!((fab - fba).abs().max_element() <= 1e-3 * scale, "{m:?}: {fab} vs {fba}");
+                assert!(
+                    (fab - fba).abs().max_element() <= 1e-3 * scale,
+                    "{m:?}: {fab} vs {fba}"
+                );
             }
         }
     }
@@ -327,7 +380,11 @@ mod tests {
     /// the sampling formula's inverse, against a Kolmogorov–Smirnov bound.
     #[test]
     fn chi_square_sharp_lobe() {
-        let m = Material { albedo: Vec3::ONE, roughness: 0.07, metallic: 1.0 };
+        let m = Material {
+            albedo: Vec3::ONE,
+            roughness: 0.07,
+            metallic: 1.0,
+        };
         let a2 = 0.07f64.powi(4);
         let v = Vec3::Z;
         let mut rng = Pcg32::new(77, 1);
@@ -350,7 +407,9 @@ mod tests {
             let c2 = c * c;
             let u = (1.0 - c2) / (1.0 + c2 * (a2 - 1.0));
             let cdf = 1.0 - u; // P(cos θ_h ≤ c)
-            dmax = dmax.max((cdf - i as f64 / n).abs()).max((cdf - (i + 1) as f64 / n).abs());
+            dmax = dmax
+                .max((cdf - i as f64 / n).abs())
+                .max((cdf - (i + 1) as f64 / n).abs());
         }
         // KS critical value at 0.1 %: 1.95/sqrt(n).
         assert!(dmax < 1.95 / n.sqrt(), "KS distance {dmax}");
@@ -364,7 +423,10 @@ mod tests {
         // F_D90 = 0.5 + 2R(v·h)²) is known not to conserve energy exactly
         // (Burley 2012): rough white dielectrics reflect up to ~1.2.
         for m in materials() {
-            let m = Material { albedo: Vec3::ONE, ..m };
+            let m = Material {
+                albedo: Vec3::ONE,
+                ..m
+            };
             for v in views() {
                 if m.metallic < 1.0 && v.z < 0.3 {
                     continue; // grazing retro-reflection of the Disney term, see above
@@ -373,7 +435,14 @@ mod tests {
                 let n = 100_000;
                 let mut acc = 0.0f64;
                 for _ in 0..n {
-                    if let Some(s) = sample(&m, Vec3::Z, v, rng.next_f32(), rng.next_f32(), rng.next_f32()) {
+                    if let Some(s) = sample(
+                        &m,
+                        Vec3::Z,
+                        v,
+                        rng.next_f32(),
+                        rng.next_f32(),
+                        rng.next_f32(),
+                    ) {
                         acc += s.weight.x as f64;
                     }
                 }
@@ -388,11 +457,30 @@ mod tests {
     #[test]
     fn extreme_inputs_stay_finite() {
         let ms = [
-            Material { albedo: Vec3::ZERO, roughness: 0.0, metallic: 0.0 },
-            Material { albedo: Vec3::ONE, roughness: 0.07, metallic: 1.0 },
-            Material { albedo: Vec3::splat(f32::NAN), roughness: f32::INFINITY, metallic: -3.0 }.sanitized(),
+            Material {
+                albedo: Vec3::ZERO,
+                roughness: 0.0,
+                metallic: 0.0,
+            },
+            Material {
+                albedo: Vec3::ONE,
+                roughness: 0.07,
+                metallic: 1.0,
+            },
+            Material {
+                albedo: Vec3::splat(f32::NAN),
+                roughness: f32::INFINITY,
+                metallic: -3.0,
+            }
+            .sanitized(),
         ];
-        let dirs = [Vec3::Z, Vec3::X, -Vec3::Z, Vec3::new(1.0, 0.0, 1e-7).normalize(), Vec3::new(0.0, 1.0, -1e-7).normalize()];
+        let dirs = [
+            Vec3::Z,
+            Vec3::X,
+            -Vec3::Z,
+            Vec3::new(1.0, 0.0, 1e-7).normalize(),
+            Vec3::new(0.0, 1.0, -1e-7).normalize(),
+        ];
         let mut rng = Pcg32::new(3, 3);
         for m in ms {
             for v in dirs {
@@ -401,7 +489,14 @@ mod tests {
                     assert!(pdf(&m, Vec3::Z, v, l).is_finite());
                 }
                 for _ in 0..1000 {
-                    if let Some(s) = sample(&m, Vec3::Z, v, rng.next_f32(), rng.next_f32(), rng.next_f32()) {
+                    if let Some(s) = sample(
+                        &m,
+                        Vec3::Z,
+                        v,
+                        rng.next_f32(),
+                        rng.next_f32(),
+                        rng.next_f32(),
+                    ) {
                         assert!(s.weight.is_finite() && s.dir.is_finite() && s.pdf.is_finite());
                     }
                 }

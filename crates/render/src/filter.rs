@@ -14,7 +14,10 @@ pub enum PixelFilter {
 
 impl Default for PixelFilter {
     fn default() -> Self {
-        PixelFilter::Gaussian { stddev: 0.5, radius: 2.0 }
+        PixelFilter::Gaussian {
+            stddev: 0.5,
+            radius: 2.0,
+        }
     }
 }
 

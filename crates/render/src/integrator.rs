@@ -102,7 +102,13 @@ fn offset_origin(p: Vec3, n: Vec3, d: Vec3) -> Vec3 {
 
 /// Radiance along the camera ray through `film`.
 #[inline]
-pub fn radiance(scene: &RenderScene, opts: &RenderOptions, rng: &mut Pcg32, film: Vec2, st: &mut RenderStats) -> Vec3 {
+pub fn radiance(
+    scene: &RenderScene,
+    opts: &RenderOptions,
+    rng: &mut Pcg32,
+    film: Vec2,
+    st: &mut RenderStats,
+) -> Vec3 {
     let mut dir = scene.camera_ray(film);
     let mut origin = Vec3::ZERO;
     let mut throughput = Vec3::ONE;
@@ -118,7 +124,11 @@ pub fn radiance(scene: &RenderScene, opts: &RenderOptions, rng: &mut Pcg32, film
         let hit = scene.bvh.intersect(origin, dir, 0.0, f32::INFINITY);
         let Some(hit) = hit else {
             let le = env.eval(dir);
-            let w = if depth == 0 { 1.0 } else { mis_power(prev_pdf, env.pdf(dir)) };
+            let w = if depth == 0 {
+                1.0
+            } else {
+                mis_power(prev_pdf, env.pdf(dir))
+            };
             l += throughput * le * w;
             break;
         };
@@ -137,7 +147,10 @@ pub fn radiance(scene: &RenderScene, opts: &RenderOptions, rng: &mut Pcg32, film
                 let f = bsdf::eval(&mat, n, v, wl);
                 if f.max_element() > 0.0 {
                     st.shadow_rays += 1;
-                    if !scene.bvh.occluded(offset_origin(p, n, wl), wl, 0.0, f32::INFINITY) {
+                    if !scene
+                        .bvh
+                        .occluded(offset_origin(p, n, wl), wl, 0.0, f32::INFINITY)
+                    {
                         let pdf_b = bsdf::pdf(&mat, n, v, wl);
                         l += throughput * f * le * (mis_power(pdf_e, pdf_b) / pdf_e);
                     }
@@ -179,7 +192,11 @@ struct Tile {
 }
 
 /// Renders the scene. `progress(done, total)` is called after each tile.
-pub fn render(scene: &RenderScene, opts: &RenderOptions, progress: &(dyn Fn(usize, usize) + Sync)) -> RenderOutput {
+pub fn render(
+    scene: &RenderScene,
+    opts: &RenderOptions,
+    progress: &(dyn Fn(usize, usize) + Sync),
+) -> RenderOutput {
     let start = Instant::now();
     let (w, h) = (scene.camera.width, scene.camera.height);
     let ts = opts.tile_size.max(1);
@@ -240,7 +257,8 @@ pub fn render(scene: &RenderScene, opts: &RenderOptions, progress: &(dyn Fn(usiz
                                     }
                                     let by = (py - t.y0 as i64 + border as i64) as usize;
                                     for px in lo_x..=hi_x {
-                                        let wgt = wy * opts.filter.weight_1d(px as f32 + 0.5 - film.x);
+                                        let wgt =
+                                            wy * opts.filter.weight_1d(px as f32 + 0.5 - film.x);
                                         if wgt <= 0.0 {
                                             continue;
                                         }
@@ -292,7 +310,11 @@ pub fn render(scene: &RenderScene, opts: &RenderOptions, progress: &(dyn Fn(usiz
         .iter()
         .map(|a| {
             if a[3] > 0.0 {
-                let v = Vec3::new((a[0] / a[3]) as f32, (a[1] / a[3]) as f32, (a[2] / a[3]) as f32);
+                let v = Vec3::new(
+                    (a[0] / a[3]) as f32,
+                    (a[1] / a[3]) as f32,
+                    (a[2] / a[3]) as f32,
+                );
                 v.clamp(Vec3::ZERO, Vec3::splat(f32::MAX))
             } else {
                 Vec3::ZERO
@@ -315,7 +337,9 @@ mod tests {
 
     fn sky() -> RgbImage {
         Image::from_fn(32, 16, |x, y| {
-            let base = Vec3::new(0.2, 0.3, 0.5) * (1.0 + 0.5 * (x as f32 * 0.4).sin()) * (1.0 - y as f32 / 20.0);
+            let base = Vec3::new(0.2, 0.3, 0.5)
+                * (1.0 + 0.5 * (x as f32 * 0.4).sin())
+                * (1.0 - y as f32 / 20.0);
             if (6..8).contains(&x) && (4..6).contains(&y) {
                 base + Vec3::splat(20.0)
             } else {
@@ -327,7 +351,9 @@ mod tests {
     fn plane_scene(n: usize, mat: crate::Material) -> RenderScene {
         let cam = Camera::new(n, n);
         let depth = GrayImage::new(n, n, 5.0);
-        let mesh = mesh_from_depth(&depth, &cam, &MeshParams::default()).unwrap().mesh;
+        let mesh = mesh_from_depth(&depth, &cam, &MeshParams::default())
+            .unwrap()
+            .mesh;
         let maps = MaterialMaps::uniform(n, n, mat.albedo, mat.roughness, mat.metallic);
         RenderScene::new(cam, mesh, &maps, EnvMap::new(&sky()).unwrap()).unwrap()
     }
@@ -339,12 +365,23 @@ mod tests {
     #[test]
     fn plane_under_envmap_matches_quadrature() {
         let mats = [
-            crate::Material { albedo: Vec3::new(0.7, 0.5, 0.3), roughness: 0.6, metallic: 0.0 },
-            crate::Material { albedo: Vec3::new(0.9, 0.8, 0.6), roughness: 0.25, metallic: 1.0 },
+            crate::Material {
+                albedo: Vec3::new(0.7, 0.5, 0.3),
+                roughness: 0.6,
+                metallic: 0.0,
+            },
+            crate::Material {
+                albedo: Vec3::new(0.9, 0.8, 0.6),
+                roughness: 0.25,
+                metallic: 1.0,
+            },
         ];
         for mat in mats {
             let scene = plane_scene(8, mat);
-            let opts = RenderOptions { max_depth: 2, ..Default::default() };
+            let opts = RenderOptions {
+                max_depth: 2,
+                ..Default::default()
+            };
             let film = Vec2::new(4.0, 4.0);
             let v = -scene.camera_ray(film);
             let n = Vec3::Z;
@@ -374,16 +411,33 @@ mod tests {
             }
             let mean = s1 / m as f64;
             let se = ((s2 / m as f64 - mean * mean) / m as f64).sqrt();
-            assert!((mean - quad).abs() < 4.0 * se + 1e-3 * quad, "{mat:?}: MC {mean} ± {se} vs quadrature {quad}");
+            assert!(
+                (mean - quad).abs() < 4.0 * se + 1e-3 * quad,
+                "{mat:?}: MC {mean} ± {se} vs quadrature {quad}"
+            );
         }
     }
 
     #[test]
     fn bit_identical_across_thread_counts() {
-        let scene = plane_scene(24, crate::Material { albedo: Vec3::splat(0.5), roughness: 0.4, metallic: 0.5 });
-        let opts = RenderOptions { spp: 4, tile_size: 8, ..Default::default() };
+        let scene = plane_scene(
+            24,
+            crate::Material {
+                albedo: Vec3::splat(0.5),
+                roughness: 0.4,
+                metallic: 0.5,
+            },
+        );
+        let opts = RenderOptions {
+            spp: 4,
+            tile_size: 8,
+            ..Default::default()
+        };
         let run = |threads: usize| {
-            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
             pool.install(|| render(&scene, &opts, &|_, _| {})).image
         };
         let a = run(1);
@@ -402,13 +456,34 @@ mod tests {
                 let n = 12;
                 let cam = Camera::new(n, n);
                 // A wall with a step (depth discontinuity) and a grazing floor.
-                let depth = GrayImage::from_fn(n, n, |x, y| if y > 8 { 3.0 + (n - y) as f32 * 2.0 } else if x < 6 { 4.0 } else { 9.0 });
-                let mesh = mesh_from_depth(&depth, &cam, &MeshParams::default()).unwrap().mesh;
+                let depth = GrayImage::from_fn(n, n, |x, y| {
+                    if y > 8 {
+                        3.0 + (n - y) as f32 * 2.0
+                    } else if x < 6 {
+                        4.0
+                    } else {
+                        9.0
+                    }
+                });
+                let mesh = mesh_from_depth(&depth, &cam, &MeshParams::default())
+                    .unwrap()
+                    .mesh;
                 let maps = MaterialMaps::uniform(n, n, Vec3::ONE, r, m);
                 let env = EnvMap::new(&Image::new(8, 4, Vec3::splat(env_val))).unwrap();
                 let scene = RenderScene::new(cam, mesh, &maps, env).unwrap();
-                let out = render(&scene, &RenderOptions { spp: 8, ..Default::default() }, &|_, _| {});
-                assert!(out.image.data.iter().all(|v| v.is_finite() && v.min_element() >= 0.0));
+                let out = render(
+                    &scene,
+                    &RenderOptions {
+                        spp: 8,
+                        ..Default::default()
+                    },
+                    &|_, _| {},
+                );
+                assert!(out
+                    .image
+                    .data
+                    .iter()
+                    .all(|v| v.is_finite() && v.min_element() >= 0.0));
                 assert_eq!(out.stats.discarded_samples, 0);
                 if env_val == 0.0 {
                     assert!(out.image.data.iter().all(|v| *v == Vec3::ZERO));

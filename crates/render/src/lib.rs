@@ -2,6 +2,9 @@
 //! environment map with importance sampling, pixel filters and a path
 //! tracer over a depth-derived mesh whose materials live in screen space.
 
+// `!(x > 0.0)` is deliberate throughout: it is also true for NaN.
+#![allow(clippy::neg_cmp_op_on_partial_ord, clippy::needless_range_loop)]
+
 pub mod bsdf;
 pub mod envmap;
 pub mod filter;

@@ -20,10 +20,17 @@ pub struct RenderScene {
     /// Screen-space materials, row-major, sanitised.
     pub materials: Vec<Material>,
     pub env: EnvMap,
+    focal: f32,
+    principal: Vec2,
 }
 
 impl RenderScene {
-    pub fn new(camera: Camera, mesh: TriMesh, maps: &MaterialMaps, env: EnvMap) -> Result<RenderScene, RenderError> {
+    pub fn new(
+        camera: Camera,
+        mesh: TriMesh,
+        maps: &MaterialMaps,
+        env: EnvMap,
+    ) -> Result<RenderScene, RenderError> {
         if maps.width() != camera.width || maps.height() != camera.height {
             return Err(RenderError::Invalid(format!(
                 "material maps are {}x{} but the camera is {}x{}",
@@ -34,7 +41,9 @@ impl RenderScene {
             )));
         }
         let bvh = Bvh::build(&mesh);
-        let face_normals = (0..mesh.triangle_count()).map(|i| mesh.face_normal(i)).collect();
+        let face_normals = (0..mesh.triangle_count())
+            .map(|i| mesh.face_normal(i))
+            .collect();
         let vertex_normals = vertex_normals(&mesh);
         let materials = (0..maps.albedo.data.len())
             .map(|k| {
@@ -47,6 +56,8 @@ impl RenderScene {
             })
             .collect();
         Ok(RenderScene {
+            focal: camera.focal(),
+            principal: camera.principal_point(),
             camera,
             mesh,
             bvh,
@@ -61,14 +72,23 @@ impl RenderScene {
     /// as the reference looks materials up at every bounce).
     #[inline]
     pub fn material_at(&self, p: Vec3) -> Material {
-        match self.camera.project_to_pixel(p) {
-            Some((x, y)) => self.materials[y * self.camera.width + x],
-            None => Material {
+        // Camera::project_to_pixel with the focal length precomputed.
+        let depth = -p.z;
+        if !(depth > 1e-8) {
+            return Material {
                 albedo: Vec3::ZERO,
                 roughness: 1.0,
                 metallic: 0.0,
-            },
+            };
         }
+        let fx = self.focal * p.x / depth + self.principal.x + 0.5;
+        let fy = -self.focal * p.y / depth + self.principal.y + 0.5;
+        let w = self.camera.width;
+        let h = self.camera.height;
+        // NaN clamps to 0 through the saturating cast.
+        let x = (fx.floor().clamp(0.0, w as f32 - 1.0)) as usize;
+        let y = (fy.floor().clamp(0.0, h as f32 - 1.0)) as usize;
+        self.materials[y * w + x]
     }
 
     /// Interpolated vertex normal at a hit.
@@ -84,6 +104,11 @@ impl RenderScene {
     /// Film position of the camera ray through `film`.
     #[inline]
     pub fn camera_ray(&self, film: Vec2) -> Vec3 {
-        self.camera.film_to_dir(film).normalize()
+        Vec3::new(
+            (film.x - 0.5 - self.principal.x) / self.focal,
+            -(film.y - 0.5 - self.principal.y) / self.focal,
+            -1.0,
+        )
+        .normalize()
     }
 }

@@ -58,10 +58,18 @@ mod tests {
 
     #[test]
     fn frame_is_orthonormal() {
-        for n in [Vec3::Z, -Vec3::Z, Vec3::X, Vec3::new(0.3, -0.5, 0.8).normalize(), Vec3::new(1e-8, 0.0, -1.0).normalize()] {
+        for n in [
+            Vec3::Z,
+            -Vec3::Z,
+            Vec3::X,
+            Vec3::new(0.3, -0.5, 0.8).normalize(),
+            Vec3::new(1e-8, 0.0, -1.0).normalize(),
+        ] {
             let f = Frame::from_normal(n);
             assert!((f.s.length() - 1.0).abs() < 1e-5 && (f.t.length() - 1.0).abs() < 1e-5);
-            assert!(f.s.dot(f.t).abs() < 1e-5 && f.s.dot(n).abs() < 1e-5 && f.t.dot(n).abs() < 1e-5);
+            assert!(
+                f.s.dot(f.t).abs() < 1e-5 && f.s.dot(n).abs() < 1e-5 && f.t.dot(n).abs() < 1e-5
+            );
             let v = Vec3::new(0.2, 0.3, 0.9);
             assert!((f.to_local(f.to_world(v)) - v).length() < 1e-5);
         }
@@ -71,7 +79,8 @@ mod tests {
     fn cosine_samples_on_hemisphere() {
         for i in 0..32 {
             for j in 0..32 {
-                let v = square_to_cosine_hemisphere((i as f32 + 0.5) / 32.0, (j as f32 + 0.5) / 32.0);
+                let v =
+                    square_to_cosine_hemisphere((i as f32 + 0.5) / 32.0, (j as f32 + 0.5) / 32.0);
                 assert!((v.length() - 1.0).abs() < 1e-5 && v.z >= 0.0);
             }
         }

@@ -268,8 +268,18 @@ impl Bundle {
         };
         let (w, h) = (maps.albedo.width, maps.albedo.height);
         let folder = src.folder().unwrap_or(".");
-        self.check_size(&self.dir.join(folder).join("roughness"), &maps.roughness, w, h)?;
-        self.check_size(&self.dir.join(folder).join("metallic"), &maps.metallic, w, h)?;
+        self.check_size(
+            &self.dir.join(folder).join("roughness"),
+            &maps.roughness,
+            w,
+            h,
+        )?;
+        self.check_size(
+            &self.dir.join(folder).join("metallic"),
+            &maps.metallic,
+            w,
+            h,
+        )?;
         if let Some(n) = &maps.normal {
             self.check_size(&self.dir.join(folder).join("normal"), n, w, h)?;
         }
@@ -378,7 +388,10 @@ mod tests {
         let b = Bundle::open(dir.path()).unwrap();
         let e = b.load_depth().unwrap_err().to_string();
         assert!(e.contains("depthPred.exr"), "{e}");
-        let e = b.load_materials(MaterialSource::Pred).unwrap_err().to_string();
+        let e = b
+            .load_materials(MaterialSource::Pred)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("albedoPred.exr"), "{e}");
     }
 
@@ -389,7 +402,13 @@ mod tests {
         let mut maps = MaterialMaps::uniform(4, 4, Vec3::splat(0.5), 0.5, 0.0);
         maps.albedo.set(1, 2, Vec3::new(f32::NAN, 0.0, 0.0));
         b.write_predictions(&maps).unwrap();
-        let e = b.load_materials(MaterialSource::Pred).unwrap_err().to_string();
-        assert!(e.contains("albedoPred.exr") && e.contains("1 pixel") && e.contains("x=1, y=2"), "{e}");
+        let e = b
+            .load_materials(MaterialSource::Pred)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("albedoPred.exr") && e.contains("1 pixel") && e.contains("x=1, y=2"),
+            "{e}"
+        );
     }
 }

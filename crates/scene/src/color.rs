@@ -21,7 +21,11 @@ pub fn srgb_to_linear(c: f32) -> f32 {
 /// Exact sRGB encoding; input clamped to [0, 1].
 #[inline]
 pub fn linear_to_srgb(c: f32) -> f32 {
-    let c = if c.is_finite() { c.clamp(0.0, 1.0) } else { 0.0 };
+    let c = if c.is_finite() {
+        c.clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
     if c <= 0.003_130_8 {
         c * 12.92
     } else {
@@ -40,13 +44,21 @@ pub fn gamma_to_linear(c: f32) -> f32 {
 /// which the reference computes losses and PSNR. Non-finite input maps to 0.
 #[inline]
 pub fn linear_to_gamma(c: f32) -> f32 {
-    let c = if c.is_finite() { c.clamp(0.0, 1.0) } else { 0.0 };
+    let c = if c.is_finite() {
+        c.clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
     c.powf(1.0 / GAMMA)
 }
 
 #[inline]
 pub fn linear_to_gamma3(v: Vec3) -> Vec3 {
-    Vec3::new(linear_to_gamma(v.x), linear_to_gamma(v.y), linear_to_gamma(v.z))
+    Vec3::new(
+        linear_to_gamma(v.x),
+        linear_to_gamma(v.y),
+        linear_to_gamma(v.z),
+    )
 }
 
 /// Rec. 709 luminance of linear RGB.

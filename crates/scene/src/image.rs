@@ -97,7 +97,10 @@ impl RgbImage {
 }
 
 /// Counts non-finite samples; returns (count, first (x, y)).
-pub fn count_non_finite<T: Copy>(img: &Image<T>, finite: impl Fn(T) -> bool) -> (usize, (usize, usize)) {
+pub fn count_non_finite<T: Copy>(
+    img: &Image<T>,
+    finite: impl Fn(T) -> bool,
+) -> (usize, (usize, usize)) {
     let mut count = 0;
     let mut first = (0, 0);
     for (i, &v) in img.data.iter().enumerate() {

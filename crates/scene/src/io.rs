@@ -132,7 +132,10 @@ pub fn read_exr_rgb(path: &Path) -> Result<RgbImage> {
         path,
         format!(
             "expected channels R,G,B or a single channel, found {:?}",
-            c.channels.iter().map(|(n, _)| n.as_str()).collect::<Vec<_>>()
+            c.channels
+                .iter()
+                .map(|(n, _)| n.as_str())
+                .collect::<Vec<_>>()
         ),
     ))
 }
@@ -159,7 +162,10 @@ fn exr_encoding() -> x::Encoding {
     }
 }
 
-fn exr_to_bytes(path: &Path, image: impl FnOnce(&mut Cursor<Vec<u8>>) -> exr::error::UnitResult) -> Result<Vec<u8>> {
+fn exr_to_bytes(
+    path: &Path,
+    image: impl FnOnce(&mut Cursor<Vec<u8>>) -> exr::error::UnitResult,
+) -> Result<Vec<u8>> {
     let mut cur = Cursor::new(Vec::new());
     image(&mut cur).map_err(|e| SceneError::Encode {
         path: path.into(),
@@ -408,7 +414,11 @@ mod tests {
 
     fn test_rgb(w: usize, h: usize) -> RgbImage {
         Image::from_fn(w, h, |x, y| {
-            Vec3::new(x as f32 * 0.25, y as f32 * 1.5 + 0.001, (x * y) as f32 * 100.0)
+            Vec3::new(
+                x as f32 * 0.25,
+                y as f32 * 1.5 + 0.001,
+                (x * y) as f32 * 100.0,
+            )
         })
     }
 
@@ -442,7 +452,10 @@ mod tests {
         write_hdr(&p, &img).unwrap();
         let back = read_hdr(&p).unwrap();
         for (a, b) in img.data.iter().zip(back.data.iter()) {
-            assert!(((*a - *b).abs() / a.max_element()).max_element() < 0.01, "{a} {b}");
+            assert!(
+                ((*a - *b).abs() / a.max_element()).max_element() < 0.01,
+                "{a} {b}"
+            );
         }
         // The reference writes `#?RGBE`; it must be readable too.
         let mut bytes = std::fs::read(&p).unwrap();
@@ -459,7 +472,9 @@ mod tests {
         std::fs::write(&p, b"not an exr").unwrap();
         let e = read_exr_rgb(&p).unwrap_err().to_string();
         assert!(e.contains("broken.exr"), "{e}");
-        let e = read_hdr(&dir.path().join("missing.hdr")).unwrap_err().to_string();
+        let e = read_hdr(&dir.path().join("missing.hdr"))
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("missing.hdr"), "{e}");
     }
 
@@ -468,13 +483,17 @@ mod tests {
         let mut img = test_rgb(4, 4);
         img.set(2, 1, Vec3::new(f32::NAN, 0.0, 0.0));
         img.set(3, 3, Vec3::new(0.0, f32::INFINITY, 0.0));
-        let e = ensure_finite_rgb(Path::new("albedoPred.exr"), &img).unwrap_err().to_string();
+        let e = ensure_finite_rgb(Path::new("albedoPred.exr"), &img)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("albedoPred.exr") && e.contains("2 pixel"), "{e}");
     }
 
     #[test]
     fn photo_is_cropped_resized_and_linearised() {
-        let img = Image::from_fn(30, 20, |x, _| Vec3::splat(if x < 5 || x >= 25 { 1.0 } else { 0.5 }));
+        let img = Image::from_fn(30, 20, |x, _| {
+            Vec3::splat(if !(5..25).contains(&x) { 1.0 } else { 0.5 })
+        });
         let out = prepare_photo(&img, 10);
         assert_eq!((out.width, out.height), (10, 10));
         // The bright side bands were cropped away.

@@ -4,6 +4,9 @@
 //!
 //! Everything here is plain data and file formats; no rendering.
 
+// `!(x > 0.0)` is deliberate throughout: it is also true for NaN.
+#![allow(clippy::neg_cmp_op_on_partial_ord, clippy::needless_range_loop)]
+
 pub mod bundle;
 pub mod camera;
 pub mod color;
@@ -12,7 +15,6 @@ pub mod image;
 pub mod io;
 pub mod metrics;
 pub mod synthetic;
-
 
 pub use bundle::{Bundle, MaterialMaps, MaterialSource};
 pub use camera::Camera;

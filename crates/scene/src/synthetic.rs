@@ -35,9 +35,20 @@ struct Mat {
 #[derive(Clone, Copy, Debug)]
 enum Shape {
     /// Plane n·p = d, bounded by an AABB.
-    Plane { n: Vec3, d: f32, lo: Vec3, hi: Vec3 },
-    Sphere { c: Vec3, r: f32 },
-    Box { lo: Vec3, hi: Vec3 },
+    Plane {
+        n: Vec3,
+        d: f32,
+        lo: Vec3,
+        hi: Vec3,
+    },
+    Sphere {
+        c: Vec3,
+        r: f32,
+    },
+    Box {
+        lo: Vec3,
+        hi: Vec3,
+    },
 }
 
 struct Object {
@@ -146,9 +157,21 @@ pub fn procedural_sky(seed: u64, width: usize, height: usize) -> RgbImage {
     let sun_u = rng.range(0.15, 0.85);
     let sun_v = rng.range(0.12, 0.35);
     let sun_power = rng.range(6.0, 14.0);
-    let zenith = hsv(rng.range(0.55, 0.65), rng.range(0.3, 0.6), rng.range(0.15, 0.35));
-    let horizon = hsv(rng.range(0.08, 0.15), rng.range(0.05, 0.25), rng.range(0.25, 0.45));
-    let ground = hsv(rng.range(0.05, 0.12), rng.range(0.2, 0.4), rng.range(0.05, 0.12));
+    let zenith = hsv(
+        rng.range(0.55, 0.65),
+        rng.range(0.3, 0.6),
+        rng.range(0.15, 0.35),
+    );
+    let horizon = hsv(
+        rng.range(0.08, 0.15),
+        rng.range(0.05, 0.25),
+        rng.range(0.25, 0.45),
+    );
+    let ground = hsv(
+        rng.range(0.05, 0.12),
+        rng.range(0.2, 0.4),
+        rng.range(0.05, 0.12),
+    );
     let sun_dir = sph(sun_u, sun_v);
     Image::from_fn(width, height, |x, y| {
         let u = (x as f32 + 0.5) / width as f32;
@@ -168,7 +191,11 @@ pub fn procedural_sky(seed: u64, width: usize, height: usize) -> RgbImage {
 fn sph(u: f32, v: f32) -> Vec3 {
     let phi = 2.0 * std::f32::consts::PI * u;
     let theta = std::f32::consts::PI * v;
-    Vec3::new(theta.sin() * phi.sin(), theta.cos(), -theta.sin() * phi.cos())
+    Vec3::new(
+        theta.sin() * phi.sin(),
+        theta.cos(),
+        -theta.sin() * phi.cos(),
+    )
 }
 
 /// Builds the procedural scene for `seed` at `width`×`height`.
@@ -180,18 +207,45 @@ pub fn generate(seed: u64, width: usize, height: usize) -> SyntheticScene {
     let left_x = -rng.range(2.2, 2.8);
     let mut objects = vec![
         Object {
-            shape: Shape::Plane { n: Vec3::Y, d: floor_y, lo: Vec3::new(left_x, floor_y, back_z), hi: Vec3::new(6.0, floor_y, -1.0) },
-            mat: Mat { albedo: hsv(rng.f(), rng.range(0.1, 0.4), rng.range(0.4, 0.8)), roughness: rng.range(0.3, 0.7), metallic: 0.0 },
+            shape: Shape::Plane {
+                n: Vec3::Y,
+                d: floor_y,
+                lo: Vec3::new(left_x, floor_y, back_z),
+                hi: Vec3::new(6.0, floor_y, -1.0),
+            },
+            mat: Mat {
+                albedo: hsv(rng.f(), rng.range(0.1, 0.4), rng.range(0.4, 0.8)),
+                roughness: rng.range(0.3, 0.7),
+                metallic: 0.0,
+            },
             tiles: true,
         },
         Object {
-            shape: Shape::Plane { n: Vec3::Z, d: back_z, lo: Vec3::new(left_x, floor_y, back_z), hi: Vec3::new(6.0, floor_y + 4.0, back_z) },
-            mat: Mat { albedo: hsv(rng.f(), rng.range(0.05, 0.3), rng.range(0.5, 0.9)), roughness: rng.range(0.6, 1.0), metallic: 0.0 },
+            shape: Shape::Plane {
+                n: Vec3::Z,
+                d: back_z,
+                lo: Vec3::new(left_x, floor_y, back_z),
+                hi: Vec3::new(6.0, floor_y + 4.0, back_z),
+            },
+            mat: Mat {
+                albedo: hsv(rng.f(), rng.range(0.05, 0.3), rng.range(0.5, 0.9)),
+                roughness: rng.range(0.6, 1.0),
+                metallic: 0.0,
+            },
             tiles: false,
         },
         Object {
-            shape: Shape::Plane { n: Vec3::X, d: left_x, lo: Vec3::new(left_x, floor_y, back_z), hi: Vec3::new(left_x, floor_y + 4.0, -1.0) },
-            mat: Mat { albedo: hsv(rng.f(), rng.range(0.1, 0.5), rng.range(0.4, 0.8)), roughness: rng.range(0.5, 1.0), metallic: 0.0 },
+            shape: Shape::Plane {
+                n: Vec3::X,
+                d: left_x,
+                lo: Vec3::new(left_x, floor_y, back_z),
+                hi: Vec3::new(left_x, floor_y + 4.0, -1.0),
+            },
+            mat: Mat {
+                albedo: hsv(rng.f(), rng.range(0.1, 0.5), rng.range(0.4, 0.8)),
+                roughness: rng.range(0.5, 1.0),
+                metallic: 0.0,
+            },
             tiles: false,
         },
     ];
@@ -207,12 +261,26 @@ pub fn generate(seed: u64, width: usize, height: usize) -> SyntheticScene {
         };
         let shape = if rng.f() < 0.6 {
             let r = rng.range(0.4, 0.8);
-            Shape::Sphere { c: Vec3::new(x, floor_y + r, z), r }
+            Shape::Sphere {
+                c: Vec3::new(x, floor_y + r, z),
+                r,
+            }
         } else {
-            let s = Vec3::new(rng.range(0.5, 0.9), rng.range(0.5, 1.4), rng.range(0.5, 0.9));
-            Shape::Box { lo: Vec3::new(x - s.x * 0.5, floor_y, z - s.z * 0.5), hi: Vec3::new(x + s.x * 0.5, floor_y + s.y, z + s.z * 0.5) }
+            let s = Vec3::new(
+                rng.range(0.5, 0.9),
+                rng.range(0.5, 1.4),
+                rng.range(0.5, 0.9),
+            );
+            Shape::Box {
+                lo: Vec3::new(x - s.x * 0.5, floor_y, z - s.z * 0.5),
+                hi: Vec3::new(x + s.x * 0.5, floor_y + s.y, z + s.z * 0.5),
+            }
         };
-        objects.push(Object { shape, mat, tiles: false });
+        objects.push(Object {
+            shape,
+            mat,
+            tiles: false,
+        });
     }
 
     let mut depth = Image::new(width, height, 0.0f32);
@@ -239,7 +307,8 @@ pub fn generate(seed: u64, width: usize, height: usize) -> SyntheticScene {
                 normal.set(x, y, n);
                 let mut a = o.mat.albedo;
                 if o.tiles {
-                    let cell = ((p.x * 1.25).floor() as i64 + (p.z * 1.25).floor() as i64).rem_euclid(2);
+                    let cell =
+                        ((p.x * 1.25).floor() as i64 + (p.z * 1.25).floor() as i64).rem_euclid(2);
                     if cell == 1 {
                         a *= 0.6;
                     }
@@ -252,7 +321,12 @@ pub fn generate(seed: u64, width: usize, height: usize) -> SyntheticScene {
     }
     SyntheticScene {
         depth,
-        maps: MaterialMaps { albedo, roughness: rough, metallic: metal, normal: Some(normal) },
+        maps: MaterialMaps {
+            albedo,
+            roughness: rough,
+            metallic: metal,
+            normal: Some(normal),
+        },
         envmap: procedural_sky(seed, 32, 16),
     }
 }
@@ -285,7 +359,10 @@ mod tests {
         }
         let sky = s.envmap;
         assert_eq!((sky.width, sky.height), (32, 16));
-        assert!(sky.data.iter().all(|v| v.is_finite() && v.min_element() >= 0.0));
+        assert!(sky
+            .data
+            .iter()
+            .all(|v| v.is_finite() && v.min_element() >= 0.0));
         // The sun is much brighter than the sky.
         let max = sky.data.iter().map(|v| v.x).fold(0.0, f32::max);
         assert!(max > 3.0);
