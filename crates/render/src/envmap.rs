@@ -335,23 +335,26 @@ mod tests {
         }
     }
 
-    #[test]
-    fn pdf_integrates_to_one_and_matches_sampling() {
-        let env = EnvMap::new(&test_map()).unwrap();
-        // Integrate pdf over the sphere with a fine (u, cos θ) grid.
-        let n = 1024;
-        let mut total = 0.0f64;
+    /// Midpoint rule over the sphere on an n×n (u, cos θ) grid.
+    fn sphere_integral(n: usize, f: impl Fn(Vec3) -> f64) -> f64 {
+        let mut acc = 0.0f64;
         for i in 0..n {
             for j in 0..n {
                 let u = (i as f32 + 0.5) / n as f32;
                 let ct = 1.0 - 2.0 * (j as f32 + 0.5) / n as f32;
                 let st = (1.0 - ct * ct).sqrt();
                 let phi = 2.0 * PI * u;
-                let d = Vec3::new(st * phi.sin(), ct, -st * phi.cos());
-                total += env.pdf(d) as f64;
+                acc += f(Vec3::new(st * phi.sin(), ct, -st * phi.cos()));
             }
         }
-        total *= 4.0 * std::f64::consts::PI / (n * n) as f64;
+        acc * 4.0 * std::f64::consts::PI / (n * n) as f64
+    }
+
+    #[test]
+    fn pdf_integrates_to_one_and_matches_sampling() {
+        let env = EnvMap::new(&test_map()).unwrap();
+        // Integrate pdf over the sphere with a fine (u, cos θ) grid.
+        let total = sphere_integral(1024, |d| env.pdf(d) as f64);
         assert!((total - 1.0).abs() < 2e-3, "∫pdf = {total}");
         // Sampled directions report the same pdf as pdf() and radiance as eval().
         let mut rng = crate::rng::Pcg32::new(3, 4);
@@ -377,19 +380,9 @@ mod tests {
             est += (luminance(l) * d.dot(n).max(0.0) / p) as f64;
         }
         est /= m as f64;
-        let q = 1024;
-        let mut quad = 0.0f64;
-        for i in 0..q {
-            for j in 0..q {
-                let u = (i as f32 + 0.5) / q as f32;
-                let ct = 1.0 - 2.0 * (j as f32 + 0.5) / q as f32;
-                let st = (1.0 - ct * ct).sqrt();
-                let phi = 2.0 * PI * u;
-                let d = Vec3::new(st * phi.sin(), ct, -st * phi.cos());
-                quad += (luminance(env.eval(d)) * d.dot(n).max(0.0)) as f64;
-            }
-        }
-        quad *= 4.0 * std::f64::consts::PI / (q * q) as f64;
+        let quad = sphere_integral(1024, |d| {
+            (luminance(env.eval(d)) * d.dot(n).max(0.0)) as f64
+        });
         assert!((est - quad).abs() / quad < 0.01, "{est} vs {quad}");
     }
 
