@@ -63,6 +63,23 @@ pub fn uv_to_dir(u: f32, v: f32) -> Vec3 {
     Vec3::new(st * sp, ct, -st * cp)
 }
 
+/// The bilinear cell of a `width`×`height` map that direction `d` falls in:
+/// (row r, column c, fx, fy), blending texels (c, r), (c+1 mod W, r),
+/// (c, r+1), (c+1 mod W, r+1) with weights (1−fx)(1−fy), fx(1−fy),
+/// (1−fx)fy, fx·fy. This is the lookup [`EnvMap::eval`] uses.
+#[inline]
+pub fn locate_cell(width: usize, height: usize, d: Vec3) -> (usize, usize, f32, f32) {
+    let (u, v) = dir_to_uv(d);
+    let x = u * width as f32 - 0.5;
+    let xf = x.floor();
+    let fx = x - xf;
+    let c = (xf as i64).rem_euclid(width as i64) as usize;
+    let y = v * (height - 1) as f32;
+    let r = (y.floor() as i64).clamp(0, height as i64 - 2) as usize;
+    let fy = (y - r as f32).clamp(0.0, 1.0);
+    (r, c, fx.clamp(0.0, 1.0), fy)
+}
+
 impl EnvMap {
     /// Builds the map. Rejects non-finite texels (naming the count) and maps
     /// smaller than 2×2; negative values are clamped to zero.
@@ -164,15 +181,7 @@ impl EnvMap {
     /// Continuous texel coordinates and the cell containing d.
     #[inline]
     fn locate(&self, d: Vec3) -> (usize, usize, f32, f32) {
-        let (u, v) = dir_to_uv(d);
-        let x = u * self.width as f32 - 0.5;
-        let xf = x.floor();
-        let fx = x - xf;
-        let c = (xf as i64).rem_euclid(self.width as i64) as usize;
-        let y = v * (self.height - 1) as f32;
-        let r = (y.floor() as i64).clamp(0, self.height as i64 - 2) as usize;
-        let fy = (y - r as f32).clamp(0.0, 1.0);
-        (r, c, fx.clamp(0.0, 1.0), fy)
+        locate_cell(self.width, self.height, d)
     }
 
     /// Radiance arriving from direction `d` (unit), bilinear.

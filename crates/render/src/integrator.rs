@@ -79,7 +79,7 @@ pub struct RenderOutput {
 }
 
 #[inline]
-fn mis_power(a: f32, b: f32) -> f32 {
+pub fn mis_power(a: f32, b: f32) -> f32 {
     let (a2, b2) = (a * a, b * b);
     let w = a2 / (a2 + b2);
     if w.is_finite() {
@@ -91,7 +91,7 @@ fn mis_power(a: f32, b: f32) -> f32 {
 
 /// Offset for rays leaving a surface, relative to the point's magnitude.
 #[inline]
-fn offset_origin(p: Vec3, n: Vec3, d: Vec3) -> Vec3 {
+pub fn offset_origin(p: Vec3, n: Vec3, d: Vec3) -> Vec3 {
     let eps = 1e-5 * (1.0 + p.abs().max_element());
     if n.dot(d) >= 0.0 {
         p + n * eps

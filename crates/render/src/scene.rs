@@ -68,18 +68,15 @@ impl RenderScene {
         })
     }
 
-    /// Material of the pixel a camera-space point projects into (nearest,
-    /// as the reference looks materials up at every bounce).
+    /// Index of the pixel a camera-space point projects into (nearest, as
+    /// the reference looks materials up at every bounce); `None` for points
+    /// at or behind the camera plane.
     #[inline]
-    pub fn material_at(&self, p: Vec3) -> Material {
+    pub fn material_index(&self, p: Vec3) -> Option<usize> {
         // Camera::project_to_pixel with the focal length precomputed.
         let depth = -p.z;
         if !(depth > 1e-8) {
-            return Material {
-                albedo: Vec3::ZERO,
-                roughness: 1.0,
-                metallic: 0.0,
-            };
+            return None;
         }
         let fx = self.focal * p.x / depth + self.principal.x + 0.5;
         let fy = -self.focal * p.y / depth + self.principal.y + 0.5;
@@ -88,7 +85,21 @@ impl RenderScene {
         // NaN clamps to 0 through the saturating cast.
         let x = (fx.floor().clamp(0.0, w as f32 - 1.0)) as usize;
         let y = (fy.floor().clamp(0.0, h as f32 - 1.0)) as usize;
-        self.materials[y * w + x]
+        Some(y * w + x)
+    }
+
+    /// Material of the pixel a camera-space point projects into; black for
+    /// points that project nowhere.
+    #[inline]
+    pub fn material_at(&self, p: Vec3) -> Material {
+        match self.material_index(p) {
+            Some(i) => self.materials[i],
+            None => Material {
+                albedo: Vec3::ZERO,
+                roughness: 1.0,
+                metallic: 0.0,
+            },
+        }
     }
 
     /// Interpolated vertex normal at a hit.

@@ -1,0 +1,411 @@
+//! Frozen light paths: the path tracer's random decisions, traced once.
+//!
+//! Geometry never changes during inverse rendering, so every ray the path
+//! tracer would shoot for a given (pixel, sample) can be traced once and
+//! kept. What is kept per path vertex is only what the estimator needs to
+//! be re-evaluated for *any* materials and *any* environment map: the pixel
+//! whose material the vertex uses, and per direction the four cached angles
+//! ([`Geo`]), a fixed weight (MIS weight over pdf, visibility folded in)
+//! and, for directions that reach the sky, the envmap cell they look up.
+//!
+//! The estimator re-evaluated this way is the ordinary path-traced one with
+//! its sampling densities frozen at the values of the scene the cache was
+//! traced with ("path replay" with fixed random numbers). It stays unbiased
+//! for other materials and envmaps as long as those densities are positive
+//! wherever the integrand is, which holds for the BSDF mixture (its diffuse
+//! half covers the hemisphere) and for an envmap sampled with a floor.
+//!
+//! Layout: one [`RowPaths`] per image row (built in parallel, never
+//! concatenated); inside a row, per pixel, its paths' vertices in order,
+//! each vertex followed in the record array by its sky records and then, if
+//! the path continues, its continuation record.
+
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::time::Instant;
+
+use glam::{Vec2, Vec3};
+use matflow_render::envmap::locate_cell;
+use matflow_render::integrator::{mis_power, offset_origin};
+use matflow_render::rng::Pcg32;
+use matflow_render::{bsdf, RenderScene};
+use rayon::prelude::*;
+
+use crate::brdf::Geo;
+
+/// Vertex `q` of a camera ray that escaped: its single record is the sky
+/// seen directly (weight 1, no BSDF).
+pub const NO_MATERIAL: u32 = u32::MAX;
+/// First vertex of a path.
+pub const V_START: u16 = 1;
+/// The vertex's last record continues the path to the next vertex.
+pub const V_CONT: u16 = 2;
+/// Longest path the evaluators accept (segments).
+pub const MAX_DEPTH: u32 = 8;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[repr(C)]
+pub struct Vertex {
+    /// Pixel whose material this vertex uses, or [`NO_MATERIAL`].
+    pub q: u32,
+    /// Number of sky records.
+    pub n_env: u16,
+    pub flags: u16,
+}
+
+impl Vertex {
+    #[inline]
+    pub fn is_start(&self) -> bool {
+        self.flags & V_START != 0
+    }
+    #[inline]
+    pub fn has_cont(&self) -> bool {
+        self.flags & V_CONT != 0
+    }
+    #[inline]
+    pub fn n_records(&self) -> usize {
+        self.n_env as usize + self.has_cont() as usize
+    }
+}
+
+/// One direction at a vertex.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[repr(C)]
+pub struct Record {
+    pub geo: Geo,
+    /// Fixed estimator weight: MIS weight / pdf (sky records), 1 / pdf
+    /// (continuations), 1 (sky seen by the camera).
+    pub w: f32,
+    /// Envmap cell r·W + c (sky records only).
+    pub cell: u16,
+    /// Bilinear position inside the cell, quantised to 1/65535.
+    pub fx: u16,
+    pub fy: u16,
+    pub _pad: u16,
+}
+
+/// Bilinear taps of a sky record: texel indices and weights.
+#[inline]
+pub fn taps(rec: &Record, env_w: usize) -> ([usize; 4], [f32; 4]) {
+    let cell = rec.cell as usize;
+    let (r, c) = (cell / env_w, cell % env_w);
+    let c1 = if c + 1 == env_w { 0 } else { c + 1 };
+    let fx = rec.fx as f32 * (1.0 / 65535.0);
+    let fy = rec.fy as f32 * (1.0 / 65535.0);
+    (
+        [
+            r * env_w + c,
+            r * env_w + c1,
+            (r + 1) * env_w + c,
+            (r + 1) * env_w + c1,
+        ],
+        [
+            (1.0 - fx) * (1.0 - fy),
+            fx * (1.0 - fy),
+            (1.0 - fx) * fy,
+            fx * fy,
+        ],
+    )
+}
+
+/// Radiance a sky record receives from `env` (W×H texels, row-major).
+#[inline]
+pub fn sky(rec: &Record, env: &[Vec3], env_w: usize) -> Vec3 {
+    let (i, w) = taps(rec, env_w);
+    env[i[0]] * w[0] + env[i[1]] * w[1] + env[i[2]] * w[2] + env[i[3]] * w[3]
+}
+
+#[derive(Clone, Debug, Default)]
+pub struct RowPaths {
+    /// Per pixel of the row, start of its vertices (len = width + 1).
+    pub vert_start: Vec<u32>,
+    /// Per pixel of the row, start of its records (len = width + 1).
+    pub rec_start: Vec<u32>,
+    pub vertices: Vec<Vertex>,
+    pub records: Vec<Record>,
+}
+
+#[derive(Clone, Copy, Debug)]
+pub struct CacheOptions {
+    pub spp: u32,
+    /// Mitsuba's `max_depth`: ray segments per path (4 = three bounces).
+    pub max_depth: u32,
+    pub seed: u64,
+    /// Size of the envmap that will be optimised (the taps refer to it).
+    pub env_width: usize,
+    pub env_height: usize,
+}
+
+impl Default for CacheOptions {
+    fn default() -> Self {
+        CacheOptions {
+            spp: 16,
+            max_depth: 4,
+            seed: 0,
+            env_width: 32,
+            env_height: 16,
+        }
+    }
+}
+
+#[derive(Clone, Copy, Debug, Default, serde::Serialize)]
+pub struct CacheStats {
+    pub rays: u64,
+    pub vertices: u64,
+    pub records: u64,
+    pub bytes: u64,
+    pub seconds: f64,
+}
+
+pub struct PathCache {
+    pub width: usize,
+    pub height: usize,
+    pub spp: u32,
+    pub max_depth: u32,
+    pub env_width: usize,
+    pub env_height: usize,
+    pub rows: Vec<RowPaths>,
+    pub stats: CacheStats,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum CacheError {
+    #[error("invalid cache options: {0}")]
+    Options(String),
+    #[error("row {row} holds more than 4 294 967 295 records; lower spp")]
+    Overflow { row: usize },
+}
+
+impl PathCache {
+    pub fn npix(&self) -> usize {
+        self.width * self.height
+    }
+
+    /// Traces `spp` paths per pixel through `scene`, whose materials and
+    /// envmap define the sampling densities that are then frozen. Pixel
+    /// footprints are box-filtered (each sample belongs to its own pixel).
+    /// `progress(rows_done, rows)` is called as rows finish.
+    pub fn build(
+        scene: &RenderScene,
+        opts: &CacheOptions,
+        progress: &(dyn Fn(usize, usize) + Sync),
+    ) -> Result<PathCache, CacheError> {
+        if opts.spp == 0 {
+            return Err(CacheError::Options("spp must be at least 1".into()));
+        }
+        if !(2..=MAX_DEPTH).contains(&opts.max_depth) {
+            return Err(CacheError::Options(format!(
+                "max_depth must be in 2..={MAX_DEPTH}, got {}",
+                opts.max_depth
+            )));
+        }
+        if opts.env_width < 2 || opts.env_height < 2 || opts.env_width * opts.env_height > 65535 {
+            return Err(CacheError::Options(format!(
+                "envmap size {}x{} unsupported (2x2 up to 65535 texels)",
+                opts.env_width, opts.env_height
+            )));
+        }
+        let start = Instant::now();
+        let (w, h) = (scene.camera.width, scene.camera.height);
+        let done = AtomicUsize::new(0);
+        let rows: Vec<Result<(RowPaths, u64), CacheError>> = (0..h)
+            .into_par_iter()
+            .map(|y| {
+                let r = trace_row(scene, opts, y);
+                let d = done.fetch_add(1, Ordering::Relaxed) + 1;
+                progress(d, h);
+                r
+            })
+            .collect();
+        let mut out = Vec::with_capacity(h);
+        let mut stats = CacheStats::default();
+        for r in rows {
+            let (row, rays) = r?;
+            stats.rays += rays;
+            stats.vertices += row.vertices.len() as u64;
+            stats.records += row.records.len() as u64;
+            stats.bytes += (row.vertices.capacity() * std::mem::size_of::<Vertex>()
+                + row.records.capacity() * std::mem::size_of::<Record>()
+                + (row.vert_start.capacity() + row.rec_start.capacity()) * 4)
+                as u64;
+            out.push(row);
+        }
+        stats.seconds = start.elapsed().as_secs_f64();
+        Ok(PathCache {
+            width: w,
+            height: h,
+            spp: opts.spp,
+            max_depth: opts.max_depth,
+            env_width: opts.env_width,
+            env_height: opts.env_height,
+            rows: out,
+            stats,
+        })
+    }
+
+    /// Vertices and records of pixel (x, y).
+    #[inline]
+    pub fn pixel(&self, x: usize, y: usize) -> (&[Vertex], &[Record]) {
+        let row = &self.rows[y];
+        let (v0, v1) = (row.vert_start[x] as usize, row.vert_start[x + 1] as usize);
+        let (r0, r1) = (row.rec_start[x] as usize, row.rec_start[x + 1] as usize);
+        (&row.vertices[v0..v1], &row.records[r0..r1])
+    }
+}
+
+fn sky_record(geo: Geo, w: f32, d: Vec3, ew: usize, eh: usize) -> Record {
+    let (r, c, fx, fy) = locate_cell(ew, eh, d);
+    Record {
+        geo,
+        w,
+        cell: (r * ew + c) as u16,
+        fx: (fx.clamp(0.0, 1.0) * 65535.0 + 0.5) as u16,
+        fy: (fy.clamp(0.0, 1.0) * 65535.0 + 0.5) as u16,
+        _pad: 0,
+    }
+}
+
+fn trace_row(
+    scene: &RenderScene,
+    opts: &CacheOptions,
+    y: usize,
+) -> Result<(RowPaths, u64), CacheError> {
+    let w = scene.camera.width;
+    let (ew, eh) = (opts.env_width, opts.env_height);
+    let env = &scene.env;
+    let mut row = RowPaths {
+        vert_start: Vec::with_capacity(w + 1),
+        rec_start: Vec::with_capacity(w + 1),
+        vertices: Vec::new(),
+        records: Vec::new(),
+    };
+    let mut rays = 0u64;
+    let push_start = |row: &mut RowPaths| -> Result<(), CacheError> {
+        let (nv, nr) = (row.vertices.len(), row.records.len());
+        if nv > u32::MAX as usize || nr > u32::MAX as usize {
+            return Err(CacheError::Overflow { row: y });
+        }
+        row.vert_start.push(nv as u32);
+        row.rec_start.push(nr as u32);
+        Ok(())
+    };
+    for x in 0..w {
+        push_start(&mut row)?;
+        let pix = (y * w + x) as u64;
+        for s in 0..opts.spp {
+            let mut rng = Pcg32::for_sample(opts.seed, pix, s as u64);
+            let (jx, jy) = rng.next_2d();
+            let film = Vec2::new(x as f32 + jx, y as f32 + jy);
+            let dir0 = scene.camera_ray(film);
+            rays += 1;
+            let Some(mut hit) = scene.bvh.intersect(Vec3::ZERO, dir0, 0.0, f32::INFINITY) else {
+                row.vertices.push(Vertex {
+                    q: NO_MATERIAL,
+                    n_env: 1,
+                    flags: V_START,
+                });
+                row.records
+                    .push(sky_record(Geo::default(), 1.0, dir0, ew, eh));
+                continue;
+            };
+            let mut origin = Vec3::ZERO;
+            let mut dir = dir0;
+            let mut depth = 0u32;
+            loop {
+                if depth + 1 >= opts.max_depth {
+                    break;
+                }
+                let p = origin + dir * hit.t;
+                let Some(q) = scene.material_index(p) else {
+                    if depth > 0 {
+                        // Undo the continuation that led here.
+                        row.records.pop();
+                        if let Some(last) = row.vertices.last_mut() {
+                            last.flags &= !V_CONT;
+                        }
+                    }
+                    break;
+                };
+                let n = scene.face_normals[hit.prim as usize];
+                let v = -dir;
+                let mat = scene.materials[q];
+                let vi = row.vertices.len();
+                row.vertices.push(Vertex {
+                    q: q as u32,
+                    n_env: 0,
+                    flags: if depth == 0 { V_START } else { 0 },
+                });
+                // Next-event estimation towards the envmap.
+                let (ue1, ue2) = rng.next_2d();
+                if let Some((wl, _le, pdf_e)) = env.sample(ue1, ue2) {
+                    if n.dot(wl) > 0.0 && pdf_e > 0.0 {
+                        rays += 1;
+                        if !scene
+                            .bvh
+                            .occluded(offset_origin(p, n, wl), wl, 0.0, f32::INFINITY)
+                        {
+                            let pdf_b = bsdf::pdf(&mat, n, v, wl);
+                            let wgt = mis_power(pdf_e, pdf_b) / pdf_e;
+                            let geo = Geo::new(n, v, wl);
+                            if wgt.is_finite() && wgt > 0.0 && geo.lit() {
+                                row.records.push(sky_record(geo, wgt, wl, ew, eh));
+                                row.vertices[vi].n_env += 1;
+                            }
+                        }
+                    }
+                }
+                // Continue by sampling the BSDF.
+                let u_lobe = rng.next_f32();
+                let (u1, u2) = rng.next_2d();
+                let Some(smp) = bsdf::sample(&mat, n, v, u_lobe, u1, u2) else {
+                    break;
+                };
+                if !(smp.pdf > 0.0) || smp.weight.max_element() <= 0.0 {
+                    break;
+                }
+                let d = smp.dir;
+                let geo = Geo::new(n, v, d);
+                if !geo.lit() {
+                    break;
+                }
+                let o2 = offset_origin(p, n, d);
+                rays += 1;
+                match scene.bvh.intersect(o2, d, 0.0, f32::INFINITY) {
+                    None => {
+                        let wgt = mis_power(smp.pdf, env.pdf(d)) / smp.pdf;
+                        if wgt.is_finite() && wgt > 0.0 {
+                            row.records.push(sky_record(geo, wgt, d, ew, eh));
+                            row.vertices[vi].n_env += 1;
+                        }
+                        break;
+                    }
+                    Some(h2) => {
+                        if depth + 2 >= opts.max_depth {
+                            break;
+                        }
+                        let wgt = 1.0 / smp.pdf;
+                        if !wgt.is_finite() {
+                            break;
+                        }
+                        row.records.push(Record {
+                            geo,
+                            w: wgt,
+                            cell: 0,
+                            fx: 0,
+                            fy: 0,
+                            _pad: 0,
+                        });
+                        row.vertices[vi].flags |= V_CONT;
+                        origin = o2;
+                        dir = d;
+                        hit = h2;
+                        depth += 1;
+                    }
+                }
+            }
+        }
+    }
+    push_start(&mut row)?;
+    row.vertices.shrink_to_fit();
+    row.records.shrink_to_fit();
+    Ok((row, rays))
+}

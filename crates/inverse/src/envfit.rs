@@ -1,0 +1,230 @@
+//! Environment-map recovery on the frozen paths.
+//!
+//! With materials held fixed the frozen estimator is exactly linear in the
+//! envmap: every sky record contributes (path throughput × f·w) times a
+//! bilinear blend of four texels. [`EnvTransport`] stores those terms for a
+//! subset of pixels (the envmap has only W·H·3 unknowns), so a loss
+//! evaluation and its gradient are one sparse product each way.
+
+use glam::Vec3;
+use matflow_render::Material;
+use rayon::prelude::*;
+
+use crate::brdf::eval;
+use crate::cache::{taps, PathCache, Record, MAX_DEPTH, NO_MATERIAL};
+use crate::transport::for_each_path;
+
+#[derive(Clone, Copy, Debug)]
+#[repr(C)]
+pub struct EnvTerm {
+    pub cell: u16,
+    pub fx: u16,
+    pub fy: u16,
+    pub _pad: u16,
+    pub w: Vec3,
+}
+
+/// The linear map envmap → image for the selected pixels.
+pub struct EnvTransport {
+    pub env_width: usize,
+    pub env_height: usize,
+    /// Selected pixel indices (row-major image index).
+    pub pixels: Vec<u32>,
+    /// Per selected pixel, start of its terms (len = pixels + 1).
+    pub start: Vec<u32>,
+    pub terms: Vec<EnvTerm>,
+}
+
+/// Pixels on a regular grid with the given stride (offset to its centre).
+pub fn strided_pixels(width: usize, height: usize, stride: usize) -> Vec<u32> {
+    let s = stride.max(1);
+    let o = s / 2;
+    let mut v = Vec::new();
+    for y in (o.min(height.saturating_sub(1))..height).step_by(s) {
+        for x in (o.min(width.saturating_sub(1))..width).step_by(s) {
+            v.push((y * width + x) as u32);
+        }
+    }
+    v
+}
+
+impl EnvTransport {
+    pub fn build(cache: &PathCache, mats: &[Material], pixels: Vec<u32>) -> EnvTransport {
+        let inv = 1.0 / cache.spp as f32;
+        let w = cache.width;
+        let chunk = 1024;
+        let parts: Vec<(Vec<u32>, Vec<EnvTerm>)> = pixels
+            .par_chunks(chunk)
+            .map(|px| {
+                let mut counts = Vec::with_capacity(px.len());
+                let mut terms = Vec::new();
+                for &p in px {
+                    let (x, y) = (p as usize % w, p as usize / w);
+                    let (verts, recs) = cache.pixel(x, y);
+                    let before = terms.len();
+                    for_each_path(verts, |first, end, r0| {
+                        let mut beta = Vec3::splat(inv);
+                        let mut r = r0;
+                        for k in first..end.min(first + MAX_DEPTH as usize) {
+                            let v = verts[k];
+                            let rs: &[Record] = &recs[r..r + v.n_records()];
+                            r += v.n_records();
+                            if v.q == NO_MATERIAL {
+                                for rec in &rs[..v.n_env as usize] {
+                                    terms.push(term(rec, beta * rec.w));
+                                }
+                                break;
+                            }
+                            let m = mats[v.q as usize];
+                            for rec in &rs[..v.n_env as usize] {
+                                let f = eval(&rec.geo.decode(), &m) * rec.w;
+                                if f != Vec3::ZERO {
+                                    terms.push(term(rec, beta * f));
+                                }
+                            }
+                            if !v.has_cont() {
+                                break;
+                            }
+                            let rec = &rs[v.n_env as usize];
+                            beta *= eval(&rec.geo.decode(), &m) * rec.w;
+                            if beta == Vec3::ZERO || !beta.is_finite() {
+                                break;
+                            }
+                        }
+                    });
+                    counts.push((terms.len() - before) as u32);
+                }
+                (counts, terms)
+            })
+            .collect();
+        let total: usize = parts.iter().map(|p| p.1.len()).sum();
+        let mut start = Vec::with_capacity(pixels.len() + 1);
+        let mut terms = Vec::with_capacity(total);
+        start.push(0u32);
+        for (counts, t) in parts {
+            let mut s = terms.len() as u32;
+            for c in counts {
+                s += c;
+                start.push(s);
+            }
+            terms.extend(t);
+        }
+        EnvTransport {
+            env_width: cache.env_width,
+            env_height: cache.env_height,
+            pixels,
+            start,
+            terms,
+        }
+    }
+
+    pub fn bytes(&self) -> usize {
+        self.terms.capacity() * std::mem::size_of::<EnvTerm>()
+            + (self.start.capacity() + self.pixels.capacity()) * 4
+    }
+
+    /// Image values at the selected pixels for envmap `env`.
+    pub fn apply(&self, env: &[Vec3]) -> Vec<Vec3> {
+        let ew = self.env_width;
+        (0..self.pixels.len())
+            .into_par_iter()
+            .with_min_len(256)
+            .map(|i| {
+                let mut acc = Vec3::ZERO;
+                for t in &self.terms[self.start[i] as usize..self.start[i + 1] as usize] {
+                    acc += t.w * lookup(t, env, ew);
+                }
+                acc
+            })
+            .collect()
+    }
+
+    /// Transpose: ∂loss/∂env from ∂loss/∂I at the selected pixels.
+    pub fn apply_t(&self, adj: &[Vec3]) -> Vec<Vec3> {
+        let ew = self.env_width;
+        let ntex = self.env_width * self.env_height;
+        let chunk = 2048;
+        let parts: Vec<Vec<[f64; 3]>> = (0..self.pixels.len().div_ceil(chunk))
+            .into_par_iter()
+            .map(|c| {
+                let mut acc = vec![[0f32; 3]; ntex];
+                for i in c * chunk..((c + 1) * chunk).min(self.pixels.len()) {
+                    let a = adj[i];
+                    if a == Vec3::ZERO {
+                        continue;
+                    }
+                    for t in &self.terms[self.start[i] as usize..self.start[i + 1] as usize] {
+                        let g = a * t.w;
+                        let (idx, wt) = tap_of(t, ew);
+                        for k in 0..4 {
+                            let e = &mut acc[idx[k]];
+                            e[0] += g.x * wt[k];
+                            e[1] += g.y * wt[k];
+                            e[2] += g.z * wt[k];
+                        }
+                    }
+                }
+                acc.into_iter()
+                    .map(|e| [e[0] as f64, e[1] as f64, e[2] as f64])
+                    .collect()
+            })
+            .collect();
+        let mut tot = vec![[0f64; 3]; ntex];
+        for p in parts {
+            for (t, e) in tot.iter_mut().zip(p) {
+                t[0] += e[0];
+                t[1] += e[1];
+                t[2] += e[2];
+            }
+        }
+        tot.iter()
+            .map(|t| Vec3::new(t[0] as f32, t[1] as f32, t[2] as f32))
+            .collect()
+    }
+
+    /// Which texels any selected pixel depends on.
+    pub fn visible_texels(&self) -> Vec<bool> {
+        let mut v = vec![false; self.env_width * self.env_height];
+        for t in &self.terms {
+            if t.w.max_element() > 0.0 {
+                let (idx, wt) = tap_of(t, self.env_width);
+                for k in 0..4 {
+                    if wt[k] > 0.0 {
+                        v[idx[k]] = true;
+                    }
+                }
+            }
+        }
+        v
+    }
+}
+
+#[inline]
+fn term(rec: &Record, w: Vec3) -> EnvTerm {
+    EnvTerm {
+        cell: rec.cell,
+        fx: rec.fx,
+        fy: rec.fy,
+        _pad: 0,
+        w,
+    }
+}
+
+#[inline]
+fn tap_of(t: &EnvTerm, ew: usize) -> ([usize; 4], [f32; 4]) {
+    let rec = Record {
+        geo: Default::default(),
+        w: 0.0,
+        cell: t.cell,
+        fx: t.fx,
+        fy: t.fy,
+        _pad: 0,
+    };
+    taps(&rec, ew)
+}
+
+#[inline]
+fn lookup(t: &EnvTerm, env: &[Vec3], ew: usize) -> Vec3 {
+    let (i, w) = tap_of(t, ew);
+    env[i[0]] * w[0] + env[i[1]] * w[1] + env[i[2]] * w[2] + env[i[3]] * w[3]
+}

@@ -1,0 +1,27 @@
+//! Inverse rendering with fixed geometry (paper §3.2): recover the
+//! environment map and refined albedo/roughness/metallic maps so that a
+//! physically based render matches the photograph.
+//!
+//! Where the speed comes from: geometry never changes, so the path
+//! tracer's rays are traced once ([`cache`]) and the estimator is
+//! re-evaluated for new parameters without tracing ([`transport`]). With
+//! materials fixed the image is linear in the envmap ([`envfit`]); with the
+//! envmap and the deeper bounces' light fixed, each pixel depends only on
+//! its own material through a few tabulated sums ([`tables`]).
+
+// `!(x > 0.0)` is deliberate throughout: it is also true for NaN.
+#![allow(
+    clippy::neg_cmp_op_on_partial_ord,
+    clippy::needless_range_loop,
+    clippy::too_many_arguments
+)]
+
+pub mod brdf;
+pub mod cache;
+pub mod envfit;
+pub mod loss;
+pub mod tables;
+pub mod transport;
+
+#[cfg(test)]
+pub(crate) mod testutil;

@@ -1,0 +1,50 @@
+//! Small scenes for the crate's tests.
+
+use glam::Vec3;
+use matflow_geom::{mesh_from_depth, MeshParams};
+use matflow_render::{EnvMap, Material, RenderScene};
+use matflow_scene::{synthetic, Camera, MaterialMaps, RgbImage};
+
+pub struct TestScene {
+    pub scene: RenderScene,
+    pub maps: MaterialMaps,
+    pub env: RgbImage,
+}
+
+/// A procedural room corner (floor, walls, objects) at `n`×`n`.
+pub fn room(seed: u64, n: usize) -> TestScene {
+    let s = synthetic::generate(seed, n, n);
+    let cam = Camera::new(n, n);
+    let mesh = mesh_from_depth(&s.depth, &cam, &MeshParams::default())
+        .expect("mesh")
+        .mesh;
+    let scene =
+        RenderScene::new(cam, mesh, &s.maps, EnvMap::new(&s.envmap).expect("env")).expect("scene");
+    TestScene {
+        scene,
+        maps: s.maps,
+        env: s.envmap,
+    }
+}
+
+pub fn materials_of(maps: &MaterialMaps) -> Vec<Material> {
+    (0..maps.albedo.data.len())
+        .map(|k| {
+            Material {
+                albedo: maps.albedo.data[k],
+                roughness: maps.roughness.data[k],
+                metallic: maps.metallic.data[k],
+            }
+            .sanitized()
+        })
+        .collect()
+}
+
+/// A deterministic pseudo-random value in [0, 1) from an index.
+pub fn hash01(i: u64) -> f32 {
+    (matflow_render::rng::mix64(i) >> 40) as f32 / (1u64 << 24) as f32
+}
+
+pub fn texels(img: &RgbImage) -> Vec<Vec3> {
+    img.data.clone()
+}
