@@ -2,6 +2,7 @@
 
 mod bench;
 mod commands;
+mod invert;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};
@@ -26,6 +27,9 @@ enum Cmd {
     /// Generate a procedural scene bundle (room, objects, known materials)
     /// and render its input image.
     Synth(commands::SynthArgs),
+    /// Recover the envmap and materials from a bundle's image and
+    /// predictions; writes best_results/ and summary.json.
+    Invert(invert::InvertArgs),
     /// Benchmarks that print numbers.
     #[command(subcommand)]
     Bench(bench::BenchCmd),
@@ -44,6 +48,7 @@ fn main() {
         Cmd::Render(a) => commands::render(a),
         Cmd::Mesh(a) => commands::mesh(a),
         Cmd::Synth(a) => commands::synth(a),
+        Cmd::Invert(a) => invert::invert_cmd(a),
         Cmd::Bench(b) => bench::run(b),
     };
     if let Err(e) = res {

@@ -228,3 +228,115 @@ fn lookup(t: &EnvTerm, env: &[Vec3], ew: usize) -> Vec3 {
     let (i, w) = tap_of(t, ew);
     env[i[0]] * w[0] + env[i[1]] * w[1] + env[i[2]] * w[2] + env[i[3]] * w[3]
 }
+
+/// What an optimisation stage did.
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct FitTrace {
+    pub steps: usize,
+    /// Re-rendering loss (L1 + L2 on γ-encoded images) after each step's
+    /// forward pass, i.e. `losses[k]` is the loss of the parameters before
+    /// update k.
+    pub losses: Vec<f64>,
+    pub stopped_early: bool,
+}
+
+#[derive(Clone, Copy, Debug)]
+pub struct EnvFitOptions {
+    pub steps: usize,
+    pub lr: f32,
+    pub early_stop: bool,
+}
+
+/// Log-space texel parametrisation: E = exp(θ), clamped to [1e-6, 1e6].
+pub const LOG_E_MIN: f32 = -13.815_511; // ln 1e-6
+pub const LOG_E_MAX: f32 = 13.815_511;
+
+/// The fast route: every texel (and channel) is a free parameter, E =
+/// exp(θ) so steps are relative (HDR suns and dim sky alike), fitted by
+/// Adam on the frozen linear transport. Texels no selected pixel sees
+/// keep their initial value.
+pub fn fit_texels(
+    tr: &EnvTransport,
+    target: &crate::loss::Target,
+    init: &[Vec3],
+    opts: &EnvFitOptions,
+    progress: &(dyn Fn(usize, f64) + Sync),
+) -> (Vec<Vec3>, FitTrace) {
+    use crate::loss::loss_and_grad;
+    use crate::optim::{Adam, EarlyStop};
+    let n = init.len();
+    let mut theta: Vec<f32> = init
+        .iter()
+        .flat_map(|e| [e.x, e.y, e.z])
+        .map(|x| x.max(1e-6).ln().clamp(LOG_E_MIN, LOG_E_MAX))
+        .collect();
+    let to_env = |th: &[f32]| -> Vec<Vec3> {
+        (0..n)
+            .map(|t| Vec3::new(th[3 * t].exp(), th[3 * t + 1].exp(), th[3 * t + 2].exp()))
+            .collect()
+    };
+    let mut adam = Adam::new(3 * n, opts.lr);
+    let mut stop = EarlyStop::paper();
+    let mut trace = FitTrace::default();
+    let mut best = (f64::INFINITY, theta.clone());
+    for step in 0..opts.steps {
+        let env = to_env(&theta);
+        let img = tr.apply(&env);
+        let (lv, adj) = loss_and_grad(&img, target, Some(&tr.pixels));
+        let loss = lv.total();
+        trace.losses.push(loss);
+        progress(step, loss);
+        if loss < best.0 {
+            best = (loss, theta.clone());
+        }
+        if opts.early_stop && stop.update(loss) {
+            trace.stopped_early = true;
+            break;
+        }
+        let g_env = tr.apply_t(&adj);
+        let grad: Vec<f32> = (0..n)
+            .flat_map(|t| {
+                let e = env[t];
+                let g = g_env[t];
+                [g.x * e.x, g.y * e.y, g.z * e.z]
+            })
+            .collect();
+        adam.step(&mut theta, &grad);
+        for x in theta.iter_mut() {
+            *x = x.clamp(LOG_E_MIN, LOG_E_MAX);
+        }
+        trace.steps = step + 1;
+    }
+    // Evaluate the final parameters too, then keep the best seen.
+    let env = to_env(&theta);
+    let img = tr.apply(&env);
+    let (lv, _) = loss_and_grad(&img, target, Some(&tr.pixels));
+    if lv.total() < best.0 {
+        best = (lv.total(), theta);
+    }
+    (to_env(&best.1), trace)
+}
+
+/// A global scale s such that the mean of T·(s·init) equals the target's
+/// mean over the selected pixels (a good starting exposure).
+pub fn exposure_scale(tr: &EnvTransport, target_linear: &[Vec3], init: &[Vec3]) -> f32 {
+    let img = tr.apply(init);
+    let a: f64 = img.iter().map(|v| v.element_sum() as f64).sum();
+    let b: f64 = tr
+        .pixels
+        .iter()
+        .map(|&p| {
+            let v = target_linear[p as usize];
+            if v.is_finite() {
+                v.max(Vec3::ZERO).element_sum() as f64
+            } else {
+                0.0
+            }
+        })
+        .sum();
+    if a > 1e-30 && b > 0.0 {
+        ((b / a) as f32).clamp(1e-6, 1e6)
+    } else {
+        1.0
+    }
+}

@@ -19,7 +19,10 @@
 pub mod brdf;
 pub mod cache;
 pub mod envfit;
+pub mod invert;
 pub mod loss;
+pub mod matfit;
+pub mod optim;
 pub mod tables;
 pub mod transport;
 

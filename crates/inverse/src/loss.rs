@@ -25,7 +25,8 @@ pub fn gamma(x: f32) -> (f32, f32) {
     } else {
         let y0 = GAMMA_EPS.powf(e);
         let s = y0 / GAMMA_EPS;
-        (s * x.max(0.0), if x > 0.0 { s } else { s })
+        // The slope is kept below 0 too, so a black render can brighten.
+        (s * x.max(0.0), s)
     }
 }
 
