@@ -12,7 +12,7 @@ use matflow_geom::{mesh_from_depth, MeshParams};
 use matflow_inverse::invert::{
     invert, materials_to_maps, EnvRoute, Event, InvertOptions, InvertResult, MatRoute,
 };
-use matflow_render::{EnvMap, Material, RenderScene};
+use matflow_render::{EnvMap, RenderScene};
 use matflow_scene::metrics::{mse_gamma, psnr_gamma, ssim_gamma};
 use matflow_scene::{io, Bundle, Camera, Image, MaterialMaps, MaterialSource, RgbImage};
 
@@ -152,16 +152,6 @@ pub fn load_input(dir: &Path, mesh_angle: f64) -> Result<InvertInput> {
     })
 }
 
-pub fn materials_of(maps: &MaterialMaps) -> Vec<Material> {
-    (0..maps.albedo.data.len())
-        .map(|k| Material {
-            albedo: maps.albedo.data[k],
-            roughness: maps.roughness.data[k],
-            metallic: maps.metallic.data[k],
-        })
-        .collect()
-}
-
 pub fn options_from(a: &InvertArgs) -> InvertOptions {
     InvertOptions {
         budget_seconds: a.budget_seconds,
@@ -197,7 +187,7 @@ pub fn run_invert(
     MaterialMaps,
     RgbImage,
 )> {
-    let pred = materials_of(&input.maps);
+    let pred = matflow_render::scene::materials_from_maps(&input.maps);
     let pb = if quiet {
         ProgressBar::hidden()
     } else {

@@ -30,6 +30,18 @@ pub fn gamma(x: f32) -> (f32, f32) {
     }
 }
 
+/// Subgradient of |x|: the sign, 0 at 0.
+#[inline]
+pub fn sign(x: f32) -> f32 {
+    if x > 0.0 {
+        1.0
+    } else if x < 0.0 {
+        -1.0
+    } else {
+        0.0
+    }
+}
+
 /// A target image prepared for the loss.
 pub struct Target {
     pub width: usize,
@@ -89,14 +101,7 @@ pub fn pixel_loss(i: Vec3, tg: Vec3, sat: [bool; 3]) -> (f32, f32, Vec3) {
         }
         l1 += r.abs();
         l2 += r * r;
-        let sign = if r > 0.0 {
-            1.0
-        } else if r < 0.0 {
-            -1.0
-        } else {
-            0.0
-        };
-        d[c] = (sign + 2.0 * r) * dg;
+        d[c] = (sign(r) + 2.0 * r) * dg;
     }
     (l1, l2, d)
 }

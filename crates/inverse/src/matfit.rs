@@ -13,7 +13,7 @@ use matflow_render::Material;
 use rayon::prelude::*;
 
 use crate::envfit::FitTrace;
-use crate::loss::{pixel_loss, Target};
+use crate::loss::{pixel_loss, sign, Target};
 use crate::optim::{Adam, EarlyStop};
 use crate::tables::PixelTable;
 
@@ -235,14 +235,8 @@ pub fn fit_pixels(
                         }
                         let r = xs[k] - ps[k];
                         s.cons += r.abs() as f64 * if k < 3 { norm_a } else { norm_1 };
-                        let sign = if r > 0.0 {
-                            1.0
-                        } else if r < 0.0 {
-                            -1.0
-                        } else {
-                            0.0
-                        };
-                        gx[k] += delta * sign * if k < 3 { norm_a as f32 } else { norm_1 as f32 };
+                        gx[k] +=
+                            delta * sign(r) * if k < 3 { norm_a as f32 } else { norm_1 as f32 };
                     }
                     for k in 0..5 {
                         let v = gx[k] * dx[k];

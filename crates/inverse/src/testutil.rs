@@ -2,7 +2,7 @@
 
 use glam::Vec3;
 use matflow_geom::{mesh_from_depth, MeshParams};
-use matflow_render::{EnvMap, Material, RenderScene};
+use matflow_render::{EnvMap, RenderScene};
 use matflow_scene::{synthetic, Camera, MaterialMaps, RgbImage};
 
 pub struct TestScene {
@@ -27,18 +27,7 @@ pub fn room(seed: u64, n: usize) -> TestScene {
     }
 }
 
-pub fn materials_of(maps: &MaterialMaps) -> Vec<Material> {
-    (0..maps.albedo.data.len())
-        .map(|k| {
-            Material {
-                albedo: maps.albedo.data[k],
-                roughness: maps.roughness.data[k],
-                metallic: maps.metallic.data[k],
-            }
-            .sanitized()
-        })
-        .collect()
-}
+pub use matflow_render::scene::materials_from_maps as materials_of;
 
 /// A deterministic pseudo-random value in [0, 1) from an index.
 pub fn hash01(i: u64) -> f32 {

@@ -9,6 +9,20 @@ use crate::bsdf::Material;
 use crate::envmap::EnvMap;
 use crate::RenderError;
 
+/// Per-pixel materials of the maps (row-major), sanitised.
+pub fn materials_from_maps(maps: &MaterialMaps) -> Vec<Material> {
+    (0..maps.albedo.data.len())
+        .map(|k| {
+            Material {
+                albedo: maps.albedo.data[k],
+                roughness: maps.roughness.data[k],
+                metallic: maps.metallic.data[k],
+            }
+            .sanitized()
+        })
+        .collect()
+}
+
 pub struct RenderScene {
     pub camera: Camera,
     pub mesh: TriMesh,
@@ -45,16 +59,7 @@ impl RenderScene {
             .map(|i| mesh.face_normal(i))
             .collect();
         let vertex_normals = vertex_normals(&mesh);
-        let materials = (0..maps.albedo.data.len())
-            .map(|k| {
-                Material {
-                    albedo: maps.albedo.data[k],
-                    roughness: maps.roughness.data[k],
-                    metallic: maps.metallic.data[k],
-                }
-                .sanitized()
-            })
-            .collect();
+        let materials = materials_from_maps(maps);
         Ok(RenderScene {
             focal: camera.focal(),
             principal: camera.principal_point(),
