@@ -291,14 +291,7 @@ pub fn invert(
         },
         &|d, t| events(Event::Trace { done: d, total: t }),
     )?;
-    stages.push(StageReport {
-        name: "trace scout".into(),
-        steps: plan.scout_spp as usize,
-        seconds: ts.elapsed().as_secs_f64(),
-        loss_start: f64::NAN,
-        loss_end: f64::NAN,
-        stopped_early: false,
-    });
+    stages.push(timed("trace scout", plan.scout_spp as usize, ts));
     let tr0 = EnvTransport::build(&scout, &mats, pixels.clone());
     let s = exposure_scale(&tr0, &target_linear.data, &flat);
     drop(tr0);
@@ -331,14 +324,7 @@ pub fn invert(
         },
         &|d, t| events(Event::Trace { done: d, total: t }),
     )?;
-    stages.push(StageReport {
-        name: "trace".into(),
-        steps: plan.spp as usize,
-        seconds: ts.elapsed().as_secs_f64(),
-        loss_start: f64::NAN,
-        loss_end: f64::NAN,
-        stopped_early: false,
-    });
+    stages.push(timed("trace", plan.spp as usize, ts));
 
     // 3. Alternation.
     for l in 0..plan.loops {
@@ -414,14 +400,7 @@ pub fn invert(
         },
         &|d, t| events(Event::Trace { done: d, total: t }),
     );
-    stages.push(StageReport {
-        name: "render".into(),
-        steps: plan.final_spp as usize,
-        seconds: ts.elapsed().as_secs_f64(),
-        loss_start: f64::NAN,
-        loss_end: f64::NAN,
-        stopped_early: false,
-    });
+    stages.push(timed("render", plan.final_spp as usize, ts));
     Ok(InvertResult {
         materials: mats,
         envmap: env_image(ew, eh, &env),
@@ -436,6 +415,18 @@ pub fn invert(
             seconds: t0.elapsed().as_secs_f64(),
         },
     })
+}
+
+/// A stage without a loss (tracing, rendering): its name, size and time.
+fn timed(name: &str, steps: usize, ts: Instant) -> StageReport {
+    StageReport {
+        name: name.to_string(),
+        steps,
+        seconds: ts.elapsed().as_secs_f64(),
+        loss_start: f64::NAN,
+        loss_end: f64::NAN,
+        stopped_early: false,
+    }
 }
 
 fn report(name: &str, trace: &FitTrace, ts: Instant) -> StageReport {
