@@ -26,7 +26,7 @@ use std::time::Instant;
 use glam::{Vec2, Vec3};
 use matflow_render::envmap::locate_cell;
 use matflow_render::integrator::{mis_power, offset_origin};
-use matflow_render::rng::Pcg32;
+use matflow_render::rng::Sampler;
 use matflow_render::{bsdf, RenderScene};
 use rayon::prelude::*;
 
@@ -292,7 +292,7 @@ fn trace_row(
         push_start(&mut row)?;
         let pix = (y * w + x) as u64;
         for s in 0..opts.spp {
-            let mut rng = Pcg32::for_sample(opts.seed, pix, s as u64);
+            let mut rng = Sampler::for_sample(opts.seed, pix, s, opts.spp);
             let (jx, jy) = rng.next_2d();
             let film = Vec2::new(x as f32 + jx, y as f32 + jy);
             let dir0 = scene.camera_ray(film);

@@ -26,7 +26,7 @@ use crate::transport::{for_each_path, path_radiance};
 
 /// Roughness nodes: R_i = 0.07 + 0.93·(i/(N−1))², denser where the GGX
 /// lobe changes fastest.
-pub const NODES: usize = 14;
+pub const NODES: usize = 16;
 
 #[inline]
 pub fn node(i: usize) -> f32 {
@@ -117,10 +117,24 @@ impl PixelTable {
 
 /// Builds every pixel's table for materials `mats` and envmap `env`.
 pub fn build_tables(cache: &PathCache, mats: &[Material], env: &[Vec3]) -> Vec<PixelTable> {
+    build_tables_with_variance(cache, mats, env).0
+}
+
+/// [`build_tables`], plus per pixel the variance of the estimate of
+/// [`crate::denoise::table_luminance`] (from the spread of its paths) and
+/// whether the pixel's table models its own primary vertex (false for
+/// sky pixels and for pixels none of whose paths start on themselves).
+pub fn build_tables_with_variance(
+    cache: &PathCache,
+    mats: &[Material],
+    env: &[Vec3],
+) -> (Vec<PixelTable>, Vec<f32>, Vec<bool>) {
     let w = cache.width;
     let ew = cache.env_width;
-    let inv = 1.0 / cache.spp as f32;
-    let rows: Vec<Vec<PixelTable>> = (0..cache.height)
+    let spp = cache.spp.max(1) as f32;
+    let inv = 1.0 / spp;
+    let lum = |v: Vec3| 0.2126 * v.x + 0.7152 * v.y + 0.0722 * v.z;
+    let rows: Vec<Vec<(PixelTable, f32, bool)>> = (0..cache.height)
         .into_par_iter()
         .map(|y| {
             let mut l = [Vec3::ZERO; MAX_DEPTH as usize];
@@ -131,6 +145,10 @@ pub fn build_tables(cache: &PathCache, mats: &[Material], env: &[Vec3]) -> Vec<P
                     let p = (y * w + x) as u32;
                     let (verts, recs) = cache.pixel(x, y);
                     let mut t = PixelTable::default();
+                    let mut own = false;
+                    // Per-path contributions to lum(c0): first and second
+                    // moments (paths on other pixels contribute 0).
+                    let (mut m1, mut m2) = (0f64, 0f64);
                     for_each_path(verts, |first, end, r0| {
                         let n = path_radiance(
                             verts, recs, first, end, r0, mats, env, ew, &mut l, &mut rst,
@@ -140,6 +158,8 @@ pub fn build_tables(cache: &PathCache, mats: &[Material], env: &[Vec3]) -> Vec<P
                             t.base += l[0];
                             return;
                         }
+                        own = true;
+                        let before = lum(t.c[0]);
                         let rs = &recs[rst[0]..rst[0] + v.n_records()];
                         let mut add = |geo: &crate::brdf::Geo, lin: Vec3| {
                             let g = geo.decode();
@@ -168,6 +188,9 @@ pub fn build_tables(cache: &PathCache, mats: &[Material], env: &[Vec3]) -> Vec<P
                             let rec = &rs[v.n_env as usize];
                             add(&rec.geo, l[1] * rec.w);
                         }
+                        let d = (lum(t.c[0]) - before) as f64;
+                        m1 += d;
+                        m2 += d * d;
                     });
                     t.base *= inv;
                     for c in &mut t.c {
@@ -178,12 +201,23 @@ pub fn build_tables(cache: &PathCache, mats: &[Material], env: &[Vec3]) -> Vec<P
                             *v *= inv;
                         }
                     }
-                    t
+                    let n = spp as f64;
+                    let mean = m1 / n;
+                    let var = ((m2 / n - mean * mean).max(0.0) / n) as f32;
+                    (t, var, own)
                 })
                 .collect()
         })
         .collect();
-    rows.into_iter().flatten().collect()
+    let mut tables = Vec::with_capacity(w * cache.height);
+    let mut var = Vec::with_capacity(w * cache.height);
+    let mut valid = Vec::with_capacity(w * cache.height);
+    for (t, v, o) in rows.into_iter().flatten() {
+        tables.push(t);
+        var.push(v);
+        valid.push(o);
+    }
+    (tables, var, valid)
 }
 
 #[cfg(test)]

@@ -18,7 +18,7 @@ use rayon::prelude::*;
 
 use crate::bsdf;
 use crate::filter::PixelFilter;
-use crate::rng::Pcg32;
+use crate::rng::Sampler;
 use crate::scene::RenderScene;
 use crate::warp::Frame;
 
@@ -105,7 +105,7 @@ pub fn offset_origin(p: Vec3, n: Vec3, d: Vec3) -> Vec3 {
 pub fn radiance(
     scene: &RenderScene,
     opts: &RenderOptions,
-    rng: &mut Pcg32,
+    rng: &mut Sampler,
     film: Vec2,
     st: &mut RenderStats,
 ) -> Vec3 {
@@ -228,7 +228,7 @@ pub fn render(
                 for x in t.x0..t.x1 {
                     let pix = (y * w + x) as u64;
                     for s in 0..spp {
-                        let mut rng = Pcg32::for_sample(opts.seed, pix, s as u64);
+                        let mut rng = Sampler::for_sample(opts.seed, pix, s, spp);
                         let (jx, jy) = rng.next_2d();
                         let film = Vec2::new(x as f32 + jx, y as f32 + jy);
                         let li = radiance(scene, opts, &mut rng, film, &mut st);
@@ -404,7 +404,7 @@ mod tests {
             let (mut s1, mut s2) = (0.0f64, 0.0f64);
             let mut st = RenderStats::default();
             for k in 0..m {
-                let mut rng = Pcg32::for_sample(9, 0, k);
+                let mut rng = Sampler::for_sample(9, 0, k, m);
                 let x = radiance(&scene, &opts, &mut rng, film, &mut st).element_sum() as f64;
                 s1 += x;
                 s2 += x * x;
