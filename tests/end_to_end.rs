@@ -266,7 +266,7 @@ fn invert_writes_best_results_deterministically_and_rerenders() {
         assert!(psnr.is_finite() && psnr > 10.0, "{summary}");
         assert!(summary["rerender"]["ssim"].as_f64().unwrap() > 0.0);
         let stages = summary["stages"].as_array().unwrap();
-        assert!(stages.iter().any(|s| s["name"] == "materials a 1"));
+        assert!(stages.iter().any(|s| s["name"] == "materials arm 1"));
         for st in stages {
             assert!(st["seconds"].as_f64().unwrap() >= 0.0);
         }

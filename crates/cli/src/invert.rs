@@ -23,6 +23,9 @@ pub enum EnvRouteArg {
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
 pub enum MatRouteArg {
+    /// Per-pixel exact solves on the tables (fast).
+    Solve,
+    /// Per-pixel Adam on ζ·tanh offsets.
     Pixel,
 }
 
@@ -44,7 +47,7 @@ pub struct InvertArgs {
     #[arg(long, value_enum, default_value = "texel")]
     pub env_route: EnvRouteArg,
     /// Material route.
-    #[arg(long, value_enum, default_value = "pixel")]
+    #[arg(long, value_enum, default_value = "solve")]
     pub mat_route: MatRouteArg,
     /// Trust the predicted roughness and metallic (synthetic data). By
     /// default they start at 0.7 / 0.05 as the reference does for photos.
@@ -73,6 +76,12 @@ pub struct InvertArgs {
     /// Mesh boundary angle threshold in degrees.
     #[arg(long, default_value_t = 6.0)]
     pub mesh_angle: f64,
+    /// À-trous denoising passes over the per-pixel tables (0: off).
+    #[arg(long, default_value_t = 3)]
+    pub denoise: usize,
+    /// Do not normalise the render's mean in material stages.
+    #[arg(long)]
+    pub no_rescale: bool,
     /// Disable early stopping (run every stage for its full step count).
     #[arg(long)]
     pub no_early_stop: bool,
@@ -160,6 +169,7 @@ pub fn options_from(a: &InvertArgs) -> InvertOptions {
         },
         mat_route: match a.mat_route {
             MatRouteArg::Pixel => MatRoute::Pixel,
+            MatRouteArg::Solve => MatRoute::Solve,
         },
         trust_rm: a.trust_rm,
         max_depth: a.depth,
@@ -171,6 +181,8 @@ pub fn options_from(a: &InvertArgs) -> InvertOptions {
         env_steps: a.steps,
         mat_steps: a.steps,
         early_stop: !a.no_early_stop,
+        denoise: a.denoise,
+        rescale: !a.no_rescale,
         ..Default::default()
     }
 }

@@ -23,12 +23,14 @@ use matflow_render::{EnvMap, Material, PixelFilter, RenderOptions, RenderScene};
 use matflow_scene::{Image, MaterialMaps, RgbImage};
 
 use crate::cache::{CacheOptions, PathCache};
+use crate::denoise::{denoise_tables, Guide};
 use crate::envfit::{
     exposure_scale, fit_texels, strided_pixels, EnvFitOptions, EnvTransport, FitTrace,
 };
 use crate::loss::{loss_and_grad, Target};
 use crate::matfit::{fit_pixels, MatFitOptions, Parts};
-use crate::tables::build_tables;
+use crate::solve::{solve_pixels, SolveOptions};
+use crate::tables::build_tables_with_variance;
 use crate::transport;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
@@ -41,6 +43,8 @@ pub enum EnvRoute {
 pub enum MatRoute {
     /// Free ζ·tanh(z) offsets per pixel, Adam on the per-pixel tables.
     Pixel,
+    /// Per-pixel exact minimisation on the tables ([`crate::solve`]).
+    Solve,
 }
 
 #[derive(Clone, Debug)]
@@ -65,6 +69,12 @@ pub struct InvertOptions {
     pub env_steps: Option<usize>,
     pub mat_steps: Option<usize>,
     pub early_stop: bool,
+    /// Normalise the render's mean in material stages (see
+    /// [`MatFitOptions::rescale`]).
+    pub rescale: bool,
+    /// À-trous passes over the per-pixel tables before each material
+    /// stage (0: fit the raw Monte Carlo tables).
+    pub denoise: usize,
 }
 
 impl Default for InvertOptions {
@@ -72,7 +82,7 @@ impl Default for InvertOptions {
         InvertOptions {
             budget_seconds: 60.0,
             env_route: EnvRoute::Texel,
-            mat_route: MatRoute::Pixel,
+            mat_route: MatRoute::Solve,
             trust_rm: false,
             max_depth: 4,
             delta: 0.1,
@@ -86,6 +96,8 @@ impl Default for InvertOptions {
             env_steps: None,
             mat_steps: None,
             early_stop: true,
+            rescale: true,
+            denoise: 3,
         }
     }
 }
@@ -327,6 +339,7 @@ pub fn invert(
     stages.push(timed("trace", plan.spp as usize, ts));
 
     // 3. Alternation.
+    let guide = Guide::build(&scene);
     for l in 0..plan.loops {
         env = run_env(
             &format!("envmap {}", l + 1),
@@ -336,15 +349,24 @@ pub fn invert(
             plan.env_steps,
             &mut stages,
         );
-        for parts in [Parts::RM, Parts::A] {
+        let stages_parts: &[Parts] = match opts.mat_route {
+            // The per-pixel solve searches A, R and M jointly.
+            MatRoute::Solve => &[Parts::ARM],
+            MatRoute::Pixel => &[Parts::RM, Parts::A],
+        };
+        for &parts in stages_parts {
             let name = format!("materials {} {}", parts.name(), l + 1);
             let ts = Instant::now();
             events(Event::Stage {
                 name: &name,
                 steps: plan.mat_steps,
             });
-            let tabs = build_tables(&cache, &mats, &env);
-            let (m2, trace) = match opts.mat_route {
+            let (mut tabs, var, valid) = build_tables_with_variance(&cache, &mats, &env);
+            if opts.denoise > 0 {
+                denoise_tables(&mut tabs, &var, &valid, &guide, opts.denoise);
+            }
+            drop(var);
+            let fit = match opts.mat_route {
                 MatRoute::Pixel => fit_pixels(
                     &tabs,
                     &target,
@@ -357,12 +379,31 @@ pub fn invert(
                         zeta: opts.zeta,
                         parts,
                         early_stop: opts.early_stop,
+                        rescale: opts.rescale,
+                    },
+                    &|step, loss| events(Event::Step { step, loss }),
+                ),
+                MatRoute::Solve => solve_pixels(
+                    &tabs,
+                    &target,
+                    &pred,
+                    &mats,
+                    &SolveOptions {
+                        delta: opts.delta,
+                        zeta: opts.zeta,
+                        parts,
+                        rounds: 3,
+                        rescale: opts.rescale,
+                        reference_weighting: true,
                     },
                     &|step, loss| events(Event::Step { step, loss }),
                 ),
             };
-            mats = m2;
-            stages.push(report(&name, &trace, ts));
+            mats = fit.materials;
+            for e in env.iter_mut() {
+                *e *= fit.scale;
+            }
+            stages.push(report(&name, &fit.trace, ts));
         }
     }
     // 4. Final envmap for the final materials.

@@ -18,11 +18,13 @@
 
 pub mod brdf;
 pub mod cache;
+pub mod denoise;
 pub mod envfit;
 pub mod invert;
 pub mod loss;
 pub mod matfit;
 pub mod optim;
+pub mod solve;
 pub mod tables;
 pub mod transport;
 

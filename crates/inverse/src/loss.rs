@@ -50,6 +50,8 @@ pub struct Target {
     pub gamma: Vec<Vec3>,
     /// Per pixel, per channel: target saturated (one-sided residual).
     pub saturated: Vec<[bool; 3]>,
+    /// The linear target (non-finite values as 0, negatives clipped).
+    pub linear: Vec<Vec3>,
 }
 
 impl Target {
@@ -65,12 +67,28 @@ impl Target {
             .iter()
             .map(|v| [v.x >= SATURATED, v.y >= SATURATED, v.z >= SATURATED])
             .collect();
+        let linear = linear
+            .iter()
+            .map(|v| {
+                let f = |x: f32| if x.is_finite() { x.max(0.0) } else { 0.0 };
+                Vec3::new(f(v.x), f(v.y), f(v.z))
+            })
+            .collect();
         Target {
             width,
             height,
             gamma,
             saturated,
+            linear,
         }
+    }
+
+    /// Sum over pixels and channels of the linear target, in a fixed order.
+    pub fn linear_sum(&self) -> f64 {
+        self.linear
+            .iter()
+            .map(|v| v.x as f64 + v.y as f64 + v.z as f64)
+            .sum()
     }
 }
 

@@ -66,6 +66,19 @@ pub struct MatFitOptions {
     pub zeta: f32,
     pub parts: Parts,
     pub early_stop: bool,
+    /// Compare the render scaled by k = mean(target) / mean(render) (the
+    /// reference's `ratio`, held constant for the gradient), so that the
+    /// global light level is not pushed into the albedo. All light comes
+    /// from the envmap, so k is folded into it exactly afterwards.
+    pub rescale: bool,
+}
+
+/// What a material stage returns.
+pub struct MatFit {
+    pub materials: Vec<Material>,
+    /// Exposure factor for the envmap (1 without `rescale`).
+    pub scale: f32,
+    pub trace: FitTrace,
 }
 
 /// The 5 parameters of a pixel from z, with d(x)/d(z) (straight-through).
@@ -127,6 +140,8 @@ struct Sums {
     l1: f64,
     l2: f64,
     cons: f64,
+    /// Sum of the unscaled linear render over pixels and channels.
+    render: f64,
 }
 
 /// Per-pixel route: z is a free 5-vector per pixel, fitted by Adam.
@@ -139,8 +154,11 @@ pub fn fit_pixels(
     start: &[Material],
     opts: &MatFitOptions,
     progress: &(dyn Fn(usize, f64) + Sync),
-) -> (Vec<Material>, FitTrace) {
+) -> MatFit {
     let n = tables.len();
+    let target_sum: f64 = target.linear_sum();
+    // k lags one step behind the render it normalises (one pass per step).
+    let mut k = 1f32;
     let zeta = opts.zeta.max(1e-3);
     let mut z: Vec<f32> = (0..n)
         .flat_map(|p| encode(&pred[p], &start[p], zeta))
@@ -187,7 +205,7 @@ pub fn fit_pixels(
             })
             .collect()
     };
-    let mut best = (f64::INFINITY, z.clone());
+    let mut best = (f64::INFINITY, z.clone(), 1f32);
     let chunk = 4096;
     for step in 0..=opts.steps {
         let sums: Vec<Sums> = grad
@@ -209,10 +227,11 @@ pub fn fit_pixels(
                         m.metallic = start[p].metallic;
                     }
                     let e = tables[p].eval(&m);
-                    let (l1, l2, di) = pixel_loss(e.i, target.gamma[p], target.saturated[p]);
+                    s.render += e.i.element_sum() as f64;
+                    let (l1, l2, di) = pixel_loss(e.i * k, target.gamma[p], target.saturated[p]);
                     s.l1 += l1 as f64;
                     s.l2 += l2 as f64;
-                    let di = di * norm_re as f32;
+                    let di = di * (norm_re as f32 * k);
                     let mut gx = [
                         di.x * e.da.x,
                         di.y * e.da.y,
@@ -251,13 +270,17 @@ pub fn fit_pixels(
             tot.l1 += s.l1;
             tot.l2 += s.l2;
             tot.cons += s.cons;
+            tot.render += s.render;
         }
         let l_re = (tot.l1 + tot.l2) * norm_re;
         let total = l_re + delta as f64 * tot.cons;
         trace.losses.push(l_re);
         progress(step, l_re);
         if total < best.0 {
-            best = (total, z.clone());
+            best = (total, z.clone(), k);
+        }
+        if opts.rescale && tot.render > 0.0 && target_sum > 0.0 {
+            k = ((target_sum / tot.render) as f32).clamp(1e-3, 1e3);
         }
         if step == opts.steps {
             break;
@@ -269,5 +292,9 @@ pub fn fit_pixels(
         adam.step(&mut z, &grad);
         trace.steps = step + 1;
     }
-    (materialise(&best.1), trace)
+    MatFit {
+        materials: materialise(&best.1),
+        scale: best.2,
+        trace,
+    }
 }
