@@ -20,6 +20,9 @@ use crate::commands::load_scene;
 pub enum BenchCmd {
     /// BVH build time, ray throughput and wall time of a full render.
     Render(BenchRenderArgs),
+    /// Inverse rendering: wall time against rerender error per budget,
+    /// route and skip.
+    Invert(crate::bench_invert::BenchInvertArgs),
 }
 
 #[derive(Args)]
@@ -45,6 +48,7 @@ pub struct BenchRenderArgs {
 pub fn run(b: BenchCmd) -> Result<()> {
     match b {
         BenchCmd::Render(a) => bench_render(a),
+        BenchCmd::Invert(a) => crate::bench_invert::bench_invert(a),
     }
 }
 

@@ -1,6 +1,7 @@
 //! `matflow`: single-image inverse rendering and physically based editing.
 
 mod bench;
+mod bench_invert;
 mod commands;
 mod invert;
 

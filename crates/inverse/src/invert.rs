@@ -111,27 +111,60 @@ pub struct Plan {
     pub loops: usize,
     pub env_steps: usize,
     pub mat_steps: usize,
+    /// Rounds of the per-pixel solve per material stage.
+    pub solve_rounds: usize,
     pub env_stride: usize,
 }
 
-/// Cost model of the reference 2-core machine (seconds per sample per
-/// pixel for tracing a 4-segment path and recording it); used only to turn
-/// a budget into counts, so results never depend on the clock.
-pub const TRACE_SECONDS_PER_SAMPLE_PIXEL: f64 = 1.1e-6;
+/// Cost model of the reference 2-core machine, used only to turn a budget
+/// into counts, so results never depend on the clock. Seconds per pixel
+/// (per sample, pass or round where stated), measured on indoor 512².
+pub mod cost {
+    /// Tracing and recording one 4-segment path.
+    pub const TRACE_PER_SAMPLE: f64 = 1.1e-6;
+    /// Rendering one sample in the final re-render.
+    pub const RENDER_PER_SAMPLE: f64 = 0.9e-6;
+    /// Building a pixel's table, per cached path.
+    pub const TABLE_PER_SAMPLE: f64 = 2.0e-7;
+    /// One à-trous pass over a pixel's table.
+    pub const DENOISE_PER_PASS: f64 = 1.4e-6;
+    /// One round of the per-pixel solve.
+    pub const SOLVE_PER_ROUND: f64 = 6.5e-6;
+    /// Loading, meshing, BVH, guide, scout trace and the envmap stages.
+    pub const FIXED: f64 = 1.6e-5;
+}
 
 impl Plan {
     pub fn from_budget(budget: f64, npix: usize, opts: &InvertOptions) -> Plan {
-        let per_spp = TRACE_SECONDS_PER_SAMPLE_PIXEL * npix as f64;
+        use cost::*;
+        let n = npix as f64;
         let b = budget.max(1.0);
-        // ~45 % of the budget tracing the main cache, ~20 % the final
-        // render; memory caps the cache at 32 paths per pixel.
-        let spp = ((0.45 * b / per_spp) as u32).clamp(2, 32);
-        let final_spp = ((0.2 * b / per_spp) as u32).clamp(2, 256);
+        let loops = if b < 30.0 { 1 } else { 2 };
+        let rounds = if b >= 30.0 {
+            3
+        } else if b >= 12.0 {
+            2
+        } else {
+            1
+        };
+        let passes = opts.denoise as f64;
+        // What is left after the fixed work and the material stages'
+        // per-pixel work; below the minimum plan (≈ 8 s at 512²) the
+        // counts bottom out and the run takes longer than the budget.
+        let fixed = FIXED * n
+            + loops as f64 * (passes * DENOISE_PER_PASS + rounds as f64 * SOLVE_PER_ROUND) * n;
+        // Plan for 85 % of the budget: the model is a median, not a bound.
+        let rest = (0.85 * b - fixed).max(0.0);
+        let per_spp = (TRACE_PER_SAMPLE + loops as f64 * TABLE_PER_SAMPLE) * n;
+        // ~45 % of the rest tracing the cache (memory caps it at 32 paths
+        // per pixel), the remainder rendering the result.
+        let spp = ((0.45 * rest / per_spp) as u32).clamp(2, 32);
+        let final_spp =
+            (((rest - spp as f64 * per_spp) / (RENDER_PER_SAMPLE * n)) as u32).clamp(2, 256);
         let scout_spp = (spp / 8).clamp(1, 4);
-        let loops = if b < 10.0 { 1 } else { 2 };
         let steps = ((b * 10.0) as usize).clamp(60, 400);
         // Envmap stages see about 64k pixels.
-        let env_stride = ((npix as f64 / 65536.0).sqrt().ceil() as usize).max(1);
+        let env_stride = ((n / 65536.0).sqrt().ceil() as usize).max(1);
         Plan {
             scout_spp: opts.spp.map(|s| (s / 8).clamp(1, 4)).unwrap_or(scout_spp),
             spp: opts.spp.unwrap_or(spp),
@@ -139,6 +172,7 @@ impl Plan {
             loops: opts.loops.unwrap_or(loops),
             env_steps: opts.env_steps.unwrap_or(steps),
             mat_steps: opts.mat_steps.unwrap_or(steps),
+            solve_rounds: rounds,
             env_stride,
         }
     }
@@ -392,9 +426,10 @@ pub fn invert(
                         delta: opts.delta,
                         zeta: opts.zeta,
                         parts,
-                        rounds: 3,
+                        rounds: plan.solve_rounds,
                         rescale: opts.rescale,
                         reference_weighting: true,
+                        min_roughness: resolvable_roughness(ew, eh),
                     },
                     &|step, loss| events(Event::Step { step, loss }),
                 ),
@@ -456,6 +491,15 @@ pub fn invert(
             seconds: t0.elapsed().as_secs_f64(),
         },
     })
+}
+
+/// The roughness whose reflection lobe (solid angle ≈ 4π·α², α = R²)
+/// covers one average envmap texel (4π / (W·H)): R = (W·H)^(-1/4), 0.21
+/// at 32×16. Sharper lobes see detail the envmap does not have, and their
+/// per-pixel estimates rest on a few frozen directions, so the solve does
+/// not go below it unless the prediction does.
+pub fn resolvable_roughness(env_width: usize, env_height: usize) -> f32 {
+    ((env_width * env_height).max(1) as f32).powf(-0.25)
 }
 
 /// A stage without a loss (tracing, rendering): its name, size and time.

@@ -39,6 +39,12 @@ pub struct SolveOptions {
     /// with the ratio held constant (refreshed between rounds), instead of
     /// the paper's plain L1 + L2.
     pub reference_weighting: bool,
+    /// Lowest roughness the solve may choose below the prediction (the
+    /// floor is min(this, predicted R)). A lobe narrower than the
+    /// spacing of a pixel's frozen directions is estimated from a handful
+    /// of them, and a per-pixel minimum would exploit that noise (mirror
+    /// "fixes" that an independent render does not reproduce).
+    pub min_roughness: f32,
 }
 
 /// Feasible interval of a parameter: within ζ of the prediction and inside
@@ -164,7 +170,11 @@ fn solve_rm(
     o: &SolveOptions,
 ) -> (f32, f32) {
     let (rlo, rhi) = if o.parts.roughness {
-        bounds(pred.roughness, o.zeta, MIN_ROUGHNESS)
+        bounds(
+            pred.roughness,
+            o.zeta,
+            o.min_roughness.min(pred.roughness).max(MIN_ROUGHNESS),
+        )
     } else {
         (m.roughness, m.roughness)
     };
@@ -390,6 +400,7 @@ mod tests {
             rounds: 1,
             rescale: false,
             reference_weighting: false,
+            min_roughness: MIN_ROUGHNESS,
         };
         // Albedo with R, M at the truth.
         let start: Vec<Material> = pred

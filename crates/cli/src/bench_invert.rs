@@ -1,0 +1,170 @@
+//! `matflow bench invert`: wall time against error for the inverse
+//! rendering routes, budgets and skips, on the reference scenes.
+//!
+//! Every configuration runs in a child `matflow invert` process, so that
+//! its wall time and peak memory (VmHWM) are its own; the numbers come from
+//! the child's `summary.json`.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use matflow_scene::metrics::psnr_gamma;
+use matflow_scene::{io, Image};
+
+#[derive(Args)]
+pub struct BenchInvertArgs {
+    /// Input bundles (reference layout with gt_image and predictions).
+    #[arg(long, num_args = 1.., default_values = ["../shared/data/materialist/indoor", "../shared/data/materialist/jinjya"])]
+    pub bundles: Vec<PathBuf>,
+    /// Budgets in seconds.
+    #[arg(long, num_args = 1.., default_values_t = [5.0, 15.0, 60.0])]
+    pub budgets: Vec<f64>,
+    /// Material routes.
+    #[arg(long, num_args = 1.., default_values = ["solve", "pixel"])]
+    pub mat_routes: Vec<String>,
+    /// Also run the skip ablations at the largest budget (solve route):
+    /// no table denoising, no exposure ratio, one bounce fewer, no early
+    /// stopping.
+    #[arg(long)]
+    pub skips: bool,
+    /// Where the child runs write their bundles.
+    #[arg(long, default_value = "target/bench-invert")]
+    pub work: PathBuf,
+}
+
+struct Row {
+    scene: String,
+    budget: f64,
+    route: String,
+    variant: String,
+    seconds: f64,
+    psnr: f64,
+    ssim: f64,
+    fit_psnr: f64,
+    peak_mb: f64,
+}
+
+fn run_one(
+    exe: &Path,
+    bundle: &Path,
+    out: &Path,
+    budget: f64,
+    route: &str,
+    extra: &[&str],
+) -> Result<serde_json::Value> {
+    let status = Command::new(exe)
+        .arg("invert")
+        .arg("--bundle")
+        .arg(bundle)
+        .arg("--out")
+        .arg(out)
+        .arg("--budget-seconds")
+        .arg(budget.to_string())
+        .arg("--mat-route")
+        .arg(route)
+        .arg("--quiet")
+        .args(extra)
+        .status()
+        .with_context(|| format!("running {}", exe.display()))?;
+    if !status.success() {
+        bail!("matflow invert failed on {} ({status})", bundle.display());
+    }
+    let p = out.join("summary.json");
+    let text = std::fs::read(&p).with_context(|| format!("reading {}", p.display()))?;
+    Ok(serde_json::from_slice(&text)?)
+}
+
+/// PSNR of the reference's stored re-render against the input. The stored
+/// image is linear for some scenes and γ-encoded for others (METHOD.md);
+/// the encoding is taken as whichever matches the input better.
+fn reference_psnr(bundle: &Path) -> Option<f64> {
+    let gt = io::read_exr_rgb(&bundle.join("gt_image.exr")).ok()?;
+    let r = io::read_exr_rgb(&bundle.join("best_results/rendered_img.exr")).ok()?;
+    if r.width != gt.width || r.height != gt.height {
+        return None;
+    }
+    let lin = psnr_gamma(&r, &gt);
+    let decoded = Image::from_vec(
+        r.width,
+        r.height,
+        r.data
+            .iter()
+            .map(|v| v.max(glam::Vec3::ZERO).powf(2.2))
+            .collect(),
+    );
+    Some(lin.max(psnr_gamma(&decoded, &gt)))
+}
+
+pub fn bench_invert(a: BenchInvertArgs) -> Result<()> {
+    let exe = std::env::current_exe()?;
+    std::fs::create_dir_all(&a.work)?;
+    println!(
+        "bench invert: {} thread(s); each row is one child `matflow invert` run; rerender = \
+         independent render of the recovered scene vs the input (sRGB γ 2.2)",
+        rayon::current_num_threads()
+    );
+    let mut rows = Vec::new();
+    let max_budget = a.budgets.iter().cloned().fold(f64::NAN, f64::max);
+    for bundle in &a.bundles {
+        let scene = bundle
+            .file_name()
+            .map(|s| s.to_string_lossy().to_string())
+            .unwrap_or_default();
+        if let Some(p) = reference_psnr(bundle) {
+            println!("  {scene}: reference's stored result {p:.2} dB");
+        }
+        let mut configs: Vec<(f64, String, String, Vec<&str>)> = Vec::new();
+        for &b in &a.budgets {
+            for r in &a.mat_routes {
+                configs.push((b, r.clone(), "default".into(), vec![]));
+            }
+        }
+        if a.skips {
+            for (name, flags) in [
+                ("no table denoising", vec!["--denoise", "0"]),
+                ("no exposure ratio", vec!["--no-rescale"]),
+                ("depth 3 (one bounce fewer)", vec!["--depth", "3"]),
+                ("no early stopping", vec!["--no-early-stop"]),
+            ] {
+                configs.push((max_budget, "solve".into(), name.into(), flags));
+            }
+        }
+        for (b, route, variant, flags) in configs {
+            let out = a.work.join(format!(
+                "{scene}-{b}-{route}-{}",
+                variant.replace([' ', '(', ')'], "_")
+            ));
+            let s = run_one(&exe, bundle, &out, b, &route, &flags)?;
+            let f = |k: &str, m: &str| s[k][m].as_f64().unwrap_or(f64::NAN);
+            let row = Row {
+                scene: scene.clone(),
+                budget: b,
+                route: route.clone(),
+                variant,
+                seconds: s["seconds"].as_f64().unwrap_or(f64::NAN),
+                psnr: f("rerender", "psnr"),
+                ssim: f("rerender", "ssim"),
+                fit_psnr: f("fit", "psnr"),
+                peak_mb: s["peak_memory_bytes"].as_f64().unwrap_or(f64::NAN) / 1e6,
+            };
+            println!(
+                "  {:<8} budget {:>5.0} s  {:<6} {:<28} {:>6.1} s  rerender {:>6.2} dB  SSIM {:.3}  fit {:>6.2} dB  peak {:>5.0} MB",
+                row.scene, row.budget, row.route, row.variant, row.seconds, row.psnr, row.ssim,
+                row.fit_psnr, row.peak_mb
+            );
+            rows.push(row);
+        }
+    }
+    println!();
+    println!("| scene | budget (s) | material route | variant | wall (s) | rerender PSNR (dB) | SSIM | fit PSNR (dB) | peak memory (MB) |");
+    println!("|---|---|---|---|---|---|---|---|---|");
+    for r in &rows {
+        println!(
+            "| {} | {:.0} | {} | {} | {:.1} | {:.2} | {:.3} | {:.2} | {:.0} |",
+            r.scene, r.budget, r.route, r.variant, r.seconds, r.psnr, r.ssim, r.fit_psnr, r.peak_mb
+        );
+    }
+    Ok(())
+}
