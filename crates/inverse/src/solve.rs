@@ -358,9 +358,8 @@ pub fn solve_pixels(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::cache::{CacheOptions, PathCache};
     use crate::tables::build_tables;
-    use crate::testutil::{hash01, materials_of, room, texels};
+    use crate::testutil::{cache_of, hash01, materials_of, room, texels};
 
     /// Known answer: the target is the tables' own image for the true
     /// materials; from perturbed predictions the albedo solve recovers the
@@ -369,15 +368,7 @@ mod tests {
     #[test]
     fn solves_recover_the_materials_that_made_the_image() {
         let t = room(5, 24);
-        let cache = PathCache::build(
-            &t.scene,
-            &CacheOptions {
-                spp: 8,
-                ..Default::default()
-            },
-            &|_, _| {},
-        )
-        .unwrap();
+        let cache = cache_of(&t.scene, 8);
         let truth = materials_of(&t.maps);
         let env = texels(&t.env);
         let tabs = build_tables(&cache, &truth, &env);

@@ -240,8 +240,8 @@ mod tests {
 #[cfg(test)]
 mod model_tests {
     use super::*;
-    use crate::cache::{CacheOptions, PathCache};
-    use crate::testutil::{hash01, materials_of, room, texels};
+    use crate::cache::PathCache;
+    use crate::testutil::{cache_of, hash01, materials_of, room, texels};
     use crate::transport::render;
 
     /// The exact frozen estimator for pixel p with its primary vertices
@@ -297,15 +297,7 @@ mod model_tests {
     #[test]
     fn tables_reproduce_the_exact_estimator() {
         let t = room(11, 16);
-        let cache = PathCache::build(
-            &t.scene,
-            &CacheOptions {
-                spp: 8,
-                ..Default::default()
-            },
-            &|_, _| {},
-        )
-        .unwrap();
+        let cache = cache_of(&t.scene, 8);
         let mats = materials_of(&t.maps);
         let env = texels(&t.env);
         let tabs = build_tables(&cache, &mats, &env);

@@ -37,3 +37,16 @@ pub fn hash01(i: u64) -> f32 {
 pub fn texels(img: &RgbImage) -> Vec<Vec3> {
     img.data.clone()
 }
+
+/// A path cache of `scene` with default options and `spp` paths per pixel.
+pub fn cache_of(scene: &RenderScene, spp: u32) -> crate::cache::PathCache {
+    crate::cache::PathCache::build(
+        scene,
+        &crate::cache::CacheOptions {
+            spp,
+            ..Default::default()
+        },
+        &|_, _| {},
+    )
+    .expect("cache")
+}
