@@ -30,6 +30,26 @@ pub fn gamma(x: f32) -> (f32, f32) {
     }
 }
 
+/// Inverse of [`gamma`], linear toe included.
+#[inline]
+pub fn gamma_inv(y: f32) -> f32 {
+    let (y0, _) = gamma(GAMMA_EPS);
+    if y >= y0 {
+        y.powf(GAMMA)
+    } else {
+        y.max(0.0) * (GAMMA_EPS / y0)
+    }
+}
+
+/// The reference's exposure `ratio`: the factor k that makes the mean of
+/// k·render equal the target's, from their sums; `None` when either is not
+/// positive. Clamped to [1e-3, 1e3] so a black render cannot blow it up.
+#[inline]
+pub fn exposure_ratio(target_sum: f64, render_sum: f64) -> Option<f32> {
+    (target_sum > 0.0 && render_sum > 0.0)
+        .then(|| ((target_sum / render_sum) as f32).clamp(1e-3, 1e3))
+}
+
 /// Subgradient of |x|: the sign, 0 at 0.
 #[inline]
 pub fn sign(x: f32) -> f32 {
@@ -175,6 +195,22 @@ mod tests {
             let (y, d) = gamma(x);
             assert!(y.is_finite() && d.is_finite() && d >= 0.0, "{x}: {y} {d}");
         }
+    }
+
+    #[test]
+    fn gamma_inverse_round_trips() {
+        for x in [0.0f32, 1e-6, 5e-5, 1e-4, 0.01, 0.5, 1.0, 3.0] {
+            let y = gamma(x).0;
+            assert!((gamma_inv(y) - x).abs() <= 1e-4 * x.max(1e-3), "{x}");
+        }
+    }
+
+    #[test]
+    fn exposure_ratio_matches_means_and_guards_zero() {
+        assert_eq!(exposure_ratio(6.0, 3.0), Some(2.0));
+        assert_eq!(exposure_ratio(1.0, 0.0), None);
+        assert_eq!(exposure_ratio(0.0, 1.0), None);
+        assert_eq!(exposure_ratio(1e9, 1.0), Some(1e3));
     }
 
     #[test]

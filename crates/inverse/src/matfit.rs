@@ -13,7 +13,7 @@ use matflow_render::Material;
 use rayon::prelude::*;
 
 use crate::envfit::FitTrace;
-use crate::loss::{pixel_loss, sign, Target};
+use crate::loss::{exposure_ratio, pixel_loss, sign, Target};
 use crate::optim::{Adam, EarlyStop};
 use crate::tables::PixelTable;
 
@@ -279,8 +279,8 @@ pub fn fit_pixels(
         if total < best.0 {
             best = (total, z.clone(), k);
         }
-        if opts.rescale && tot.render > 0.0 && target_sum > 0.0 {
-            k = ((target_sum / tot.render) as f32).clamp(1e-3, 1e3);
+        if let Some(r) = exposure_ratio(target_sum, tot.render).filter(|_| opts.rescale) {
+            k = r;
         }
         if step == opts.steps {
             break;
