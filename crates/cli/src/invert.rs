@@ -18,7 +18,10 @@ use matflow_scene::{io, Bundle, Camera, Image, MaterialMaps, MaterialSource, Rgb
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
 pub enum EnvRouteArg {
+    /// Free log-space texels (fast).
     Texel,
+    /// The paper's positional-encoding MLP with a Softplus head.
+    Mlp,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -27,6 +30,8 @@ pub enum MatRouteArg {
     Solve,
     /// Per-pixel Adam on ζ·tanh offsets.
     Pixel,
+    /// The paper's positional-encoding MLP (minibatched AdamW).
+    Mlp,
 }
 
 #[derive(Args, Clone)]
@@ -46,6 +51,19 @@ pub struct InvertArgs {
     /// Envmap route.
     #[arg(long, value_enum, default_value = "texel")]
     pub env_route: EnvRouteArg,
+    /// Hidden width of the envmap MLP (the reference: 256).
+    #[arg(long, default_value_t = 64)]
+    pub mlp_width: usize,
+    /// Hidden width of the material MLP (the reference: 256; each step
+    /// costs ∝ width² per pixel on the CPU).
+    #[arg(long, default_value_t = 32)]
+    pub mat_mlp_width: usize,
+    /// Adam learning rate of the envmap MLP (the reference: 1e-3).
+    #[arg(long, default_value_t = 1e-3)]
+    pub env_mlp_lr: f32,
+    /// AdamW learning rate of the material MLP (the reference: 3e-4).
+    #[arg(long, default_value_t = 1e-3)]
+    pub mat_mlp_lr: f32,
     /// Material route.
     #[arg(long, value_enum, default_value = "solve")]
     pub mat_route: MatRouteArg,
@@ -166,10 +184,22 @@ pub fn options_from(a: &InvertArgs) -> InvertOptions {
         budget_seconds: a.budget_seconds,
         env_route: match a.env_route {
             EnvRouteArg::Texel => EnvRoute::Texel,
+            EnvRouteArg::Mlp => EnvRoute::Mlp,
+        },
+        env_mlp: matflow_inverse::envfit::EnvMlpOptions {
+            width: a.mlp_width,
+            lr: a.env_mlp_lr,
+            ..Default::default()
         },
         mat_route: match a.mat_route {
             MatRouteArg::Pixel => MatRoute::Pixel,
             MatRouteArg::Solve => MatRoute::Solve,
+            MatRouteArg::Mlp => MatRoute::Mlp,
+        },
+        mat_mlp: matflow_inverse::matfit::MatMlpOptions {
+            width: a.mat_mlp_width,
+            lr: a.mat_mlp_lr,
+            ..Default::default()
         },
         trust_rm: a.trust_rm,
         max_depth: a.depth,

@@ -25,10 +25,11 @@ use matflow_scene::{Image, MaterialMaps, RgbImage};
 use crate::cache::{CacheOptions, PathCache};
 use crate::denoise::{denoise_tables, Guide};
 use crate::envfit::{
-    exposure_scale, fit_texels, strided_pixels, EnvFitOptions, EnvTransport, FitTrace,
+    exposure_scale, fit_texels, strided_pixels, EnvFitOptions, EnvMlp, EnvMlpOptions, EnvTransport,
+    FitTrace,
 };
 use crate::loss::{loss_and_grad, Target};
-use crate::matfit::{fit_pixels, MatFitOptions, Parts};
+use crate::matfit::{fit_pixels, MatFitOptions, MatMlp, MatMlpOptions, Parts};
 use crate::solve::{solve_pixels, SolveOptions};
 use crate::tables::build_tables_with_variance;
 use crate::transport;
@@ -37,6 +38,9 @@ use crate::transport;
 pub enum EnvRoute {
     /// Free texels in log space, Adam on the frozen linear transport.
     Texel,
+    /// The paper's positional-encoding MLP with a Softplus head
+    /// ([`EnvMlp`]), Adam on the same transport.
+    Mlp,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
@@ -45,6 +49,9 @@ pub enum MatRoute {
     Pixel,
     /// Per-pixel exact minimisation on the tables ([`crate::solve`]).
     Solve,
+    /// The paper's positional-encoding MLP ([`MatMlp`]), AdamW on
+    /// stratified minibatches of the tables.
+    Mlp,
 }
 
 #[derive(Clone, Debug)]
@@ -75,6 +82,10 @@ pub struct InvertOptions {
     /// À-trous passes over the per-pixel tables before each material
     /// stage (0: fit the raw Monte Carlo tables).
     pub denoise: usize,
+    /// Network of the MLP envmap route.
+    pub env_mlp: EnvMlpOptions,
+    /// Network of the MLP material route.
+    pub mat_mlp: MatMlpOptions,
 }
 
 impl Default for InvertOptions {
@@ -98,6 +109,8 @@ impl Default for InvertOptions {
             early_stop: true,
             rescale: true,
             denoise: 3,
+            env_mlp: EnvMlpOptions::default(),
+            mat_mlp: MatMlpOptions::default(),
         }
     }
 }
@@ -302,18 +315,32 @@ pub fn invert(
                    mats: &[Material],
                    init: &[Vec3],
                    steps: usize,
+                   mlp: &mut Option<EnvMlp>,
                    stages: &mut Vec<StageReport>|
      -> Vec<Vec3> {
         let ts = Instant::now();
         events(Event::Stage { name, steps });
         let tr = EnvTransport::build(cache, mats, pixels.clone());
-        let (env, trace) = fit_texels(
-            &tr,
-            &target,
-            init,
-            &EnvFitOptions { steps, ..env_opts },
-            &|step, loss| events(Event::Step { step, loss }),
-        );
+        let progress = |step, loss| events(Event::Step { step, loss });
+        let (env, trace) = match mlp {
+            Some(net) => net.fit(
+                &tr,
+                &target,
+                &EnvFitOptions {
+                    steps,
+                    lr: opts.env_mlp.lr,
+                    ..env_opts
+                },
+                &progress,
+            ),
+            None => fit_texels(
+                &tr,
+                &target,
+                init,
+                &EnvFitOptions { steps, ..env_opts },
+                &progress,
+            ),
+        };
         stages.push(report(name, &trace, ts));
         env
     };
@@ -342,12 +369,25 @@ pub fn invert(
     let s = exposure_scale(&tr0, &target_linear.data, &flat);
     drop(tr0);
     let init: Vec<Vec3> = flat.iter().map(|e| *e * s).collect();
+    let mut mlp = match opts.env_route {
+        EnvRoute::Texel => None,
+        EnvRoute::Mlp => Some(EnvMlp::new(
+            ew,
+            eh,
+            s,
+            &EnvMlpOptions {
+                seed: opts.seed,
+                ..opts.env_mlp
+            },
+        )),
+    };
     let mut env = run_env(
         "envmap (scout)",
         &scout,
         &mats,
         &init,
         plan.env_steps,
+        &mut mlp,
         &mut stages,
     );
     drop(scout);
@@ -374,6 +414,20 @@ pub fn invert(
 
     // 3. Alternation.
     let guide = Guide::build(&scene);
+    let mat_mlp_opts = MatMlpOptions {
+        seed: opts.seed,
+        ..opts.mat_mlp
+    };
+    let mut mat_mlp: Option<MatMlp> = None;
+    let fit_opts = |parts| MatFitOptions {
+        steps: plan.mat_steps,
+        lr: 0.05,
+        delta: opts.delta,
+        zeta: opts.zeta,
+        parts,
+        early_stop: opts.early_stop,
+        rescale: opts.rescale,
+    };
     for l in 0..plan.loops {
         env = run_env(
             &format!("envmap {}", l + 1),
@@ -381,12 +435,13 @@ pub fn invert(
             &mats,
             &env,
             plan.env_steps,
+            &mut mlp,
             &mut stages,
         );
         let stages_parts: &[Parts] = match opts.mat_route {
             // The per-pixel solve searches A, R and M jointly.
             MatRoute::Solve => &[Parts::ARM],
-            MatRoute::Pixel => &[Parts::RM, Parts::A],
+            MatRoute::Pixel | MatRoute::Mlp => &[Parts::RM, Parts::A],
         };
         for &parts in stages_parts {
             let name = format!("materials {} {}", parts.name(), l + 1);
@@ -406,17 +461,20 @@ pub fn invert(
                     &target,
                     &pred,
                     &mats,
-                    &MatFitOptions {
-                        steps: plan.mat_steps,
-                        lr: 0.05,
-                        delta: opts.delta,
-                        zeta: opts.zeta,
-                        parts,
-                        early_stop: opts.early_stop,
-                        rescale: opts.rescale,
-                    },
+                    &fit_opts(parts),
                     &|step, loss| events(Event::Step { step, loss }),
                 ),
+                MatRoute::Mlp => mat_mlp
+                    .get_or_insert_with(|| MatMlp::new(w, h, &pred, &mat_mlp_opts))
+                    .fit(
+                        &tabs,
+                        &target,
+                        &pred,
+                        &mats,
+                        &fit_opts(parts),
+                        &mat_mlp_opts,
+                        &|step, loss| events(Event::Step { step, loss }),
+                    ),
                 MatRoute::Solve => solve_pixels(
                     &tabs,
                     &target,
@@ -438,6 +496,9 @@ pub fn invert(
             for e in env.iter_mut() {
                 *e *= fit.scale;
             }
+            if let Some(net) = mlp.as_mut() {
+                net.scale *= fit.scale;
+            }
             stages.push(report(&name, &fit.trace, ts));
         }
     }
@@ -448,6 +509,7 @@ pub fn invert(
         &mats,
         &env,
         plan.env_steps,
+        &mut mlp,
         &mut stages,
     );
 

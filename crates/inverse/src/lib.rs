@@ -23,6 +23,7 @@ pub mod envfit;
 pub mod invert;
 pub mod loss;
 pub mod matfit;
+pub mod mlp;
 pub mod optim;
 pub mod solve;
 pub mod tables;

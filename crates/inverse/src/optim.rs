@@ -91,6 +91,41 @@ impl EarlyStop {
     }
 }
 
+/// The reference's `EarlyStopping`: stop after `patience` steps without a
+/// relative improvement of `min_delta` over the best loss so far.
+#[derive(Clone, Debug)]
+pub struct Patience {
+    pub patience: usize,
+    pub min_delta: f64,
+    best: f64,
+    counter: usize,
+}
+
+impl Patience {
+    pub fn new(patience: usize, min_delta: f64) -> Patience {
+        Patience {
+            patience,
+            min_delta,
+            best: f64::NAN,
+            counter: 0,
+        }
+    }
+
+    /// Records a loss; true when optimisation should stop. A NaN loss
+    /// never counts as an improvement.
+    pub fn update(&mut self, loss: f64) -> bool {
+        if self.best.is_nan() && loss.is_finite() {
+            self.best = loss;
+        } else if loss.is_finite() && loss <= self.best * (1.0 - self.min_delta) {
+            self.best = loss;
+            self.counter = 0;
+        } else {
+            self.counter += 1;
+        }
+        self.counter >= self.patience
+    }
+}
+
 /// StepLR: multiply the learning rate by `gamma` every `step_size` steps.
 pub fn step_lr(base: f32, step: usize, step_size: usize, gamma: f32) -> f32 {
     base * gamma.powi((step / step_size.max(1)) as i32)
@@ -111,6 +146,22 @@ mod tests {
         for x in p {
             assert!((x - 1.0).abs() < 1e-2, "{x}");
         }
+    }
+
+    #[test]
+    fn patience_follows_the_reference_rule() {
+        let mut p = Patience::new(3, 0.01);
+        assert!(!p.update(1.0));
+        // 0.995 is not 1 % better than 1.0: counts.
+        assert!(!p.update(0.995));
+        assert!(!p.update(0.98)); // improvement, resets
+        assert!(!p.update(0.975));
+        assert!(!p.update(0.975));
+        assert!(p.update(0.975));
+        let mut p = Patience::new(2, 0.01);
+        p.update(1.0);
+        assert!(!p.update(f64::NAN));
+        assert!(p.update(f64::NAN));
     }
 
     #[test]
