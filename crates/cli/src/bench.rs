@@ -23,6 +23,9 @@ pub enum BenchCmd {
     /// Inverse rendering: wall time against rerender error per budget,
     /// route and skip.
     Invert(crate::bench_invert::BenchInvertArgs),
+    /// Inverse rendering on procedural scenes with known truth: envmap,
+    /// material and relighting errors per budget and route.
+    Synthetic(crate::bench_synthetic::BenchSyntheticArgs),
 }
 
 #[derive(Args)]
@@ -49,6 +52,7 @@ pub fn run(b: BenchCmd) -> Result<()> {
     match b {
         BenchCmd::Render(a) => bench_render(a),
         BenchCmd::Invert(a) => crate::bench_invert::bench_invert(a),
+        BenchCmd::Synthetic(a) => crate::bench_synthetic::bench_synthetic(a),
     }
 }
 

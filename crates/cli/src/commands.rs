@@ -76,6 +76,15 @@ pub struct SynthArgs {
     /// Output bundle folder.
     #[arg(long)]
     pub out: PathBuf,
+    /// Write MatNet-like predictions (blurred, biased, noisy albedo; wrong
+    /// roughness and metallic) instead of the ground truth.
+    #[arg(long)]
+    pub degrade: bool,
+    /// Also write a relighting test: ground_truth/relight_envmap.hdr (a
+    /// different sky) and ground_truth/relit_image.exr rendered under it
+    /// with this many samples per pixel (0: none).
+    #[arg(long, default_value_t = 0)]
+    pub relight_spp: u32,
 }
 
 pub struct LoadedScene {
@@ -272,7 +281,11 @@ pub fn synth(a: SynthArgs) -> Result<()> {
     let s = matflow_scene::synthetic::generate(a.seed, a.size, a.size);
     let bundle = Bundle::create(&a.out)?;
     bundle.write_depth(&s.depth)?;
-    bundle.write_predictions(&s.maps)?;
+    if a.degrade {
+        bundle.write_predictions(&matflow_scene::synthetic::degrade(&s.maps, a.seed))?;
+    } else {
+        bundle.write_predictions(&s.maps)?;
+    }
     bundle.write_materials("ground_truth", &s.maps)?;
     io::write_hdr(&bundle.path("ground_truth/envmap.hdr"), &s.envmap)?;
     // Render the input photo with the true materials and lighting.
@@ -285,6 +298,28 @@ pub fn synth(a: SynthArgs) -> Result<()> {
     let out = render_with_progress(&loaded.scene, &opts, "render gt_image");
     io::write_exr_rgb(&bundle.path("gt_image.exr"), &out.image)?;
     io::write_png_gamma(&bundle.path("gt_image.png"), &out.image)?;
+    if a.relight_spp > 0 {
+        let env_path = bundle.path("ground_truth/relight_envmap.hdr");
+        io::write_hdr(
+            &env_path,
+            &matflow_scene::synthetic::relight_sky(a.seed, 32, 16),
+        )?;
+        let relit = load_scene(
+            &a.out,
+            MaterialSource::GroundTruth,
+            Some(&env_path),
+            6.0,
+            false,
+        )?;
+        let opts = RenderOptions {
+            spp: a.relight_spp,
+            seed: a.seed ^ 0x7e11,
+            ..Default::default()
+        };
+        let img = render_with_progress(&relit.scene, &opts, "render relit_image");
+        io::write_exr_rgb(&bundle.path("ground_truth/relit_image.exr"), &img.image)?;
+        io::write_png_gamma(&bundle.path("ground_truth/relit_image.png"), &img.image)?;
+    }
     println!(
         "synthetic scene {} ({}x{}): {} triangles, gt_image at {} spp in {:.2} s (total {:.2} s) -> {}",
         a.seed,

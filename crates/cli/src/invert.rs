@@ -71,6 +71,13 @@ pub struct InvertArgs {
     /// default they start at 0.7 / 0.05 as the reference does for photos.
     #[arg(long)]
     pub trust_rm: bool,
+    /// Where the starting materials come from: the predictions (`pred`)
+    /// or, on synthetic bundles, `ground_truth`.
+    #[arg(long, default_value = "pred")]
+    pub materials: MaterialSource,
+    /// Recover only the envmap; materials stay at --materials as given.
+    #[arg(long)]
+    pub env_only: bool,
     /// Consistency weight δ.
     #[arg(long, default_value_t = 0.1)]
     pub delta: f32,
@@ -141,11 +148,11 @@ pub struct InvertInput {
     pub scene: RenderScene,
 }
 
-pub fn load_input(dir: &Path, mesh_angle: f64) -> Result<InvertInput> {
+pub fn load_input(dir: &Path, source: MaterialSource, mesh_angle: f64) -> Result<InvertInput> {
     let bundle = Bundle::open(dir)?;
     let target = bundle.load_gt_image()?;
     let depth = bundle.load_depth()?;
-    let maps = bundle.load_materials(MaterialSource::Pred)?;
+    let maps = bundle.load_materials(source)?;
     if !target.same_size(&depth) || maps.width() != depth.width || maps.height() != depth.height {
         bail!(
             "{}: gt_image is {}x{}, depth {}x{}, predictions {}x{}; they must agree",
@@ -213,6 +220,7 @@ pub fn options_from(a: &InvertArgs) -> InvertOptions {
         early_stop: !a.no_early_stop,
         denoise: a.denoise,
         rescale: !a.no_rescale,
+        env_only: a.env_only,
         ..Default::default()
     }
 }
@@ -296,7 +304,7 @@ pub fn write_bundle(
 
 pub fn invert_cmd(a: InvertArgs) -> Result<()> {
     let t0 = Instant::now();
-    let input = load_input(&a.bundle, a.mesh_angle)?;
+    let input = load_input(&a.bundle, a.materials, a.mesh_angle)?;
     let opts = options_from(&a);
     let (res, _b, depth, pred, target) = run_invert(input, &opts, a.quiet)?;
     let rerender = image_metrics(&res.rendered, &target);
@@ -308,6 +316,8 @@ pub fn invert_cmd(a: InvertArgs) -> Result<()> {
             "env_route": format!("{:?}", opts.env_route).to_lowercase(),
             "mat_route": format!("{:?}", opts.mat_route).to_lowercase(),
             "trust_rm": opts.trust_rm,
+            "materials": format!("{:?}", a.materials),
+            "env_only": opts.env_only,
             "delta": opts.delta,
             "zeta": opts.zeta,
             "max_depth": opts.max_depth,

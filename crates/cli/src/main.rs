@@ -2,6 +2,7 @@
 
 mod bench;
 mod bench_invert;
+mod bench_synthetic;
 mod commands;
 mod invert;
 

@@ -86,6 +86,10 @@ pub struct InvertOptions {
     pub env_mlp: EnvMlpOptions,
     /// Network of the MLP material route.
     pub mat_mlp: MatMlpOptions,
+    /// Recover only the envmap, materials held at the given ones (which
+    /// are trusted as they are: the paper's Table 3 setting with ground
+    /// truth or MatNet materials).
+    pub env_only: bool,
 }
 
 impl Default for InvertOptions {
@@ -111,6 +115,7 @@ impl Default for InvertOptions {
             denoise: 3,
             env_mlp: EnvMlpOptions::default(),
             mat_mlp: MatMlpOptions::default(),
+            env_only: false,
         }
     }
 }
@@ -283,7 +288,7 @@ pub fn invert(
         .iter()
         .map(|m| {
             let m = m.sanitized();
-            if opts.trust_rm {
+            if opts.trust_rm || opts.env_only {
                 m
             } else {
                 Material {
@@ -439,6 +444,7 @@ pub fn invert(
             &mut stages,
         );
         let stages_parts: &[Parts] = match opts.mat_route {
+            _ if opts.env_only => &[],
             // The per-pixel solve searches A, R and M jointly.
             MatRoute::Solve => &[Parts::ARM],
             MatRoute::Pixel | MatRoute::Mlp => &[Parts::RM, Parts::A],

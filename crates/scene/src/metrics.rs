@@ -115,6 +115,109 @@ pub fn ssim_gamma(a: &RgbImage, b: &RgbImage) -> f64 {
     tot / 3.0
 }
 
+/// SSIM of linear (HDR) values without clipping, mean over channels.
+pub fn ssim_linear(a: &RgbImage, b: &RgbImage) -> f64 {
+    assert!(a.same_size(b), "ssim_linear: image sizes differ");
+    let mut tot = 0.0;
+    for c in 0..3 {
+        let ca: Vec<f32> = a.data.iter().map(|v| v[c]).collect();
+        let cb: Vec<f32> = b.data.iter().map(|v| v[c]).collect();
+        tot += ssim_channel(&ca, &cb, a.width, a.height);
+    }
+    tot / 3.0
+}
+
+/// Number of real spherical-harmonic coefficients up to band 4.
+pub const SH_COEFFS: usize = 25;
+
+/// Real orthonormal spherical harmonics Y_lm(θ, φ) for l ≤ 4, in the
+/// order (0,0), (1,−1), (1,0), (1,1), (2,−2), … (m from −l to l).
+pub fn sh_basis(theta: f64, phi: f64) -> [f64; SH_COEFFS] {
+    let x = theta.cos();
+    let sx = theta.sin().abs();
+    // Associated Legendre P_l^m(x) without the Condon–Shortley phase.
+    let mut p = [[0f64; 5]; 5];
+    p[0][0] = 1.0;
+    for m in 0..5 {
+        if m > 0 {
+            p[m][m] = p[m - 1][m - 1] * (2 * m - 1) as f64 * sx;
+        }
+        if m < 4 {
+            p[m + 1][m] = x * (2 * m + 1) as f64 * p[m][m];
+        }
+        for l in m + 2..5 {
+            p[l][m] = ((2 * l - 1) as f64 * x * p[l - 1][m] - (l + m - 1) as f64 * p[l - 2][m])
+                / (l - m) as f64;
+        }
+    }
+    let fact = |n: usize| (1..=n).map(|k| k as f64).product::<f64>();
+    let mut out = [0f64; SH_COEFFS];
+    let mut k = 0;
+    for l in 0..5usize {
+        for m in -(l as i64)..=(l as i64) {
+            let am = m.unsigned_abs() as usize;
+            let norm = ((2 * l + 1) as f64 / (4.0 * std::f64::consts::PI) * fact(l - am)
+                / fact(l + am))
+            .sqrt();
+            out[k] = match m.cmp(&0) {
+                std::cmp::Ordering::Equal => norm * p[l][0],
+                std::cmp::Ordering::Greater => {
+                    std::f64::consts::SQRT_2 * norm * (m as f64 * phi).cos() * p[l][am]
+                }
+                std::cmp::Ordering::Less => {
+                    std::f64::consts::SQRT_2 * norm * (am as f64 * phi).sin() * p[l][am]
+                }
+            };
+            k += 1;
+        }
+    }
+    out
+}
+
+/// Projection of a lat-long envmap (Mitsuba layout: column j at
+/// φ = 2π(j + ½)/W, row i at θ = πi/(H − 1)) onto SH bands 0–4, RGB;
+/// texels weighted by their solid angle sin θ·Δθ·Δφ.
+pub fn sh_project(env: &RgbImage) -> [[f64; 3]; SH_COEFFS] {
+    let (w, h) = (env.width, env.height);
+    let mut c = [[0f64; 3]; SH_COEFFS];
+    if w == 0 || h < 2 {
+        return c;
+    }
+    let dphi = 2.0 * std::f64::consts::PI / w as f64;
+    let dtheta = std::f64::consts::PI / (h - 1) as f64;
+    for i in 0..h {
+        let theta = dtheta * i as f64;
+        // Trapezoid in θ: the pole rows carry half a row.
+        let edge = if i == 0 || i == h - 1 { 0.5 } else { 1.0 };
+        let wgt = theta.sin() * dtheta * dphi * edge;
+        for j in 0..w {
+            let phi = dphi * (j as f64 + 0.5);
+            let y = sh_basis(theta, phi);
+            let v = env.get(j, i);
+            for k in 0..SH_COEFFS {
+                for ch in 0..3 {
+                    c[k][ch] += y[k] * wgt * v[ch] as f64;
+                }
+            }
+        }
+    }
+    c
+}
+
+/// The paper's SH error (Table 3): the Frobenius norm of the difference
+/// of the two envmaps' SH coefficient matrices (bands 0–4, RGB).
+pub fn sh_error(a: &RgbImage, b: &RgbImage) -> f64 {
+    let (ca, cb) = (sh_project(a), sh_project(b));
+    let mut s = 0.0;
+    for k in 0..SH_COEFFS {
+        for ch in 0..3 {
+            let d = ca[k][ch] - cb[k][ch];
+            s += d * d;
+        }
+    }
+    s.sqrt()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -128,6 +231,53 @@ mod tests {
         let b = Image::new(8, 8, Vec3::splat(0.1f32.powf(2.2)));
         assert!((psnr_gamma(&a, &b) - 20.0).abs() < 1e-3);
         assert_eq!(psnr_gamma(&a, &a), 100.0);
+    }
+
+    #[test]
+    fn sh_basis_is_orthonormal_under_quadrature() {
+        // Midpoint rule on a fine grid: ∫ Y_a Y_b dω = δ_ab.
+        let (nt, np) = (200, 400);
+        let mut g = [[0f64; SH_COEFFS]; SH_COEFFS];
+        for i in 0..nt {
+            let t = std::f64::consts::PI * (i as f64 + 0.5) / nt as f64;
+            for j in 0..np {
+                let ph = 2.0 * std::f64::consts::PI * (j as f64 + 0.5) / np as f64;
+                let y = sh_basis(t, ph);
+                let w = t.sin()
+                    * (std::f64::consts::PI / nt as f64)
+                    * (2.0 * std::f64::consts::PI / np as f64);
+                for a in 0..SH_COEFFS {
+                    for b in 0..SH_COEFFS {
+                        g[a][b] += y[a] * y[b] * w;
+                    }
+                }
+            }
+        }
+        for a in 0..SH_COEFFS {
+            for b in 0..SH_COEFFS {
+                let want = if a == b { 1.0 } else { 0.0 };
+                assert!((g[a][b] - want).abs() < 1e-3, "<Y{a}, Y{b}> = {}", g[a][b]);
+            }
+        }
+        // Known values: Y00 = 1/(2√π); Y10 = √(3/4π)·cos θ.
+        let y = sh_basis(0.3, 1.1);
+        assert!((y[0] - 0.5 / std::f64::consts::PI.sqrt()).abs() < 1e-12);
+        assert!((y[2] - (3.0 / (4.0 * std::f64::consts::PI)).sqrt() * 0.3f64.cos()).abs() < 1e-12);
+    }
+
+    #[test]
+    fn sh_projection_of_a_constant_envmap() {
+        // A constant c projects to c·√(4π) on Y00 and ~0 elsewhere.
+        let env = Image::new(64, 32, Vec3::splat(2.0));
+        let c = sh_project(&env);
+        let want = 2.0 * (4.0 * std::f64::consts::PI).sqrt();
+        assert!((c[0][0] - want).abs() < 0.01 * want, "{}", c[0][0]);
+        for k in 1..SH_COEFFS {
+            assert!(c[k][1].abs() < 0.02, "coefficient {k}: {}", c[k][1]);
+        }
+        assert_eq!(sh_error(&env, &env), 0.0);
+        let brighter = env.map(|v| v * 1.5);
+        assert!((sh_error(&env, &brighter) - 3f64.sqrt() * 0.5 * c[0][0]).abs() < 0.05);
     }
 
     #[test]

@@ -331,6 +331,84 @@ pub fn generate(seed: u64, width: usize, height: usize) -> SyntheticScene {
     }
 }
 
+/// MatNet-like predictions made from the ground truth, so the inverse
+/// stages have something realistic to correct: albedo blurred (σ 1.5 px),
+/// with a per-channel gain of 0.75–1.25 and noise (σ 0.03); roughness
+/// blurred, shifted by ±0.15–0.3 and noisy (σ 0.05); metallic pulled
+/// halfway towards 0.3 (metals under-, dielectrics over-predicted) plus
+/// noise. All clamped to the valid ranges; normals are kept (geometry is
+/// not what is being recovered). A pure function of `maps` and `seed`.
+pub fn degrade(maps: &MaterialMaps, seed: u64) -> MaterialMaps {
+    let mut rng = Rng(seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) ^ 0xdeca_f000);
+    let gain = Vec3::new(
+        rng.range(0.75, 1.25),
+        rng.range(0.75, 1.25),
+        rng.range(0.75, 1.25),
+    );
+    let r_shift = rng.range(0.15, 0.3) * if rng.f() < 0.5 { -1.0 } else { 1.0 };
+    let (w, h) = (maps.albedo.width, maps.albedo.height);
+    // Per-pixel noise from a hash of (seed, pixel, channel): uniform with
+    // the stated standard deviation (σ·√3 half-width).
+    let noise = |p: usize, c: u64, sigma: f32| -> f32 {
+        let mut r = Rng(seed ^ (p as u64).wrapping_mul(0x2545_f491_4f6c_dd1d) ^ (c << 56));
+        (r.f() * 2.0 - 1.0) * sigma * 3f32.sqrt()
+    };
+    let blur_a = blur(&maps.albedo, 1.5);
+    let blur_r = blur(&maps.roughness.map(Vec3::splat), 1.5);
+    let albedo = Image::from_fn(w, h, |x, y| {
+        let p = y * w + x;
+        let a = blur_a.get(x, y) * gain
+            + Vec3::new(noise(p, 0, 0.03), noise(p, 1, 0.03), noise(p, 2, 0.03));
+        a.clamp(Vec3::ZERO, Vec3::ONE)
+    });
+    let roughness = Image::from_fn(w, h, |x, y| {
+        let p = y * w + x;
+        (blur_r.get(x, y).x + r_shift + noise(p, 3, 0.05)).clamp(0.0, 1.0)
+    });
+    let metallic = Image::from_fn(w, h, |x, y| {
+        let p = y * w + x;
+        (0.5 * maps.metallic.get(x, y) + 0.15 + noise(p, 4, 0.05)).clamp(0.0, 1.0)
+    });
+    MaterialMaps {
+        albedo,
+        roughness,
+        metallic,
+        normal: maps.normal.clone(),
+    }
+}
+
+/// Separable Gaussian blur with renormalised border windows.
+fn blur(img: &RgbImage, sigma: f32) -> RgbImage {
+    let r = (3.0 * sigma).ceil() as i64;
+    let g: Vec<f32> = (-r..=r)
+        .map(|i| (-(i * i) as f32 / (2.0 * sigma * sigma)).exp())
+        .collect();
+    let (w, h) = (img.width as i64, img.height as i64);
+    let pass = |src: &RgbImage, dx: i64, dy: i64| -> RgbImage {
+        Image::from_fn(src.width, src.height, |x, y| {
+            let (mut s, mut n) = (Vec3::ZERO, 0.0);
+            for (k, gk) in g.iter().enumerate() {
+                let o = k as i64 - r;
+                let (xx, yy) = (x as i64 + o * dx, y as i64 + o * dy);
+                if xx >= 0 && xx < w && yy >= 0 && yy < h {
+                    s += src.get(xx as usize, yy as usize) * *gk;
+                    n += gk;
+                }
+            }
+            s / n
+        })
+    };
+    pass(&pass(img, 1, 0), 0, 1)
+}
+
+/// The relighting envmap for a scene: a different procedural sky (another
+/// seed) turned half way round, so sun direction, colours and intensity
+/// all change.
+pub fn relight_sky(seed: u64, width: usize, height: usize) -> RgbImage {
+    let sky = procedural_sky(seed ^ 0x7e11_9470, width, height);
+    Image::from_fn(width, height, |x, y| sky.get((x + width / 2) % width, y))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -343,6 +421,34 @@ mod tests {
         assert_eq!(a.depth, b.depth);
         assert_eq!(a.maps, b.maps);
         assert_ne!(a.maps.albedo, c.maps.albedo);
+    }
+
+    #[test]
+    fn degraded_predictions_differ_but_stay_valid() {
+        let s = generate(2, 48, 48);
+        let d = degrade(&s.maps, 2);
+        assert_eq!(d, degrade(&s.maps, 2));
+        let mut diff = [0f64; 3];
+        for k in 0..48 * 48 {
+            let a = d.albedo.data[k];
+            assert!(a.min_element() >= 0.0 && a.max_element() <= 1.0);
+            assert!((0.0..=1.0).contains(&d.roughness.data[k]));
+            assert!((0.0..=1.0).contains(&d.metallic.data[k]));
+            diff[0] += (a - s.maps.albedo.data[k]).abs().element_sum() as f64;
+            diff[1] += (d.roughness.data[k] - s.maps.roughness.data[k]).abs() as f64;
+            diff[2] += (d.metallic.data[k] - s.maps.metallic.data[k]).abs() as f64;
+        }
+        let n = (48 * 48) as f64;
+        assert!(diff[0] / (3.0 * n) > 0.02, "albedo barely changed");
+        assert!(diff[1] / n > 0.1, "roughness barely changed");
+        assert!(diff[2] / n > 0.05, "metallic barely changed");
+        assert_eq!(d.normal, s.maps.normal);
+        let r = relight_sky(2, 32, 16);
+        assert_ne!(r, s.envmap);
+        assert!(r
+            .data
+            .iter()
+            .all(|v| v.is_finite() && v.min_element() >= 0.0));
     }
 
     #[test]
