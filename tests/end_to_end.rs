@@ -178,6 +178,20 @@ fn bad_inputs_fail_with_messages_naming_the_problem() {
         err.contains("albedoPred.exr") && err.contains("2 pixel"),
         "{err}"
     );
+    // The same file given to `invert`: rejected before any work, nothing
+    // written.
+    let out = dir.path().join("inv-nan");
+    let o = matflow(
+        &["invert", "--bundle", s(&b), "--out", s(&out), "--quiet"],
+        None,
+    );
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("albedoPred.exr") && err.contains("2 pixel"),
+        "{err}"
+    );
+    assert!(!out.exists(), "invert wrote output for a rejected input");
     assert!(!dir.path().join("x.exr").exists());
     // Corrupt envmap file.
     let env = dir.path().join("bad.hdr");

@@ -24,6 +24,9 @@ pub struct BenchInvertArgs {
     /// Material routes.
     #[arg(long, num_args = 1.., default_values = ["solve", "pixel"])]
     pub mat_routes: Vec<String>,
+    /// Envmap routes.
+    #[arg(long, num_args = 1.., default_values = ["texel"])]
+    pub env_routes: Vec<String>,
     /// Also run the skip ablations at the largest budget (solve route):
     /// no table denoising, no exposure ratio, one bounce fewer, no early
     /// stopping.
@@ -117,8 +120,15 @@ pub fn bench_invert(a: BenchInvertArgs) -> Result<()> {
         }
         let mut configs: Vec<(f64, String, String, Vec<&str>)> = Vec::new();
         for &b in &a.budgets {
-            for r in &a.mat_routes {
-                configs.push((b, r.clone(), "default".into(), vec![]));
+            for e in &a.env_routes {
+                for r in &a.mat_routes {
+                    let variant = if e == "texel" {
+                        "default".to_string()
+                    } else {
+                        format!("envmap {e}")
+                    };
+                    configs.push((b, r.clone(), variant, vec!["--env-route", e.as_str()]));
+                }
             }
         }
         if a.skips {

@@ -31,3 +31,6 @@ pub mod transport;
 
 #[cfg(test)]
 pub(crate) mod testutil;
+
+#[cfg(test)]
+mod stress;
