@@ -277,6 +277,53 @@ fn pixel_terms(
     (s, gz)
 }
 
+/// Loss sums and ∂loss/∂z over the pixels `idx` (every pixel in order
+/// when `None`): the b-th pixel's offsets are z[5b..5b + 5] and its
+/// gradient goes to grad[5b..5b + 5]. Chunks are summed in order.
+#[allow(clippy::too_many_arguments)]
+fn batch_terms(
+    tables: &[PixelTable],
+    target: &Target,
+    pred: &[Material],
+    start: &[Material],
+    idx: Option<&[u32]>,
+    z: &[f32],
+    terms: &Terms,
+    k: f32,
+    grad: &mut [f32],
+) -> Sums {
+    let chunk = 4096;
+    let sums: Vec<Sums> = grad
+        .par_chunks_mut(5 * chunk)
+        .enumerate()
+        .map(|(c, g)| {
+            let mut s = Sums::default();
+            for (j, gp) in g.chunks_mut(5).enumerate() {
+                let b = c * chunk + j;
+                let p = idx.map_or(b, |v| v[b] as usize);
+                let (l, gz) = pixel_terms(
+                    &tables[p],
+                    target,
+                    p,
+                    &pred[p],
+                    &start[p],
+                    &z[5 * b..5 * b + 5],
+                    terms,
+                    k,
+                );
+                s.add(&l);
+                gp.copy_from_slice(&gz);
+            }
+            s
+        })
+        .collect();
+    let mut tot = Sums::default();
+    for s in sums {
+        tot.add(&s);
+    }
+    tot
+}
+
 /// Per-pixel route: z is a free 5-vector per pixel, fitted by Adam.
 /// `start` gives the current materials (channels not in `parts` stay at
 /// `start`); returns the fitted materials and the trace.
@@ -312,35 +359,8 @@ pub fn fit_pixels(
             .collect()
     };
     let mut best = (f64::INFINITY, z.clone(), 1f32);
-    let chunk = 4096;
     for step in 0..=opts.steps {
-        let sums: Vec<Sums> = grad
-            .par_chunks_mut(5 * chunk)
-            .enumerate()
-            .map(|(c, g)| {
-                let mut s = Sums::default();
-                for (j, gp) in g.chunks_mut(5).enumerate() {
-                    let p = c * chunk + j;
-                    let (l, gz) = pixel_terms(
-                        &tables[p],
-                        target,
-                        p,
-                        &pred[p],
-                        &start[p],
-                        &z[5 * p..5 * p + 5],
-                        &terms,
-                        k,
-                    );
-                    s.add(&l);
-                    gp.copy_from_slice(&gz);
-                }
-                s
-            })
-            .collect();
-        let mut tot = Sums::default();
-        for s in sums {
-            tot.add(&s);
-        }
+        let tot = batch_terms(tables, target, pred, start, None, &z, &terms, k, &mut grad);
         let l_re = (tot.l1 + tot.l2) * norm_re;
         let total = l_re + delta as f64 * tot.cons;
         trace.losses.push(l_re);
@@ -509,34 +529,17 @@ impl MatMlp {
             let feats = self.gather(&idx);
             let (z, tape) = self.net.forward_taped(&feats);
             let mut dout = vec![0f32; z.len()];
-            let sums: Vec<Sums> = dout
-                .par_chunks_mut(5 * chunk)
-                .enumerate()
-                .map(|(c, g)| {
-                    let mut s = Sums::default();
-                    for (j, gp) in g.chunks_mut(5).enumerate() {
-                        let b = c * chunk + j;
-                        let p = idx[b] as usize;
-                        let (l, gz) = pixel_terms(
-                            &tables[p],
-                            target,
-                            p,
-                            &pred[p],
-                            &start[p],
-                            &z[5 * b..5 * b + 5],
-                            &terms,
-                            k,
-                        );
-                        s.add(&l);
-                        gp.copy_from_slice(&gz);
-                    }
-                    s
-                })
-                .collect();
-            let mut tot = Sums::default();
-            for s in sums {
-                tot.add(&s);
-            }
+            let tot = batch_terms(
+                tables,
+                target,
+                pred,
+                start,
+                Some(&idx),
+                &z,
+                &terms,
+                k,
+                &mut dout,
+            );
             let l_re = (tot.l1 + tot.l2) * terms.norm_re;
             trace.losses.push(l_re);
             progress(step, l_re);
