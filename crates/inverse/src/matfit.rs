@@ -81,18 +81,18 @@ pub struct MatFit {
     pub trace: FitTrace,
 }
 
+/// A material as the 5 optimised values (A rgb, R, M).
+#[inline]
+fn arm(m: &Material) -> [f32; 5] {
+    [m.albedo.x, m.albedo.y, m.albedo.z, m.roughness, m.metallic]
+}
+
 /// The 5 parameters of a pixel from z, with d(x)/d(z) (straight-through).
 #[inline]
 pub fn decode(pred: &Material, z: &[f32], zeta: f32) -> (Material, [f32; 5]) {
     let mut x = [0f32; 5];
     let mut d = [0f32; 5];
-    let base = [
-        pred.albedo.x,
-        pred.albedo.y,
-        pred.albedo.z,
-        pred.roughness,
-        pred.metallic,
-    ];
+    let base = arm(pred);
     for k in 0..5 {
         let t = z[k].tanh();
         let lo = if k == 3 { MIN_ROUGHNESS } else { 0.0 };
@@ -112,20 +112,8 @@ pub fn decode(pred: &Material, z: &[f32], zeta: f32) -> (Material, [f32; 5]) {
 /// z that reproduces `start` given `pred` (as closely as tanh allows).
 #[inline]
 pub fn encode(pred: &Material, start: &Material, zeta: f32) -> [f32; 5] {
-    let p = [
-        pred.albedo.x,
-        pred.albedo.y,
-        pred.albedo.z,
-        pred.roughness,
-        pred.metallic,
-    ];
-    let s = [
-        start.albedo.x,
-        start.albedo.y,
-        start.albedo.z,
-        start.roughness,
-        start.metallic,
-    ];
+    let p = arm(pred);
+    let s = arm(start);
     let mut z = [0f32; 5];
     for k in 0..5 {
         let t = ((s[k] - p[k]) / zeta).clamp(-0.999, 0.999);
@@ -254,14 +242,7 @@ fn pixel_terms(
         (di * e.dr).element_sum(),
         (di * e.dm).element_sum(),
     ];
-    let xs = [m.albedo.x, m.albedo.y, m.albedo.z, m.roughness, m.metallic];
-    let ps = [
-        pred.albedo.x,
-        pred.albedo.y,
-        pred.albedo.z,
-        pred.roughness,
-        pred.metallic,
-    ];
+    let (xs, ps) = (arm(&m), arm(pred));
     let mut gz = [0f32; 5];
     for c in 0..5 {
         if !t.active[c] {
@@ -590,18 +571,16 @@ impl MatMlp {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::tables::build_tables;
-    use crate::testutil::{cache_of, hash01, materials_of, room, texels};
+    use crate::testutil::{hash01, table_problem, TableProblem};
 
     #[test]
     fn mlp_route_lowers_the_loss_from_perturbed_predictions() {
-        let t = room(5, 24);
-        let cache = cache_of(&t.scene, 8);
-        let truth = materials_of(&t.maps);
-        let env = texels(&t.env);
-        let tabs = build_tables(&cache, &truth, &env);
-        let img: Vec<Vec3> = tabs.iter().zip(&truth).map(|(t, m)| t.eval(m).i).collect();
-        let target = Target::new(cache.width, cache.height, &img);
+        let TableProblem {
+            tables: tabs,
+            truth,
+            target,
+            ..
+        } = table_problem(5, 24);
         let pred: Vec<Material> = truth
             .iter()
             .enumerate()

@@ -49,6 +49,8 @@ pub struct PosMlp {
     layers: Vec<Layer>,
     /// Floats of activation record per sample.
     tape_len: usize,
+    /// Offset of each layer's record (its input, then cos a) in a tape.
+    tape_offsets: Vec<usize>,
     pub params: Vec<f32>,
 }
 
@@ -99,6 +101,7 @@ impl PosMlp {
         let mut n_in = n_features;
         let mut off = 0;
         let mut tape_len = 0;
+        let mut tape_offsets = Vec::new();
         for l in 0..=depth {
             let last = l == depth;
             let n_out_l = if last {
@@ -119,6 +122,7 @@ impl PosMlp {
                 skip,
             });
             off += n_in_l * n_out_l + n_out_l;
+            tape_offsets.push(tape_len);
             tape_len += n_in_l + if last { 0 } else { n_out_l };
             n_in = n_out_l;
         }
@@ -138,6 +142,7 @@ impl PosMlp {
             n_out,
             layers,
             tape_len,
+            tape_offsets,
             params,
         }
     }
@@ -255,13 +260,7 @@ impl PosMlp {
 
     fn backward_one(&self, tape: &[f32], dy: &mut Vec<f32>, dx: &mut Vec<f32>, g: &mut [f32]) {
         let p = &self.params;
-        // Tape offsets of each layer's input and (sine) cos(a).
-        let mut offs = Vec::with_capacity(self.layers.len());
-        let mut t = 0;
-        for ly in &self.layers {
-            offs.push(t);
-            t += ly.n_in + if ly.sine { ly.n_out } else { 0 };
-        }
+        let offs = &self.tape_offsets;
         for li in (0..self.layers.len()).rev() {
             let ly = self.layers[li];
             let x = &tape[offs[li]..offs[li] + ly.n_in];

@@ -343,8 +343,7 @@ pub fn solve_pixels(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::tables::build_tables;
-    use crate::testutil::{cache_of, hash01, materials_of, room, texels};
+    use crate::testutil::{hash01, table_problem, TableProblem};
 
     /// Known answer: the target is the tables' own image for the true
     /// materials; from perturbed predictions the albedo solve recovers the
@@ -352,13 +351,12 @@ mod tests {
     /// roughness/metallic solve drives the loss to (nearly) zero.
     #[test]
     fn solves_recover_the_materials_that_made_the_image() {
-        let t = room(5, 24);
-        let cache = cache_of(&t.scene, 8);
-        let truth = materials_of(&t.maps);
-        let env = texels(&t.env);
-        let tabs = build_tables(&cache, &truth, &env);
-        let img: Vec<Vec3> = tabs.iter().zip(&truth).map(|(t, m)| t.eval(m).i).collect();
-        let target = Target::new(cache.width, cache.height, &img);
+        let TableProblem {
+            tables: tabs,
+            truth,
+            image: img,
+            target,
+        } = table_problem(5, 24);
         let pred: Vec<Material> = truth
             .iter()
             .enumerate()

@@ -50,3 +50,32 @@ pub fn cache_of(scene: &RenderScene, spp: u32) -> crate::cache::PathCache {
     )
     .expect("cache")
 }
+
+/// A known-answer material problem: the tables of room `seed` at `n`×`n`
+/// (8 paths per pixel, true envmap), the true materials, and as target
+/// the tables' own image for them (so the true materials fit exactly).
+pub struct TableProblem {
+    pub tables: Vec<crate::tables::PixelTable>,
+    pub truth: Vec<matflow_render::Material>,
+    pub image: Vec<Vec3>,
+    pub target: crate::loss::Target,
+}
+
+pub fn table_problem(seed: u64, n: usize) -> TableProblem {
+    let t = room(seed, n);
+    let cache = cache_of(&t.scene, 8);
+    let truth = materials_of(&t.maps);
+    let tables = crate::tables::build_tables(&cache, &truth, &texels(&t.env));
+    let image: Vec<Vec3> = tables
+        .iter()
+        .zip(&truth)
+        .map(|(t, m)| t.eval(m).i)
+        .collect();
+    let target = crate::loss::Target::new(cache.width, cache.height, &image);
+    TableProblem {
+        tables,
+        truth,
+        image,
+        target,
+    }
+}
