@@ -46,6 +46,11 @@ pub struct BenchSyntheticArgs {
     /// Skip the envmap-only runs.
     #[arg(long)]
     pub no_env_only: bool,
+    /// Variants of the full recovery: each is a string of extra `invert`
+    /// flags (e.g. "--delta 0.5 --loops 2") run as its own configuration
+    /// next to the defaults ("" is the defaults themselves).
+    #[arg(long, num_args = 1.., allow_hyphen_values = true, default_values = [""])]
+    pub variants: Vec<String>,
     /// Where scenes and runs are written (scenes are reused).
     #[arg(long, default_value = "target/bench-synthetic")]
     pub work: PathBuf,
@@ -229,16 +234,21 @@ pub fn bench_synthetic(a: BenchSyntheticArgs) -> Result<()> {
         for &b in &a.budgets {
             for e in &a.env_routes {
                 for m in &a.mat_routes {
-                    configs.push((
-                        b,
-                        format!("env {e}, materials {m}"),
-                        vec![
-                            "--env-route".into(),
+                    for v in &a.variants {
+                        let mut flags = vec![
+                            "--env-route".to_string(),
                             e.clone(),
                             "--mat-route".into(),
                             m.clone(),
-                        ],
-                    ));
+                        ];
+                        flags.extend(v.split_whitespace().map(String::from));
+                        let name = if v.trim().is_empty() {
+                            format!("env {e}, materials {m}")
+                        } else {
+                            format!("env {e}, materials {m}, {}", v.trim())
+                        };
+                        configs.push((b, name, flags));
+                    }
                 }
             }
         }
@@ -263,7 +273,7 @@ pub fn bench_synthetic(a: BenchSyntheticArgs) -> Result<()> {
             let out = a.work.join(format!(
                 "run-{seed}-{}-{b}-{}",
                 a.size,
-                config.replace([' ', ',', '(', ')'], "_")
+                config.replace([' ', ',', '(', ')', '-', '.'], "_")
             ));
             let flags: Vec<&str> = flags.iter().map(|x| x.as_str()).collect();
             let mut r = measure(&exe, &a, &dir, &out, b, &flags)?;

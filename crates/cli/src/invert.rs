@@ -90,6 +90,9 @@ pub struct InvertArgs {
     /// Envmap/material alternations (default: from the budget).
     #[arg(long)]
     pub loops: Option<usize>,
+    /// Rounds of the per-pixel solve per material stage (default: from the budget).
+    #[arg(long)]
+    pub solve_rounds: Option<usize>,
     /// Maximum steps per optimisation stage (default: from the budget).
     #[arg(long)]
     pub steps: Option<usize>,
@@ -110,6 +113,11 @@ pub struct InvertArgs {
     /// Disable early stopping (run every stage for its full step count).
     #[arg(long)]
     pub no_early_stop: bool,
+    /// Weight of the smoothness prior on the texel envmap's log radiance
+    /// (mean squared log difference of neighbouring texels; 0: off).
+    /// Default: 0.01 with --trust-rm, off for photos.
+    #[arg(long)]
+    pub env_smooth: Option<f32>,
     /// Hide the progress bar.
     #[arg(long)]
     pub quiet: bool,
@@ -215,9 +223,11 @@ pub fn options_from(a: &InvertArgs) -> InvertOptions {
         spp: a.spp,
         final_spp: a.final_spp,
         loops: a.loops,
+        solve_rounds: a.solve_rounds,
         env_steps: a.steps,
         mat_steps: a.steps,
         early_stop: !a.no_early_stop,
+        env_smooth: a.env_smooth,
         denoise: a.denoise,
         rescale: !a.no_rescale,
         env_only: a.env_only,

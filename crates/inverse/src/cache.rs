@@ -244,6 +244,18 @@ impl PathCache {
 
     /// Vertices and records of pixel (x, y).
     #[inline]
+    /// How many pixels have a path that starts on a surface (the others
+    /// see only the sky).
+    pub fn surface_pixels(&self) -> usize {
+        (0..self.height)
+            .map(|y| {
+                (0..self.width)
+                    .filter(|&x| self.pixel(x, y).0.iter().any(|v| v.q != NO_MATERIAL))
+                    .count()
+            })
+            .sum()
+    }
+
     pub fn pixel(&self, x: usize, y: usize) -> (&[Vertex], &[Record]) {
         let row = &self.rows[y];
         let (v0, v1) = (row.vert_start[x] as usize, row.vert_start[x + 1] as usize);

@@ -45,6 +45,11 @@ pub struct SolveOptions {
     /// of them, and a per-pixel minimum would exploit that noise (mirror
     /// "fixes" that an independent render does not reproduce).
     pub min_roughness: f32,
+    /// Start from the current R, M (a compass search with fine steps)
+    /// instead of a grid over their whole range: for stages after the
+    /// first, whose starting materials are already a solve's answer.
+    /// Rounds after a stage's first are always warm.
+    pub warm: bool,
 }
 
 /// Feasible interval of a parameter: within ζ of the prediction and inside
@@ -136,7 +141,7 @@ fn solve_albedo(
         out[c] = if s1 - s0 < 1e-6 {
             s0
         } else {
-            golden(s0, s1, 24, f)
+            golden(s0, s1, 16, f)
         };
     }
     out
@@ -215,23 +220,34 @@ fn solve_rm(
         f32::INFINITY,
     );
     best.2 = f(best.0, best.1);
-    for i in 0..GR {
-        // Denser grid at low roughness, where the lobe changes fastest.
-        let u = i as f32 / (GR - 1) as f32;
-        let r = rlo + (rhi - rlo) * u * u;
-        for j in 0..GM {
-            let mm = lerp(mlo, mhi, j, GM);
-            let v = f(r, mm);
-            if v < best.2 {
-                best = (r, mm, v);
+    let mut sr = (rhi - rlo) / (GR - 1) as f32;
+    let mut sm = (mhi - mlo) / (GM - 1) as f32;
+    if o.warm {
+        sr *= 0.25;
+        sm *= 0.25;
+    } else {
+        for i in 0..GR {
+            // Denser grid at low roughness, where the lobe changes fastest.
+            let u = i as f32 / (GR - 1) as f32;
+            let r = rlo + (rhi - rlo) * u * u;
+            for j in 0..GM {
+                let mm = lerp(mlo, mhi, j, GM);
+                let v = f(r, mm);
+                if v < best.2 {
+                    best = (r, mm, v);
+                }
             }
         }
     }
-    let mut sr = (rhi - rlo) / (GR - 1) as f32;
-    let mut sm = (mhi - mlo) / (GM - 1) as f32;
     for _ in 0..14 {
+        if sr.max(sm) < 2e-4 {
+            break;
+        }
         let mut moved = false;
         for (dr, dm) in [(sr, 0.0), (-sr, 0.0), (0.0, sm), (0.0, -sm)] {
+            if dr == 0.0 && dm == 0.0 {
+                continue;
+            }
             let r = (best.0 + dr).clamp(rlo, rhi);
             let mm = (best.1 + dm).clamp(mlo, mhi);
             let v = f(r, mm);
@@ -308,6 +324,10 @@ pub fn solve_pixels(
     let mut k_used = k;
     for round in 0..rounds {
         k_used = k;
+        let o = &SolveOptions {
+            warm: o.warm || round > 0,
+            ..*o
+        };
         mats = mats
             .par_iter()
             .enumerate()
@@ -345,6 +365,54 @@ mod tests {
     use super::*;
     use crate::testutil::{hash01, table_problem, TableProblem};
 
+    /// A warm solve (compass search from the previous answer, no grid)
+    /// started at a cold solve's answer keeps its fit: the re-rendering
+    /// loss stays within 1 % (each pixel minimises loss + consistency,
+    /// and the albedo search has finite precision, so the reported loss
+    /// alone may move a hair either way).
+    #[test]
+    fn warm_solve_never_loses_ground() {
+        let TableProblem {
+            tables,
+            truth,
+            target,
+            ..
+        } = table_problem(9, 24);
+        let pred: Vec<Material> = truth
+            .iter()
+            .map(|t| Material {
+                albedo: t.albedo * 0.8,
+                roughness: 0.7,
+                metallic: 0.05,
+            })
+            .collect();
+        let o = SolveOptions {
+            delta: 0.1,
+            zeta: 1.3,
+            parts: Parts::ARM,
+            rounds: 1,
+            rescale: false,
+            reference_weighting: false,
+            min_roughness: MIN_ROUGHNESS,
+            warm: false,
+        };
+        let cold = solve_pixels(&tables, &target, &pred, &pred, &o, &|_, _| {});
+        let warm = solve_pixels(
+            &tables,
+            &target,
+            &pred,
+            &cold.materials,
+            &SolveOptions { warm: true, ..o },
+            &|_, _| {},
+        );
+        let (lc, lw) = (
+            *cold.trace.losses.last().unwrap(),
+            *warm.trace.losses.last().unwrap(),
+        );
+        assert!(lc < cold.trace.losses[0], "cold solve did not descend");
+        assert!(lw <= lc * 1.01, "warm {lw} vs cold {lc}");
+    }
+
     /// Known answer: the target is the tables' own image for the true
     /// materials; from perturbed predictions the albedo solve recovers the
     /// true albedo wherever light reaches the pixel, and the
@@ -375,6 +443,7 @@ mod tests {
             rescale: false,
             reference_weighting: false,
             min_roughness: MIN_ROUGHNESS,
+            warm: false,
         };
         // Albedo with R, M at the truth.
         let start: Vec<Material> = pred
