@@ -365,6 +365,20 @@ mod tests {
     use super::*;
     use crate::testutil::{hash01, table_problem, TableProblem};
 
+    /// One cold round with plain L1 + L2 and no exposure ratio.
+    fn one_round(parts: Parts, delta: f32) -> SolveOptions {
+        SolveOptions {
+            delta,
+            zeta: 1.3,
+            parts,
+            rounds: 1,
+            rescale: false,
+            reference_weighting: false,
+            min_roughness: MIN_ROUGHNESS,
+            warm: false,
+        }
+    }
+
     /// A warm solve (compass search from the previous answer, no grid)
     /// started at a cold solve's answer keeps its fit: the re-rendering
     /// loss stays within 1 % (each pixel minimises loss + consistency,
@@ -386,16 +400,7 @@ mod tests {
                 metallic: 0.05,
             })
             .collect();
-        let o = SolveOptions {
-            delta: 0.1,
-            zeta: 1.3,
-            parts: Parts::ARM,
-            rounds: 1,
-            rescale: false,
-            reference_weighting: false,
-            min_roughness: MIN_ROUGHNESS,
-            warm: false,
-        };
+        let o = one_round(Parts::ARM, 0.1);
         let cold = solve_pixels(&tables, &target, &pred, &pred, &o, &|_, _| {});
         let warm = solve_pixels(
             &tables,
@@ -435,16 +440,7 @@ mod tests {
                 metallic: (m.metallic + 0.3 * hash01(p as u64 + 7) - 0.15).clamp(0.0, 1.0),
             })
             .collect();
-        let opts = |parts| SolveOptions {
-            delta: 0.01,
-            zeta: 1.3,
-            parts,
-            rounds: 1,
-            rescale: false,
-            reference_weighting: false,
-            min_roughness: MIN_ROUGHNESS,
-            warm: false,
-        };
+        let opts = |parts| one_round(parts, 0.01);
         // Albedo with R, M at the truth.
         let start: Vec<Material> = pred
             .iter()
