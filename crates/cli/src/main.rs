@@ -5,6 +5,7 @@ mod bench_invert;
 mod bench_synthetic;
 mod commands;
 mod invert;
+mod run;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};
@@ -32,6 +33,12 @@ enum Cmd {
     /// Recover the envmap and materials from a bundle's image and
     /// predictions; writes best_results/ and summary.json.
     Invert(invert::InvertArgs),
+    /// Run a pipeline file: only what its outputs need, cached stages
+    /// served from the content-addressed store.
+    Run(run::RunArgs),
+    /// Inspect and clean the content-addressed cache.
+    #[command(subcommand)]
+    Cache(run::CacheCmd),
     /// Benchmarks that print numbers.
     #[command(subcommand)]
     Bench(bench::BenchCmd),
@@ -51,6 +58,8 @@ fn main() {
         Cmd::Mesh(a) => commands::mesh(a),
         Cmd::Synth(a) => commands::synth(a),
         Cmd::Invert(a) => invert::invert_cmd(a),
+        Cmd::Run(a) => run::run(a),
+        Cmd::Cache(c) => run::cache(c),
         Cmd::Bench(b) => bench::run(b),
     };
     if let Err(e) = res {

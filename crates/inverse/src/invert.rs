@@ -95,6 +95,9 @@ pub struct InvertOptions {
     /// are trusted as they are: the paper's Table 3 setting with ground
     /// truth or MatNet materials).
     pub env_only: bool,
+    /// A starting envmap (`env_width`×`env_height`, e.g. from an earlier
+    /// envmap-only recovery); it replaces the scout's envmap stage.
+    pub init_env: Option<RgbImage>,
 }
 
 impl Default for InvertOptions {
@@ -123,6 +126,7 @@ impl Default for InvertOptions {
             env_mlp: EnvMlpOptions::default(),
             mat_mlp: MatMlpOptions::default(),
             env_only: false,
+            init_env: None,
         }
     }
 }
@@ -504,15 +508,36 @@ pub fn invert(
             },
         )),
     };
-    let mut env = run_env(
-        "envmap (scout)",
-        &scout,
-        &mats,
-        &init,
-        plan.env_steps,
-        &mut mlp,
-        &mut stages,
-    );
+    let mut env = match &opts.init_env {
+        Some(_) if mlp.is_some() => {
+            return Err(InvertError::Invalid(
+                "a starting envmap needs the texel envmap route".into(),
+            ))
+        }
+        Some(e) if e.width != ew || e.height != eh => {
+            return Err(InvertError::Invalid(format!(
+                "the starting envmap is {}x{}; expected {ew}x{eh}",
+                e.width, e.height
+            )))
+        }
+        Some(e) => e
+            .data
+            .iter()
+            .map(|v| {
+                let v = if v.is_finite() { *v } else { Vec3::ZERO };
+                v.clamp(Vec3::splat(1e-6), Vec3::splat(1e6))
+            })
+            .collect(),
+        None => run_env(
+            "envmap (scout)",
+            &scout,
+            &mats,
+            &init,
+            plan.env_steps,
+            &mut mlp,
+            &mut stages,
+        ),
+    };
     drop(scout);
 
     // 2. Main trace.

@@ -1,0 +1,316 @@
+//! `matflow run` and `matflow cache`: the pipeline engine's front end.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+use std::time::Duration;
+
+use anyhow::{bail, Context, Result};
+use clap::{Args, Subcommand};
+use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
+use matflow_engine::exec::cached_keys;
+use matflow_engine::spec::{self, Override};
+use matflow_engine::store::GcPolicy;
+use matflow_engine::{run_pipeline, LocalExecutor, Observer, Report, StageReport, Status, Store};
+
+#[derive(Args)]
+pub struct RunArgs {
+    /// The pipeline file (YAML).
+    pub pipeline: PathBuf,
+    /// Cache folder (default: $MATFLOW_CACHE, else $XDG_CACHE_HOME/matflow,
+    /// else ~/.cache/matflow).
+    #[arg(long)]
+    pub cache: Option<PathBuf>,
+    /// Override a parameter: stage.param=value (YAML syntax; repeatable).
+    #[arg(long = "set", value_name = "STAGE.PARAM=VALUE")]
+    pub set: Vec<String>,
+    /// Write the run's JSON report here.
+    #[arg(long)]
+    pub report: Option<PathBuf>,
+    /// Stages run at once when independent.
+    #[arg(long, default_value_t = 2)]
+    pub parallel: usize,
+    /// No progress bars.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+#[derive(Subcommand)]
+pub enum CacheCmd {
+    /// List the action cache: node key, kind, stage, outputs, last use.
+    Ls(CacheDir),
+    /// Totals: blobs, bytes, actions.
+    Stats(CacheDir),
+    /// Re-hash every blob and check every action; remove what is corrupt.
+    Verify(CacheDir),
+    /// Remove entries: keep what the given pipelines reference, and/or
+    /// drop entries unused for a while, and/or shrink to a size.
+    Gc(GcArgs),
+}
+
+#[derive(Args)]
+pub struct CacheDir {
+    #[arg(long)]
+    pub cache: Option<PathBuf>,
+}
+
+#[derive(Args)]
+pub struct GcArgs {
+    #[arg(long)]
+    pub cache: Option<PathBuf>,
+    /// Keep only entries these pipelines (as they are now, with their
+    /// defaults) reference.
+    #[arg(long, value_name = "PIPELINE.yaml")]
+    pub keep: Vec<PathBuf>,
+    /// Remove entries not used for this many days.
+    #[arg(long, value_name = "DAYS")]
+    pub older_than: Option<f64>,
+    /// Remove least recently used entries until the blobs fit (bytes, or
+    /// with a K, M or G suffix).
+    #[arg(long, value_name = "SIZE")]
+    pub max_size: Option<String>,
+}
+
+/// The cache folder: flag, then $MATFLOW_CACHE, then the per-user cache.
+pub fn cache_dir(flag: Option<&Path>) -> PathBuf {
+    if let Some(p) = flag {
+        return p.to_path_buf();
+    }
+    if let Some(p) = std::env::var_os("MATFLOW_CACHE").filter(|v| !v.is_empty()) {
+        return PathBuf::from(p);
+    }
+    if let Some(p) = std::env::var_os("XDG_CACHE_HOME").filter(|v| !v.is_empty()) {
+        return PathBuf::from(p).join("matflow");
+    }
+    if let Some(h) = std::env::var_os("HOME").filter(|v| !v.is_empty()) {
+        return PathBuf::from(h).join(".cache").join("matflow");
+    }
+    PathBuf::from(".matflow-cache")
+}
+
+struct Bars {
+    multi: MultiProgress,
+    bars: Mutex<BTreeMap<String, ProgressBar>>,
+    quiet: bool,
+}
+
+impl Observer for Bars {
+    fn started(&self, stage: &str, kind: &str) {
+        if self.quiet {
+            return;
+        }
+        let pb = self.multi.add(ProgressBar::new(0));
+        pb.set_style(
+            ProgressStyle::with_template("{prefix:>18} {spinner} {msg} {elapsed}").unwrap(),
+        );
+        pb.set_prefix(stage.to_string());
+        pb.set_message(kind.to_string());
+        pb.enable_steady_tick(Duration::from_millis(200));
+        self.bars.lock().unwrap().insert(stage.to_string(), pb);
+    }
+    fn progress(&self, stage: &str, done: u64, total: u64) {
+        if let Some(pb) = self.bars.lock().unwrap().get(stage) {
+            if total > 0 {
+                if pb.length() != Some(total) {
+                    pb.set_style(
+                        ProgressStyle::with_template(
+                            "{prefix:>18} [{bar:30}] {pos}/{len} {msg} {elapsed}",
+                        )
+                        .unwrap()
+                        .progress_chars("=> "),
+                    );
+                    pb.set_length(total);
+                }
+                pb.set_position(done);
+            } else {
+                pb.set_message(format!("step {done}"));
+            }
+        }
+    }
+    fn finished(&self, r: &StageReport) {
+        if let Some(pb) = self.bars.lock().unwrap().remove(&r.name) {
+            pb.finish_and_clear();
+            self.multi.remove(&pb);
+        }
+    }
+}
+
+fn print_table(r: &Report) {
+    println!(
+        "{:<18} {:<16} {:<9} {:>8}  outputs",
+        "stage", "kind", "status", "seconds"
+    );
+    for s in &r.stages {
+        let outs = s
+            .outputs
+            .iter()
+            .map(|(k, d)| format!("{k}={}", &d[..12]))
+            .collect::<Vec<_>>()
+            .join(" ");
+        println!(
+            "{:<18} {:<16} {:<9} {:>8.2}  {}",
+            s.name,
+            s.kind,
+            s.status.as_str(),
+            s.seconds,
+            outs
+        );
+        for f in &s.files {
+            println!("{:<18} wrote {f}", "");
+        }
+    }
+    let n = |st: Status| r.stages.iter().filter(|s| s.status == st).count();
+    println!(
+        "{}: {} executed, {} cached, {} skipped in {:.2} s (cache {})",
+        r.pipeline,
+        n(Status::Executed),
+        n(Status::Cached),
+        n(Status::Skipped),
+        r.seconds,
+        r.cache
+    );
+}
+
+pub fn run(a: RunArgs) -> Result<()> {
+    let reg = matflow_nodes::registry();
+    let overrides = a
+        .set
+        .iter()
+        .map(|s| Override::parse(s))
+        .collect::<std::result::Result<Vec<_>, String>>()
+        .map_err(anyhow::Error::msg)?;
+    // Everything is validated before the cache is even opened.
+    let p = spec::load(&a.pipeline, &reg, &overrides).map_err(anyhow::Error::msg)?;
+    let dir = cache_dir(a.cache.as_deref());
+    let store = Store::open(&dir)?;
+    let bars = Bars {
+        multi: MultiProgress::new(),
+        bars: Mutex::new(BTreeMap::new()),
+        quiet: a.quiet,
+    };
+    let report = run_pipeline(&p, &reg, &store, &LocalExecutor, &bars, a.parallel);
+    if let Some(path) = &a.report {
+        let json = serde_json::to_vec_pretty(&report)?;
+        matflow_scene::io::write_atomic(path, &json)
+            .with_context(|| format!("writing the report {}", path.display()))?;
+    }
+    print_table(&report);
+    if let Some(f) = report.failure() {
+        bail!("{}: {f}", a.pipeline.display());
+    }
+    Ok(())
+}
+
+fn parse_size(s: &str) -> Result<u64> {
+    let s = s.trim();
+    let (num, mult) = match s.chars().last() {
+        Some('K' | 'k') => (&s[..s.len() - 1], 1u64 << 10),
+        Some('M' | 'm') => (&s[..s.len() - 1], 1 << 20),
+        Some('G' | 'g') => (&s[..s.len() - 1], 1 << 30),
+        _ => (s, 1),
+    };
+    let x: f64 = num
+        .parse()
+        .with_context(|| format!("--max-size {s}: not a size"))?;
+    if x.is_nan() || x < 0.0 {
+        bail!("--max-size {s}: not a size");
+    }
+    Ok((x * mult as f64) as u64)
+}
+
+pub fn cache(c: CacheCmd) -> Result<()> {
+    match c {
+        CacheCmd::Ls(d) => {
+            let store = Store::open(cache_dir(d.cache.as_deref()))?;
+            let sizes: BTreeMap<_, _> = store.blobs().into_iter().collect();
+            println!(
+                "{:<14} {:<16} {:<18} {:<12} {:>10}  last used",
+                "key", "kind", "stage", "pipeline", "bytes"
+            );
+            for (k, a, t) in store.actions() {
+                let age = t.elapsed().map(|d| d.as_secs()).unwrap_or(0);
+                match a {
+                    Some(a) => {
+                        let bytes: u64 = a
+                            .digests()
+                            .unwrap_or_default()
+                            .values()
+                            .map(|d| sizes.get(d).copied().unwrap_or(0))
+                            .sum();
+                        println!(
+                            "{:<14} {:<16} {:<18} {:<12} {:>10}  {} s ago",
+                            &k.hex()[..12],
+                            a.kind,
+                            a.stage,
+                            a.pipeline,
+                            bytes,
+                            age
+                        );
+                    }
+                    None => println!("{:<14} (unreadable entry)", &k.hex()[..12]),
+                }
+            }
+        }
+        CacheCmd::Stats(d) => {
+            let store = Store::open(cache_dir(d.cache.as_deref()))?;
+            let s = store.stats();
+            println!(
+                "{}: {} blobs, {} bytes ({:.1} MB), {} actions, {} temporary files",
+                store.root().display(),
+                s.blobs,
+                s.blob_bytes,
+                s.blob_bytes as f64 / 1e6,
+                s.actions,
+                s.temp_files
+            );
+        }
+        CacheCmd::Verify(d) => {
+            let store = Store::open(cache_dir(d.cache.as_deref()))?;
+            let r = store.verify();
+            println!(
+                "{} blobs intact, {} corrupt (removed); {} actions complete, {} unreadable, {} incomplete (removed)",
+                r.blobs_ok,
+                r.blobs_corrupt.len(),
+                r.actions_ok,
+                r.actions_unreadable.len(),
+                r.actions_incomplete.len()
+            );
+            for b in &r.blobs_corrupt {
+                println!("corrupt blob {b}");
+            }
+        }
+        CacheCmd::Gc(g) => {
+            if g.keep.is_empty() && g.older_than.is_none() && g.max_size.is_none() {
+                bail!("gc: say what to keep: --keep PIPELINE.yaml, --older-than DAYS and/or --max-size SIZE");
+            }
+            let store = Store::open(cache_dir(g.cache.as_deref()))?;
+            let keep = if g.keep.is_empty() {
+                None
+            } else {
+                let reg = matflow_nodes::registry();
+                let mut keys = std::collections::BTreeSet::new();
+                for f in &g.keep {
+                    let p = spec::load(f, &reg, &[]).map_err(anyhow::Error::msg)?;
+                    keys.extend(cached_keys(&p, &reg, &store));
+                }
+                Some(keys)
+            };
+            let older_than = match g.older_than {
+                Some(d) if d >= 0.0 && d.is_finite() => Some(Duration::from_secs_f64(d * 86400.0)),
+                Some(d) => bail!("--older-than {d}: give a number of days ≥ 0"),
+                None => None,
+            };
+            let max_bytes = g.max_size.as_deref().map(parse_size).transpose()?;
+            let r = store.gc(&GcPolicy {
+                keep,
+                older_than,
+                max_bytes,
+            });
+            println!(
+                "removed {} actions, {} blobs ({} bytes), {} stale temporary files",
+                r.actions_removed, r.blobs_removed, r.bytes_freed, r.temp_removed
+            );
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,29 @@
+//! The dataflow engine: a pipeline is a YAML file of named stages; each
+//! stage is a node (a pure function of its parameters and its inputs'
+//! bytes), cached in a BLAKE3 content-addressed store and run by an
+//! executor.
+//!
+//! - [`spec`]: YAML → [`spec::Pipeline`], with line and column on every
+//!   error, validated against the node schemas before any work starts.
+//! - [`node`]: the one trait the engine knows nodes by, and their
+//!   parameter schemas.
+//! - [`key`]: the canonical, length-prefixed encoding hashed into node keys.
+//! - [`store`]: blobs by content hash and the action cache (node key →
+//!   output digests); atomic writes, verified reads.
+//! - [`plan`]: reference resolution, cycle detection, demand-driven stage
+//!   selection.
+//! - [`exec`]: the executor interface and the in-process executor.
+
+pub mod exec;
+pub mod key;
+pub mod node;
+pub mod plan;
+pub mod spec;
+pub mod store;
+pub mod value;
+
+pub use exec::{run_pipeline, Executor, LocalExecutor, Observer, Report, StageReport, Status};
+pub use node::{Node, NodeError, OutputSpec, ParamSpec, ParamType, Registry, RunContext};
+pub use spec::{Pipeline, SpecError};
+pub use store::{Digest, Store, StoreError};
+pub use value::{Loc, Value};

@@ -1,0 +1,243 @@
+//! The one interface the engine knows nodes by.
+//!
+//! A node kind declares its parameters (type, default, unit, doc) and its
+//! outputs (name and artifact type). The engine validates a stage against
+//! that schema before anything runs, fills defaults, hashes the result into
+//! the node key, and hands the node its parameters and its inputs' bytes.
+//! A node returns bytes; where it runs is the executor's business.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use crate::value::Value;
+
+/// What a parameter accepts.
+#[derive(Clone, Copy, Debug)]
+pub enum ParamType {
+    Bool,
+    Int {
+        min: i64,
+        max: i64,
+    },
+    Float {
+        min: f64,
+        max: f64,
+    },
+    /// One of the listed words.
+    Choice(&'static [&'static str]),
+    /// An existing file or folder, read by the node. Its *content* (not
+    /// its name) enters the node key.
+    InPath,
+    /// A file the node's result is copied to after the run (not part of
+    /// the key: where a result is written does not change it).
+    OutPath,
+    /// A list of `len` numbers, each in [min, max].
+    Floats {
+        len: usize,
+        min: f64,
+        max: f64,
+    },
+    /// A reference to an upstream stage (`name` or `name.output`) whose
+    /// output has one of these artifact types.
+    Ref(&'static [&'static str]),
+}
+
+impl ParamType {
+    pub fn describe(&self) -> String {
+        match self {
+            ParamType::Bool => "true or false".into(),
+            ParamType::Int { min, max } => format!("an integer in [{min}, {max}]"),
+            ParamType::Float { min, max } => format!("a number in [{min}, {max}]"),
+            ParamType::Choice(c) => format!("one of {}", c.join(", ")),
+            ParamType::InPath => "an existing file or folder".into(),
+            ParamType::OutPath => "an output file path".into(),
+            ParamType::Floats { len, min, max } => {
+                format!("a list of {len} numbers in [{min}, {max}]")
+            }
+            ParamType::Ref(t) => format!("the name of a stage producing {}", t.join(" or ")),
+        }
+    }
+}
+
+/// One parameter of a node kind.
+#[derive(Clone, Copy, Debug)]
+pub struct ParamSpec {
+    pub name: &'static str,
+    pub ty: ParamType,
+    /// The default as YAML text; `None`: required; `Some("~")`: optional,
+    /// absent by default.
+    pub default: Option<&'static str>,
+    pub unit: &'static str,
+    pub doc: &'static str,
+}
+
+/// One output of a node kind.
+#[derive(Clone, Copy, Debug)]
+pub struct OutputSpec {
+    pub name: &'static str,
+    /// Artifact type, matched against [`ParamType::Ref`].
+    pub ty: &'static str,
+    pub doc: &'static str,
+}
+
+/// A node failed. The message names what was wrong (a file, a pixel
+/// count, a parameter).
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+pub struct NodeError(pub String);
+
+impl NodeError {
+    pub fn new(msg: impl Into<String>) -> NodeError {
+        NodeError(msg.into())
+    }
+}
+
+/// Validated, default-filled parameters of one stage.
+#[derive(Clone, Debug, Default)]
+pub struct Params(pub BTreeMap<String, Value>);
+
+impl Params {
+    pub fn get(&self, name: &str) -> &Value {
+        self.0.get(name).unwrap_or(&Value::Null)
+    }
+    pub fn is_set(&self, name: &str) -> bool {
+        !matches!(self.get(name), Value::Null)
+    }
+    pub fn f64(&self, name: &str) -> f64 {
+        self.get(name).as_f64().unwrap_or(0.0)
+    }
+    pub fn f32(&self, name: &str) -> f32 {
+        self.f64(name) as f32
+    }
+    pub fn opt_f64(&self, name: &str) -> Option<f64> {
+        self.get(name).as_f64()
+    }
+    pub fn i64(&self, name: &str) -> i64 {
+        match self.get(name) {
+            Value::Int(i) => *i,
+            _ => 0,
+        }
+    }
+    pub fn opt_i64(&self, name: &str) -> Option<i64> {
+        match self.get(name) {
+            Value::Int(i) => Some(*i),
+            _ => None,
+        }
+    }
+    pub fn bool(&self, name: &str) -> bool {
+        matches!(self.get(name), Value::Bool(true))
+    }
+    pub fn str(&self, name: &str) -> &str {
+        match self.get(name) {
+            Value::Str(s) => s,
+            _ => "",
+        }
+    }
+    pub fn path(&self, name: &str) -> Option<PathBuf> {
+        match self.get(name) {
+            Value::Str(s) => Some(PathBuf::from(s)),
+            _ => None,
+        }
+    }
+    pub fn floats(&self, name: &str) -> Option<Vec<f64>> {
+        match self.get(name) {
+            Value::List(v) => v.iter().map(|x| x.as_f64()).collect(),
+            _ => None,
+        }
+    }
+}
+
+/// What a node sees while it runs.
+pub struct RunContext<'a> {
+    pub stage: &'a str,
+    pub params: &'a Params,
+    /// Input bytes by reference parameter name (absent optional refs are
+    /// missing).
+    pub inputs: BTreeMap<String, Vec<u8>>,
+    /// A seed derived from the node kind and its parameters (not from its
+    /// inputs, so an upstream edit keeps the noise pattern).
+    pub seed: u64,
+    pub progress: &'a (dyn Fn(u64, u64) + Sync),
+}
+
+impl RunContext<'_> {
+    pub fn input(&self, name: &str) -> Result<&[u8], NodeError> {
+        self.inputs.get(name).map(|v| v.as_slice()).ok_or_else(|| {
+            NodeError::new(format!(
+                "stage '{}': parameter '{name}' names no stage",
+                self.stage
+            ))
+        })
+    }
+    pub fn opt_input(&self, name: &str) -> Option<&[u8]> {
+        self.inputs.get(name).map(|v| v.as_slice())
+    }
+}
+
+/// A node kind: a pure function of its parameters and input bytes.
+pub trait Node: Send + Sync {
+    fn kind(&self) -> &'static str;
+    /// Bumped whenever the node's output for the same inputs changes; part
+    /// of the key.
+    fn version(&self) -> u32;
+    fn doc(&self) -> &'static str;
+    fn params(&self) -> &'static [ParamSpec];
+    fn outputs(&self) -> &'static [OutputSpec];
+    /// Checks across parameters (e.g. exactly one mask); the message
+    /// names the parameters.
+    fn check(&self, _params: &Params) -> Result<(), String> {
+        Ok(())
+    }
+    /// Checks the node's input files before any work starts (a corrupt
+    /// image, a bundle without depth); the message names the file.
+    fn preflight(&self, _params: &Params) -> Result<(), String> {
+        Ok(())
+    }
+    /// Computes the outputs (by output name). An output may be left out
+    /// when the inputs do not have it (a bundle without results).
+    fn run(&self, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError>;
+    /// Writes results to the user's paths (parameters of type
+    /// [`ParamType::OutPath`]); runs for cached stages too. Returns the
+    /// files written.
+    fn materialize(
+        &self,
+        _params: &Params,
+        _outputs: &BTreeMap<String, Vec<u8>>,
+    ) -> Result<Vec<PathBuf>, NodeError> {
+        Ok(Vec::new())
+    }
+}
+
+/// The node kinds a pipeline may use.
+#[derive(Default)]
+pub struct Registry {
+    nodes: BTreeMap<&'static str, Box<dyn Node>>,
+}
+
+impl Registry {
+    pub fn new() -> Registry {
+        Registry::default()
+    }
+    pub fn add(&mut self, n: Box<dyn Node>) {
+        self.nodes.insert(n.kind(), n);
+    }
+    pub fn get(&self, kind: &str) -> Option<&dyn Node> {
+        self.nodes.get(kind).map(|b| b.as_ref())
+    }
+    pub fn kinds(&self) -> Vec<&'static str> {
+        self.nodes.keys().copied().collect()
+    }
+    pub fn iter(&self) -> impl Iterator<Item = &dyn Node> {
+        self.nodes.values().map(|b| b.as_ref())
+    }
+}
+
+/// Resolves a path written in a pipeline file against the file's folder.
+pub fn resolve_path(base: &Path, p: &str) -> PathBuf {
+    let pb = PathBuf::from(p);
+    if pb.is_absolute() {
+        pb
+    } else {
+        base.join(pb)
+    }
+}

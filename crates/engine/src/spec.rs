@@ -1,0 +1,499 @@
+//! Pipeline files: parsing and validation.
+//!
+//! ```yaml
+//! pipeline: demo                 # a name (default: the file's stem)
+//! outputs: [edited]              # the stages whose results are wanted
+//! stages:
+//!   scene: {kind: synthetic_scene, seed: 1}
+//!   edited:
+//!     kind: render
+//!     scene: scene               # a reference: the stage `scene`
+//!     spp: 64
+//! ```
+//!
+//! Everything is checked before any work starts: unknown keys, wrong
+//! types, out-of-range values, missing or dangling references, references
+//! to a stage of the wrong type, cycles, missing input files. Each error
+//! names the file, the line and the column.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::fmt;
+use std::path::{Path, PathBuf};
+
+use crate::node::{resolve_path, ParamType, Params, Registry};
+use crate::value::{parse_override, parse_yaml, Loc, Value};
+
+/// A problem in a pipeline, found before any work starts.
+#[derive(Debug, Clone)]
+pub struct SpecError {
+    pub file: PathBuf,
+    /// Where in the file; `None` for problems that are not in the file
+    /// (a `--set` override, an unreadable file).
+    pub loc: Option<Loc>,
+    pub message: String,
+}
+
+impl fmt::Display for SpecError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self.loc {
+            Some(l) if l.line > 0 => write!(
+                f,
+                "{}:{}:{}: {}",
+                self.file.display(),
+                l.line,
+                l.col,
+                self.message
+            ),
+            _ => write!(f, "{}: {}", self.file.display(), self.message),
+        }
+    }
+}
+
+impl std::error::Error for SpecError {}
+
+/// One validated stage.
+#[derive(Clone, Debug)]
+pub struct Stage {
+    pub name: String,
+    pub kind: String,
+    pub loc: Loc,
+    /// Every declared parameter, defaults filled, numbers normalised,
+    /// input paths absolute.
+    pub params: Params,
+    /// Reference parameters resolved to (stage, output).
+    pub refs: BTreeMap<String, (String, String)>,
+}
+
+/// A validated pipeline.
+#[derive(Clone, Debug)]
+pub struct Pipeline {
+    pub name: String,
+    pub file: PathBuf,
+    pub stages: Vec<Stage>,
+    pub outputs: Vec<String>,
+}
+
+impl Pipeline {
+    pub fn stage(&self, name: &str) -> Option<&Stage> {
+        self.stages.iter().find(|s| s.name == name)
+    }
+}
+
+/// A `--set stage.param=value` override.
+#[derive(Clone, Debug)]
+pub struct Override {
+    pub stage: String,
+    pub param: String,
+    pub value: Value,
+    pub text: String,
+}
+
+impl Override {
+    pub fn parse(text: &str) -> Result<Override, String> {
+        let (lhs, rhs) = text
+            .split_once('=')
+            .ok_or_else(|| format!("--set {text}: expected stage.param=value"))?;
+        let (stage, param) = lhs
+            .split_once('.')
+            .ok_or_else(|| format!("--set {text}: expected stage.param=value"))?;
+        if stage.is_empty() || param.is_empty() {
+            return Err(format!("--set {text}: expected stage.param=value"));
+        }
+        let value = parse_override(rhs).map_err(|e| format!("--set {text}: {e}"))?;
+        Ok(Override {
+            stage: stage.to_string(),
+            param: param.to_string(),
+            value,
+            text: text.to_string(),
+        })
+    }
+}
+
+/// Reads, parses and validates a pipeline file.
+pub fn load(path: &Path, reg: &Registry, overrides: &[Override]) -> Result<Pipeline, SpecError> {
+    let text = std::fs::read_to_string(path).map_err(|e| SpecError {
+        file: path.to_path_buf(),
+        loc: None,
+        message: format!("cannot read the pipeline: {e}"),
+    })?;
+    parse(&text, path, reg, overrides)
+}
+
+/// Parses and validates pipeline text; `path` names it in errors and
+/// relative paths inside it are resolved against its folder.
+pub fn parse(
+    text: &str,
+    path: &Path,
+    reg: &Registry,
+    overrides: &[Override],
+) -> Result<Pipeline, SpecError> {
+    let err = |loc: Option<Loc>, message: String| SpecError {
+        file: path.to_path_buf(),
+        loc,
+        message,
+    };
+    let base = path
+        .parent()
+        .map(|p| {
+            if p.as_os_str().is_empty() {
+                PathBuf::from(".")
+            } else {
+                p.to_path_buf()
+            }
+        })
+        .unwrap_or_else(|| PathBuf::from("."));
+    let (root, root_loc) = parse_yaml(text).map_err(|e| err(Some(e.loc), e.message))?;
+    let Value::Map(top) = root else {
+        return Err(err(
+            Some(root_loc),
+            "a pipeline is a mapping with `stages:` and `outputs:`".into(),
+        ));
+    };
+    let mut name = path
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "pipeline".into());
+    let mut stages_node = None;
+    let mut outputs_node = None;
+    for (k, kl, v, vl) in &top {
+        match k.as_str() {
+            "pipeline" => match v {
+                Value::Str(s) => name = s.clone(),
+                _ => return Err(err(Some(*vl), "`pipeline` must be a name".into())),
+            },
+            "description" => {}
+            "stages" => stages_node = Some((v, *vl)),
+            "outputs" => outputs_node = Some((v, *vl)),
+            _ => {
+                return Err(err(
+                    Some(*kl),
+                    format!(
+                        "unknown key `{k}` (a pipeline has pipeline, description, stages, outputs)"
+                    ),
+                ))
+            }
+        }
+    }
+    let Some((stages_v, stages_loc)) = stages_node else {
+        return Err(err(Some(root_loc), "missing `stages:`".into()));
+    };
+    let Value::Map(stage_entries) = stages_v else {
+        return Err(err(
+            Some(stages_loc),
+            "`stages` must map stage names to stages".into(),
+        ));
+    };
+    // Raw stages: name → (kind, params with locations).
+    struct Raw {
+        name: String,
+        kind: String,
+        loc: Loc,
+        params: BTreeMap<String, (Value, Option<Loc>, Option<Loc>)>,
+    }
+    let mut raws: Vec<Raw> = Vec::new();
+    let mut seen = BTreeSet::new();
+    for (sname, sl, sv, svl) in stage_entries {
+        if !valid_name(sname) {
+            return Err(err(
+                Some(*sl),
+                format!("stage name `{sname}`: use letters, digits, `_` and `-`"),
+            ));
+        }
+        if !seen.insert(sname.clone()) {
+            return Err(err(Some(*sl), format!("stage `{sname}` is defined twice")));
+        }
+        let Value::Map(fields) = sv else {
+            return Err(err(
+                Some(*svl),
+                format!("stage `{sname}` must be a mapping with a `kind`"),
+            ));
+        };
+        let mut kind = None;
+        let mut params = BTreeMap::new();
+        for (k, kl, v, vl) in fields {
+            if k == "kind" {
+                match v {
+                    Value::Str(s) => kind = Some((s.clone(), *vl)),
+                    _ => return Err(err(Some(*vl), "`kind` must be a node kind name".into())),
+                }
+            } else {
+                if params.contains_key(k) {
+                    return Err(err(Some(*kl), format!("`{k}` is given twice")));
+                }
+                params.insert(k.clone(), (v.clone(), Some(*kl), Some(*vl)));
+            }
+        }
+        let Some((kind, kind_loc)) = kind else {
+            return Err(err(
+                Some(*sl),
+                format!(
+                    "stage `{sname}` has no `kind` (one of: {})",
+                    reg.kinds().join(", ")
+                ),
+            ));
+        };
+        if reg.get(&kind).is_none() {
+            return Err(err(
+                Some(kind_loc),
+                format!(
+                    "stage `{sname}`: unknown kind `{kind}` (one of: {})",
+                    reg.kinds().join(", ")
+                ),
+            ));
+        }
+        raws.push(Raw {
+            name: sname.clone(),
+            kind,
+            loc: *sl,
+            params,
+        });
+    }
+    // Overrides replace or add parameters; they carry no location.
+    for o in overrides {
+        let Some(r) = raws.iter_mut().find(|r| r.name == o.stage) else {
+            return Err(err(
+                None,
+                format!("--set {}: there is no stage `{}`", o.text, o.stage),
+            ));
+        };
+        let node = reg.get(&r.kind).expect("kind checked");
+        if !node.params().iter().any(|p| p.name == o.param) {
+            return Err(err(
+                None,
+                format!(
+                    "--set {}: a {} stage has no parameter `{}` (it has: {})",
+                    o.text,
+                    r.kind,
+                    o.param,
+                    names(node.params().iter().map(|p| p.name))
+                ),
+            ));
+        }
+        r.params
+            .insert(o.param.clone(), (o.value.clone(), None, None));
+    }
+    let cwd = PathBuf::from(".");
+    let stage_names: BTreeSet<String> = raws.iter().map(|r| r.name.clone()).collect();
+    let mut stages = Vec::new();
+    for r in &raws {
+        let node = reg.get(&r.kind).expect("kind checked");
+        let specs = node.params();
+        for (k, (_, kl, _)) in &r.params {
+            if !specs.iter().any(|p| p.name == k) {
+                return Err(err(
+                    *kl,
+                    format!(
+                        "stage `{}`: unknown parameter `{k}` for kind {} (it has: {})",
+                        r.name,
+                        r.kind,
+                        names(specs.iter().map(|p| p.name))
+                    ),
+                ));
+            }
+        }
+        let mut params = Params::default();
+        let mut refs = BTreeMap::new();
+        for p in specs {
+            let (v, loc) = match r.params.get(p.name) {
+                Some((v, _, l)) => (v.clone(), *l),
+                None => match p.default {
+                    None => {
+                        return Err(err(
+                            Some(r.loc),
+                            format!(
+                                "stage `{}`: missing parameter `{}` ({})",
+                                r.name,
+                                p.name,
+                                p.ty.describe()
+                            ),
+                        ))
+                    }
+                    Some(d) => (
+                        parse_override(d).expect("defaults are valid YAML"),
+                        Some(Loc::default()),
+                    ),
+                },
+            };
+            let from_file = matches!(loc, Some(l) if l.line > 0);
+            let where_ = |msg: String| {
+                if loc.is_none() {
+                    err(None, format!("--set {}.{}: {msg}", r.name, p.name))
+                } else {
+                    err(loc, format!("stage `{}`, `{}`: {msg}", r.name, p.name))
+                }
+            };
+            if matches!(v, Value::Null) {
+                if p.default.is_none() {
+                    return Err(where_(format!(
+                        "is required ({}), got nothing",
+                        p.ty.describe()
+                    )));
+                }
+                params.0.insert(p.name.to_string(), Value::Null);
+                continue;
+            }
+            let bad = |v: &Value| where_(format!("expected {}, got {v}", p.ty.describe()));
+            let norm = match p.ty {
+                ParamType::Bool => match v {
+                    Value::Bool(_) => v,
+                    _ => return Err(bad(&v)),
+                },
+                ParamType::Int { min, max } => match v {
+                    Value::Int(i) if i >= min && i <= max => v,
+                    _ => return Err(bad(&v)),
+                },
+                ParamType::Float { min, max } => match v.as_f64() {
+                    Some(x) if x >= min && x <= max => Value::Float(x),
+                    _ => return Err(bad(&v)),
+                },
+                ParamType::Choice(c) => match &v {
+                    Value::Str(s) if c.contains(&s.as_str()) => v,
+                    _ => return Err(bad(&v)),
+                },
+                ParamType::InPath | ParamType::OutPath => match &v {
+                    Value::Str(s) => {
+                        let full = if from_file || loc == Some(Loc::default()) {
+                            resolve_path(&base, s)
+                        } else {
+                            resolve_path(&cwd, s)
+                        };
+                        if matches!(p.ty, ParamType::InPath) {
+                            if let Err(e) = std::fs::metadata(&full) {
+                                return Err(where_(format!("{}: {e}", full.display())));
+                            }
+                        }
+                        Value::Str(full.to_string_lossy().into_owned())
+                    }
+                    _ => return Err(bad(&v)),
+                },
+                ParamType::Floats { len, min, max } => match &v {
+                    Value::List(xs) if xs.len() == len => {
+                        let mut out = Vec::with_capacity(len);
+                        for x in xs {
+                            match x.as_f64() {
+                                Some(f) if f >= min && f <= max => out.push(Value::Float(f)),
+                                _ => return Err(bad(&v)),
+                            }
+                        }
+                        Value::List(out)
+                    }
+                    _ => return Err(bad(&v)),
+                },
+                ParamType::Ref(accepts) => {
+                    let Value::Str(s) = &v else {
+                        return Err(bad(&v));
+                    };
+                    let (up, out) = match s.split_once('.') {
+                        Some((a, b)) => (a.to_string(), Some(b.to_string())),
+                        None => (s.clone(), None),
+                    };
+                    if !stage_names.contains(&up) {
+                        return Err(where_(format!("there is no stage `{up}`")));
+                    }
+                    if up == r.name {
+                        return Err(where_(format!(
+                            "stage `{up}` refers to itself (cycle: {up} -> {up})"
+                        )));
+                    }
+                    let up_kind = &raws.iter().find(|x| x.name == up).unwrap().kind;
+                    let up_node = reg.get(up_kind).expect("kind checked");
+                    let chosen = match &out {
+                        Some(o) => up_node.outputs().iter().find(|x| x.name == o),
+                        None => up_node.outputs().iter().find(|x| accepts.contains(&x.ty)),
+                    };
+                    match chosen {
+                        Some(o) if accepts.contains(&o.ty) => {
+                            refs.insert(p.name.to_string(), (up.clone(), o.name.to_string()));
+                        }
+                        _ => {
+                            return Err(where_(format!(
+                                "stage `{up}` ({up_kind}) has no output of type {} \
+                                 (its outputs: {})",
+                                accepts.join(" or "),
+                                names(
+                                    up_node
+                                        .outputs()
+                                        .iter()
+                                        .map(|o| format!("{} ({})", o.name, o.ty))
+                                )
+                            )))
+                        }
+                    }
+                    v
+                }
+            };
+            params.0.insert(p.name.to_string(), norm);
+        }
+        node.check(&params)
+            .map_err(|m| err(Some(r.loc), format!("stage `{}`: {m}", r.name)))?;
+        node.preflight(&params)
+            .map_err(|m| err(Some(r.loc), format!("stage `{}`: {m}", r.name)))?;
+        stages.push(Stage {
+            name: r.name.clone(),
+            kind: r.kind.clone(),
+            loc: r.loc,
+            params,
+            refs,
+        });
+    }
+    // Outputs.
+    let Some((outputs_v, outputs_loc)) = outputs_node else {
+        return Err(err(
+            Some(root_loc),
+            "missing `outputs:` (the stages whose results are wanted)".into(),
+        ));
+    };
+    let outputs: Vec<String> = match outputs_v {
+        Value::List(xs) => xs
+            .iter()
+            .map(|x| match x {
+                Value::Str(s) => Ok(s.clone()),
+                _ => Err(err(
+                    Some(outputs_loc),
+                    "`outputs` must list stage names".into(),
+                )),
+            })
+            .collect::<Result<_, _>>()?,
+        Value::Str(s) => vec![s.clone()],
+        _ => {
+            return Err(err(
+                Some(outputs_loc),
+                "`outputs` must list stage names".into(),
+            ))
+        }
+    };
+    if outputs.is_empty() {
+        return Err(err(Some(outputs_loc), "`outputs` is empty".into()));
+    }
+    for o in &outputs {
+        if !stage_names.contains(o) {
+            return Err(err(
+                Some(outputs_loc),
+                format!("`outputs` names `{o}`, which is not a stage"),
+            ));
+        }
+    }
+    let p = Pipeline {
+        name,
+        file: path.to_path_buf(),
+        stages,
+        outputs,
+    };
+    if let Some(cycle) = crate::plan::find_cycle(&p) {
+        let first = p.stage(&cycle[0]).map(|s| s.loc);
+        return Err(err(first, format!("cycle: {}", cycle.join(" -> "))));
+    }
+    Ok(p)
+}
+
+fn valid_name(s: &str) -> bool {
+    !s.is_empty()
+        && s.chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+}
+
+fn names<S: AsRef<str>>(it: impl Iterator<Item = S>) -> String {
+    it.map(|s| s.as_ref().to_string())
+        .collect::<Vec<_>>()
+        .join(", ")
+}

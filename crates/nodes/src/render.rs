@@ -1,0 +1,146 @@
+//! Path-traced renders of a scene's mesh with given materials and lighting.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use matflow_engine::node::Params;
+use matflow_engine::{Node, NodeError, OutputSpec, ParamSpec, ParamType, RunContext};
+use matflow_render::{render, RenderOptions};
+use matflow_scene::io;
+
+use crate::artifact::Artifact;
+use crate::err;
+use crate::inputs::{encode_image, envmap_from, materials_from, render_scene};
+
+pub struct RenderNode;
+
+/// Writes `img` to `path` (EXR, linear) and a γ-encoded PNG beside it,
+/// each through a temporary file renamed into place.
+fn write_pair(path: &Path, img: &matflow_scene::RgbImage) -> Result<Vec<PathBuf>, NodeError> {
+    if let Some(dir) = path.parent() {
+        if !dir.as_os_str().is_empty() {
+            std::fs::create_dir_all(dir).map_err(|e| err(format!("{}: {e}", dir.display())))?;
+        }
+    }
+    let png = path.with_extension("png");
+    let tmp_exr = path.with_extension(format!("tmp{}.exr", std::process::id()));
+    let tmp_png = path.with_extension(format!("tmp{}.png", std::process::id()));
+    io::write_exr_rgb(&tmp_exr, img).map_err(err)?;
+    io::write_png_gamma(&tmp_png, img).map_err(err)?;
+    for (t, f) in [(&tmp_exr, path), (&tmp_png, png.as_path())] {
+        std::fs::rename(t, f).map_err(|e| err(format!("{}: {e}", f.display())))?;
+    }
+    Ok(vec![path.to_path_buf(), png])
+}
+
+impl Node for RenderNode {
+    fn kind(&self) -> &'static str {
+        "render"
+    }
+    fn version(&self) -> u32 {
+        1
+    }
+    fn doc(&self) -> &'static str {
+        "Path-traces the mesh with the given materials under the given envmap (unidirectional, \
+         next-event estimation with MIS, GGX + Lambert as the reference). Writes an EXR \
+         (linear) and a PNG (γ 2.2) when `output` is set."
+    }
+    fn params(&self) -> &'static [ParamSpec] {
+        &[
+            ParamSpec {
+                name: "mesh",
+                ty: ParamType::Ref(&["mesh"]),
+                default: None,
+                unit: "",
+                doc: "geometry and camera",
+            },
+            ParamSpec {
+                name: "materials",
+                ty: ParamType::Ref(&["materials", "scene"]),
+                default: None,
+                unit: "",
+                doc: "materials (a scene gives its predictions)",
+            },
+            ParamSpec {
+                name: "envmap",
+                ty: ParamType::Ref(&["envmap"]),
+                default: None,
+                unit: "",
+                doc: "lighting",
+            },
+            ParamSpec {
+                name: "spp",
+                ty: ParamType::Int { min: 1, max: 65536 },
+                default: Some("64"),
+                unit: "samples/px",
+                doc: "samples per pixel",
+            },
+            ParamSpec {
+                name: "depth",
+                ty: ParamType::Int { min: 1, max: 64 },
+                default: Some("4"),
+                unit: "segments",
+                doc: "maximum path length (Mitsuba's max_depth)",
+            },
+            ParamSpec {
+                name: "seed",
+                ty: ParamType::Int {
+                    min: 0,
+                    max: i64::MAX,
+                },
+                default: Some("0"),
+                unit: "",
+                doc: "extra seed (the stage's parameters seed it already)",
+            },
+            ParamSpec {
+                name: "output",
+                ty: ParamType::OutPath,
+                default: Some("~"),
+                unit: "",
+                doc: "EXR path to write (a PNG is written beside it)",
+            },
+        ]
+    }
+    fn outputs(&self) -> &'static [OutputSpec] {
+        &[OutputSpec {
+            name: "image",
+            ty: "image",
+            doc: "the render, linear RGB",
+        }]
+    }
+    fn run(&self, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
+        let p = ctx.params;
+        let maps = materials_from(ctx.input("materials")?)?;
+        let env = envmap_from(ctx.input("envmap")?)?;
+        let scene = render_scene(ctx.input("mesh")?, &maps, &env)?;
+        // Seeded from the stage's parameters, not its inputs: an edit
+        // upstream keeps the noise pattern, so before/after differ only
+        // where the edit acts.
+        let opts = RenderOptions {
+            spp: p.i64("spp") as u32,
+            max_depth: p.i64("depth") as u32,
+            seed: ctx.seed ^ p.i64("seed") as u64,
+            ..Default::default()
+        };
+        let out = render(&scene, &opts, &|d, t| (ctx.progress)(d as u64, t as u64));
+        Ok([(
+            "image".to_string(),
+            encode_image("image", "image", &out.image),
+        )]
+        .into())
+    }
+    fn materialize(
+        &self,
+        params: &Params,
+        outputs: &BTreeMap<String, Vec<u8>>,
+    ) -> Result<Vec<PathBuf>, NodeError> {
+        let Some(path) = params.path("output") else {
+            return Ok(vec![]);
+        };
+        let b = outputs
+            .get("image")
+            .ok_or_else(|| err("the render has no image"))?;
+        let img = Artifact::decode(b, "image")?.rgb("image")?;
+        write_pair(&path, &img)
+    }
+}
