@@ -26,6 +26,9 @@ pub enum BenchCmd {
     /// Inverse rendering on procedural scenes with known truth: envmap,
     /// material and relighting errors per budget and route.
     Synthetic(crate::bench_synthetic::BenchSyntheticArgs),
+    /// The pipeline engine: first run, re-edit of one material and a
+    /// no-change re-run, over the binary.
+    Pipeline(crate::bench_pipeline::BenchPipelineArgs),
 }
 
 #[derive(Args)]
@@ -53,6 +56,7 @@ pub fn run(b: BenchCmd) -> Result<()> {
         BenchCmd::Render(a) => bench_render(a),
         BenchCmd::Invert(a) => crate::bench_invert::bench_invert(a),
         BenchCmd::Synthetic(a) => crate::bench_synthetic::bench_synthetic(a),
+        BenchCmd::Pipeline(a) => crate::bench_pipeline::bench_pipeline(a),
     }
 }
 

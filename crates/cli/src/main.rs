@@ -2,6 +2,7 @@
 
 mod bench;
 mod bench_invert;
+mod bench_pipeline;
 mod bench_synthetic;
 mod commands;
 mod invert;
@@ -36,6 +37,9 @@ enum Cmd {
     /// Run a pipeline file: only what its outputs need, cached stages
     /// served from the content-addressed store.
     Run(run::RunArgs),
+    /// Print the node kinds a pipeline may use: parameters (type, default,
+    /// unit) and outputs, as markdown.
+    Kinds,
     /// Inspect and clean the content-addressed cache.
     #[command(subcommand)]
     Cache(run::CacheCmd),
@@ -60,6 +64,10 @@ fn main() {
         Cmd::Invert(a) => invert::invert_cmd(a),
         Cmd::Run(a) => run::run(a),
         Cmd::Cache(c) => run::cache(c),
+        Cmd::Kinds => {
+            print!("{}", matflow_nodes::reference_markdown());
+            Ok(())
+        }
         Cmd::Bench(b) => bench::run(b),
     };
     if let Err(e) = res {
