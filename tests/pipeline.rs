@@ -45,7 +45,9 @@ const SMALL: &[&str] = &[
     "--set",
     "shiny.mask_rect=[44, 38, 58, 52]",
     "--set",
-    "edited.spp=8",
+    "base.spp=8",
+    "--set",
+    "base.path_spp=4",
     "--set",
     "relit.spp=8",
 ];
@@ -146,7 +148,15 @@ fn re_edit_reruns_only_the_edit_and_its_render_then_nothing() {
     assert_eq!(with(&st, "executed"), vec!["edited", "shiny"], "{st:?}");
     assert_eq!(
         with(&st, "cached"),
-        vec!["evening", "lighting", "mesh", "recovered", "relit", "scene"]
+        vec![
+            "base",
+            "evening",
+            "lighting",
+            "mesh",
+            "recovered",
+            "relit",
+            "scene"
+        ]
     );
     let (o1, o2) = (outputs(&first.report), outputs(&second.report));
     assert_ne!(o1["edited"], o2["edited"]);
@@ -360,4 +370,93 @@ fn only_what_the_outputs_need_runs() {
     let st = statuses(&r);
     assert_eq!(st["opt"], "skipped");
     assert_eq!(with(&st, "executed"), vec!["m", "r", "sc", "sky"]);
+}
+
+/// The reference-scene pipeline, pointed at the stored scenes with
+/// `--set` (small budget and sample counts: this checks the wiring, the
+/// benchmark the numbers). Vacuous only when ../shared is absent.
+#[test]
+fn reference_pipeline_runs_on_the_stored_scenes() {
+    let data = repo().join("../shared/data/materialist/jinjya");
+    if !data.is_dir() {
+        eprintln!("skipping: {} not found", data.display());
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let report = dir.path().join("r.json");
+    let pipeline = repo().join("pipelines/reference.yaml");
+    let cache = dir.path().join("c");
+    let sets = [
+        format!("bundle.path={}", s(&data)),
+        "recovered.budget_seconds=2".to_string(),
+        "rerender.spp=2".to_string(),
+        "relit.spp=2".to_string(),
+        format!("rerender.output={}", s(&dir.path().join("re.exr"))),
+        format!("relit.output={}", s(&dir.path().join("relit.exr"))),
+    ];
+    let mut args = vec![
+        "run",
+        s(&pipeline),
+        "--quiet",
+        "--cache",
+        s(&cache),
+        "--report",
+        s(&report),
+    ];
+    for x in &sets {
+        args.push("--set");
+        args.push(x);
+    }
+    let out = matflow(&args, None);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let r: Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    assert!(with(&statuses(&r), "executed").len() == 6, "{r}");
+    assert!(dir.path().join("relit.png").is_file());
+}
+
+#[test]
+fn cache_commands_list_count_and_collect() {
+    let dir = tempfile::tempdir().unwrap();
+    let cache = dir.path().join("cache");
+    let f = dir.path().join("p.yaml");
+    std::fs::write(&f, GOOD.replace("size: 32", "size: 32\n    spp: 2")).unwrap();
+    let run = matflow(&["run", s(&f), "--quiet", "--cache", s(&cache)], None);
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let ls = matflow(&["cache", "ls", "--cache", s(&cache)], None);
+    let text = String::from_utf8_lossy(&ls.stdout);
+    assert_eq!(text.lines().count(), 4, "header + 3 actions:\n{text}");
+    assert!(text.contains("synthetic_scene") && text.contains("render"));
+    // Keeping the pipeline as it is keeps everything...
+    let gc = matflow(
+        &["cache", "gc", "--cache", s(&cache), "--keep", s(&f)],
+        None,
+    );
+    assert!(String::from_utf8_lossy(&gc.stdout).contains("removed 0 actions"));
+    // ...keeping it with another render drops the old render only.
+    std::fs::write(
+        &f,
+        GOOD.replace("size: 32", "size: 32\n    spp: 2") + "    spp: 3\n",
+    )
+    .unwrap();
+    let gc = matflow(
+        &["cache", "gc", "--cache", s(&cache), "--keep", s(&f)],
+        None,
+    );
+    assert!(
+        String::from_utf8_lossy(&gc.stdout).contains("removed 1 actions, 1 blobs"),
+        "{}",
+        String::from_utf8_lossy(&gc.stdout)
+    );
+    let stats = matflow(&["cache", "stats", "--cache", s(&cache)], None);
+    assert!(String::from_utf8_lossy(&stats.stdout).contains("2 actions"));
+    let none = matflow(&["cache", "gc", "--cache", s(&cache)], None);
+    assert!(!none.status.success(), "gc without a policy must refuse");
 }

@@ -22,6 +22,11 @@ pub struct BenchPipelineArgs {
     /// Re-edit and no-change repetitions (medians are reported).
     #[arg(long, default_value_t = 3)]
     pub runs: usize,
+    /// Also measure the edit render's error: a full path trace of the
+    /// edited scene at the same spp and a reference at this many spp
+    /// (0: skip), PSNR (sRGB) of both against the reference.
+    #[arg(long, default_value_t = 0)]
+    pub reference_spp: u32,
     /// Work folder (cache and outputs); emptied first.
     #[arg(long, default_value = "target/bench-pipeline")]
     pub work: PathBuf,
@@ -43,7 +48,7 @@ pub fn bench_pipeline(a: BenchPipelineArgs) -> Result<()> {
     let scale = a.size as f64 / 256.0;
     let base: Vec<String> = vec![
         format!("scene.size={}", a.size),
-        format!("edited.spp={}", a.spp),
+        format!("base.spp={}", a.spp),
         format!("relit.spp={}", a.spp),
         format!(
             "shiny.mask_flood=[{}, {}]",
@@ -53,10 +58,10 @@ pub fn bench_pipeline(a: BenchPipelineArgs) -> Result<()> {
         format!("edited.output={}", a.work.join("edited.exr").display()),
         format!("relit.output={}", a.work.join("relit.exr").display()),
     ];
-    let run = |extra: &[String]| -> Result<(f64, String)> {
+    let run_file = |file: &std::path::Path, extra: &[String]| -> Result<(f64, String)> {
         let mut c = Command::new(&exe);
         c.arg("run")
-            .arg(&a.pipeline)
+            .arg(file)
             .arg("--quiet")
             .arg("--cache")
             .arg(&cache);
@@ -76,6 +81,7 @@ pub fn bench_pipeline(a: BenchPipelineArgs) -> Result<()> {
         let summary = text.lines().last().unwrap_or("").to_string();
         Ok((secs, summary))
     };
+    let run = |extra: &[String]| run_file(&a.pipeline, extra);
     println!(
         "bench pipeline: {} at {}², {} spp, {} thread(s); each run is a child `matflow run`",
         a.pipeline.display(),
@@ -105,5 +111,53 @@ pub fn bench_pipeline(a: BenchPipelineArgs) -> Result<()> {
         median(same),
         n = a.runs.max(1)
     );
+    if a.reference_spp > 0 {
+        // The demo plus two renders of the edited scene: a full path trace
+        // at the same spp and a reference, both with the box filter the
+        // kept-path render uses.
+        let text = std::fs::read_to_string(&a.pipeline)?;
+        let Some(i) = text.find("\noutputs:") else {
+            bail!("{}: no `outputs:` line", a.pipeline.display());
+        };
+        let end = text[i + 1..]
+            .find('\n')
+            .map(|j| i + 1 + j)
+            .unwrap_or(text.len());
+        let mut t = format!(
+            "{}\noutputs: [edited, full, reference]{}",
+            &text[..i],
+            &text[end..]
+        );
+        for (name, spp, seed) in [("full", a.spp, 0), ("reference", a.reference_spp, 99)] {
+            t.push_str(&format!(
+                "  {name}:\n    kind: render\n    mesh: mesh\n    materials: shiny\n    \
+                 envmap: recovered.envmap\n    filter: box\n    spp: {spp}\n    seed: {seed}\n    \
+                 output: {}\n",
+                std::fs::canonicalize(&a.work)?
+                    .join(format!("{name}.exr"))
+                    .display()
+            ));
+        }
+        let file = a
+            .pipeline
+            .parent()
+            .unwrap_or(std::path::Path::new("."))
+            .join(".bench-pipeline-check.yaml");
+        std::fs::write(&file, t)?;
+        let r = run_file(&file, &[]);
+        let _ = std::fs::remove_file(&file);
+        r?;
+        let load = |n: &str| matflow_scene::io::read_exr_rgb(&a.work.join(format!("{n}.exr")));
+        let (e, f, r) = (load("edited")?, load("full")?, load("reference")?);
+        use matflow_scene::metrics::psnr_gamma;
+        println!(
+            "edit render against a {} spp reference (sRGB PSNR): from kept paths {:.2} dB, \
+             full path trace at {} spp {:.2} dB",
+            a.reference_spp,
+            psnr_gamma(&e, &r),
+            a.spp,
+            psnr_gamma(&f, &r)
+        );
+    }
     Ok(())
 }

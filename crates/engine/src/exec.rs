@@ -10,7 +10,7 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::panic::{catch_unwind, AssertUnwindSafe};
-use std::sync::{Condvar, Mutex};
+use std::sync::{Arc, Condvar, Mutex};
 use std::time::Instant;
 
 use crate::key::{node_key, node_seed};
@@ -151,6 +151,9 @@ pub fn run_pipeline(
         BTreeMap::new(),
     ));
     let cv = Condvar::new();
+    // Blobs verified or written in this run, so a stage's inputs are not
+    // read and hashed twice.
+    let memo: Memo = Mutex::new(BTreeMap::new());
     let worker = || loop {
         // Pick the first ready stage in plan order.
         let (name, inputs) = {
@@ -241,7 +244,7 @@ pub fn run_pipeline(
             Err((up, out)) => Err(format!(
                 "input `{up}.{out}` was not produced (stage `{up}` has no such result)"
             )),
-            Ok(inputs) => run_stage(p, stage, node, &inputs, store, exec, obs),
+            Ok(inputs) => run_stage(p, stage, node, &inputs, store, exec, obs, &memo),
         };
         let mut rep = StageReport {
             name: name.clone(),
@@ -311,6 +314,8 @@ pub fn run_pipeline(
     }
 }
 
+type Memo = Mutex<BTreeMap<Digest, Arc<Vec<u8>>>>;
+
 struct StageResult {
     status: Status,
     key: Digest,
@@ -318,6 +323,7 @@ struct StageResult {
     files: Vec<String>,
 }
 
+#[allow(clippy::too_many_arguments)]
 fn run_stage(
     p: &Pipeline,
     stage: &crate::spec::Stage,
@@ -326,6 +332,7 @@ fn run_stage(
     store: &Store,
     exec: &dyn Executor,
     obs: &dyn Observer,
+    memo: &Memo,
 ) -> Result<StageResult, String> {
     let key = node_key(node, &stage.params, inputs).map_err(|e| format!("reading inputs: {e}"))?;
     let wants_files = node
@@ -341,8 +348,9 @@ fn run_stage(
             match store.get_blob(d).map_err(|e| e.to_string())? {
                 Some(b) => {
                     if wants_files {
-                        bytes.insert(name.clone(), b);
+                        bytes.insert(name.clone(), b.clone());
                     }
+                    memo.lock().unwrap().insert(*d, Arc::new(b));
                 }
                 None => {
                     intact = false;
@@ -363,10 +371,16 @@ fn run_stage(
     }
     let mut in_bytes = BTreeMap::new();
     for (param, d) in inputs {
-        let b = store
-            .get_blob(d)
-            .map_err(|e| e.to_string())?
-            .ok_or_else(|| format!("input `{param}` ({d}) is missing or corrupt in the cache"))?;
+        let known = memo.lock().unwrap().get(d).cloned();
+        let b = match known {
+            Some(b) => b.as_ref().clone(),
+            None => store
+                .get_blob(d)
+                .map_err(|e| e.to_string())?
+                .ok_or_else(|| {
+                    format!("input `{param}` ({d}) is missing or corrupt in the cache")
+                })?,
+        };
         in_bytes.insert(param.clone(), b);
     }
     let progress = |d: u64, t: u64| obs.progress(&stage.name, d, t);
@@ -382,7 +396,9 @@ fn run_stage(
     let seconds = ts.elapsed().as_secs_f64();
     let mut ds = BTreeMap::new();
     for (name, b) in &outs {
-        ds.insert(name.clone(), store.put_blob(b).map_err(|e| e.to_string())?);
+        let d = store.put_blob(b).map_err(|e| e.to_string())?;
+        memo.lock().unwrap().insert(d, Arc::new(b.clone()));
+        ds.insert(name.clone(), d);
     }
     store
         .put_action(

@@ -13,6 +13,7 @@ mod inputs;
 mod optimise;
 mod relight;
 mod render;
+mod trace;
 
 use matflow_engine::{Node, NodeError, Registry};
 
@@ -31,6 +32,7 @@ pub fn registry() -> Registry {
         Box::new(edit::EditNode),
         Box::new(relight::RelightNode),
         Box::new(render::RenderNode),
+        Box::new(trace::TraceNode),
     ];
     for n in nodes {
         r.add(n);

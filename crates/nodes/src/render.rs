@@ -55,6 +55,14 @@ impl Node for RenderNode {
                 doc: "geometry and camera",
             },
             ParamSpec {
+                name: "paths",
+                ty: ParamType::Ref(&["paths"]),
+                default: Some("~"),
+                unit: "",
+                doc: "a `trace` stage of the same mesh: re-trace only what the materials' \
+                      changes reach (its envmap, spp and seed; box filter)",
+            },
+            ParamSpec {
                 name: "materials",
                 ty: ParamType::Ref(&["materials", "scene"]),
                 default: None,
@@ -64,9 +72,9 @@ impl Node for RenderNode {
             ParamSpec {
                 name: "envmap",
                 ty: ParamType::Ref(&["envmap"]),
-                default: None,
+                default: Some("~"),
                 unit: "",
-                doc: "lighting",
+                doc: "lighting (with `mesh`)",
             },
             ParamSpec {
                 name: "spp",
@@ -81,6 +89,13 @@ impl Node for RenderNode {
                 default: Some("4"),
                 unit: "segments",
                 doc: "maximum path length (Mitsuba's max_depth)",
+            },
+            ParamSpec {
+                name: "filter",
+                ty: ParamType::Choice(&["gaussian", "box"]),
+                default: Some("gaussian"),
+                unit: "",
+                doc: "pixel filter: Mitsuba's Gaussian (σ 0.5 px, radius 2) or box",
             },
             ParamSpec {
                 name: "seed",
@@ -108,9 +123,24 @@ impl Node for RenderNode {
             doc: "the render, linear RGB",
         }]
     }
+    fn check(&self, p: &Params) -> Result<(), String> {
+        match (p.is_set("paths"), p.is_set("mesh"), p.is_set("envmap")) {
+            (_, false, _) => Err("give `mesh`".into()),
+            (true, true, false) | (false, true, true) => Ok(()),
+            (true, true, true) => {
+                Err("`paths` brings its envmap (the one it was traced under): drop `envmap`".into())
+            }
+            (false, true, false) => Err("give `envmap` (or `paths`, a `trace` stage)".into()),
+        }
+    }
     fn run(&self, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
         let p = ctx.params;
         let maps = materials_from(ctx.input("materials")?)?;
+        if let Some(b) = ctx.opt_input("paths") {
+            let kept = crate::trace::decode_paths(b)?;
+            let img = crate::trace::edited_image(&kept, ctx.input("mesh")?, &maps)?;
+            return Ok([("image".to_string(), encode_image("image", "image", &img))].into());
+        }
         let env = envmap_from(ctx.input("envmap")?)?;
         let scene = render_scene(ctx.input("mesh")?, &maps, &env)?;
         // Seeded from the stage's parameters, not its inputs: an edit
@@ -120,6 +150,11 @@ impl Node for RenderNode {
             spp: p.i64("spp") as u32,
             max_depth: p.i64("depth") as u32,
             seed: ctx.seed ^ p.i64("seed") as u64,
+            filter: if p.str("filter") == "box" {
+                matflow_render::PixelFilter::Box
+            } else {
+                matflow_render::PixelFilter::default()
+            },
             ..Default::default()
         };
         let out = render(&scene, &opts, &|d, t| (ctx.progress)(d as u64, t as u64));
