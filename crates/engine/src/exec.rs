@@ -68,6 +68,21 @@ pub struct Report {
     pub stages: Vec<StageReport>,
 }
 
+impl StageReport {
+    fn new(name: &str, kind: &str, status: Status) -> StageReport {
+        StageReport {
+            name: name.to_string(),
+            kind: kind.to_string(),
+            status,
+            seconds: 0.0,
+            key: None,
+            outputs: BTreeMap::new(),
+            files: vec![],
+            error: None,
+        }
+    }
+}
+
 impl Report {
     pub fn stage(&self, name: &str) -> Option<&StageReport> {
         self.stages.iter().find(|s| s.name == name)
@@ -191,19 +206,7 @@ pub fn run_pipeline(
                     for n in blocked {
                         st.insert(n.clone(), State::Failed);
                         let s = p.stage(&n).unwrap();
-                        reps.insert(
-                            n.clone(),
-                            StageReport {
-                                name: n.clone(),
-                                kind: s.kind.clone(),
-                                status: Status::Skipped,
-                                seconds: 0.0,
-                                key: None,
-                                outputs: BTreeMap::new(),
-                                files: vec![],
-                                error: None,
-                            },
-                        );
+                        reps.insert(n.clone(), StageReport::new(&n, &s.kind, Status::Skipped));
                     }
                     cv.notify_all();
                     continue;
@@ -246,16 +249,8 @@ pub fn run_pipeline(
             )),
             Ok(inputs) => run_stage(p, stage, node, &inputs, store, exec, obs, &memo),
         };
-        let mut rep = StageReport {
-            name: name.clone(),
-            kind: stage.kind.clone(),
-            status: Status::Failed,
-            seconds: ts.elapsed().as_secs_f64(),
-            key: None,
-            outputs: BTreeMap::new(),
-            files: vec![],
-            error: None,
-        };
+        let mut rep = StageReport::new(&name, &stage.kind, Status::Failed);
+        rep.seconds = ts.elapsed().as_secs_f64();
         let state = match result {
             Ok(r) => {
                 rep.status = r.status;
@@ -289,19 +284,12 @@ pub fn run_pipeline(
         .stages
         .iter()
         .map(|s| {
-            reps.remove(&s.name).unwrap_or_else(|| StageReport {
-                name: s.name.clone(),
-                kind: s.kind.clone(),
-                status: Status::Skipped,
-                seconds: 0.0,
-                key: None,
-                outputs: BTreeMap::new(),
-                files: vec![],
-                error: if needed.contains(&s.name) {
-                    Some("not run".into())
-                } else {
-                    None
-                },
+            reps.remove(&s.name).unwrap_or_else(|| {
+                let mut r = StageReport::new(&s.name, &s.kind, Status::Skipped);
+                if needed.contains(&s.name) {
+                    r.error = Some("not run".into());
+                }
+                r
             })
         })
         .collect();

@@ -14,6 +14,21 @@ use matflow_scene::{io, Bundle, Camera, GrayImage, MaterialMaps, MaterialSource,
 use crate::artifact::Artifact;
 use crate::err;
 
+pub(crate) const SCENE: ParamSpec = ParamSpec {
+    name: "scene",
+    ty: ParamType::Ref(&["scene"]),
+    default: None,
+    unit: "",
+    doc: "the scene (input image, starting materials)",
+};
+pub(crate) const MESH: ParamSpec = ParamSpec {
+    name: "mesh",
+    ty: ParamType::Ref(&["mesh"]),
+    default: None,
+    unit: "",
+    doc: "geometry and camera",
+};
+
 /// What a `scene` artifact holds.
 pub struct SceneData {
     /// Camera-space depth z (0: sky).

@@ -12,7 +12,8 @@ use matflow_scene::{Image, RgbImage};
 use crate::artifact::Artifact;
 use crate::err;
 use crate::inputs::{
-    encode_image, encode_materials, envmap_from, materials_from, render_scene, SceneData,
+    encode_image, encode_materials, envmap_from, materials_from, render_scene, SceneData, MESH,
+    SCENE,
 };
 
 const BUDGET: ParamSpec = ParamSpec {
@@ -50,21 +51,6 @@ const SMOOTH: ParamSpec = ParamSpec {
     unit: "",
     doc: "texel smoothness prior weight (default: 0.01 with trust_rm, else 0)",
 };
-const SCENE: ParamSpec = ParamSpec {
-    name: "scene",
-    ty: ParamType::Ref(&["scene"]),
-    default: None,
-    unit: "",
-    doc: "the scene (input image, starting materials)",
-};
-const MESH: ParamSpec = ParamSpec {
-    name: "mesh",
-    ty: ParamType::Ref(&["mesh"]),
-    default: None,
-    unit: "",
-    doc: "its mesh",
-};
-
 fn base_options(p: &Params, seed: u64) -> InvertOptions {
     InvertOptions {
         budget_seconds: p.f64("budget_seconds"),

@@ -10,7 +10,7 @@ use matflow_scene::io;
 
 use crate::artifact::Artifact;
 use crate::err;
-use crate::inputs::{encode_image, envmap_from, materials_from, render_scene};
+use crate::inputs::{encode_image, envmap_from, materials_from, render_scene, MESH};
 
 pub struct RenderNode;
 
@@ -47,13 +47,7 @@ impl Node for RenderNode {
     }
     fn params(&self) -> &'static [ParamSpec] {
         &[
-            ParamSpec {
-                name: "mesh",
-                ty: ParamType::Ref(&["mesh"]),
-                default: None,
-                unit: "",
-                doc: "geometry and camera",
-            },
+            MESH,
             ParamSpec {
                 name: "paths",
                 ty: ParamType::Ref(&["paths"]),

@@ -28,7 +28,7 @@ use rayon::prelude::*;
 
 use crate::artifact::Artifact;
 use crate::err;
-use crate::inputs::{envmap_from, materials_from, render_scene};
+use crate::inputs::{envmap_from, materials_from, render_scene, MESH};
 
 /// What a `paths` artifact holds.
 pub struct Kept {
@@ -261,13 +261,7 @@ impl Node for TraceNode {
     }
     fn params(&self) -> &'static [ParamSpec] {
         &[
-            ParamSpec {
-                name: "mesh",
-                ty: ParamType::Ref(&["mesh"]),
-                default: None,
-                unit: "",
-                doc: "geometry and camera",
-            },
+            MESH,
             ParamSpec {
                 name: "materials",
                 ty: ParamType::Ref(&["materials", "scene"]),
