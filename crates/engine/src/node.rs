@@ -232,12 +232,46 @@ impl Registry {
     }
 }
 
-/// Resolves a path written in a pipeline file against the file's folder.
+/// Resolves a path written in a pipeline file against the file's folder,
+/// folding `.` and `..` lexically (`pipelines/../out` → `out`).
 pub fn resolve_path(base: &Path, p: &str) -> PathBuf {
+    use std::path::Component;
     let pb = PathBuf::from(p);
-    if pb.is_absolute() {
-        pb
-    } else {
-        base.join(pb)
+    let joined = if pb.is_absolute() { pb } else { base.join(pb) };
+    let mut out = PathBuf::new();
+    for c in joined.components() {
+        match c {
+            Component::CurDir => {}
+            Component::ParentDir => {
+                let last = out.components().next_back();
+                match last {
+                    Some(Component::Normal(_)) => {
+                        out.pop();
+                    }
+                    Some(Component::RootDir) | Some(Component::Prefix(_)) => {}
+                    _ => out.push(".."),
+                }
+            }
+            c => out.push(c),
+        }
+    }
+    if out.as_os_str().is_empty() {
+        out.push(".");
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn paths_resolve_against_the_pipeline_folder() {
+        let r = |b: &str, p: &str| resolve_path(Path::new(b), p);
+        assert_eq!(r("pipelines", "../out/a.exr"), PathBuf::from("out/a.exr"));
+        assert_eq!(r("pipelines", "/abs/x"), PathBuf::from("/abs/x"));
+        assert_eq!(r(".", "../../shared/x"), PathBuf::from("../../shared/x"));
+        assert_eq!(r("a/b", "./c/../d"), PathBuf::from("a/b/d"));
+        assert_eq!(r("a", ".."), PathBuf::from("."));
     }
 }
