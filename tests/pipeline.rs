@@ -267,6 +267,15 @@ fn bad_pipelines_are_rejected_with_their_location_and_no_cache_writes() {
         e.contains(":6:5:") && e.contains("unknown parameter `sise`"),
         "{e}"
     );
+    // A key given twice.
+    let e = rejected(
+        &GOOD.replace("    size: 32", "    size: 32\n    size: 64"),
+        &[],
+    );
+    assert!(
+        e.contains(":6:5:") && e.contains("`size` is given twice"),
+        "{e}"
+    );
     // Wrong type.
     let e = rejected(&GOOD.replace("size: 32", "size: big"), &[]);
     assert!(

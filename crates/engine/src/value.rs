@@ -93,8 +93,84 @@ pub struct ParseError {
     pub message: String,
 }
 
-/// Parses one YAML document into a located value tree.
+/// Finds a key given twice in one mapping (YAML forbids it; the loader
+/// would keep the last silently, hiding a stage or a parameter).
+struct DuplicateKeys {
+    /// Per open container: for mappings, the keys seen and whether the
+    /// next node is a key.
+    stack: Vec<Option<(std::collections::BTreeSet<String>, bool)>>,
+    found: Option<ParseError>,
+}
+
+impl DuplicateKeys {
+    /// A node starts in the innermost container; returns true if it is a
+    /// mapping key.
+    fn node(&mut self) -> bool {
+        match self.stack.last_mut() {
+            Some(Some((_, expect_key))) => {
+                let k = *expect_key;
+                *expect_key = !k;
+                k
+            }
+            _ => false,
+        }
+    }
+}
+
+impl<'i> saphyr_parser::SpannedEventReceiver<'i> for DuplicateKeys {
+    fn on_event(&mut self, ev: saphyr_parser::Event<'i>, span: saphyr_parser::Span) {
+        use saphyr_parser::Event;
+        match ev {
+            Event::Scalar(v, ..) => {
+                if self.node() {
+                    if let Some(Some((keys, _))) = self.stack.last_mut() {
+                        if !keys.insert(v.to_string()) && self.found.is_none() {
+                            self.found = Some(ParseError {
+                                loc: Loc {
+                                    line: span.start.line(),
+                                    col: span.start.col() + 1,
+                                },
+                                message: format!("`{v}` is given twice in this mapping"),
+                            });
+                        }
+                    }
+                }
+            }
+            Event::Alias(_) => {
+                self.node();
+            }
+            Event::SequenceStart(..) => {
+                self.node();
+                self.stack.push(None);
+            }
+            Event::MappingStart(..) => {
+                self.node();
+                self.stack.push(Some((Default::default(), true)));
+            }
+            Event::SequenceEnd | Event::MappingEnd => {
+                self.stack.pop();
+            }
+            _ => {}
+        }
+    }
+}
+
+/// Parses one YAML document into a located value tree. A key given twice
+/// in one mapping is an error.
 pub fn parse_yaml(text: &str) -> Result<(Value, Loc), ParseError> {
+    let mut dup = DuplicateKeys {
+        stack: Vec::new(),
+        found: None,
+    };
+    // Syntax errors are reported by the loader below, with its message.
+    if saphyr_parser::Parser::new_from_str(text)
+        .load(&mut dup, true)
+        .is_ok()
+    {
+        if let Some(e) = dup.found {
+            return Err(e);
+        }
+    }
     let docs = MarkedYamlOwned::load_from_str(text).map_err(|e| ParseError {
         loc: Loc {
             line: e.marker().line(),
@@ -226,6 +302,15 @@ mod tests {
                 Value::Str("x".into())
             ])
         );
+    }
+
+    #[test]
+    fn duplicate_keys_are_errors_with_their_location() {
+        let e = parse_yaml("a: 1\nb:\n  c: 1\n  c: 2\n").unwrap_err();
+        assert_eq!(e.loc, Loc { line: 4, col: 3 });
+        assert!(e.message.contains("`c` is given twice"), "{}", e.message);
+        // Same key in different mappings, or as a value, is fine.
+        assert!(parse_yaml("a: {x: 1}\nb: {x: 1}\nc: [a, a]\nd: a\n").is_ok());
     }
 
     #[test]
