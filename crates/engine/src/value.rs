@@ -121,18 +121,17 @@ impl<'i> saphyr_parser::SpannedEventReceiver<'i> for DuplicateKeys {
     fn on_event(&mut self, ev: saphyr_parser::Event<'i>, span: saphyr_parser::Span) {
         use saphyr_parser::Event;
         match ev {
-            Event::Scalar(v, ..) => {
-                if self.node() {
-                    if let Some(Some((keys, _))) = self.stack.last_mut() {
-                        if !keys.insert(v.to_string()) && self.found.is_none() {
-                            self.found = Some(ParseError {
-                                loc: Loc {
-                                    line: span.start.line(),
-                                    col: span.start.col() + 1,
-                                },
-                                message: format!("`{v}` is given twice in this mapping"),
-                            });
-                        }
+            // The guard also advances the key/value alternation.
+            Event::Scalar(v, ..) if self.node() => {
+                if let Some(Some((keys, _))) = self.stack.last_mut() {
+                    if !keys.insert(v.to_string()) && self.found.is_none() {
+                        self.found = Some(ParseError {
+                            loc: Loc {
+                                line: span.start.line(),
+                                col: span.start.col() + 1,
+                            },
+                            message: format!("`{v}` is given twice in this mapping"),
+                        });
                     }
                 }
             }
