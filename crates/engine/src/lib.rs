@@ -23,7 +23,7 @@ pub mod store;
 pub mod value;
 
 pub use exec::{run_pipeline, Executor, LocalExecutor, Observer, Report, StageReport, Status};
-pub use node::{Node, NodeError, OutputSpec, ParamSpec, ParamType, Registry, RunContext};
+pub use node::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, Registry, RunContext};
 pub use spec::{Pipeline, SpecError};
 pub use store::{Digest, Store, StoreError};
 pub use value::{Loc, Value};

@@ -174,15 +174,36 @@ impl RunContext<'_> {
     }
 }
 
+/// What a node kind is: its name, implementation version (part of the
+/// key: bumped whenever its output for the same inputs changes), a
+/// description, its parameters and its outputs.
+#[derive(Debug)]
+pub struct NodeInfo {
+    pub kind: &'static str,
+    pub version: u32,
+    pub doc: &'static str,
+    pub params: &'static [ParamSpec],
+    pub outputs: &'static [OutputSpec],
+}
+
 /// A node kind: a pure function of its parameters and input bytes.
 pub trait Node: Send + Sync {
-    fn kind(&self) -> &'static str;
-    /// Bumped whenever the node's output for the same inputs changes; part
-    /// of the key.
-    fn version(&self) -> u32;
-    fn doc(&self) -> &'static str;
-    fn params(&self) -> &'static [ParamSpec];
-    fn outputs(&self) -> &'static [OutputSpec];
+    fn info(&self) -> &'static NodeInfo;
+    fn kind(&self) -> &'static str {
+        self.info().kind
+    }
+    fn version(&self) -> u32 {
+        self.info().version
+    }
+    fn doc(&self) -> &'static str {
+        self.info().doc
+    }
+    fn params(&self) -> &'static [ParamSpec] {
+        self.info().params
+    }
+    fn outputs(&self) -> &'static [OutputSpec] {
+        self.info().outputs
+    }
     /// Checks across parameters (e.g. exactly one mask); the message
     /// names the parameters.
     fn check(&self, _params: &Params) -> Result<(), String> {

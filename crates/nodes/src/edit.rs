@@ -5,7 +5,7 @@ use std::collections::{BTreeMap, VecDeque};
 
 use glam::Vec3;
 use matflow_engine::node::Params;
-use matflow_engine::{Node, NodeError, OutputSpec, ParamSpec, ParamType, RunContext};
+use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
 use matflow_scene::color::{gamma_to_linear, linear_to_gamma};
 use matflow_scene::{io, Image, MaterialMaps, RgbImage};
 
@@ -197,154 +197,150 @@ impl EditNode {
     }
 }
 
-impl Node for EditNode {
-    fn kind(&self) -> &'static str {
-        "edit"
-    }
-    fn version(&self) -> u32 {
-        1
-    }
-    fn doc(&self) -> &'static str {
-        "Edits materials inside a mask: set or scale roughness and metallic, set the albedo \
+const EDIT_INFO: NodeInfo = NodeInfo {
+    kind: "edit",
+    version: 1,
+    doc: "Edits materials inside a mask: set or scale roughness and metallic, set the albedo \
          colour or shift its hue, saturation and value (on γ-encoded albedo, as a colour \
          picker shows it). Exactly one of mask_png, mask_rect, mask_flood; order: set, \
-         then scale, then the HSV shift."
-    }
-    fn params(&self) -> &'static [ParamSpec] {
-        &[
-            ParamSpec {
-                name: "materials",
-                ty: ParamType::Ref(&["materials", "scene"]),
-                default: None,
-                unit: "",
-                doc: "the materials to edit (a scene gives its predictions)",
+         then scale, then the HSV shift.",
+    params: &[
+        ParamSpec {
+            name: "materials",
+            ty: ParamType::Ref(&["materials", "scene"]),
+            default: None,
+            unit: "",
+            doc: "the materials to edit (a scene gives its predictions)",
+        },
+        ParamSpec {
+            name: "mask_png",
+            ty: ParamType::InPath,
+            default: Some("~"),
+            unit: "",
+            doc: "a PNG of the image's size; white (and opaque) pixels are edited",
+        },
+        ParamSpec {
+            name: "mask_rect",
+            ty: ParamType::Floats {
+                len: 4,
+                min: 0.0,
+                max: 65536.0,
             },
-            ParamSpec {
-                name: "mask_png",
-                ty: ParamType::InPath,
-                default: Some("~"),
-                unit: "",
-                doc: "a PNG of the image's size; white (and opaque) pixels are edited",
+            default: Some("~"),
+            unit: "px",
+            doc: "[x0, y0, x1, y1], x1 and y1 exclusive, origin top left",
+        },
+        ParamSpec {
+            name: "mask_flood",
+            ty: ParamType::Floats {
+                len: 2,
+                min: 0.0,
+                max: 65536.0,
             },
-            ParamSpec {
-                name: "mask_rect",
-                ty: ParamType::Floats {
-                    len: 4,
-                    min: 0.0,
-                    max: 65536.0,
-                },
-                default: Some("~"),
-                unit: "px",
-                doc: "[x0, y0, x1, y1], x1 and y1 exclusive, origin top left",
+            default: Some("~"),
+            unit: "px",
+            doc: "[x, y] seed pixel; the region grows over similar albedo",
+        },
+        ParamSpec {
+            name: "flood_tolerance",
+            ty: ParamType::Float { min: 0.0, max: 1.0 },
+            default: Some("0.08"),
+            unit: "γ-encoded",
+            doc: "largest per-channel albedo difference from the seed that joins the region",
+        },
+        ParamSpec {
+            name: "roughness",
+            ty: ParamType::Float { min: 0.0, max: 1.0 },
+            default: Some("~"),
+            unit: "",
+            doc: "set roughness",
+        },
+        ParamSpec {
+            name: "roughness_scale",
+            ty: ParamType::Float {
+                min: 0.0,
+                max: 100.0,
             },
-            ParamSpec {
-                name: "mask_flood",
-                ty: ParamType::Floats {
-                    len: 2,
-                    min: 0.0,
-                    max: 65536.0,
-                },
-                default: Some("~"),
-                unit: "px",
-                doc: "[x, y] seed pixel; the region grows over similar albedo",
+            default: Some("1"),
+            unit: "×",
+            doc: "scale roughness (clamped to [0, 1])",
+        },
+        ParamSpec {
+            name: "metallic",
+            ty: ParamType::Float { min: 0.0, max: 1.0 },
+            default: Some("~"),
+            unit: "",
+            doc: "set metallic",
+        },
+        ParamSpec {
+            name: "metallic_scale",
+            ty: ParamType::Float {
+                min: 0.0,
+                max: 100.0,
             },
-            ParamSpec {
-                name: "flood_tolerance",
-                ty: ParamType::Float { min: 0.0, max: 1.0 },
-                default: Some("0.08"),
-                unit: "γ-encoded",
-                doc: "largest per-channel albedo difference from the seed that joins the region",
+            default: Some("1"),
+            unit: "×",
+            doc: "scale metallic (clamped to [0, 1])",
+        },
+        ParamSpec {
+            name: "albedo",
+            ty: ParamType::Floats {
+                len: 3,
+                min: 0.0,
+                max: 1.0,
             },
-            ParamSpec {
-                name: "roughness",
-                ty: ParamType::Float { min: 0.0, max: 1.0 },
-                default: Some("~"),
-                unit: "",
-                doc: "set roughness",
+            default: Some("~"),
+            unit: "γ-encoded RGB",
+            doc: "set the albedo colour",
+        },
+        ParamSpec {
+            name: "hue_shift",
+            ty: ParamType::Float {
+                min: -360.0,
+                max: 360.0,
             },
-            ParamSpec {
-                name: "roughness_scale",
-                ty: ParamType::Float {
-                    min: 0.0,
-                    max: 100.0,
-                },
-                default: Some("1"),
-                unit: "×",
-                doc: "scale roughness (clamped to [0, 1])",
+            default: Some("0"),
+            unit: "degrees",
+            doc: "rotate the albedo's hue",
+        },
+        ParamSpec {
+            name: "saturation_scale",
+            ty: ParamType::Float {
+                min: 0.0,
+                max: 100.0,
             },
-            ParamSpec {
-                name: "metallic",
-                ty: ParamType::Float { min: 0.0, max: 1.0 },
-                default: Some("~"),
-                unit: "",
-                doc: "set metallic",
+            default: Some("1"),
+            unit: "×",
+            doc: "scale the albedo's saturation",
+        },
+        ParamSpec {
+            name: "value_scale",
+            ty: ParamType::Float {
+                min: 0.0,
+                max: 100.0,
             },
-            ParamSpec {
-                name: "metallic_scale",
-                ty: ParamType::Float {
-                    min: 0.0,
-                    max: 100.0,
-                },
-                default: Some("1"),
-                unit: "×",
-                doc: "scale metallic (clamped to [0, 1])",
-            },
-            ParamSpec {
-                name: "albedo",
-                ty: ParamType::Floats {
-                    len: 3,
-                    min: 0.0,
-                    max: 1.0,
-                },
-                default: Some("~"),
-                unit: "γ-encoded RGB",
-                doc: "set the albedo colour",
-            },
-            ParamSpec {
-                name: "hue_shift",
-                ty: ParamType::Float {
-                    min: -360.0,
-                    max: 360.0,
-                },
-                default: Some("0"),
-                unit: "degrees",
-                doc: "rotate the albedo's hue",
-            },
-            ParamSpec {
-                name: "saturation_scale",
-                ty: ParamType::Float {
-                    min: 0.0,
-                    max: 100.0,
-                },
-                default: Some("1"),
-                unit: "×",
-                doc: "scale the albedo's saturation",
-            },
-            ParamSpec {
-                name: "value_scale",
-                ty: ParamType::Float {
-                    min: 0.0,
-                    max: 100.0,
-                },
-                default: Some("1"),
-                unit: "×",
-                doc: "scale the albedo's value (brightness)",
-            },
-        ]
-    }
-    fn outputs(&self) -> &'static [OutputSpec] {
-        &[
-            OutputSpec {
-                name: "materials",
-                ty: "materials",
-                doc: "the edited materials",
-            },
-            OutputSpec {
-                name: "mask",
-                ty: "mask",
-                doc: "the edited pixels (1) as a single-channel image",
-            },
-        ]
+            default: Some("1"),
+            unit: "×",
+            doc: "scale the albedo's value (brightness)",
+        },
+    ],
+    outputs: &[
+        OutputSpec {
+            name: "materials",
+            ty: "materials",
+            doc: "the edited materials",
+        },
+        OutputSpec {
+            name: "mask",
+            ty: "mask",
+            doc: "the edited pixels (1) as a single-channel image",
+        },
+    ],
+};
+
+impl Node for EditNode {
+    fn info(&self) -> &'static NodeInfo {
+        &EDIT_INFO
     }
     fn check(&self, p: &Params) -> Result<(), String> {
         let masks: Vec<&str> = MASKS.iter().copied().filter(|m| p.is_set(m)).collect();

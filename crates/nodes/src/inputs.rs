@@ -6,7 +6,7 @@ use std::path::Path;
 
 use glam::{Vec2, Vec3};
 use matflow_engine::node::Params;
-use matflow_engine::{Node, NodeError, OutputSpec, ParamSpec, ParamType, RunContext};
+use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
 use matflow_geom::{mesh_from_depth, MeshParams, TriMesh};
 use matflow_render::{render, EnvMap, RenderOptions, RenderScene};
 use matflow_scene::{io, Bundle, Camera, GrayImage, MaterialMaps, MaterialSource, RgbImage};
@@ -223,37 +223,33 @@ const IMAGE_OUT: &[OutputSpec] = &[OutputSpec {
 
 pub struct ImageNode;
 
+const IMAGE_INFO: NodeInfo = NodeInfo {
+    kind: "image",
+    version: 1,
+    doc: "An image file: a photo (PNG/JPEG; centre-cropped to a square, resized, linearised \
+         with power 2.2 as the reference does) or a linear EXR / Radiance HDR (as is).",
+    params: &[
+        ParamSpec {
+            name: "path",
+            ty: ParamType::InPath,
+            default: None,
+            unit: "",
+            doc: "the file (relative to the pipeline file)",
+        },
+        ParamSpec {
+            name: "size",
+            ty: ParamType::Int { min: 0, max: 8192 },
+            default: Some("512"),
+            unit: "px",
+            doc: "photos: side of the square they are resized to (0: the shorter side)",
+        },
+    ],
+    outputs: IMAGE_OUT,
+};
+
 impl Node for ImageNode {
-    fn kind(&self) -> &'static str {
-        "image"
-    }
-    fn version(&self) -> u32 {
-        1
-    }
-    fn doc(&self) -> &'static str {
-        "An image file: a photo (PNG/JPEG; centre-cropped to a square, resized, linearised \
-         with power 2.2 as the reference does) or a linear EXR / Radiance HDR (as is)."
-    }
-    fn params(&self) -> &'static [ParamSpec] {
-        &[
-            ParamSpec {
-                name: "path",
-                ty: ParamType::InPath,
-                default: None,
-                unit: "",
-                doc: "the file (relative to the pipeline file)",
-            },
-            ParamSpec {
-                name: "size",
-                ty: ParamType::Int { min: 0, max: 8192 },
-                default: Some("512"),
-                unit: "px",
-                doc: "photos: side of the square they are resized to (0: the shorter side)",
-            },
-        ]
-    }
-    fn outputs(&self) -> &'static [OutputSpec] {
-        IMAGE_OUT
+    fn info(&self) -> &'static NodeInfo {
+        &IMAGE_INFO
     }
     fn preflight(&self, p: &Params) -> Result<(), String> {
         read_image(&p.path("path").unwrap_or_default(), p.i64("size") as usize)
@@ -317,61 +313,57 @@ impl BundleNode {
     }
 }
 
-impl Node for BundleNode {
-    fn kind(&self) -> &'static str {
-        "bundle"
-    }
-    fn version(&self) -> u32 {
-        1
-    }
-    fn doc(&self) -> &'static str {
-        "A folder in the reference's layout: depth (depth.exr or depthPred.exr), the input \
+const BUNDLE_INFO: NodeInfo = NodeInfo {
+    kind: "bundle",
+    version: 1,
+    doc: "A folder in the reference's layout: depth (depth.exr or depthPred.exr), the input \
          image (gt_image.exr/.png, optional), predictions (albedoPred.exr, roughnessPred, \
-         metallicPred) and/or results (best_results/)."
-    }
-    fn params(&self) -> &'static [ParamSpec] {
-        &[
-            ParamSpec {
-                name: "path",
-                ty: ParamType::InPath,
-                default: None,
-                unit: "",
-                doc: "the bundle folder",
-            },
-            ParamSpec {
-                name: "materials",
-                ty: ParamType::Choice(&["pred", "best_results", "ground_truth"]),
-                default: Some("pred"),
-                unit: "",
-                doc: "which material set becomes the scene's starting materials",
-            },
-            ParamSpec {
-                name: "image",
-                ty: ParamType::Ref(&["image"]),
-                default: Some("~"),
-                unit: "",
-                doc: "an `image` stage replacing the bundle's gt_image",
-            },
-        ]
-    }
-    fn outputs(&self) -> &'static [OutputSpec] {
-        &[
-            OutputSpec {
-                name: "scene",
-                ty: "scene",
-                doc: "depth, input image, starting materials",
-            },
-            OutputSpec {
-                name: "results",
-                ty: "materials",
-                doc: "best_results/ materials, when present",
-            },
-            OutputSpec {
-                name: "envmap",
-                ty: "envmap",
-                doc: "best_results/envmap.hdr (or ground_truth/), when present",
-            },
-        ]
+         metallicPred) and/or results (best_results/).",
+    params: &[
+        ParamSpec {
+            name: "path",
+            ty: ParamType::InPath,
+            default: None,
+            unit: "",
+            doc: "the bundle folder",
+        },
+        ParamSpec {
+            name: "materials",
+            ty: ParamType::Choice(&["pred", "best_results", "ground_truth"]),
+            default: Some("pred"),
+            unit: "",
+            doc: "which material set becomes the scene's starting materials",
+        },
+        ParamSpec {
+            name: "image",
+            ty: ParamType::Ref(&["image"]),
+            default: Some("~"),
+            unit: "",
+            doc: "an `image` stage replacing the bundle's gt_image",
+        },
+    ],
+    outputs: &[
+        OutputSpec {
+            name: "scene",
+            ty: "scene",
+            doc: "depth, input image, starting materials",
+        },
+        OutputSpec {
+            name: "results",
+            ty: "materials",
+            doc: "best_results/ materials, when present",
+        },
+        OutputSpec {
+            name: "envmap",
+            ty: "envmap",
+            doc: "best_results/envmap.hdr (or ground_truth/), when present",
+        },
+    ],
+};
+
+impl Node for BundleNode {
+    fn info(&self) -> &'static NodeInfo {
+        &BUNDLE_INFO
     }
     fn preflight(&self, p: &Params) -> Result<(), String> {
         self.load(p).map(|_| ()).map_err(|e| e.0)
@@ -405,71 +397,67 @@ impl Node for BundleNode {
 
 pub struct SyntheticSceneNode;
 
-impl Node for SyntheticSceneNode {
-    fn kind(&self) -> &'static str {
-        "synthetic_scene"
-    }
-    fn version(&self) -> u32 {
-        1
-    }
-    fn doc(&self) -> &'static str {
-        "A procedural room (floor, walls, a few objects with varied albedo, roughness and \
+const SYNTHETIC_SCENE_INFO: NodeInfo = NodeInfo {
+    kind: "synthetic_scene",
+    version: 1,
+    doc: "A procedural room (floor, walls, a few objects with varied albedo, roughness and \
          metallic) under a procedural sky, its input image rendered by matflow's path tracer, \
-         and predictions made by degrading the truth (blur, noise, bias, wrong R/M)."
-    }
-    fn params(&self) -> &'static [ParamSpec] {
-        &[
-            ParamSpec {
-                name: "seed",
-                ty: ParamType::Int {
-                    min: 0,
-                    max: i64::MAX,
-                },
-                default: Some("1"),
-                unit: "",
-                doc: "layout, objects, materials and sky",
+         and predictions made by degrading the truth (blur, noise, bias, wrong R/M).",
+    params: &[
+        ParamSpec {
+            name: "seed",
+            ty: ParamType::Int {
+                min: 0,
+                max: i64::MAX,
             },
-            ParamSpec {
-                name: "size",
-                ty: ParamType::Int { min: 16, max: 4096 },
-                default: Some("256"),
-                unit: "px",
-                doc: "image side",
-            },
-            ParamSpec {
-                name: "spp",
-                ty: ParamType::Int { min: 1, max: 65536 },
-                default: Some("128"),
-                unit: "samples/px",
-                doc: "samples of the input image",
-            },
-            ParamSpec {
-                name: "degrade",
-                ty: ParamType::Bool,
-                default: Some("true"),
-                unit: "",
-                doc: "predictions degraded from the truth (false: the truth itself)",
-            },
-        ]
-    }
-    fn outputs(&self) -> &'static [OutputSpec] {
-        &[
-            OutputSpec {
-                name: "scene",
-                ty: "scene",
-                doc: "depth, rendered input image, predictions",
-            },
-            OutputSpec {
-                name: "truth",
-                ty: "materials",
-                doc: "true materials",
-            },
-            OutputSpec {
-                name: "truth_envmap",
-                ty: "envmap",
-                doc: "true lighting (32×16)",
-            },
-        ]
+            default: Some("1"),
+            unit: "",
+            doc: "layout, objects, materials and sky",
+        },
+        ParamSpec {
+            name: "size",
+            ty: ParamType::Int { min: 16, max: 4096 },
+            default: Some("256"),
+            unit: "px",
+            doc: "image side",
+        },
+        ParamSpec {
+            name: "spp",
+            ty: ParamType::Int { min: 1, max: 65536 },
+            default: Some("128"),
+            unit: "samples/px",
+            doc: "samples of the input image",
+        },
+        ParamSpec {
+            name: "degrade",
+            ty: ParamType::Bool,
+            default: Some("true"),
+            unit: "",
+            doc: "predictions degraded from the truth (false: the truth itself)",
+        },
+    ],
+    outputs: &[
+        OutputSpec {
+            name: "scene",
+            ty: "scene",
+            doc: "depth, rendered input image, predictions",
+        },
+        OutputSpec {
+            name: "truth",
+            ty: "materials",
+            doc: "true materials",
+        },
+        OutputSpec {
+            name: "truth_envmap",
+            ty: "envmap",
+            doc: "true lighting (32×16)",
+        },
+    ],
+};
+
+impl Node for SyntheticSceneNode {
+    fn info(&self) -> &'static NodeInfo {
+        &SYNTHETIC_SCENE_INFO
     }
     fn run(&self, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
         let p = ctx.params;
@@ -510,44 +498,40 @@ impl Node for SyntheticSceneNode {
 
 pub struct MeshNode;
 
+const MESH_INFO: NodeInfo = NodeInfo {
+    kind: "mesh",
+    version: 1,
+    doc: "The triangle mesh of a scene's depth map (one vertex per pixel, cut at depth \
+         discontinuities found by the reference's angle test).",
+    params: &[
+        ParamSpec {
+            name: "scene",
+            ty: ParamType::Ref(&["scene"]),
+            default: None,
+            unit: "",
+            doc: "the scene whose depth is meshed",
+        },
+        ParamSpec {
+            name: "angle",
+            ty: ParamType::Float {
+                min: 0.0,
+                max: 90.0,
+            },
+            default: Some("6"),
+            unit: "degrees",
+            doc: "boundary threshold: triangles seen more obliquely than this are cut",
+        },
+    ],
+    outputs: &[OutputSpec {
+        name: "mesh",
+        ty: "mesh",
+        doc: "vertices, triangles, film positions",
+    }],
+};
+
 impl Node for MeshNode {
-    fn kind(&self) -> &'static str {
-        "mesh"
-    }
-    fn version(&self) -> u32 {
-        1
-    }
-    fn doc(&self) -> &'static str {
-        "The triangle mesh of a scene's depth map (one vertex per pixel, cut at depth \
-         discontinuities found by the reference's angle test)."
-    }
-    fn params(&self) -> &'static [ParamSpec] {
-        &[
-            ParamSpec {
-                name: "scene",
-                ty: ParamType::Ref(&["scene"]),
-                default: None,
-                unit: "",
-                doc: "the scene whose depth is meshed",
-            },
-            ParamSpec {
-                name: "angle",
-                ty: ParamType::Float {
-                    min: 0.0,
-                    max: 90.0,
-                },
-                default: Some("6"),
-                unit: "degrees",
-                doc: "boundary threshold: triangles seen more obliquely than this are cut",
-            },
-        ]
-    }
-    fn outputs(&self) -> &'static [OutputSpec] {
-        &[OutputSpec {
-            name: "mesh",
-            ty: "mesh",
-            doc: "vertices, triangles, film positions",
-        }]
+    fn info(&self) -> &'static NodeInfo {
+        &MESH_INFO
     }
     fn run(&self, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
         let s = SceneData::decode(ctx.input("scene")?)?;

@@ -4,7 +4,7 @@
 use std::collections::BTreeMap;
 
 use matflow_engine::node::Params;
-use matflow_engine::{Node, NodeError, OutputSpec, ParamSpec, ParamType, RunContext};
+use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
 use matflow_inverse::invert::{invert, materials_to_maps, EnvRoute, InvertOptions, MatRoute};
 use matflow_scene::metrics::{psnr_gamma, ssim_gamma};
 use matflow_scene::{Image, RgbImage};
@@ -133,47 +133,43 @@ fn on_event(ctx: &RunContext, e: matflow_inverse::invert::Event) {
 
 pub struct EnvmapOptNode;
 
+const ENVMAP_OPT_INFO: NodeInfo = NodeInfo {
+    kind: "envmap_opt",
+    version: 1,
+    doc: "Recovers the 32×16 HDR environment map with the materials held fixed (the paper's \
+         envmap stage; L1 + L2 on γ-encoded images over frozen paths).",
+    params: &[
+        SCENE,
+        MESH,
+        ParamSpec {
+            name: "materials",
+            ty: ParamType::Ref(&["materials"]),
+            default: Some("~"),
+            unit: "",
+            doc: "materials to hold fixed (default: the scene's predictions)",
+        },
+        BUDGET,
+        ENV_ROUTE,
+        TRUST,
+        SMOOTH,
+    ],
+    outputs: &[
+        OutputSpec {
+            name: "envmap",
+            ty: "envmap",
+            doc: "the recovered lighting",
+        },
+        OutputSpec {
+            name: "report",
+            ty: "report",
+            doc: "plan, per-stage steps and losses, rerender PSNR/SSIM",
+        },
+    ],
+};
+
 impl Node for EnvmapOptNode {
-    fn kind(&self) -> &'static str {
-        "envmap_opt"
-    }
-    fn version(&self) -> u32 {
-        1
-    }
-    fn doc(&self) -> &'static str {
-        "Recovers the 32×16 HDR environment map with the materials held fixed (the paper's \
-         envmap stage; L1 + L2 on γ-encoded images over frozen paths)."
-    }
-    fn params(&self) -> &'static [ParamSpec] {
-        &[
-            SCENE,
-            MESH,
-            ParamSpec {
-                name: "materials",
-                ty: ParamType::Ref(&["materials"]),
-                default: Some("~"),
-                unit: "",
-                doc: "materials to hold fixed (default: the scene's predictions)",
-            },
-            BUDGET,
-            ENV_ROUTE,
-            TRUST,
-            SMOOTH,
-        ]
-    }
-    fn outputs(&self) -> &'static [OutputSpec] {
-        &[
-            OutputSpec {
-                name: "envmap",
-                ty: "envmap",
-                doc: "the recovered lighting",
-            },
-            OutputSpec {
-                name: "report",
-                ty: "report",
-                doc: "plan, per-stage steps and losses, rerender PSNR/SSIM",
-            },
-        ]
+    fn info(&self) -> &'static NodeInfo {
+        &ENVMAP_OPT_INFO
     }
     fn run(&self, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
         let pr = prepare(ctx, Some("materials"))?;
@@ -201,81 +197,77 @@ impl Node for EnvmapOptNode {
 
 pub struct MaterialOptNode;
 
+const MATERIAL_OPT_INFO: NodeInfo = NodeInfo {
+    kind: "material_opt",
+    version: 1,
+    doc: "Recovers albedo, roughness and metallic together with the envmap: the reference's \
+         alternation of envmap and material stages (paper §3.2), on frozen paths.",
+    params: &[
+        SCENE,
+        MESH,
+        ParamSpec {
+            name: "envmap",
+            ty: ParamType::Ref(&["envmap"]),
+            default: Some("~"),
+            unit: "",
+            doc: "starting envmap (e.g. an envmap_opt stage; texel route only)",
+        },
+        BUDGET,
+        ENV_ROUTE,
+        ParamSpec {
+            name: "mat_route",
+            ty: ParamType::Choice(&["solve", "pixel", "mlp"]),
+            default: Some("solve"),
+            unit: "",
+            doc: "per-pixel exact solves (fast), per-pixel Adam, or the paper's MLP",
+        },
+        TRUST,
+        SMOOTH,
+        ParamSpec {
+            name: "delta",
+            ty: ParamType::Float {
+                min: 0.0,
+                max: 100.0,
+            },
+            default: Some("0.1"),
+            unit: "",
+            doc: "consistency weight δ (pull towards the predictions)",
+        },
+        ParamSpec {
+            name: "loops",
+            ty: ParamType::Int { min: 1, max: 64 },
+            default: Some("~"),
+            unit: "",
+            doc: "envmap/material alternations (default: from the budget)",
+        },
+    ],
+    outputs: &[
+        OutputSpec {
+            name: "materials",
+            ty: "materials",
+            doc: "recovered albedo, roughness, metallic",
+        },
+        OutputSpec {
+            name: "envmap",
+            ty: "envmap",
+            doc: "recovered lighting",
+        },
+        OutputSpec {
+            name: "rendered",
+            ty: "image",
+            doc: "independent re-render of the result",
+        },
+        OutputSpec {
+            name: "report",
+            ty: "report",
+            doc: "plan, per-stage steps and losses, rerender PSNR/SSIM",
+        },
+    ],
+};
+
 impl Node for MaterialOptNode {
-    fn kind(&self) -> &'static str {
-        "material_opt"
-    }
-    fn version(&self) -> u32 {
-        1
-    }
-    fn doc(&self) -> &'static str {
-        "Recovers albedo, roughness and metallic together with the envmap: the reference's \
-         alternation of envmap and material stages (paper §3.2), on frozen paths."
-    }
-    fn params(&self) -> &'static [ParamSpec] {
-        &[
-            SCENE,
-            MESH,
-            ParamSpec {
-                name: "envmap",
-                ty: ParamType::Ref(&["envmap"]),
-                default: Some("~"),
-                unit: "",
-                doc: "starting envmap (e.g. an envmap_opt stage; texel route only)",
-            },
-            BUDGET,
-            ENV_ROUTE,
-            ParamSpec {
-                name: "mat_route",
-                ty: ParamType::Choice(&["solve", "pixel", "mlp"]),
-                default: Some("solve"),
-                unit: "",
-                doc: "per-pixel exact solves (fast), per-pixel Adam, or the paper's MLP",
-            },
-            TRUST,
-            SMOOTH,
-            ParamSpec {
-                name: "delta",
-                ty: ParamType::Float {
-                    min: 0.0,
-                    max: 100.0,
-                },
-                default: Some("0.1"),
-                unit: "",
-                doc: "consistency weight δ (pull towards the predictions)",
-            },
-            ParamSpec {
-                name: "loops",
-                ty: ParamType::Int { min: 1, max: 64 },
-                default: Some("~"),
-                unit: "",
-                doc: "envmap/material alternations (default: from the budget)",
-            },
-        ]
-    }
-    fn outputs(&self) -> &'static [OutputSpec] {
-        &[
-            OutputSpec {
-                name: "materials",
-                ty: "materials",
-                doc: "recovered albedo, roughness, metallic",
-            },
-            OutputSpec {
-                name: "envmap",
-                ty: "envmap",
-                doc: "recovered lighting",
-            },
-            OutputSpec {
-                name: "rendered",
-                ty: "image",
-                doc: "independent re-render of the result",
-            },
-            OutputSpec {
-                name: "report",
-                ty: "report",
-                doc: "plan, per-stage steps and losses, rerender PSNR/SSIM",
-            },
-        ]
+    fn info(&self) -> &'static NodeInfo {
+        &MATERIAL_OPT_INFO
     }
     fn run(&self, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
         let pr = prepare(ctx, None)?;

@@ -4,7 +4,7 @@
 use std::collections::BTreeMap;
 
 use matflow_engine::node::Params;
-use matflow_engine::{Node, NodeError, OutputSpec, ParamSpec, ParamType, RunContext};
+use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
 use matflow_scene::{Image, RgbImage};
 
 use crate::artifact::Artifact;
@@ -28,62 +28,58 @@ pub fn rotate_and_expose(env: &RgbImage, deg: f64, ev: f64) -> RgbImage {
 
 pub struct RelightNode;
 
-impl Node for RelightNode {
-    fn kind(&self) -> &'static str {
-        "relight"
-    }
-    fn version(&self) -> u32 {
-        1
-    }
-    fn doc(&self) -> &'static str {
-        "New lighting for a render: an HDR environment map (lat-long, Mitsuba's orientation) \
+const RELIGHT_INFO: NodeInfo = NodeInfo {
+    kind: "relight",
+    version: 1,
+    doc: "New lighting for a render: an HDR environment map (lat-long, Mitsuba's orientation) \
          from a file or from an `image`/envmap stage, rotated and exposed. Exactly one of \
-         path and source."
-    }
-    fn params(&self) -> &'static [ParamSpec] {
-        &[
-            ParamSpec {
-                name: "path",
-                ty: ParamType::InPath,
-                default: Some("~"),
-                unit: "",
-                doc: "a .hdr or .exr environment map",
+         path and source.",
+    params: &[
+        ParamSpec {
+            name: "path",
+            ty: ParamType::InPath,
+            default: Some("~"),
+            unit: "",
+            doc: "a .hdr or .exr environment map",
+        },
+        ParamSpec {
+            name: "source",
+            ty: ParamType::Ref(&["envmap", "image"]),
+            default: Some("~"),
+            unit: "",
+            doc: "a stage giving the map (e.g. envmap_opt, or image of an .hdr)",
+        },
+        ParamSpec {
+            name: "rotation",
+            ty: ParamType::Float {
+                min: -360.0,
+                max: 360.0,
             },
-            ParamSpec {
-                name: "source",
-                ty: ParamType::Ref(&["envmap", "image"]),
-                default: Some("~"),
-                unit: "",
-                doc: "a stage giving the map (e.g. envmap_opt, or image of an .hdr)",
+            default: Some("0"),
+            unit: "degrees",
+            doc: "turn the lighting about the vertical axis",
+        },
+        ParamSpec {
+            name: "exposure",
+            ty: ParamType::Float {
+                min: -30.0,
+                max: 30.0,
             },
-            ParamSpec {
-                name: "rotation",
-                ty: ParamType::Float {
-                    min: -360.0,
-                    max: 360.0,
-                },
-                default: Some("0"),
-                unit: "degrees",
-                doc: "turn the lighting about the vertical axis",
-            },
-            ParamSpec {
-                name: "exposure",
-                ty: ParamType::Float {
-                    min: -30.0,
-                    max: 30.0,
-                },
-                default: Some("0"),
-                unit: "EV",
-                doc: "scale the lighting by 2^exposure",
-            },
-        ]
-    }
-    fn outputs(&self) -> &'static [OutputSpec] {
-        &[OutputSpec {
-            name: "envmap",
-            ty: "envmap",
-            doc: "the new lighting",
-        }]
+            default: Some("0"),
+            unit: "EV",
+            doc: "scale the lighting by 2^exposure",
+        },
+    ],
+    outputs: &[OutputSpec {
+        name: "envmap",
+        ty: "envmap",
+        doc: "the new lighting",
+    }],
+};
+
+impl Node for RelightNode {
+    fn info(&self) -> &'static NodeInfo {
+        &RELIGHT_INFO
     }
     fn check(&self, p: &Params) -> Result<(), String> {
         if p.is_set("path") == p.is_set("source") {

@@ -4,7 +4,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use matflow_engine::node::Params;
-use matflow_engine::{Node, NodeError, OutputSpec, ParamSpec, ParamType, RunContext};
+use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
 use matflow_render::{render, RenderOptions};
 use matflow_scene::io;
 
@@ -33,89 +33,85 @@ fn write_pair(path: &Path, img: &matflow_scene::RgbImage) -> Result<Vec<PathBuf>
     Ok(vec![path.to_path_buf(), png])
 }
 
-impl Node for RenderNode {
-    fn kind(&self) -> &'static str {
-        "render"
-    }
-    fn version(&self) -> u32 {
-        1
-    }
-    fn doc(&self) -> &'static str {
-        "Path-traces the mesh with the given materials under the given envmap (unidirectional, \
+const RENDER_INFO: NodeInfo = NodeInfo {
+    kind: "render",
+    version: 1,
+    doc: "Path-traces the mesh with the given materials under the given envmap (unidirectional, \
          next-event estimation with MIS, GGX + Lambert as the reference). Writes an EXR \
-         (linear) and a PNG (γ 2.2) when `output` is set."
-    }
-    fn params(&self) -> &'static [ParamSpec] {
-        &[
-            MESH,
-            ParamSpec {
-                name: "paths",
-                ty: ParamType::Ref(&["paths"]),
-                default: Some("~"),
-                unit: "",
-                doc: "a `trace` stage of the same mesh: re-trace only what the materials' \
+         (linear) and a PNG (γ 2.2) when `output` is set.",
+    params: &[
+        MESH,
+        ParamSpec {
+            name: "paths",
+            ty: ParamType::Ref(&["paths"]),
+            default: Some("~"),
+            unit: "",
+            doc: "a `trace` stage of the same mesh: re-trace only what the materials' \
                       changes reach (its envmap, spp and seed; box filter)",
+        },
+        ParamSpec {
+            name: "materials",
+            ty: ParamType::Ref(&["materials", "scene"]),
+            default: None,
+            unit: "",
+            doc: "materials (a scene gives its predictions)",
+        },
+        ParamSpec {
+            name: "envmap",
+            ty: ParamType::Ref(&["envmap"]),
+            default: Some("~"),
+            unit: "",
+            doc: "lighting (with `mesh`)",
+        },
+        ParamSpec {
+            name: "spp",
+            ty: ParamType::Int { min: 1, max: 65536 },
+            default: Some("64"),
+            unit: "samples/px",
+            doc: "samples per pixel",
+        },
+        ParamSpec {
+            name: "depth",
+            ty: ParamType::Int { min: 1, max: 64 },
+            default: Some("4"),
+            unit: "segments",
+            doc: "maximum path length (Mitsuba's max_depth)",
+        },
+        ParamSpec {
+            name: "filter",
+            ty: ParamType::Choice(&["gaussian", "box"]),
+            default: Some("gaussian"),
+            unit: "",
+            doc: "pixel filter: Mitsuba's Gaussian (σ 0.5 px, radius 2) or box",
+        },
+        ParamSpec {
+            name: "seed",
+            ty: ParamType::Int {
+                min: 0,
+                max: i64::MAX,
             },
-            ParamSpec {
-                name: "materials",
-                ty: ParamType::Ref(&["materials", "scene"]),
-                default: None,
-                unit: "",
-                doc: "materials (a scene gives its predictions)",
-            },
-            ParamSpec {
-                name: "envmap",
-                ty: ParamType::Ref(&["envmap"]),
-                default: Some("~"),
-                unit: "",
-                doc: "lighting (with `mesh`)",
-            },
-            ParamSpec {
-                name: "spp",
-                ty: ParamType::Int { min: 1, max: 65536 },
-                default: Some("64"),
-                unit: "samples/px",
-                doc: "samples per pixel",
-            },
-            ParamSpec {
-                name: "depth",
-                ty: ParamType::Int { min: 1, max: 64 },
-                default: Some("4"),
-                unit: "segments",
-                doc: "maximum path length (Mitsuba's max_depth)",
-            },
-            ParamSpec {
-                name: "filter",
-                ty: ParamType::Choice(&["gaussian", "box"]),
-                default: Some("gaussian"),
-                unit: "",
-                doc: "pixel filter: Mitsuba's Gaussian (σ 0.5 px, radius 2) or box",
-            },
-            ParamSpec {
-                name: "seed",
-                ty: ParamType::Int {
-                    min: 0,
-                    max: i64::MAX,
-                },
-                default: Some("0"),
-                unit: "",
-                doc: "extra seed (the stage's parameters seed it already)",
-            },
-            ParamSpec {
-                name: "output",
-                ty: ParamType::OutPath,
-                default: Some("~"),
-                unit: "",
-                doc: "EXR path to write (a PNG is written beside it)",
-            },
-        ]
-    }
-    fn outputs(&self) -> &'static [OutputSpec] {
-        &[OutputSpec {
-            name: "image",
-            ty: "image",
-            doc: "the render, linear RGB",
-        }]
+            default: Some("0"),
+            unit: "",
+            doc: "extra seed (the stage's parameters seed it already)",
+        },
+        ParamSpec {
+            name: "output",
+            ty: ParamType::OutPath,
+            default: Some("~"),
+            unit: "",
+            doc: "EXR path to write (a PNG is written beside it)",
+        },
+    ],
+    outputs: &[OutputSpec {
+        name: "image",
+        ty: "image",
+        doc: "the render, linear RGB",
+    }],
+};
+
+impl Node for RenderNode {
+    fn info(&self) -> &'static NodeInfo {
+        &RENDER_INFO
     }
     fn check(&self, p: &Params) -> Result<(), String> {
         match (p.is_set("paths"), p.is_set("mesh"), p.is_set("envmap")) {

@@ -16,7 +16,7 @@
 
 use std::collections::BTreeMap;
 
-use matflow_engine::{Node, NodeError, OutputSpec, ParamSpec, ParamType, RunContext};
+use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
 use matflow_inverse::brdf::Geo;
 use matflow_inverse::cache::{
     CacheOptions, CacheStats, PathCache, Record, RowPaths, Vertex, NO_MATERIAL,
@@ -245,22 +245,15 @@ pub fn edited_image(k: &Kept, mesh: &[u8], edited: &MaterialMaps) -> Result<RgbI
 
 pub struct TraceNode;
 
-impl Node for TraceNode {
-    fn kind(&self) -> &'static str {
-        "trace"
-    }
-    fn version(&self) -> u32 {
-        1
-    }
-    fn doc(&self) -> &'static str {
-        "A full render of the unedited scene (box pixel filter) that also keeps a set of its \
+const TRACE_INFO: NodeInfo = NodeInfo {
+    kind: "trace",
+    version: 1,
+    doc: "A full render of the unedited scene (box pixel filter) that also keeps a set of its \
          light paths: a `render` given these `paths` re-traces only the pixels whose own \
          material changed or whose kept paths meet a changed material, with the base \
          render's sample streams (bit-identical there to a full re-render), and keeps the \
-         base elsewhere."
-    }
-    fn params(&self) -> &'static [ParamSpec] {
-        &[
+         base elsewhere.",
+    params: &[
             MESH,
             ParamSpec {
                 name: "materials",
@@ -300,10 +293,8 @@ impl Node for TraceNode {
                 unit: "segments",
                 doc: "maximum path length (Mitsuba's max_depth)",
             },
-        ]
-    }
-    fn outputs(&self) -> &'static [OutputSpec] {
-        &[
+        ],
+    outputs: &[
             OutputSpec {
                 name: "paths",
                 ty: "paths",
@@ -314,7 +305,12 @@ impl Node for TraceNode {
                 ty: "image",
                 doc: "the unedited render",
             },
-        ]
+        ],
+};
+
+impl Node for TraceNode {
+    fn info(&self) -> &'static NodeInfo {
+        &TRACE_INFO
     }
     fn run(&self, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
         let p = ctx.params;
