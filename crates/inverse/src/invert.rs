@@ -222,6 +222,17 @@ pub mod cost {
     pub const ENV_STAGE: f64 = 1.9e-6;
     /// Loading, meshing, BVH, guide, scout trace and the envmap stages.
     pub const FIXED: f64 = 1.6e-5;
+    /// The pixel route's material stage (Adam on the tables, staged R+M
+    /// then A, early-stopped) relative to the solve route's (measured:
+    /// ~4.8 s against ~3.4 s a loop on jinjya at 512²).
+    pub const PIXEL_ROUTE_FACTOR: f64 = 1.4;
+    /// One step of the material MLP (forward, reverse, AdamW), per pixel.
+    /// A loop's two stages take about `mat_steps` steps together (the
+    /// R+M stage stops early, the albedo stage rarely).
+    pub const MAT_MLP_STEP: f64 = 1.9e-7;
+    /// One step of the envmap MLP, per pixel the envmap stage sees; a
+    /// stage takes about half its `env_steps` before its stopping rule.
+    pub const ENV_MLP_STEP: f64 = 2.4e-7;
 }
 
 impl Plan {
@@ -253,7 +264,32 @@ impl Plan {
         });
         let passes = opts.denoise as f64;
         // Plan for 90 % of the budget: the model is a median, not a bound.
-        let avail = (0.9 * b - FIXED * n).max(0.0);
+        let avail0 = (0.9 * b - FIXED * n).max(0.0);
+        let steps = ((b * 10.0) as usize).clamp(60, 400);
+        // Envmap stages see about 64k pixels.
+        let env_stride = ((n / 65536.0).sqrt().ceil() as usize).max(1);
+        let env_px = n / (env_stride * env_stride) as f64;
+        // The MLP routes' steps are priced; when a loop at the default
+        // step count would take more than half the budget, they get fewer
+        // steps (the reference's thousands do not fit a CPU minute).
+        let mat_steps = opts.mat_steps.unwrap_or(match opts.mat_route {
+            MatRoute::Mlp => steps
+                .min((0.5 * avail0 / (MAT_MLP_STEP * n)) as usize)
+                .max(20),
+            _ => steps,
+        });
+        let env_steps = opts.env_steps.unwrap_or(match opts.env_route {
+            EnvRoute::Mlp => steps
+                .min((0.1 * avail0 / (0.5 * ENV_MLP_STEP * env_px)) as usize)
+                .max(20),
+            EnvRoute::Texel => steps,
+        });
+        let env_stage = match opts.env_route {
+            EnvRoute::Texel => ENV_STAGE * n,
+            EnvRoute::Mlp => 0.5 * ENV_MLP_STEP * env_px * env_steps as f64,
+        };
+        // The scout's and the final envmap stage (FIXED prices texel ones).
+        let avail = (avail0 - 2.0 * (env_stage - ENV_STAGE * n)).max(0.0);
         // A loop's cost with s cached paths per pixel; the first loop
         // solves from a grid, later ones from the previous answer.
         let loop_cost = |s: f64, warm: bool| -> f64 {
@@ -262,7 +298,13 @@ impl Plan {
             } else {
                 SOLVE_COLD_ROUND + SOLVE_WARM_ROUND * (rounds - 1) as f64
             };
-            (ENV_STAGE + (TABLE_PER_SAMPLE * s + DENOISE_PER_PASS * passes + solve) * surf) * n
+            let tables = (TABLE_PER_SAMPLE * s + DENOISE_PER_PASS * passes) * surf * n;
+            let materials = match opts.mat_route {
+                MatRoute::Solve => tables + solve * surf * n,
+                MatRoute::Pixel => PIXEL_ROUTE_FACTOR * (tables + solve * surf * n),
+                MatRoute::Mlp => tables + MAT_MLP_STEP * n * mat_steps as f64,
+            };
+            env_stage + materials
         };
         let trace_spp = TRACE_PER_RAY * rho * n;
         // ~40 % of the budget tracing the cache, capped at 32 paths.
@@ -285,16 +327,13 @@ impl Plan {
             .final_spp
             .unwrap_or(((left / (RENDER_PER_RAY * rho * n)) as u32).clamp(2, 256));
         let scout_spp = (spp / 8).clamp(1, 4);
-        let steps = ((b * 10.0) as usize).clamp(60, 400);
-        // Envmap stages see about 64k pixels.
-        let env_stride = ((n / 65536.0).sqrt().ceil() as usize).max(1);
         Plan {
             scout_spp,
             spp,
             final_spp,
             loops,
-            env_steps: opts.env_steps.unwrap_or(steps),
-            mat_steps: opts.mat_steps.unwrap_or(steps),
+            env_steps,
+            mat_steps,
             solve_rounds: rounds,
             env_stride,
             scene: SceneCost {
@@ -788,5 +827,38 @@ mod tests {
         };
         let p = Plan::from_budget(60.0, n, nan, &o);
         assert_eq!(p.final_spp, base.final_spp);
+        // Dearer routes buy fewer loops (and the MLP fewer steps) from the
+        // same budget.
+        let route = |mat_route, env_route| {
+            Plan::from_budget(
+                60.0,
+                n,
+                SceneCost::default(),
+                &InvertOptions {
+                    mat_route,
+                    env_route,
+                    ..InvertOptions::default()
+                },
+            )
+        };
+        let pixel = route(MatRoute::Pixel, EnvRoute::Texel);
+        let mlp = route(MatRoute::Mlp, EnvRoute::Texel);
+        let env_mlp = route(MatRoute::Solve, EnvRoute::Mlp);
+        assert!(
+            pixel.loops < base.loops && mlp.loops <= pixel.loops,
+            "{pixel:?} {mlp:?}"
+        );
+        assert!(env_mlp.loops < base.loops);
+        // At small budgets the MLP gets fewer steps.
+        let small = Plan::from_budget(
+            15.0,
+            n,
+            SceneCost::default(),
+            &InvertOptions {
+                mat_route: MatRoute::Mlp,
+                ..InvertOptions::default()
+            },
+        );
+        assert!(small.mat_steps < Plan::from_budget(15.0, n, SceneCost::default(), &o).mat_steps);
     }
 }
