@@ -90,32 +90,25 @@ fn run_demo(cache: &Path, work: &Path, extra: &[&str], threads: Option<usize>) -
     Run { out, report }
 }
 
-fn statuses(r: &Value) -> BTreeMap<String, String> {
+/// Stage name → one field of its report entry.
+fn by_stage(r: &Value, field: &str) -> BTreeMap<String, Value> {
     r["stages"]
         .as_array()
         .unwrap()
         .iter()
-        .map(|s| {
-            (
-                s["name"].as_str().unwrap().to_string(),
-                s["status"].as_str().unwrap().to_string(),
-            )
-        })
+        .map(|s| (s["name"].as_str().unwrap().to_string(), s[field].clone()))
+        .collect()
+}
+
+fn statuses(r: &Value) -> BTreeMap<String, String> {
+    by_stage(r, "status")
+        .into_iter()
+        .map(|(k, v)| (k, v.as_str().unwrap().to_string()))
         .collect()
 }
 
 fn outputs(r: &Value) -> BTreeMap<String, Value> {
-    r["stages"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|s| {
-            (
-                s["name"].as_str().unwrap().to_string(),
-                s["outputs"].clone(),
-            )
-        })
-        .collect()
+    by_stage(r, "outputs")
 }
 
 fn with(status: &BTreeMap<String, String>, want: &str) -> Vec<String> {

@@ -142,64 +142,42 @@ impl Artifact {
         self.sections.contains_key(name)
     }
 
-    pub fn put_rgb(&mut self, name: &str, img: &RgbImage) {
+    fn put(&mut self, name: &str, (width, height, channels): (usize, usize, u32), data: Data) {
         self.sections.insert(
             name.into(),
             Section {
-                width: img.width as u32,
-                height: img.height as u32,
-                channels: 3,
-                data: Data::F32(img.data.iter().flat_map(|v| [v.x, v.y, v.z]).collect()),
+                width: width as u32,
+                height: height as u32,
+                channels,
+                data,
             },
         );
+    }
+
+    pub fn put_rgb(&mut self, name: &str, img: &RgbImage) {
+        let v = img.data.iter().flat_map(|v| [v.x, v.y, v.z]).collect();
+        self.put(name, (img.width, img.height, 3), Data::F32(v));
     }
 
     pub fn put_gray(&mut self, name: &str, img: &GrayImage) {
-        self.sections.insert(
-            name.into(),
-            Section {
-                width: img.width as u32,
-                height: img.height as u32,
-                channels: 1,
-                data: Data::F32(img.data.clone()),
-            },
+        self.put(
+            name,
+            (img.width, img.height, 1),
+            Data::F32(img.data.clone()),
         );
     }
 
+    /// A list of `width` items of `channels` numbers each.
     pub fn put_f32(&mut self, name: &str, width: u32, channels: u32, v: Vec<f32>) {
-        self.sections.insert(
-            name.into(),
-            Section {
-                width,
-                height: 1,
-                channels,
-                data: Data::F32(v),
-            },
-        );
+        self.put(name, (width as usize, 1, channels), Data::F32(v));
     }
 
     pub fn put_u32(&mut self, name: &str, width: u32, channels: u32, v: Vec<u32>) {
-        self.sections.insert(
-            name.into(),
-            Section {
-                width,
-                height: 1,
-                channels,
-                data: Data::U32(v),
-            },
-        );
+        self.put(name, (width as usize, 1, channels), Data::U32(v));
     }
 
     pub fn put_bytes(&mut self, name: &str, v: Vec<u8>) {
-        self.sections.insert(
-            name.into(),
-            Section {
-                width: v.len() as u32,
-                height: 1,
-                channels: 1,
-                data: Data::Bytes(v),
-            },
-        );
+        self.put(name, (v.len(), 1, 1), Data::Bytes(v));
     }
 
     fn f32s(&self, name: &str, channels: u32) -> Result<(usize, usize, &[f32]), NodeError> {
