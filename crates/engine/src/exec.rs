@@ -14,7 +14,7 @@ use std::sync::{Arc, Condvar, Mutex};
 use std::time::Instant;
 
 use crate::key::{node_key, node_seed};
-use crate::node::{Node, NodeError, Registry, RunContext};
+use crate::node::{Bytes, Node, NodeError, Registry, RunContext};
 use crate::plan;
 use crate::spec::Pipeline;
 use crate::store::{Action, Digest, Store};
@@ -302,7 +302,7 @@ pub fn run_pipeline(
     }
 }
 
-type Memo = Mutex<BTreeMap<Digest, Arc<Vec<u8>>>>;
+type Memo = Mutex<BTreeMap<Digest, Bytes>>;
 
 struct StageResult {
     status: Status,
@@ -335,10 +335,11 @@ fn run_stage(
         for (name, d) in &ds {
             match store.get_blob(d).map_err(|e| e.to_string())? {
                 Some(b) => {
+                    let b = Arc::new(b);
                     if wants_files {
                         bytes.insert(name.clone(), b.clone());
                     }
-                    memo.lock().unwrap().insert(*d, Arc::new(b));
+                    memo.lock().unwrap().insert(*d, b);
                 }
                 None => {
                     intact = false;
@@ -360,15 +361,13 @@ fn run_stage(
     let mut in_bytes = BTreeMap::new();
     for (param, d) in inputs {
         let known = memo.lock().unwrap().get(d).cloned();
-        let b = match known {
-            Some(b) => b.as_ref().clone(),
-            None => store
-                .get_blob(d)
-                .map_err(|e| e.to_string())?
-                .ok_or_else(|| {
-                    format!("input `{param}` ({d}) is missing or corrupt in the cache")
-                })?,
-        };
+        let b =
+            match known {
+                Some(b) => b,
+                None => Arc::new(store.get_blob(d).map_err(|e| e.to_string())?.ok_or_else(
+                    || format!("input `{param}` ({d}) is missing or corrupt in the cache"),
+                )?),
+            };
         in_bytes.insert(param.clone(), b);
     }
     let progress = |d: u64, t: u64| obs.progress(&stage.name, d, t);
@@ -380,12 +379,17 @@ fn run_stage(
         progress: &progress,
     };
     let ts = Instant::now();
-    let outs = exec.execute(node, &ctx).map_err(|e| e.0)?;
+    let outs: BTreeMap<String, Bytes> = exec
+        .execute(node, &ctx)
+        .map_err(|e| e.0)?
+        .into_iter()
+        .map(|(k, v)| (k, Arc::new(v)))
+        .collect();
     let seconds = ts.elapsed().as_secs_f64();
     let mut ds = BTreeMap::new();
     for (name, b) in &outs {
         let d = store.put_blob(b).map_err(|e| e.to_string())?;
-        memo.lock().unwrap().insert(d, Arc::new(b.clone()));
+        memo.lock().unwrap().insert(d, b.clone());
         ds.insert(name.clone(), d);
     }
     store
@@ -412,7 +416,7 @@ fn run_stage(
 fn materialize(
     node: &dyn Node,
     stage: &crate::spec::Stage,
-    bytes: &BTreeMap<String, Vec<u8>>,
+    bytes: &BTreeMap<String, Bytes>,
 ) -> Result<Vec<String>, String> {
     node.materialize(&stage.params, bytes)
         .map(|v| v.iter().map(|p| p.display().to_string()).collect())

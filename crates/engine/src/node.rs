@@ -8,6 +8,7 @@
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use crate::value::Value;
 
@@ -147,13 +148,17 @@ impl Params {
     }
 }
 
+/// A blob's bytes, shared (not copied) between the store's in-run memo,
+/// the stages that read it and the files written from it.
+pub type Bytes = Arc<Vec<u8>>;
+
 /// What a node sees while it runs.
 pub struct RunContext<'a> {
     pub stage: &'a str,
     pub params: &'a Params,
     /// Input bytes by reference parameter name (absent optional refs are
     /// missing).
-    pub inputs: BTreeMap<String, Vec<u8>>,
+    pub inputs: BTreeMap<String, Bytes>,
     /// A seed derived from the node kind and its parameters (not from its
     /// inputs, so an upstream edit keeps the noise pattern).
     pub seed: u64,
@@ -223,7 +228,7 @@ pub trait Node: Send + Sync {
     fn materialize(
         &self,
         _params: &Params,
-        _outputs: &BTreeMap<String, Vec<u8>>,
+        _outputs: &BTreeMap<String, Bytes>,
     ) -> Result<Vec<PathBuf>, NodeError> {
         Ok(Vec::new())
     }

@@ -3,7 +3,7 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use matflow_engine::node::Params;
+use matflow_engine::node::{Bytes, Params};
 use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
 use matflow_render::{render, RenderOptions};
 use matflow_scene::io;
@@ -157,7 +157,7 @@ impl Node for RenderNode {
     fn materialize(
         &self,
         params: &Params,
-        outputs: &BTreeMap<String, Vec<u8>>,
+        outputs: &BTreeMap<String, Bytes>,
     ) -> Result<Vec<PathBuf>, NodeError> {
         let Some(path) = params.path("output") else {
             return Ok(vec![]);
@@ -165,7 +165,7 @@ impl Node for RenderNode {
         let b = outputs
             .get("image")
             .ok_or_else(|| err("the render has no image"))?;
-        let img = Artifact::decode(b, "image")?.rgb("image")?;
+        let img = Artifact::decode(&b[..], "image")?.rgb("image")?;
         write_pair(&path, &img)
     }
 }
