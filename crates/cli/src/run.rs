@@ -2,7 +2,7 @@
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
@@ -11,7 +11,9 @@ use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
 use matflow_engine::exec::cached_keys;
 use matflow_engine::spec::{self, Override};
 use matflow_engine::store::GcPolicy;
-use matflow_engine::{run_pipeline, LocalExecutor, Observer, Report, StageReport, Status, Store};
+use matflow_engine::{
+    run_pipeline, LocalExecutor, Observer, Report, StageReport, Status, Store, Tiered,
+};
 
 #[derive(Args)]
 pub struct RunArgs {
@@ -95,7 +97,7 @@ struct Bars {
 }
 
 impl Observer for Bars {
-    fn started(&self, stage: &str, kind: &str) {
+    fn started(&self, stage: &str, kind: &str, worker: &str) {
         if self.quiet {
             return;
         }
@@ -104,7 +106,11 @@ impl Observer for Bars {
             ProgressStyle::with_template("{prefix:>18} {spinner} {msg} {elapsed}").unwrap(),
         );
         pb.set_prefix(stage.to_string());
-        pb.set_message(kind.to_string());
+        pb.set_message(if worker == "local" {
+            kind.to_string()
+        } else {
+            format!("{kind} on {worker}")
+        });
         pb.enable_steady_tick(Duration::from_millis(200));
         self.bars.lock().unwrap().insert(stage.to_string(), pb);
     }
@@ -182,13 +188,15 @@ pub fn run(a: RunArgs) -> Result<()> {
     // Everything is validated before the cache is even opened.
     let p = spec::load(&a.pipeline, &reg, &overrides).map_err(anyhow::Error::msg)?;
     let dir = cache_dir(a.cache.as_deref());
-    let store = Store::open(&dir)?;
+    let store = Arc::new(Tiered::new(Store::open(&dir)?, None));
+    let reg = Arc::new(reg);
+    let exec = LocalExecutor::new(reg.clone(), store.clone(), a.parallel);
     let bars = Bars {
         multi: MultiProgress::new(),
         bars: Mutex::new(BTreeMap::new()),
         quiet: a.quiet,
     };
-    let report = run_pipeline(&p, &reg, &store, &LocalExecutor, &bars, a.parallel);
+    let report = run_pipeline(&p, &reg, &store, &exec, &bars);
     if let Some(path) = &a.report {
         let json = serde_json::to_vec_pretty(&report)?;
         matflow_scene::io::write_atomic(path, &json)

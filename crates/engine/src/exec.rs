@@ -10,14 +10,15 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::panic::{catch_unwind, AssertUnwindSafe};
-use std::sync::{Arc, Condvar, Mutex};
+use std::sync::{mpsc, Arc, Mutex};
 use std::time::Instant;
 
 use crate::key::{node_key, node_seed};
-use crate::node::{Bytes, Node, NodeError, Registry, RunContext};
+use crate::node::{Node, NodeError, ParamType, Params, Registry, RunContext};
 use crate::plan;
 use crate::spec::Pipeline;
 use crate::store::{Action, Digest, Store};
+use crate::tier::Tiered;
 
 /// What happened to a stage in a run.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
@@ -57,6 +58,21 @@ pub struct StageReport {
     pub files: Vec<String>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub error: Option<String>,
+    /// Where it ran: `local` or a worker's address (absent when it did
+    /// not start).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub worker: Option<String>,
+    /// Attempts started (more than one after a retry).
+    pub attempts: u32,
+    /// Why earlier attempts did not count (a worker died, hung, an input
+    /// was recomputed).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub retries: Vec<String>,
+    /// Bytes of inputs the stage read and outputs it wrote.
+    pub bytes_in: u64,
+    pub bytes_out: u64,
+    #[serde(skip)]
+    started: Option<Instant>,
 }
 
 #[derive(Clone, Debug, serde::Serialize)]
@@ -64,7 +80,12 @@ pub struct Report {
     pub pipeline: String,
     pub file: String,
     pub cache: String,
+    /// Where stages ran: `local (N threads)` or the workers.
+    pub executor: String,
     pub seconds: f64,
+    /// Bytes sent to and fetched from the remote store tier.
+    pub bytes_uploaded: u64,
+    pub bytes_downloaded: u64,
     pub stages: Vec<StageReport>,
 }
 
@@ -79,6 +100,12 @@ impl StageReport {
             outputs: BTreeMap::new(),
             files: vec![],
             error: None,
+            worker: None,
+            attempts: 0,
+            retries: vec![],
+            bytes_in: 0,
+            bytes_out: 0,
+            started: None,
         }
     }
 }
@@ -99,8 +126,12 @@ impl Report {
 
 /// Progress callbacks (a front end draws bars from these).
 pub trait Observer: Sync {
-    fn started(&self, _stage: &str, _kind: &str) {}
+    /// The stage started on `worker` (`local` or a worker's address).
+    fn started(&self, _stage: &str, _kind: &str, _worker: &str) {}
     fn progress(&self, _stage: &str, _done: u64, _total: u64) {}
+    /// An attempt failed for a reason that is not the stage's own (a
+    /// worker died or hung, an input had to be recomputed); it runs again.
+    fn retried(&self, _stage: &str, _reason: &str) {}
     fn finished(&self, _report: &StageReport) {}
 }
 
@@ -108,319 +139,629 @@ pub trait Observer: Sync {
 pub struct Silent;
 impl Observer for Silent {}
 
-/// Where nodes run. The engine hands over the node and its context and
-/// gets the outputs' bytes back.
-pub trait Executor: Sync {
-    fn execute(
-        &self,
-        node: &dyn Node,
-        ctx: &RunContext,
-    ) -> Result<BTreeMap<String, Vec<u8>>, NodeError>;
+/// One stage, ready to run: everything a worker needs, and nothing from
+/// the submitter's disk except through the store.
+#[derive(Clone, Debug)]
+pub struct Job {
+    pub stage: String,
+    pub kind: String,
+    pub pipeline: String,
+    /// Validated, default-filled parameters.
+    pub params: Params,
+    /// The node key; the executor stores the result under it.
+    pub key: Digest,
+    /// Reference parameter → digest of the upstream output.
+    pub inputs: BTreeMap<String, Digest>,
+    /// Do not serve it from the cache (its entry turned out unreadable).
+    pub skip_cache: bool,
+    /// It reads files on the submitter's disk: it runs there.
+    pub local_only: bool,
 }
 
-/// Runs nodes in this process (the embedded default).
-pub struct LocalExecutor;
+/// How a job ended well.
+#[derive(Clone, Debug)]
+pub struct Done {
+    pub status: Status,
+    pub outputs: BTreeMap<String, Digest>,
+    /// Where it ran.
+    pub worker: String,
+    /// Bytes of inputs read and outputs written.
+    pub bytes_in: u64,
+    pub bytes_out: u64,
+}
 
-impl Executor for LocalExecutor {
-    fn execute(
-        &self,
-        node: &dyn Node,
-        ctx: &RunContext,
-    ) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
-        match catch_unwind(AssertUnwindSafe(|| node.run(ctx))) {
-            Ok(r) => r,
-            Err(p) => {
-                let msg = p
-                    .downcast_ref::<String>()
-                    .cloned()
-                    .or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string()))
-                    .unwrap_or_else(|| "unknown panic".into());
-                Err(NodeError::new(format!("internal error: {msg}")))
+/// How a job failed.
+#[derive(Clone, Debug)]
+pub enum Failure {
+    /// The node itself failed: deterministic, running it again would fail
+    /// again.
+    Node(String),
+    /// These reference parameters' blobs are gone or corrupt: the stages
+    /// producing them must run again.
+    InputsMissing(Vec<String>),
+    /// The infrastructure failed (store, network, every attempt used up).
+    Infra(String),
+}
+
+impl Failure {
+    pub fn message(&self) -> String {
+        match self {
+            Failure::Node(m) | Failure::Infra(m) => m.clone(),
+            Failure::InputsMissing(ps) => {
+                format!("inputs missing or corrupt in the store: {}", ps.join(", "))
             }
         }
     }
 }
 
+/// What an executor tells the scheduler about a job.
+pub enum Event {
+    Started {
+        stage: String,
+        worker: String,
+    },
+    Progress {
+        stage: String,
+        done: u64,
+        total: u64,
+    },
+    Retry {
+        stage: String,
+        reason: String,
+    },
+    /// Exactly once per submitted job.
+    Finished {
+        stage: String,
+        result: Result<Done, Failure>,
+    },
+}
+
+pub type Sink = Arc<dyn Fn(Event) + Send + Sync>;
+
+/// Where stages run. `submit` returns at once; the executor reports
+/// through the sink, ending with one [`Event::Finished`].
+pub trait Executor: Send + Sync {
+    fn submit(&self, job: Job, sink: Sink);
+    /// Named in reports: `local`, or the workers.
+    fn describe(&self) -> String;
+}
+
+/// Whether a stage reads files on the submitter's disk (an input path is
+/// set), so it must run there.
+pub fn reads_local_files(node: &dyn Node, params: &Params) -> bool {
+    node.params()
+        .iter()
+        .any(|sp| matches!(sp.ty, ParamType::InPath) && params.is_set(sp.name))
+}
+
+/// Runs one job against a store: a cache hit when the entry and its blobs
+/// are there, else the node, its outputs stored and the entry written.
+/// The same function serves the in-process executor and workers.
+pub fn execute_job(
+    reg: &Registry,
+    store: &Tiered,
+    job: &Job,
+    worker: &str,
+    progress: &(dyn Fn(u64, u64) + Sync),
+) -> Result<Done, Failure> {
+    let infra = |e: crate::store::StoreError| Failure::Infra(e.to_string());
+    let node = reg
+        .get(&job.kind)
+        .ok_or_else(|| Failure::Node(format!("unknown node kind `{}`", job.kind)))?;
+    if !job.skip_cache {
+        if let Some(ds) = store.lookup(&job.key).map_err(infra)? {
+            return Ok(Done {
+                status: Status::Cached,
+                outputs: ds,
+                worker: worker.to_string(),
+                bytes_in: 0,
+                bytes_out: 0,
+            });
+        }
+    }
+    let mut in_bytes = BTreeMap::new();
+    let mut missing = Vec::new();
+    let mut bytes_in = 0;
+    for (param, d) in &job.inputs {
+        match store.get(d).map_err(infra)? {
+            Some(b) => {
+                bytes_in += b.len() as u64;
+                in_bytes.insert(param.clone(), b);
+            }
+            None => missing.push(param.clone()),
+        }
+    }
+    if !missing.is_empty() {
+        return Err(Failure::InputsMissing(missing));
+    }
+    let ctx = RunContext {
+        stage: &job.stage,
+        params: &job.params,
+        inputs: in_bytes,
+        seed: node_seed(node, &job.params),
+        progress,
+    };
+    let ts = Instant::now();
+    let outs = run_node(node, &ctx).map_err(|e| Failure::Node(e.0))?;
+    let seconds = ts.elapsed().as_secs_f64();
+    let mut ds = BTreeMap::new();
+    let mut bytes_out = 0;
+    for (name, b) in outs {
+        bytes_out += b.len() as u64;
+        let d = store.put(&Arc::new(b)).map_err(infra)?;
+        ds.insert(name, d);
+    }
+    store
+        .put_action(
+            &job.key,
+            &Action {
+                kind: job.kind.clone(),
+                stage: job.stage.clone(),
+                pipeline: job.pipeline.clone(),
+                outputs: ds.iter().map(|(k, d)| (k.clone(), d.hex())).collect(),
+                seconds,
+                worker: worker.to_string(),
+            },
+        )
+        .map_err(infra)?;
+    Ok(Done {
+        status: Status::Executed,
+        outputs: ds,
+        worker: worker.to_string(),
+        bytes_in,
+        bytes_out,
+    })
+}
+
+/// Calls the node; a panic becomes an error naming it.
+pub fn run_node(node: &dyn Node, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
+    match catch_unwind(AssertUnwindSafe(|| node.run(ctx))) {
+        Ok(r) => r,
+        Err(p) => {
+            let msg = p
+                .downcast_ref::<String>()
+                .cloned()
+                .or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string()))
+                .unwrap_or_else(|| "unknown panic".into());
+            Err(NodeError::new(format!("internal error: {msg}")))
+        }
+    }
+}
+
+type Queue = Arc<Mutex<mpsc::Receiver<(Job, Sink)>>>;
+
+/// Runs jobs in this process on a fixed number of threads (the embedded
+/// default, and the part of a distributed run that reads local files).
+pub struct LocalExecutor {
+    tx: Mutex<Option<mpsc::Sender<(Job, Sink)>>>,
+    threads: Mutex<Vec<std::thread::JoinHandle<()>>>,
+    n: usize,
+}
+
+impl LocalExecutor {
+    pub fn new(reg: Arc<Registry>, store: Arc<Tiered>, threads: usize) -> LocalExecutor {
+        let (tx, rx) = mpsc::channel::<(Job, Sink)>();
+        let rx: Queue = Arc::new(Mutex::new(rx));
+        let n = threads.max(1);
+        let handles = (0..n)
+            .map(|_| {
+                let (rx, reg, store) = (rx.clone(), reg.clone(), store.clone());
+                std::thread::spawn(move || loop {
+                    let next = rx.lock().unwrap().recv();
+                    let Ok((job, sink)) = next else { return };
+                    sink(Event::Started {
+                        stage: job.stage.clone(),
+                        worker: "local".into(),
+                    });
+                    let progress = |done: u64, total: u64| {
+                        sink(Event::Progress {
+                            stage: job.stage.clone(),
+                            done,
+                            total,
+                        })
+                    };
+                    let result = execute_job(&reg, &store, &job, "local", &progress);
+                    sink(Event::Finished {
+                        stage: job.stage.clone(),
+                        result,
+                    });
+                })
+            })
+            .collect();
+        LocalExecutor {
+            tx: Mutex::new(Some(tx)),
+            threads: Mutex::new(handles),
+            n,
+        }
+    }
+}
+
+impl Drop for LocalExecutor {
+    fn drop(&mut self) {
+        self.tx.lock().unwrap().take();
+        for h in self.threads.lock().unwrap().drain(..) {
+            let _ = h.join();
+        }
+    }
+}
+
+impl Executor for LocalExecutor {
+    fn submit(&self, job: Job, sink: Sink) {
+        let tx = self.tx.lock().unwrap();
+        if let Some(tx) = tx.as_ref() {
+            if let Err(mpsc::SendError((job, sink))) = tx.send((job, sink)) {
+                sink(Event::Finished {
+                    stage: job.stage,
+                    result: Err(Failure::Infra("the local executor has stopped".into())),
+                });
+            }
+        }
+    }
+    fn describe(&self) -> String {
+        format!("local ({} threads)", self.n)
+    }
+}
+
+/// How often one stage may be recomputed because a blob it produced
+/// turned out missing or corrupt when read.
+const MAX_RECOMPUTES: u32 = 2;
+
 enum State {
-    Pending,
+    /// Waiting for these upstream stages.
+    Waiting(BTreeSet<String>),
     Running,
     Done(BTreeMap<String, Digest>),
     Failed,
 }
 
+struct Slot {
+    state: State,
+    skip_cache: bool,
+    recomputes: u32,
+    report: Option<StageReport>,
+    key: Option<Digest>,
+}
+
 /// Runs the stages `p.outputs` need; returns a report whether or not a
 /// stage failed (see [`Report::failure`]).
+///
+/// The scheduler is one loop over the executors' events: a stage is
+/// submitted as soon as its last input is done, with its node key computed
+/// from the inputs' output digests; the executor serves it from the cache
+/// or runs it. A stage whose input blob turns out missing or corrupt sends
+/// the producing stage back to run uncached (bounded); a stage that fails
+/// blocks only what depends on it.
 pub fn run_pipeline(
     p: &Pipeline,
     reg: &Registry,
-    store: &Store,
+    store: &Tiered,
     exec: &dyn Executor,
     obs: &dyn Observer,
-    parallel: usize,
 ) -> Report {
     let t0 = Instant::now();
     let order = plan::order(p);
     let needed: BTreeSet<String> = order.iter().cloned().collect();
-    let states: Mutex<(BTreeMap<String, State>, BTreeMap<String, StageReport>)> = Mutex::new((
-        order.iter().map(|n| (n.clone(), State::Pending)).collect(),
-        BTreeMap::new(),
-    ));
-    let cv = Condvar::new();
-    // Blobs verified or written in this run, so a stage's inputs are not
-    // read and hashed twice.
-    let memo: Memo = Mutex::new(BTreeMap::new());
-    let worker = || loop {
-        // Pick the first ready stage in plan order.
-        let (name, inputs) = {
-            let mut g = states.lock().unwrap();
-            loop {
-                let (st, _) = &*g;
-                let mut pick = None;
-                let mut running = false;
-                let mut blocked = Vec::new();
-                for n in &order {
-                    match st[n] {
-                        State::Pending => {
-                            let s = p.stage(n).unwrap();
-                            let mut ready = true;
-                            let mut failed_up = false;
-                            for (up, _) in s.refs.values() {
-                                match st[up] {
-                                    State::Done(_) => {}
-                                    State::Failed => failed_up = true,
-                                    _ => ready = false,
-                                }
-                            }
-                            if failed_up {
-                                blocked.push(n.clone());
-                            } else if ready && pick.is_none() {
-                                pick = Some(n.clone());
-                            }
-                        }
-                        State::Running => running = true,
-                        _ => {}
-                    }
-                }
-                if !blocked.is_empty() {
-                    let (st, reps) = &mut *g;
-                    for n in blocked {
-                        st.insert(n.clone(), State::Failed);
-                        let s = p.stage(&n).unwrap();
-                        reps.insert(n.clone(), StageReport::new(&n, &s.kind, Status::Skipped));
-                    }
-                    cv.notify_all();
-                    continue;
-                }
-                if let Some(n) = pick {
-                    let s = p.stage(&n).unwrap();
-                    let (st, _) = &mut *g;
-                    let mut inputs = BTreeMap::new();
-                    let mut missing = None;
-                    for (param, (up, out)) in &s.refs {
-                        if let State::Done(ds) = &st[up] {
-                            match ds.get(out) {
-                                Some(d) => {
-                                    inputs.insert(param.clone(), *d);
-                                }
-                                None => missing = Some((up.clone(), out.clone())),
-                            }
-                        }
-                    }
-                    st.insert(n.clone(), State::Running);
-                    let inputs = match missing {
-                        Some(x) => Err(x),
-                        None => Ok(inputs),
-                    };
-                    break (n, inputs);
-                }
-                if !running {
-                    return;
-                }
-                g = cv.wait(g).unwrap();
-            }
-        };
-        let stage = p.stage(&name).unwrap();
-        let node = reg.get(&stage.kind).expect("validated kind");
-        obs.started(&name, &stage.kind);
-        let ts = Instant::now();
-        let result = match inputs {
-            Err((up, out)) => Err(format!(
-                "input `{up}.{out}` was not produced (stage `{up}` has no such result)"
-            )),
-            Ok(inputs) => run_stage(p, stage, node, &inputs, store, exec, obs, &memo),
-        };
-        let mut rep = StageReport::new(&name, &stage.kind, Status::Failed);
-        rep.seconds = ts.elapsed().as_secs_f64();
-        let state = match result {
-            Ok(r) => {
-                rep.status = r.status;
-                rep.key = Some(r.key.hex());
-                rep.outputs = r
-                    .outputs
-                    .iter()
-                    .map(|(k, d)| (k.clone(), d.hex()))
-                    .collect();
-                rep.files = r.files;
-                State::Done(r.outputs)
-            }
-            Err(e) => {
-                rep.error = Some(e);
-                State::Failed
-            }
-        };
-        obs.finished(&rep);
-        let mut g = states.lock().unwrap();
-        g.0.insert(name.clone(), state);
-        g.1.insert(name, rep);
-        cv.notify_all();
-    };
-    std::thread::scope(|s| {
-        for _ in 0..parallel.max(1) {
-            s.spawn(worker);
+    let mut dependents: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
+    let mut slots: BTreeMap<String, Slot> = BTreeMap::new();
+    for n in &order {
+        let s = p.stage(n).unwrap();
+        let ups: BTreeSet<String> = s.refs.values().map(|(u, _)| u.clone()).collect();
+        for u in &ups {
+            dependents.entry(u.clone()).or_default().insert(n.clone());
         }
+        slots.insert(
+            n.clone(),
+            Slot {
+                state: State::Waiting(ups),
+                skip_cache: false,
+                recomputes: 0,
+                report: None,
+                key: None,
+            },
+        );
+    }
+    let (tx, rx) = mpsc::channel::<Event>();
+    let tx = Mutex::new(tx);
+    let sink: Sink = Arc::new(move |e| {
+        let _ = tx.lock().unwrap().send(e);
     });
-    let (_, mut reps) = states.into_inner().unwrap();
+    let mut in_flight = 0usize;
+    let mut ready: std::collections::VecDeque<String> = order
+        .iter()
+        .filter(|n| matches!(&slots[*n].state, State::Waiting(w) if w.is_empty()))
+        .cloned()
+        .collect();
+    loop {
+        // Submit everything ready, in plan order.
+        while let Some(n) = ready.pop_front() {
+            let stage = p.stage(&n).unwrap();
+            let node = reg.get(&stage.kind).expect("validated kind");
+            let slot = slots.get(&n).unwrap();
+            let mut inputs = BTreeMap::new();
+            let mut problem = None;
+            for (param, (up, out)) in &stage.refs {
+                if let State::Done(ds) = &slots[up].state {
+                    match ds.get(out) {
+                        Some(d) => {
+                            inputs.insert(param.clone(), *d);
+                        }
+                        None => problem = Some(format!(
+                            "input `{up}.{out}` was not produced (stage `{up}` has no such result)"
+                        )),
+                    }
+                }
+            }
+            let key = match problem {
+                Some(e) => Err(e),
+                None => node_key(node, &stage.params, &inputs)
+                    .map_err(|e| format!("reading inputs: {e}")),
+            };
+            let slot_skip = slot.skip_cache;
+            match key {
+                Ok(key) => {
+                    let slot = slots.get_mut(&n).unwrap();
+                    slot.key = Some(key);
+                    slot.state = State::Running;
+                    in_flight += 1;
+                    exec.submit(
+                        Job {
+                            stage: n.clone(),
+                            kind: stage.kind.clone(),
+                            pipeline: p.name.clone(),
+                            params: stage.params.clone(),
+                            key,
+                            inputs,
+                            skip_cache: slot_skip,
+                            local_only: reads_local_files(node, &stage.params),
+                        },
+                        sink.clone(),
+                    );
+                }
+                Err(e) => {
+                    let mut rep = StageReport::new(&n, &stage.kind, Status::Failed);
+                    rep.error = Some(e);
+                    obs.finished(&rep);
+                    let slot = slots.get_mut(&n).unwrap();
+                    slot.state = State::Failed;
+                    slot.report = Some(rep);
+                }
+            }
+        }
+        if in_flight == 0 {
+            break;
+        }
+        let Ok(ev) = rx.recv() else { break };
+        match ev {
+            Event::Started { stage, worker } => {
+                let kind = &p.stage(&stage).unwrap().kind;
+                let slot = slots.get_mut(&stage).unwrap();
+                let rep = slot
+                    .report
+                    .get_or_insert_with(|| StageReport::new(&stage, kind, Status::Executed));
+                rep.worker = Some(worker.clone());
+                rep.attempts += 1;
+                rep.started = Some(Instant::now());
+                obs.started(&stage, kind, &worker);
+            }
+            Event::Progress { stage, done, total } => obs.progress(&stage, done, total),
+            Event::Retry { stage, reason } => {
+                let kind = &p.stage(&stage).unwrap().kind;
+                let slot = slots.get_mut(&stage).unwrap();
+                slot.report
+                    .get_or_insert_with(|| StageReport::new(&stage, kind, Status::Executed))
+                    .retries
+                    .push(reason.clone());
+                obs.retried(&stage, &reason);
+            }
+            Event::Finished {
+                stage: name,
+                result,
+            } => {
+                in_flight -= 1;
+                let stage = p.stage(&name).unwrap();
+                let node = reg.get(&stage.kind).expect("validated kind");
+                let slot = slots.get_mut(&name).unwrap();
+                let key = slot.key.expect("submitted stages have keys");
+                let mut rep = slot
+                    .report
+                    .take()
+                    .unwrap_or_else(|| StageReport::new(&name, &stage.kind, Status::Executed));
+                rep.seconds += rep
+                    .started
+                    .take()
+                    .map(|t| t.elapsed().as_secs_f64())
+                    .unwrap_or(0.0);
+                rep.key = Some(key.hex());
+                match result {
+                    Ok(done) => {
+                        // Results the user asked for on disk are written
+                        // here, on the submitter.
+                        match materialize(node, stage, &done.outputs, store) {
+                            Ok(files) => {
+                                rep.status = done.status;
+                                rep.worker = Some(done.worker);
+                                rep.bytes_in += done.bytes_in;
+                                rep.bytes_out += done.bytes_out;
+                                rep.outputs = done
+                                    .outputs
+                                    .iter()
+                                    .map(|(k, d)| (k.clone(), d.hex()))
+                                    .collect();
+                                rep.files = files;
+                                rep.error = None;
+                                obs.finished(&rep);
+                                slot.state = State::Done(done.outputs);
+                                slot.report = Some(rep);
+                                for dn in dependents.get(&name).into_iter().flatten() {
+                                    let ds = slots.get_mut(dn).unwrap();
+                                    if let State::Waiting(w) = &mut ds.state {
+                                        if w.remove(&name) && w.is_empty() {
+                                            ready.push_back(dn.clone());
+                                        }
+                                    }
+                                }
+                            }
+                            Err(Failure::InputsMissing(_)) if slot.recomputes < MAX_RECOMPUTES => {
+                                // Its own result is unreadable: run it again.
+                                slot.recomputes += 1;
+                                slot.skip_cache = true;
+                                store.remove_action(&key);
+                                let why = "its cached result is missing or corrupt".to_string();
+                                rep.retries.push(why.clone());
+                                obs.retried(&name, &why);
+                                slot.report = Some(rep);
+                                slot.state = State::Waiting(BTreeSet::new());
+                                ready.push_back(name.clone());
+                            }
+                            Err(f) => {
+                                rep.status = Status::Failed;
+                                rep.error = Some(f.message());
+                                obs.finished(&rep);
+                                slot.state = State::Failed;
+                                slot.report = Some(rep);
+                            }
+                        }
+                    }
+                    Err(Failure::InputsMissing(params)) => {
+                        // Send the producers back to run uncached; this
+                        // stage waits for them again.
+                        let mut ups = BTreeSet::new();
+                        let mut exhausted = None;
+                        for param in &params {
+                            let Some((up, out)) = stage.refs.get(param) else {
+                                continue;
+                            };
+                            if let State::Done(ds) = &slots[up].state {
+                                if let Some(d) = ds.get(out) {
+                                    store.invalidate(d);
+                                }
+                            }
+                            ups.insert(up.clone());
+                        }
+                        for up in &ups {
+                            if slots[up].recomputes >= MAX_RECOMPUTES {
+                                exhausted = Some(up.clone());
+                            }
+                        }
+                        let slot = slots.get_mut(&name).unwrap();
+                        if ups.is_empty() || exhausted.is_some() {
+                            rep.status = Status::Failed;
+                            rep.error = Some(format!(
+                                "{} (after recomputing {} {MAX_RECOMPUTES} times)",
+                                Failure::InputsMissing(params).message(),
+                                exhausted.unwrap_or_default()
+                            ));
+                            obs.finished(&rep);
+                            slot.state = State::Failed;
+                            slot.report = Some(rep);
+                        } else {
+                            let why = format!(
+                                "input{} from {} missing or corrupt: recomputing",
+                                if params.len() > 1 { "s" } else { "" },
+                                ups.iter().cloned().collect::<Vec<_>>().join(", ")
+                            );
+                            rep.retries.push(why.clone());
+                            obs.retried(&name, &why);
+                            slot.report = Some(rep);
+                            slot.state = State::Waiting(ups.clone());
+                            for up in ups {
+                                let us = slots.get_mut(&up).unwrap();
+                                us.recomputes += 1;
+                                us.skip_cache = true;
+                                if let Some(k) = us.key {
+                                    store.remove_action(&k);
+                                }
+                                if matches!(us.state, State::Done(_)) {
+                                    us.state = State::Waiting(BTreeSet::new());
+                                    ready.push_back(up.clone());
+                                }
+                                // Every other consumer already waiting
+                                // for it keeps waiting; ones not yet
+                                // submitted wait for the new result.
+                                for dn in dependents.get(&up).into_iter().flatten() {
+                                    if dn == &name {
+                                        continue;
+                                    }
+                                    if let State::Waiting(w) = &mut slots.get_mut(dn).unwrap().state
+                                    {
+                                        w.insert(up.clone());
+                                    }
+                                }
+                            }
+                        }
+                    }
+                    Err(f) => {
+                        rep.status = Status::Failed;
+                        rep.error = Some(f.message());
+                        obs.finished(&rep);
+                        slot.state = State::Failed;
+                        slot.report = Some(rep);
+                    }
+                }
+            }
+        }
+    }
     let stages = p
         .stages
         .iter()
         .map(|s| {
-            reps.remove(&s.name).unwrap_or_else(|| {
-                let mut r = StageReport::new(&s.name, &s.kind, Status::Skipped);
-                if needed.contains(&s.name) {
-                    r.error = Some("not run".into());
+            match slots.get_mut(&s.name).and_then(|sl| sl.report.take()) {
+                Some(r) => r,
+                None => {
+                    // Not needed, or blocked by a failure upstream.
+                    let mut r = StageReport::new(&s.name, &s.kind, Status::Skipped);
+                    let blocked = slots
+                        .get(&s.name)
+                        .is_some_and(|sl| matches!(sl.state, State::Waiting(_) | State::Failed));
+                    if needed.contains(&s.name) && !blocked {
+                        r.error = Some("not run".into());
+                    }
+                    r
                 }
-                r
-            })
+            }
         })
         .collect();
+    let (up, down) = store.moved();
     Report {
         pipeline: p.name.clone(),
         file: p.file.display().to_string(),
-        cache: store.root().display().to_string(),
+        cache: store.describe(),
+        executor: exec.describe(),
         seconds: t0.elapsed().as_secs_f64(),
+        bytes_uploaded: up,
+        bytes_downloaded: down,
         stages,
     }
 }
 
-type Memo = Mutex<BTreeMap<Digest, Bytes>>;
-
-struct StageResult {
-    status: Status,
-    key: Digest,
-    outputs: BTreeMap<String, Digest>,
-    files: Vec<String>,
-}
-
-#[allow(clippy::too_many_arguments)]
-fn run_stage(
-    p: &Pipeline,
-    stage: &crate::spec::Stage,
-    node: &dyn Node,
-    inputs: &BTreeMap<String, Digest>,
-    store: &Store,
-    exec: &dyn Executor,
-    obs: &dyn Observer,
-    memo: &Memo,
-) -> Result<StageResult, String> {
-    let key = node_key(node, &stage.params, inputs).map_err(|e| format!("reading inputs: {e}"))?;
-    let wants_files = node
-        .params()
-        .iter()
-        .any(|sp| matches!(sp.ty, crate::node::ParamType::OutPath) && stage.params.is_set(sp.name));
-    // A cache hit: the entry exists and every blob is intact.
-    if let Some(a) = store.get_action(&key) {
-        let ds = a.digests().unwrap_or_default();
-        let mut bytes = BTreeMap::new();
-        let mut intact = true;
-        for (name, d) in &ds {
-            match store.get_blob(d).map_err(|e| e.to_string())? {
-                Some(b) => {
-                    let b = Arc::new(b);
-                    if wants_files {
-                        bytes.insert(name.clone(), b.clone());
-                    }
-                    memo.lock().unwrap().insert(*d, b);
-                }
-                None => {
-                    intact = false;
-                    break;
-                }
-            }
-        }
-        if intact {
-            let files = materialize(node, stage, &bytes)?;
-            return Ok(StageResult {
-                status: Status::Cached,
-                key,
-                outputs: ds,
-                files,
-            });
-        }
-        store.remove_action(&key);
-    }
-    let mut in_bytes = BTreeMap::new();
-    for (param, d) in inputs {
-        let known = memo.lock().unwrap().get(d).cloned();
-        let b =
-            match known {
-                Some(b) => b,
-                None => Arc::new(store.get_blob(d).map_err(|e| e.to_string())?.ok_or_else(
-                    || format!("input `{param}` ({d}) is missing or corrupt in the cache"),
-                )?),
-            };
-        in_bytes.insert(param.clone(), b);
-    }
-    let progress = |d: u64, t: u64| obs.progress(&stage.name, d, t);
-    let ctx = RunContext {
-        stage: &stage.name,
-        params: &stage.params,
-        inputs: in_bytes,
-        seed: node_seed(node, &stage.params),
-        progress: &progress,
-    };
-    let ts = Instant::now();
-    let outs: BTreeMap<String, Bytes> = exec
-        .execute(node, &ctx)
-        .map_err(|e| e.0)?
-        .into_iter()
-        .map(|(k, v)| (k, Arc::new(v)))
-        .collect();
-    let seconds = ts.elapsed().as_secs_f64();
-    let mut ds = BTreeMap::new();
-    for (name, b) in &outs {
-        let d = store.put_blob(b).map_err(|e| e.to_string())?;
-        memo.lock().unwrap().insert(d, b.clone());
-        ds.insert(name.clone(), d);
-    }
-    store
-        .put_action(
-            &key,
-            &Action {
-                kind: stage.kind.clone(),
-                stage: stage.name.clone(),
-                pipeline: p.name.clone(),
-                outputs: ds.iter().map(|(k, d)| (k.clone(), d.hex())).collect(),
-                seconds,
-            },
-        )
-        .map_err(|e| e.to_string())?;
-    let files = materialize(node, stage, &outs)?;
-    Ok(StageResult {
-        status: Status::Executed,
-        key,
-        outputs: ds,
-        files,
-    })
-}
-
+/// Writes the user's files for a stage (render outputs); a blob that
+/// cannot be read is reported as missing.
 fn materialize(
     node: &dyn Node,
     stage: &crate::spec::Stage,
-    bytes: &BTreeMap<String, Bytes>,
-) -> Result<Vec<String>, String> {
-    node.materialize(&stage.params, bytes)
+    outputs: &BTreeMap<String, Digest>,
+    store: &Tiered,
+) -> Result<Vec<String>, Failure> {
+    let wants_files = node
+        .params()
+        .iter()
+        .any(|sp| matches!(sp.ty, ParamType::OutPath) && stage.params.is_set(sp.name));
+    if !wants_files {
+        return Ok(vec![]);
+    }
+    let mut bytes = BTreeMap::new();
+    for (name, d) in outputs {
+        match store.get(d) {
+            Ok(Some(b)) => {
+                bytes.insert(name.clone(), b);
+            }
+            Ok(None) => return Err(Failure::InputsMissing(vec![name.clone()])),
+            Err(e) => return Err(Failure::Infra(e.to_string())),
+        }
+    }
+    node.materialize(&stage.params, &bytes)
         .map(|v| v.iter().map(|p| p.display().to_string()).collect())
-        .map_err(|e| e.0)
+        .map_err(|e| Failure::Node(e.0))
 }
 
 /// The action keys a pipeline's needed stages currently resolve to, for

@@ -12,7 +12,10 @@
 //!   output digests); atomic writes, verified reads.
 //! - [`plan`]: reference resolution, cycle detection, demand-driven stage
 //!   selection.
-//! - [`exec`]: the executor interface and the in-process executor.
+//! - [`tier`]: the store as `Cas` + `ActionCache` tiers; a local disk
+//!   tier in front of an optional remote one.
+//! - [`exec`]: the scheduler, the executor interface and the in-process
+//!   executor.
 
 pub mod exec;
 pub mod key;
@@ -20,10 +23,15 @@ pub mod node;
 pub mod plan;
 pub mod spec;
 pub mod store;
+pub mod tier;
 pub mod value;
 
-pub use exec::{run_pipeline, Executor, LocalExecutor, Observer, Report, StageReport, Status};
+pub use exec::{
+    execute_job, run_pipeline, Done, Event, Executor, Failure, Job, LocalExecutor, Observer,
+    Report, Sink, StageReport, Status,
+};
 pub use node::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, Registry, RunContext};
 pub use spec::{Pipeline, SpecError};
 pub use store::{Digest, Store, StoreError};
+pub use tier::{ActionCache, Cas, CasRef, StoreTier, Tiered};
 pub use value::{Loc, Value};

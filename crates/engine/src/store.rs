@@ -65,6 +65,9 @@ pub enum StoreError {
         #[source]
         source: std::io::Error,
     },
+    /// A remote tier could not be reached or answered with an error.
+    #[error("remote cache {endpoint}: {message}")]
+    Remote { endpoint: String, message: String },
 }
 
 fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> StoreError + '_ {
@@ -84,6 +87,9 @@ pub struct Action {
     /// Output name → blob digest (hex).
     pub outputs: BTreeMap<String, String>,
     pub seconds: f64,
+    /// Where it ran (`local`, or a worker's address); informational.
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub worker: String,
 }
 
 impl Action {
@@ -403,6 +409,30 @@ impl Store {
     }
 }
 
+impl crate::tier::Cas for Store {
+    fn put_blob(&self, bytes: &[u8]) -> Result<Digest, StoreError> {
+        Store::put_blob(self, bytes)
+    }
+    fn get_blob(&self, d: &Digest) -> Result<Option<Vec<u8>>, StoreError> {
+        Store::get_blob(self, d)
+    }
+    fn find_missing(&self, ds: &[Digest]) -> Result<Vec<Digest>, StoreError> {
+        Ok(ds.iter().filter(|d| !self.has_blob(d)).copied().collect())
+    }
+    fn name(&self) -> String {
+        self.root.display().to_string()
+    }
+}
+
+impl crate::tier::ActionCache for Store {
+    fn get_action(&self, key: &Digest) -> Result<Option<Action>, StoreError> {
+        Ok(Store::get_action(self, key))
+    }
+    fn put_action(&self, key: &Digest, a: &Action) -> Result<(), StoreError> {
+        Store::put_action(self, key, a)
+    }
+}
+
 /// Files two levels down (`dir/xx/name`): (name, path, modified).
 fn walk2(dir: &Path) -> Vec<(String, PathBuf, SystemTime)> {
     let mut out = Vec::new();
@@ -440,6 +470,7 @@ mod tests {
                 .map(|(n, d)| (n.to_string(), d.hex()))
                 .collect(),
             seconds: 0.0,
+            worker: String::new(),
         }
     }
 
