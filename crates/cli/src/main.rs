@@ -4,6 +4,7 @@ mod bench;
 mod bench_invert;
 mod bench_pipeline;
 mod bench_synthetic;
+mod cluster;
 mod commands;
 mod invert;
 mod run;
@@ -43,6 +44,8 @@ enum Cmd {
     /// Inspect and clean the content-addressed cache.
     #[command(subcommand)]
     Cache(run::CacheCmd),
+    /// Serve every node kind over gRPC for `matflow run --workers`.
+    Worker(cluster::WorkerArgs),
     /// Benchmarks that print numbers.
     #[command(subcommand)]
     Bench(bench::BenchCmd),
@@ -69,6 +72,10 @@ fn main() {
             Ok(())
         }
         Cmd::Bench(b) => bench::run(b),
+        Cmd::Worker(w) => {
+            let dir = run::cache_dir(w.cache.as_deref());
+            cluster::worker(w, dir)
+        }
     };
     if let Err(e) = res {
         eprintln!("error: {e:#}");

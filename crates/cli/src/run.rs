@@ -11,9 +11,7 @@ use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
 use matflow_engine::exec::cached_keys;
 use matflow_engine::spec::{self, Override};
 use matflow_engine::store::GcPolicy;
-use matflow_engine::{
-    run_pipeline, LocalExecutor, Observer, Report, StageReport, Status, Store, Tiered,
-};
+use matflow_engine::{run_pipeline, Observer, Report, StageReport, Status, Store};
 
 #[derive(Args)]
 pub struct RunArgs {
@@ -35,6 +33,8 @@ pub struct RunArgs {
     /// No progress bars.
     #[arg(long)]
     pub quiet: bool,
+    #[command(flatten)]
+    pub remote: crate::cluster::RemoteArgs,
 }
 
 #[derive(Subcommand)]
@@ -133,6 +133,11 @@ impl Observer for Bars {
             }
         }
     }
+    fn retried(&self, stage: &str, reason: &str) {
+        if let Some(pb) = self.bars.lock().unwrap().get(stage) {
+            pb.set_message(format!("retrying: {reason}"));
+        }
+    }
     fn finished(&self, r: &StageReport) {
         if let Some(pb) = self.bars.lock().unwrap().remove(&r.name) {
             pb.finish_and_clear();
@@ -161,20 +166,40 @@ fn print_table(r: &Report) {
             s.seconds,
             outs
         );
+        if let Some(w) = s.worker.as_deref().filter(|w| *w != "local") {
+            println!(
+                "{:<18} on {w}: {} attempt{}, {} B in, {} B out",
+                "",
+                s.attempts,
+                if s.attempts == 1 { "" } else { "s" },
+                s.bytes_in,
+                s.bytes_out
+            );
+        }
+        for r in &s.retries {
+            println!("{:<18} retried: {r}", "");
+        }
         for f in &s.files {
             println!("{:<18} wrote {f}", "");
         }
     }
     let n = |st: Status| r.stages.iter().filter(|s| s.status == st).count();
     println!(
-        "{}: {} executed, {} cached, {} skipped in {:.2} s (cache {})",
+        "{}: {} executed, {} cached, {} skipped in {:.2} s (cache {}; {})",
         r.pipeline,
         n(Status::Executed),
         n(Status::Cached),
         n(Status::Skipped),
         r.seconds,
-        r.cache
+        r.cache,
+        r.executor
     );
+    if r.bytes_uploaded + r.bytes_downloaded > 0 {
+        println!(
+            "remote store: {} B uploaded, {} B downloaded",
+            r.bytes_uploaded, r.bytes_downloaded
+        );
+    }
 }
 
 pub fn run(a: RunArgs) -> Result<()> {
@@ -188,15 +213,20 @@ pub fn run(a: RunArgs) -> Result<()> {
     // Everything is validated before the cache is even opened.
     let p = spec::load(&a.pipeline, &reg, &overrides).map_err(anyhow::Error::msg)?;
     let dir = cache_dir(a.cache.as_deref());
-    let store = Arc::new(Tiered::new(Store::open(&dir)?, None));
     let reg = Arc::new(reg);
-    let exec = LocalExecutor::new(reg.clone(), store.clone(), a.parallel);
+    let (store, exec) = crate::cluster::executor(
+        &a.remote,
+        p.remote_cache.as_deref(),
+        &dir,
+        reg.clone(),
+        a.parallel,
+    )?;
     let bars = Bars {
         multi: MultiProgress::new(),
         bars: Mutex::new(BTreeMap::new()),
         quiet: a.quiet,
     };
-    let report = run_pipeline(&p, &reg, &store, &exec, &bars);
+    let report = run_pipeline(&p, &reg, &store, exec.as_ref(), &bars);
     if let Some(path) = &a.report {
         let json = serde_json::to_vec_pretty(&report)?;
         matflow_scene::io::write_atomic(path, &json)

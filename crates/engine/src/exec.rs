@@ -485,9 +485,11 @@ pub fn run_pipeline(
                         Some(d) => {
                             inputs.insert(param.clone(), *d);
                         }
-                        None => problem = Some(format!(
+                        None => {
+                            problem = Some(format!(
                             "input `{up}.{out}` was not produced (stage `{up}` has no such result)"
-                        )),
+                        ))
+                        }
                     }
                 }
             }

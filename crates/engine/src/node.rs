@@ -44,6 +44,34 @@ pub enum ParamType {
 }
 
 impl ParamType {
+    /// The value in canonical form (floats as f64, integers in range), or
+    /// `None` when it does not fit. Paths and references are checked by
+    /// the pipeline loader (they need the file system and the other
+    /// stages); here they only have to be strings.
+    pub fn normalize(&self, v: &Value) -> Option<Value> {
+        match (self, v) {
+            (ParamType::Bool, Value::Bool(_)) => Some(v.clone()),
+            (ParamType::Int { min, max }, Value::Int(i)) if i >= min && i <= max => Some(v.clone()),
+            (ParamType::Float { min, max }, _) => match v.as_f64() {
+                Some(x) if x >= *min && x <= *max => Some(Value::Float(x)),
+                _ => None,
+            },
+            (ParamType::Choice(c), Value::Str(s)) if c.contains(&s.as_str()) => Some(v.clone()),
+            (ParamType::Floats { len, min, max }, Value::List(xs)) if xs.len() == *len => xs
+                .iter()
+                .map(|x| match x.as_f64() {
+                    Some(f) if f >= *min && f <= *max => Some(Value::Float(f)),
+                    _ => None,
+                })
+                .collect::<Option<Vec<_>>>()
+                .map(Value::List),
+            (ParamType::InPath | ParamType::OutPath | ParamType::Ref(_), Value::Str(_)) => {
+                Some(v.clone())
+            }
+            _ => None,
+        }
+    }
+
     pub fn describe(&self) -> String {
         match self {
             ParamType::Bool => "true or false".into(),

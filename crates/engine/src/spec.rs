@@ -3,6 +3,7 @@
 //! ```yaml
 //! pipeline: demo                 # a name (default: the file's stem)
 //! outputs: [edited]              # the stages whose results are wanted
+//! remote_cache: grpc://cache:9092 # optional: a shared REAPI cache
 //! stages:
 //!   scene: {kind: synthetic_scene, seed: 1}
 //!   edited:
@@ -71,6 +72,8 @@ pub struct Pipeline {
     pub file: PathBuf,
     pub stages: Vec<Stage>,
     pub outputs: Vec<String>,
+    /// The remote store tier named in the file (`remote_cache:`), if any.
+    pub remote_cache: Option<String>,
 }
 
 impl Pipeline {
@@ -155,6 +158,7 @@ pub fn parse(
         .unwrap_or_else(|| "pipeline".into());
     let mut stages_node = None;
     let mut outputs_node = None;
+    let mut remote_cache = None;
     for (k, kl, v, vl) in &top {
         match k.as_str() {
             "pipeline" => match v {
@@ -162,13 +166,25 @@ pub fn parse(
                 _ => return Err(err(Some(*vl), "`pipeline` must be a name".into())),
             },
             "description" => {}
+            "remote_cache" => match v {
+                Value::Str(s) if s.starts_with("grpc://") || s.starts_with("grpcs://") => {
+                    remote_cache = Some(s.clone())
+                }
+                Value::Null => {}
+                _ => {
+                    return Err(err(
+                        Some(*vl),
+                        "`remote_cache` is an endpoint: grpc://HOST:PORT or grpcs://HOST:PORT".into(),
+                    ))
+                }
+            },
             "stages" => stages_node = Some((v, *vl)),
             "outputs" => outputs_node = Some((v, *vl)),
             _ => {
                 return Err(err(
                     Some(*kl),
                     format!(
-                        "unknown key `{k}` (a pipeline has pipeline, description, stages, outputs)"
+                        "unknown key `{k}` (a pipeline has pipeline, description, remote_cache, stages, outputs)"
                     ),
                 ))
             }
@@ -334,21 +350,13 @@ pub fn parse(
             }
             let bad = |v: &Value| where_(format!("expected {}, got {v}", p.ty.describe()));
             let norm = match p.ty {
-                ParamType::Bool => match v {
-                    Value::Bool(_) => v,
-                    _ => return Err(bad(&v)),
-                },
-                ParamType::Int { min, max } => match v {
-                    Value::Int(i) if i >= min && i <= max => v,
-                    _ => return Err(bad(&v)),
-                },
-                ParamType::Float { min, max } => match v.as_f64() {
-                    Some(x) if x >= min && x <= max => Value::Float(x),
-                    _ => return Err(bad(&v)),
-                },
-                ParamType::Choice(c) => match &v {
-                    Value::Str(s) if c.contains(&s.as_str()) => v,
-                    _ => return Err(bad(&v)),
+                ParamType::Bool
+                | ParamType::Int { .. }
+                | ParamType::Float { .. }
+                | ParamType::Choice(_)
+                | ParamType::Floats { .. } => match p.ty.normalize(&v) {
+                    Some(n) => n,
+                    None => return Err(bad(&v)),
                 },
                 ParamType::InPath | ParamType::OutPath => match &v {
                     Value::Str(s) => {
@@ -363,19 +371,6 @@ pub fn parse(
                             }
                         }
                         Value::Str(full.to_string_lossy().into_owned())
-                    }
-                    _ => return Err(bad(&v)),
-                },
-                ParamType::Floats { len, min, max } => match &v {
-                    Value::List(xs) if xs.len() == len => {
-                        let mut out = Vec::with_capacity(len);
-                        for x in xs {
-                            match x.as_f64() {
-                                Some(f) if f >= min && f <= max => out.push(Value::Float(f)),
-                                _ => return Err(bad(&v)),
-                            }
-                        }
-                        Value::List(out)
                     }
                     _ => return Err(bad(&v)),
                 },
@@ -478,6 +473,7 @@ pub fn parse(
         file: path.to_path_buf(),
         stages,
         outputs,
+        remote_cache,
     };
     if let Some(cycle) = crate::plan::find_cycle(&p) {
         let first = p.stage(&cycle[0]).map(|s| s.loc);

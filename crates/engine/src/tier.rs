@@ -243,6 +243,28 @@ impl Tiered {
         self.remote.as_ref().and_then(|r| r.cas_ref(d))
     }
 
+    /// Makes sure the remote tier holds a blob this process has (uploading
+    /// it from the local tier if need be); returns where it lives there.
+    /// `Ok(None)` when there is no remote tier or nobody has the bytes.
+    pub fn ensure_remote(&self, d: &Digest) -> Result<Option<CasRef>, StoreError> {
+        let Some(r) = &self.remote else {
+            return Ok(None);
+        };
+        if let Some(cr) = r.cas_ref(d) {
+            if r.find_missing(&[*d])?.is_empty() {
+                return Ok(Some(cr));
+            }
+        }
+        let b = match self.memo.lock().unwrap().blobs.get(d) {
+            Some(b) => Some(b.clone()),
+            None => self.local.get_blob(d)?.map(Arc::new),
+        };
+        let Some(b) = b else { return Ok(None) };
+        r.put_blob(&b)?;
+        self.up.fetch_add(b.len() as u64, Ordering::Relaxed);
+        Ok(r.cas_ref(d))
+    }
+
     pub fn learn(&self, d: &Digest, r: &CasRef) {
         if let Some(t) = &self.remote {
             t.learn(d, r);

@@ -1,0 +1,550 @@
+//! The remote executor: stages on workers.
+//!
+//! Ready stages wait in one queue; a dispatcher places each on the worker
+//! with the most free slots (stages that read the submitter's files run
+//! in-process). An attempt is a streaming `Execute` call: the worker
+//! accepts, sends progress and heartbeats, and ends with a result or a
+//! typed error. A worker that cannot be reached, drops the stream, or
+//! goes quiet for longer than the heartbeat timeout (or past the stage
+//! deadline) loses the stage, which goes to another worker — at least
+//! once, as in the Remote Execution API; nodes are pure, so running one
+//! twice is harmless. Attempts are bounded and each retry is reported. A
+//! failure that is the stage's own (the node failed, a bad parameter)
+//! ends the stage at once with the worker's message.
+
+use std::collections::VecDeque;
+use std::sync::atomic::{AtomicU32, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use tokio::sync::Notify;
+use tonic::codegen::InterceptedService;
+use tonic::transport::Channel;
+
+use matflow_engine::store::Action;
+use matflow_engine::{
+    Done, Event, Executor, Failure, Job, LocalExecutor, Registry, Sink, Status as StageStatus,
+    Tiered,
+};
+
+use crate::auth::{AddToken, Token};
+use crate::convert::{blob_from_pb, blob_ref, params_to_pb};
+use crate::net::TlsFiles;
+use crate::pb::{
+    self, execute_event::Event as Ev, node_service_client::NodeServiceClient, ErrorCode,
+};
+use crate::reapi::{status_text, OwnRuntime};
+
+type Client = NodeServiceClient<InterceptedService<Channel, AddToken>>;
+
+#[derive(Clone, Debug)]
+pub struct RemoteOptions {
+    /// Heartbeat interval asked of workers.
+    pub heartbeat: Duration,
+    /// A worker silent this long has lost its stage.
+    pub heartbeat_timeout: Duration,
+    /// A stage still running after this long is taken away (None: no
+    /// limit beyond heartbeats).
+    pub stage_timeout: Option<Duration>,
+    /// Attempts per stage before the run gives up on it.
+    pub max_attempts: u32,
+    /// The store endpoint told to workers that have none of their own.
+    pub store_endpoint: String,
+    pub tls: TlsFiles,
+    pub token: Option<Token>,
+    /// Slots per worker, overriding what the worker says.
+    pub slots: Option<u32>,
+}
+
+impl Default for RemoteOptions {
+    fn default() -> Self {
+        RemoteOptions {
+            heartbeat: Duration::from_millis(1000),
+            heartbeat_timeout: Duration::from_secs(10),
+            stage_timeout: None,
+            max_attempts: 3,
+            store_endpoint: String::new(),
+            tls: TlsFiles::default(),
+            token: None,
+            slots: None,
+        }
+    }
+}
+
+struct Worker {
+    addr: String,
+    client: Client,
+    slots: u32,
+    busy: AtomicU32,
+    /// Not used until then (after a failure), and the back-off to apply
+    /// after the next one.
+    down: Mutex<(Option<Instant>, Duration)>,
+}
+
+impl Worker {
+    fn usable(&self, now: Instant) -> bool {
+        self.down.lock().unwrap().0.is_none_or(|t| t <= now)
+    }
+    fn failed(&self) {
+        let mut d = self.down.lock().unwrap();
+        d.0 = Some(Instant::now() + d.1);
+        d.1 = (d.1 * 2).min(Duration::from_secs(30));
+    }
+    fn succeeded(&self) {
+        *self.down.lock().unwrap() = (None, Duration::from_millis(500));
+    }
+}
+
+struct Queued {
+    job: Job,
+    sink: Sink,
+    attempts: u32,
+    reasons: Vec<String>,
+    avoid: Option<usize>,
+}
+
+struct Inner {
+    workers: Vec<Arc<Worker>>,
+    store: Arc<Tiered>,
+    reg: Arc<Registry>,
+    opts: RemoteOptions,
+    queue: Mutex<VecDeque<Queued>>,
+    notify: Notify,
+}
+
+pub struct RemoteExecutor {
+    inner: Arc<Inner>,
+    local: LocalExecutor,
+    /// Runs the dispatcher and the calls; shut down on drop.
+    _rt: OwnRuntime,
+}
+
+/// What a worker said about itself.
+#[derive(Clone, Debug)]
+pub struct WorkerInfo {
+    pub addr: String,
+    pub id: String,
+    pub slots: u32,
+}
+
+impl RemoteExecutor {
+    /// Connects to every worker (Describe) and checks it serves the same
+    /// node kinds at the same versions. A worker that refuses the token
+    /// or runs other node versions is an error; one that cannot be reached
+    /// is left out with a warning (it is tried again if it comes back)
+    /// unless none can be reached.
+    pub fn connect(
+        addrs: &[String],
+        reg: Arc<Registry>,
+        store: Arc<Tiered>,
+        local_threads: usize,
+        opts: RemoteOptions,
+    ) -> Result<(RemoteExecutor, Vec<WorkerInfo>), String> {
+        let rt = OwnRuntime::new(2, "matflow-dispatch");
+        let mut workers = Vec::new();
+        let mut infos = Vec::new();
+        let mut unreachable = Vec::new();
+        for a in addrs {
+            let ch = {
+                let _g = rt.get().enter();
+                crate::net::channel(a, &opts.tls).map_err(|e| format!("worker {e}"))?
+            };
+            let client = NodeServiceClient::with_interceptor(ch, AddToken(opts.token.clone()));
+            let mut c = client.clone();
+            let r = rt.block_on(async {
+                tokio::time::timeout(Duration::from_secs(10), c.describe(pb::DescribeRequest {}))
+                    .await
+            });
+            let slots = match r {
+                Ok(Ok(resp)) => {
+                    let d = resp.into_inner();
+                    check_kinds(a, &reg, &d)?;
+                    infos.push(WorkerInfo {
+                        addr: a.clone(),
+                        id: d.worker_id.clone(),
+                        slots: d.slots,
+                    });
+                    opts.slots.unwrap_or(d.slots).max(1)
+                }
+                Ok(Err(s)) if s.code() == tonic::Code::Unauthenticated => {
+                    return Err(format!(
+                        "worker {a} refused this run's token: {}",
+                        s.message()
+                    ))
+                }
+                Ok(Err(s)) => {
+                    unreachable.push(format!("{a} ({})", status_text(&s)));
+                    continue;
+                }
+                Err(_) => {
+                    unreachable.push(format!("{a} (no answer in 10 s)"));
+                    continue;
+                }
+            };
+            workers.push(Arc::new(Worker {
+                addr: a.clone(),
+                client,
+                slots,
+                busy: AtomicU32::new(0),
+                down: Mutex::new((None, Duration::from_millis(500))),
+            }));
+        }
+        if workers.is_empty() {
+            return Err(format!(
+                "no worker could be reached: {}",
+                unreachable.join(", ")
+            ));
+        }
+        for u in &unreachable {
+            tracing::warn!("worker {u} left out of this run");
+        }
+        let inner = Arc::new(Inner {
+            workers,
+            store: store.clone(),
+            reg: reg.clone(),
+            opts,
+            queue: Mutex::new(VecDeque::new()),
+            notify: Notify::new(),
+        });
+        let i2 = inner.clone();
+        rt.get().spawn(async move { dispatcher(i2).await });
+        let local = LocalExecutor::new(reg, store, local_threads);
+        Ok((
+            RemoteExecutor {
+                inner,
+                local,
+                _rt: rt,
+            },
+            infos,
+        ))
+    }
+}
+
+fn check_kinds(addr: &str, reg: &Registry, d: &pb::DescribeResponse) -> Result<(), String> {
+    for n in reg.iter() {
+        match d.kinds.iter().find(|k| k.kind == n.kind()) {
+            Some(k) if k.version == n.version() => {}
+            Some(k) => {
+                return Err(format!(
+                    "worker {addr} runs {} version {}, this submitter version {}: \
+                     use the same matflow build on both",
+                    n.kind(),
+                    k.version,
+                    n.version()
+                ))
+            }
+            None => {
+                return Err(format!(
+                    "worker {addr} does not serve the node kind {} (matflow {})",
+                    n.kind(),
+                    d.matflow_version
+                ))
+            }
+        }
+    }
+    Ok(())
+}
+
+impl Executor for RemoteExecutor {
+    fn submit(&self, job: Job, sink: Sink) {
+        if job.local_only {
+            return self.local.submit(job, sink);
+        }
+        self.inner.queue.lock().unwrap().push_back(Queued {
+            job,
+            sink,
+            attempts: 0,
+            reasons: vec![],
+            avoid: None,
+        });
+        self.inner.notify.notify_one();
+    }
+    fn describe(&self) -> String {
+        let ws: Vec<String> = self
+            .inner
+            .workers
+            .iter()
+            .map(|w| format!("{} ({} slots)", w.addr, w.slots))
+            .collect();
+        format!("workers {}", ws.join(", "))
+    }
+}
+
+/// Picks the next (job, worker): the usable worker with the most free
+/// slots, avoiding the one a job last failed on when another is free.
+fn pick(inner: &Inner) -> Option<(Queued, usize)> {
+    let now = Instant::now();
+    let mut q = inner.queue.lock().unwrap();
+    if q.is_empty() {
+        return None;
+    }
+    let free = |i: usize| {
+        let w = &inner.workers[i];
+        if !w.usable(now) {
+            return 0;
+        }
+        w.slots.saturating_sub(w.busy.load(Ordering::Relaxed))
+    };
+    for qi in 0..q.len() {
+        let avoid = q[qi].avoid;
+        let best = (0..inner.workers.len())
+            .filter(|&i| free(i) > 0)
+            .max_by_key(|&i| (Some(i) != avoid, free(i), std::cmp::Reverse(i)));
+        if let Some(w) = best {
+            inner.workers[w].busy.fetch_add(1, Ordering::Relaxed);
+            return q.remove(qi).map(|j| (j, w));
+        }
+    }
+    None
+}
+
+async fn dispatcher(inner: Arc<Inner>) {
+    loop {
+        while let Some((q, w)) = pick(&inner) {
+            let i2 = inner.clone();
+            tokio::spawn(async move { attempt(i2, w, q).await });
+        }
+        tokio::select! {
+            _ = inner.notify.notified() => {}
+            _ = tokio::time::sleep(Duration::from_millis(250)) => {}
+        }
+    }
+}
+
+enum Outcome {
+    Done(
+        Done,
+        Vec<(
+            String,
+            matflow_engine::Digest,
+            Option<matflow_engine::CasRef>,
+        )>,
+        f64,
+    ),
+    /// The stage's own failure: final.
+    Final(Failure),
+    /// The attempt failed for the worker's reasons: try elsewhere.
+    Retry(String),
+}
+
+async fn attempt(inner: Arc<Inner>, wi: usize, mut q: Queued) {
+    let w = inner.workers[wi].clone();
+    let outcome = try_once(&inner, &w, &q).await;
+    w.busy.fetch_sub(1, Ordering::Relaxed);
+    let stage = q.job.stage.clone();
+    match outcome {
+        Outcome::Done(done, outs, seconds) => {
+            w.succeeded();
+            // Remember the entry here too, so the next run's lookup is
+            // answered without a worker.
+            let store = inner.store.clone();
+            let job = q.job.clone();
+            let worker = done.worker.clone();
+            let _ = tokio::task::spawn_blocking(move || {
+                for (_, d, r) in &outs {
+                    if let Some(r) = r {
+                        store.learn(d, r);
+                    }
+                }
+                let a = Action {
+                    kind: job.kind.clone(),
+                    stage: job.stage.clone(),
+                    pipeline: job.pipeline.clone(),
+                    outputs: outs.iter().map(|(n, d, _)| (n.clone(), d.hex())).collect(),
+                    seconds,
+                    worker,
+                };
+                let _ = store.local().put_action(&job.key, &a);
+            })
+            .await;
+            (q.sink)(Event::Finished {
+                stage,
+                result: Ok(done),
+            });
+        }
+        Outcome::Final(f) => {
+            w.succeeded();
+            (q.sink)(Event::Finished {
+                stage,
+                result: Err(f),
+            });
+        }
+        Outcome::Retry(reason) => {
+            w.failed();
+            q.attempts += 1;
+            let reason = format!("attempt {} on {}: {reason}", q.attempts, w.addr);
+            q.reasons.push(reason.clone());
+            if q.attempts >= inner.opts.max_attempts {
+                (q.sink)(Event::Finished {
+                    stage,
+                    result: Err(Failure::Infra(format!(
+                        "gave up after {} attempts: {}",
+                        q.attempts,
+                        q.reasons.join("; ")
+                    ))),
+                });
+            } else {
+                (q.sink)(Event::Retry { stage, reason });
+                q.avoid = Some(wi);
+                inner.queue.lock().unwrap().push_front(q);
+                inner.notify.notify_one();
+            }
+        }
+    }
+}
+
+async fn try_once(inner: &Arc<Inner>, w: &Arc<Worker>, q: &Queued) -> Outcome {
+    let job = &q.job;
+    let Some(node) = inner.reg.get(&job.kind) else {
+        return Outcome::Final(Failure::Node(format!("unknown node kind `{}`", job.kind)));
+    };
+    // Inputs must be in the shared store before a worker can read them.
+    let store = inner.store.clone();
+    let inputs: Vec<(String, matflow_engine::Digest)> =
+        job.inputs.iter().map(|(k, d)| (k.clone(), *d)).collect();
+    let (skip, key) = (job.skip_cache || q.attempts > 0, job.key);
+    let prep = tokio::task::spawn_blocking(move || {
+        if !skip {
+            if let Some(ds) = store.lookup(&key)? {
+                return Ok(Err(ds));
+            }
+        }
+        let mut refs = Vec::new();
+        for (name, d) in inputs {
+            let r = store.ensure_remote(&d)?;
+            refs.push((name, d, r));
+        }
+        Ok::<_, matflow_engine::StoreError>(Ok(refs))
+    })
+    .await;
+    let refs = match prep {
+        Ok(Ok(Ok(refs))) => refs,
+        Ok(Ok(Err(cached))) => {
+            return Outcome::Done(
+                Done {
+                    status: StageStatus::Cached,
+                    outputs: cached,
+                    worker: "cache".into(),
+                    bytes_in: 0,
+                    bytes_out: 0,
+                },
+                vec![],
+                0.0,
+            )
+        }
+        Ok(Err(e)) => return Outcome::Final(Failure::Infra(e.to_string())),
+        Err(e) => return Outcome::Final(Failure::Infra(e.to_string())),
+    };
+    let mut missing = Vec::new();
+    let req = pb::ExecuteRequest {
+        action_key: job.key.0.to_vec(),
+        kind: job.kind.clone(),
+        kind_version: node.version(),
+        stage: job.stage.clone(),
+        pipeline: job.pipeline.clone(),
+        params: params_to_pb(node.info(), &job.params),
+        inputs: refs
+            .iter()
+            .map(|(n, d, r)| {
+                if r.is_none() {
+                    missing.push(n.clone());
+                }
+                (n.clone(), blob_ref(d, r.as_ref()))
+            })
+            .collect(),
+        store: inner.opts.store_endpoint.clone(),
+        skip_cache_lookup: job.skip_cache,
+        heartbeat_ms: inner.opts.heartbeat.as_millis() as u32,
+    };
+    if !missing.is_empty() {
+        return Outcome::Final(Failure::InputsMissing(missing));
+    }
+    let t0 = Instant::now();
+    let deadline = inner.opts.stage_timeout.map(|d| t0 + d);
+    let hb = inner.opts.heartbeat_timeout;
+    let mut client = w.client.clone();
+    let call = tokio::time::timeout(hb, client.execute(req)).await;
+    let mut stream = match call {
+        Err(_) => return Outcome::Retry(format!("no answer within {:.1} s", hb.as_secs_f64())),
+        Ok(Err(s)) if s.code() == tonic::Code::Unauthenticated => {
+            return Outcome::Final(Failure::Infra(format!(
+                "worker {} refused the token",
+                w.addr
+            )))
+        }
+        Ok(Err(s)) => return Outcome::Retry(format!("unreachable: {}", status_text(&s))),
+        Ok(Ok(r)) => r.into_inner(),
+    };
+    loop {
+        let wait = match deadline {
+            Some(d) => hb.min(d.saturating_duration_since(Instant::now())),
+            None => hb,
+        };
+        let msg = match tokio::time::timeout(wait, stream.message()).await {
+            Err(_) => {
+                if deadline.is_some_and(|d| Instant::now() >= d) {
+                    return Outcome::Retry(format!(
+                        "still running after the stage deadline ({:.0} s)",
+                        inner.opts.stage_timeout.unwrap_or_default().as_secs_f64()
+                    ));
+                }
+                return Outcome::Retry(format!("silent for {:.1} s (hung?)", hb.as_secs_f64()));
+            }
+            Ok(Err(s)) => return Outcome::Retry(format!("stream broke: {}", status_text(&s))),
+            Ok(Ok(None)) => return Outcome::Retry("stream ended without a result".into()),
+            Ok(Ok(Some(m))) => m,
+        };
+        match msg.event {
+            Some(Ev::Accepted(_)) => (q.sink)(Event::Started {
+                stage: job.stage.clone(),
+                worker: w.addr.clone(),
+            }),
+            Some(Ev::Progress(p)) => (q.sink)(Event::Progress {
+                stage: job.stage.clone(),
+                done: p.done,
+                total: p.total,
+            }),
+            Some(Ev::Log(l)) => tracing::info!("{} on {}: {}", job.stage, w.addr, l.line),
+            Some(Ev::Heartbeat(_)) | None => {}
+            Some(Ev::Result(r)) => {
+                let mut outs = Vec::new();
+                let mut outputs = std::collections::BTreeMap::new();
+                for (name, b) in &r.outputs {
+                    match blob_from_pb(b) {
+                        Ok((d, cr)) => {
+                            outputs.insert(name.clone(), d);
+                            outs.push((name.clone(), d, cr));
+                        }
+                        Err(e) => return Outcome::Retry(format!("malformed result: {e}")),
+                    }
+                }
+                return Outcome::Done(
+                    Done {
+                        status: if r.cached {
+                            StageStatus::Cached
+                        } else {
+                            StageStatus::Executed
+                        },
+                        outputs,
+                        worker: w.addr.clone(),
+                        bytes_in: r.bytes_in,
+                        bytes_out: r.bytes_out,
+                    },
+                    outs,
+                    r.seconds,
+                );
+            }
+            Some(Ev::Error(e)) => {
+                let code = ErrorCode::try_from(e.code).unwrap_or(ErrorCode::Unspecified);
+                let m = format!("worker {}: {}", w.addr, e.message);
+                return match code {
+                    ErrorCode::InputMissing => {
+                        Outcome::Final(Failure::InputsMissing(e.missing_inputs))
+                    }
+                    ErrorCode::Unavailable | ErrorCode::Unspecified => Outcome::Retry(e.message),
+                    _ => Outcome::Final(Failure::Node(m)),
+                };
+            }
+        }
+    }
+}
