@@ -17,7 +17,7 @@ use std::process::{Command, Output, Stdio};
 use std::time::Duration;
 
 use serde_json::Value;
-use support::{Casd, Worker};
+use support::{Casd, Worker, SMALL};
 
 fn bin() -> PathBuf {
     PathBuf::from(env!("CARGO_BIN_EXE_matflow"))
@@ -26,26 +26,6 @@ fn bin() -> PathBuf {
 fn demo() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../../pipelines/demo.yaml")
 }
-
-/// The demo at test size (as in tests/pipeline.rs).
-const SMALL: &[&str] = &[
-    "--set",
-    "scene.size=64",
-    "--set",
-    "scene.spp=8",
-    "--set",
-    "lighting.budget_seconds=1",
-    "--set",
-    "shiny.mask_flood=~",
-    "--set",
-    "shiny.mask_rect=[44, 38, 58, 52]",
-    "--set",
-    "base.spp=8",
-    "--set",
-    "base.path_spp=4",
-    "--set",
-    "relit.spp=8",
-];
 
 fn s(p: &Path) -> &str {
     p.to_str().unwrap()

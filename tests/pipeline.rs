@@ -6,9 +6,12 @@
 //! cache miss, and bad input is reported with file, line and column before
 //! any work starts.
 
+mod support;
+
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
+use support::SMALL;
 
 use serde_json::Value;
 
@@ -28,29 +31,6 @@ fn matflow(args: &[&str], threads: Option<usize>) -> Output {
 fn s(p: &Path) -> &str {
     p.to_str().unwrap()
 }
-
-/// The demo at test size: 64², few samples, 1–2 s budgets; the edit's
-/// mask is a rectangle on the red box.
-const SMALL: &[&str] = &[
-    "--set",
-    "scene.size=64",
-    "--set",
-    "scene.spp=8",
-    "--set",
-    "lighting.budget_seconds=1",
-    "--set",
-    "recovered.budget_seconds=2",
-    "--set",
-    "shiny.mask_flood=~",
-    "--set",
-    "shiny.mask_rect=[44, 38, 58, 52]",
-    "--set",
-    "base.spp=8",
-    "--set",
-    "base.path_spp=4",
-    "--set",
-    "relit.spp=8",
-];
 
 struct Run {
     out: Output,

@@ -36,6 +36,29 @@ pub fn casd_binary() -> PathBuf {
     }
 }
 
+/// The demo at test size: 64², few samples, 1–2 s budgets; the edit's
+/// mask is a rectangle on the red box.
+pub const SMALL: &[&str] = &[
+    "--set",
+    "scene.size=64",
+    "--set",
+    "scene.spp=8",
+    "--set",
+    "lighting.budget_seconds=1",
+    "--set",
+    "recovered.budget_seconds=2",
+    "--set",
+    "shiny.mask_flood=~",
+    "--set",
+    "shiny.mask_rect=[44, 38, 58, 52]",
+    "--set",
+    "base.spp=8",
+    "--set",
+    "base.path_spp=4",
+    "--set",
+    "relit.spp=8",
+];
+
 pub fn free_port() -> u16 {
     std::net::TcpListener::bind("127.0.0.1:0")
         .unwrap()

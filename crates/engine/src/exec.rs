@@ -422,6 +422,17 @@ struct Slot {
     key: Option<Digest>,
 }
 
+impl Slot {
+    /// The stage failed for good: its report says why.
+    fn fail(&mut self, mut rep: StageReport, message: String, obs: &dyn Observer) {
+        rep.status = Status::Failed;
+        rep.error = Some(message);
+        obs.finished(&rep);
+        self.state = State::Failed;
+        self.report = Some(rep);
+    }
+}
+
 /// Runs the stages `p.outputs` need; returns a report whether or not a
 /// stage failed (see [`Report::failure`]).
 ///
@@ -615,13 +626,7 @@ pub fn run_pipeline(
                                 slot.state = State::Waiting(BTreeSet::new());
                                 ready.push_back(name.clone());
                             }
-                            Err(f) => {
-                                rep.status = Status::Failed;
-                                rep.error = Some(f.message());
-                                obs.finished(&rep);
-                                slot.state = State::Failed;
-                                slot.report = Some(rep);
-                            }
+                            Err(f) => slot.fail(rep, f.message(), obs),
                         }
                     }
                     Err(Failure::InputsMissing(params)) => {
@@ -647,15 +652,12 @@ pub fn run_pipeline(
                         }
                         let slot = slots.get_mut(&name).unwrap();
                         if ups.is_empty() || exhausted.is_some() {
-                            rep.status = Status::Failed;
-                            rep.error = Some(format!(
+                            let msg = format!(
                                 "{} (after recomputing {} {MAX_RECOMPUTES} times)",
                                 Failure::InputsMissing(params).message(),
                                 exhausted.unwrap_or_default()
-                            ));
-                            obs.finished(&rep);
-                            slot.state = State::Failed;
-                            slot.report = Some(rep);
+                            );
+                            slot.fail(rep, msg, obs);
                         } else {
                             let why = format!(
                                 "input{} from {} missing or corrupt: recomputing",
@@ -699,13 +701,7 @@ pub fn run_pipeline(
                             }
                         }
                     }
-                    Err(f) => {
-                        rep.status = Status::Failed;
-                        rep.error = Some(f.message());
-                        obs.finished(&rep);
-                        slot.state = State::Failed;
-                        slot.report = Some(rep);
-                    }
+                    Err(f) => slot.fail(rep, f.message(), obs),
                 }
             }
         }
