@@ -384,3 +384,113 @@ async fn run(
         }),
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use matflow_engine::node::{NodeError, NodeInfo, OutputSpec, ParamSpec, RunContext};
+    use matflow_engine::Node;
+
+    static INFO: NodeInfo = NodeInfo {
+        kind: "scale",
+        version: 3,
+        doc: "test node",
+        params: &[
+            ParamSpec {
+                name: "factor",
+                ty: ParamType::Float { min: 0.0, max: 4.0 },
+                default: Some("1"),
+                unit: "",
+                doc: "",
+            },
+            ParamSpec {
+                name: "source",
+                ty: ParamType::Ref(&["image"]),
+                default: None,
+                unit: "",
+                doc: "",
+            },
+            ParamSpec {
+                name: "mask",
+                ty: ParamType::InPath,
+                default: Some("~"),
+                unit: "",
+                doc: "",
+            },
+        ],
+        outputs: &[OutputSpec {
+            name: "image",
+            ty: "image",
+            doc: "",
+        }],
+    };
+    struct Scale;
+    impl Node for Scale {
+        fn info(&self) -> &'static NodeInfo {
+            &INFO
+        }
+        fn run(&self, _: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
+            Ok(BTreeMap::new())
+        }
+    }
+
+    fn request(reg: &Registry, factor: pb::Value) -> pb::ExecuteRequest {
+        let input = Digest::of(b"upstream");
+        let mut params = Params::default();
+        params.0.insert("factor".into(), Value::Float(2.0));
+        params.0.insert("source".into(), Value::Str("up".into()));
+        params.0.insert("mask".into(), Value::Null);
+        let inputs: BTreeMap<String, Digest> =
+            [("source".to_string(), input)].into_iter().collect();
+        let key = node_key(reg.get("scale").unwrap(), &params, &inputs).unwrap();
+        let mut p = crate::convert::params_to_pb(&INFO, &params);
+        p.insert("factor".into(), factor);
+        pb::ExecuteRequest {
+            action_key: key.0.to_vec(),
+            kind: "scale".into(),
+            kind_version: 3,
+            stage: "s".into(),
+            params: p,
+            inputs: [("source".to_string(), blob_ref(&input, None))]
+                .into_iter()
+                .collect(),
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn requests_are_checked_like_pipeline_stages() {
+        let mut reg = Registry::new();
+        reg.add(Box::new(Scale));
+        let f = |x: f64| crate::convert::value_to_pb(&Value::Float(x));
+        let good = request(&reg, f(2.0));
+        let job = validate(&reg, &good).expect("a valid request");
+        assert_eq!(job.params.f64("factor"), 2.0);
+        let code = |r: &pb::ExecuteRequest| validate(&reg, r).unwrap_err().0;
+        // Out of range, exactly as the loader bounds it.
+        assert_eq!(code(&request(&reg, f(4.5))), ErrorCode::InvalidArgument);
+        // A different value than the key was computed for.
+        assert_eq!(code(&request(&reg, f(3.0))), ErrorCode::KeyMismatch);
+        let mut r = good.clone();
+        r.kind_version = 2;
+        assert_eq!(code(&r), ErrorCode::UnknownKind);
+        let mut r = good.clone();
+        r.kind = "nope".into();
+        assert_eq!(code(&r), ErrorCode::UnknownKind);
+        let mut r = good.clone();
+        r.params.insert(
+            "mask".into(),
+            crate::convert::value_to_pb(&Value::Str("/etc/passwd".into())),
+        );
+        assert_eq!(code(&r), ErrorCode::LocalOnly);
+        let mut r = good.clone();
+        r.params.insert("extra".into(), f(1.0));
+        assert_eq!(code(&r), ErrorCode::InvalidArgument);
+        let mut r = good.clone();
+        r.inputs.clear();
+        assert_eq!(code(&r), ErrorCode::InvalidArgument);
+        let mut r = good.clone();
+        r.action_key.truncate(5);
+        assert_eq!(code(&r), ErrorCode::InvalidArgument);
+    }
+}
