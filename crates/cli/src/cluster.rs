@@ -25,25 +25,8 @@ pub struct RemoteArgs {
     /// A file listing workers, one HOST:PORT per line (`#` comments).
     #[arg(long, value_name = "FILE")]
     pub workers_file: Option<PathBuf>,
-    /// A Remote Execution API cache server shared with the workers
-    /// (grpc://HOST:PORT or grpcs://HOST:PORT); overrides the pipeline's
-    /// `remote_cache:`.
-    #[arg(long, value_name = "ENDPOINT")]
-    pub remote_cache: Option<String>,
-    /// The REAPI instance name on the cache server.
-    #[arg(long, default_value = "")]
-    pub remote_instance: String,
-    /// The shared token (else $MATFLOW_TOKEN).
-    #[arg(long, value_name = "FILE")]
-    pub token_file: Option<PathBuf>,
-    /// CA bundle (PEM) to check grpcs:// workers and caches against.
-    #[arg(long, value_name = "PEM")]
-    pub tls_ca: Option<PathBuf>,
-    /// Client certificate and key (PEM), for servers that ask for one.
-    #[arg(long, value_name = "PEM")]
-    pub tls_cert: Option<PathBuf>,
-    #[arg(long, value_name = "PEM")]
-    pub tls_key: Option<PathBuf>,
+    #[command(flatten)]
+    pub store: StoreArgs,
     /// A worker silent this long (no heartbeat) loses its stage.
     #[arg(long, default_value_t = 10.0, value_name = "SECONDS")]
     pub heartbeat_timeout: f64,
@@ -58,11 +41,43 @@ pub struct RemoteArgs {
     pub slots: Option<u32>,
 }
 
-fn tls(ca: &Option<PathBuf>, cert: &Option<PathBuf>, key: &Option<PathBuf>) -> TlsFiles {
-    TlsFiles {
-        ca: ca.clone(),
-        cert: cert.clone(),
-        key: key.clone(),
+/// The store, token and TLS options `run` and `worker` share.
+#[derive(Args, Clone, Default)]
+pub struct StoreArgs {
+    /// A Remote Execution API cache server as the shared store
+    /// (grpc://HOST:PORT or grpcs://HOST:PORT). For `run` it overrides the
+    /// pipeline's `remote_cache:`; a worker without one uses the store each
+    /// submitter names.
+    #[arg(long, value_name = "ENDPOINT")]
+    pub remote_cache: Option<String>,
+    /// The REAPI instance name on the cache server.
+    #[arg(long, default_value = "")]
+    pub remote_instance: String,
+    /// The shared token (else $MATFLOW_TOKEN).
+    #[arg(long, value_name = "FILE")]
+    pub token_file: Option<PathBuf>,
+    /// CA bundle (PEM) to check grpcs:// endpoints against; a worker
+    /// serving TLS also requires client certificates signed by it.
+    #[arg(long, value_name = "PEM")]
+    pub tls_ca: Option<PathBuf>,
+    /// Certificate and key (PEM): a worker serves TLS with them; `run`
+    /// presents them to servers that ask for a client certificate.
+    #[arg(long, value_name = "PEM")]
+    pub tls_cert: Option<PathBuf>,
+    #[arg(long, value_name = "PEM")]
+    pub tls_key: Option<PathBuf>,
+}
+
+impl StoreArgs {
+    fn tls(&self) -> TlsFiles {
+        TlsFiles {
+            ca: self.tls_ca.clone(),
+            cert: self.tls_cert.clone(),
+            key: self.tls_key.clone(),
+        }
+    }
+    fn token(&self) -> Result<Option<Token>> {
+        Token::load(self.token_file.as_deref()).map_err(anyhow::Error::msg)
     }
 }
 
@@ -101,15 +116,16 @@ pub fn executor(
     reg: Arc<Registry>,
     parallel: usize,
 ) -> Result<(Arc<Tiered>, Box<dyn Executor>)> {
-    let token = Token::load(a.token_file.as_deref()).map_err(anyhow::Error::msg)?;
-    let files = tls(&a.tls_ca, &a.tls_cert, &a.tls_key);
+    let token = a.store.token()?;
+    let files = a.store.tls();
     let remote_ep = a
+        .store
         .remote_cache
         .clone()
         .or(pipeline_cache.map(str::to_string));
     let remote: Option<Arc<dyn StoreTier>> = match &remote_ep {
         Some(ep) => Some(Arc::new(
-            RemoteCas::connect(ep, &a.remote_instance, &files, token.clone())
+            RemoteCas::connect(ep, &a.store.remote_instance, &files, token.clone())
                 .map_err(anyhow::Error::msg)?,
         )),
         None => None,
@@ -125,7 +141,8 @@ pub fn executor(
     let Some(ep) = remote_ep else {
         bail!(
             "--workers needs a store the workers share with this run: give --remote-cache \
-             grpc://HOST:PORT (or `remote_cache:` in the pipeline), e.g. `matflow cache serve`"
+             grpc://HOST:PORT (or `remote_cache:` in the pipeline): any Remote Execution API \
+             cache server, e.g. buildbox-casd or bazel-remote (cluster/local/workers.sh starts one)"
         );
     };
     let secs = |s: f64, what: &str| -> Result<Duration> {
@@ -168,27 +185,11 @@ pub struct WorkerArgs {
     /// The worker's local cache folder (a tier in front of the store).
     #[arg(long)]
     pub cache: Option<PathBuf>,
-    /// The store (REAPI cache server) to use; default: the one each
-    /// submitter names.
-    #[arg(long, value_name = "ENDPOINT")]
-    pub remote_cache: Option<String>,
-    #[arg(long, default_value = "")]
-    pub remote_instance: String,
-    /// The shared token submitters must present (else $MATFLOW_TOKEN).
-    #[arg(long, value_name = "FILE")]
-    pub token_file: Option<PathBuf>,
+    #[command(flatten)]
+    pub store: StoreArgs,
     /// Serve without a token on a non-loopback address.
     #[arg(long)]
     pub insecure: bool,
-    /// Serve TLS with this certificate and key (PEM).
-    #[arg(long, value_name = "PEM")]
-    pub tls_cert: Option<PathBuf>,
-    #[arg(long, value_name = "PEM")]
-    pub tls_key: Option<PathBuf>,
-    /// CA bundle (PEM): for a grpcs:// store and, when serving TLS, to
-    /// require client certificates signed by it.
-    #[arg(long, value_name = "PEM")]
-    pub tls_ca: Option<PathBuf>,
     /// A name for reports (default: HOSTNAME:PORT).
     #[arg(long)]
     pub id: Option<String>,
@@ -201,7 +202,7 @@ pub fn worker(a: WorkerArgs, cache_dir: PathBuf) -> Result<()> {
             a.listen
         )
     })?;
-    let token = Token::load(a.token_file.as_deref()).map_err(anyhow::Error::msg)?;
+    let token = a.store.token()?;
     if token.is_none() && !addr.ip().is_loopback() && !a.insecure {
         bail!(
             "--listen {addr} is reachable from other machines: give a token (--token-file or \
@@ -215,8 +216,7 @@ pub fn worker(a: WorkerArgs, cache_dir: PathBuf) -> Result<()> {
             .build_global()
             .context("setting the worker's thread count")?;
     }
-    let server_tls = matflow_rpc::net::server_tls(&tls(&a.tls_ca, &a.tls_cert, &a.tls_key))
-        .map_err(anyhow::Error::msg)?;
+    let server_tls = matflow_rpc::net::server_tls(&a.store.tls()).map_err(anyhow::Error::msg)?;
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
@@ -236,9 +236,12 @@ pub fn worker(a: WorkerArgs, cache_dir: PathBuf) -> Result<()> {
                 id: id.clone(),
                 slots: a.slots.max(1),
                 cache_dir,
-                store: a.remote_cache.clone(),
-                instance: a.remote_instance.clone(),
-                store_tls: tls(&a.tls_ca, &None, &None),
+                store: a.store.remote_cache.clone(),
+                instance: a.store.remote_instance.clone(),
+                store_tls: TlsFiles {
+                    ca: a.store.tls_ca.clone(),
+                    ..TlsFiles::default()
+                },
                 store_token: token.clone(),
             },
         ));
@@ -254,7 +257,7 @@ pub fn worker(a: WorkerArgs, cache_dir: PathBuf) -> Result<()> {
             "matflow worker {id} listening on {bound} ({} slots, token {}, {})",
             a.slots.max(1),
             if token.is_some() { "required" } else { "off" },
-            if a.tls_cert.is_some() {
+            if a.store.tls_cert.is_some() {
                 "TLS"
             } else {
                 "plaintext"
