@@ -18,8 +18,9 @@ use matflow_rpc::worker::{NodeSvc, WorkerOptions};
 /// Options of `run` for running on workers and sharing a remote cache.
 #[derive(Args, Clone, Default)]
 pub struct RemoteArgs {
-    /// Workers to run stages on (HOST:PORT, comma-separated). Without
-    /// workers every stage runs in this process.
+    /// Workers to run stages on (HOST:PORT, comma-separated; dns:NAME:PORT
+    /// is one worker per address NAME resolves to, e.g. a Kubernetes
+    /// headless Service). Without workers every stage runs in this process.
     #[arg(long, value_delimiter = ',', value_name = "ADDR,ADDR,...")]
     pub workers: Vec<String>,
     /// A file listing workers, one HOST:PORT per line (`#` comments).
@@ -96,15 +97,43 @@ fn workers_from(a: &RemoteArgs) -> Result<Vec<String>> {
             if l.is_empty() {
                 continue;
             }
-            matflow_rpc::net::parse_endpoint(l)
-                .map_err(|e| anyhow::anyhow!("{}:{}: {e}", f.display(), i + 1))?;
+            if !l.starts_with("dns:") {
+                matflow_rpc::net::parse_endpoint(l)
+                    .map_err(|e| anyhow::anyhow!("{}:{}: {e}", f.display(), i + 1))?;
+            }
             ws.push(l.to_string());
         }
     }
-    for w in &ws {
-        matflow_rpc::net::parse_endpoint(w).map_err(|e| anyhow::anyhow!("--workers: {e}"))?;
+    let mut out = Vec::new();
+    for w in ws {
+        if let Some(name) = w.strip_prefix("dns:") {
+            out.extend(resolve_all(name)?);
+        } else {
+            matflow_rpc::net::parse_endpoint(&w).map_err(|e| anyhow::anyhow!("--workers: {e}"))?;
+            out.push(w);
+        }
     }
-    Ok(ws)
+    Ok(out)
+}
+
+/// `dns:NAME:PORT`: one worker per address the name resolves to (a
+/// Kubernetes headless Service lists its ready pods this way).
+fn resolve_all(name: &str) -> Result<Vec<String>> {
+    use std::net::ToSocketAddrs;
+    let (host, port) = name
+        .rsplit_once(':')
+        .filter(|(h, p)| !h.is_empty() && p.parse::<u16>().is_ok())
+        .with_context(|| format!("--workers dns:{name}: expected dns:NAME:PORT"))?;
+    let mut addrs: Vec<SocketAddr> = (host, port.parse::<u16>().unwrap_or(0))
+        .to_socket_addrs()
+        .with_context(|| format!("--workers dns:{name}: resolving {host}"))?
+        .collect();
+    addrs.sort();
+    addrs.dedup();
+    if addrs.is_empty() {
+        bail!("--workers dns:{name}: {host} resolves to no address (no worker ready yet?)");
+    }
+    Ok(addrs.iter().map(|a| a.to_string()).collect())
 }
 
 /// The store (local tier + the remote one, if any) and the executor for a
@@ -193,6 +222,14 @@ pub struct WorkerArgs {
     /// A name for reports (default: HOSTNAME:PORT).
     #[arg(long)]
     pub id: Option<String>,
+    /// The host name submitters reach this worker by (default: the
+    /// listening address, or $HOSTNAME when that is 0.0.0.0 or ::).
+    #[arg(long, value_name = "HOST")]
+    pub advertise: Option<String>,
+    /// Once listening, write the worker's address (HOST:PORT) to this file,
+    /// for launchers that collect a workers file (Slurm, the local one).
+    #[arg(long, value_name = "FILE")]
+    pub address_file: Option<PathBuf>,
 }
 
 pub fn worker(a: WorkerArgs, cache_dir: PathBuf) -> Result<()> {
@@ -226,10 +263,20 @@ pub fn worker(a: WorkerArgs, cache_dir: PathBuf) -> Result<()> {
             .await
             .with_context(|| format!("--listen {addr}"))?;
         let bound = listener.local_addr()?;
-        let host = std::env::var("HOSTNAME").unwrap_or_else(|_| bound.ip().to_string());
-        let id =
-            a.id.clone()
-                .unwrap_or_else(|| format!("{host}:{}", bound.port()));
+        let host = match &a.advertise {
+            Some(h) => h.clone(),
+            None if bound.ip().is_unspecified() => std::env::var("HOSTNAME")
+                .ok()
+                .filter(|h| !h.is_empty())
+                .unwrap_or_else(|| bound.ip().to_string()),
+            None => bound.ip().to_string(),
+        };
+        let reach = if host.contains(':') {
+            format!("[{host}]:{}", bound.port())
+        } else {
+            format!("{host}:{}", bound.port())
+        };
+        let id = a.id.clone().unwrap_or_else(|| reach.clone());
         let svc = Arc::new(NodeSvc::new(
             Arc::new(matflow_nodes::registry()),
             WorkerOptions {
@@ -265,6 +312,10 @@ pub fn worker(a: WorkerArgs, cache_dir: PathBuf) -> Result<()> {
         );
         use std::io::Write;
         std::io::stdout().flush()?;
+        if let Some(f) = &a.address_file {
+            matflow_scene::io::write_atomic(f, format!("{reach}\n").as_bytes())
+                .with_context(|| format!("--address-file {}", f.display()))?;
+        }
         let incoming = tokio_stream::wrappers::TcpListenerStream::new(listener);
         builder
             .add_service(service)

@@ -33,8 +33,36 @@ pub struct RunArgs {
     /// No progress bars.
     #[arg(long)]
     pub quiet: bool,
+    /// Split the pipeline's outputs into this many shards (one per job-array
+    /// task): with --shard I, run only outputs I, I+N, I+2N, … (in the
+    /// order `outputs:` lists them) and what they need. Shards sharing a
+    /// store share their common stages' results; a run without --shard then
+    /// finds every stage cached.
+    #[arg(long, value_name = "N", requires = "shard")]
+    pub shards: Option<usize>,
+    /// Which shard this run is (0-based; with --shards).
+    #[arg(long, value_name = "I", requires = "shards")]
+    pub shard: Option<usize>,
     #[command(flatten)]
     pub remote: crate::cluster::RemoteArgs,
+}
+
+/// Keeps outputs `shard`, `shard + shards`, … of the pipeline.
+pub fn select_shard(p: &mut spec::Pipeline, shards: usize, shard: usize) -> Result<()> {
+    if shards == 0 {
+        bail!("--shards 0: give at least 1");
+    }
+    if shard >= shards {
+        bail!("--shard {shard}: shards are numbered 0 to {}", shards - 1);
+    }
+    p.outputs = p
+        .outputs
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| i % shards == shard)
+        .map(|(_, o)| o.clone())
+        .collect();
+    Ok(())
 }
 
 #[derive(Subcommand)]
@@ -211,7 +239,16 @@ pub fn run(a: RunArgs) -> Result<()> {
         .collect::<std::result::Result<Vec<_>, String>>()
         .map_err(anyhow::Error::msg)?;
     // Everything is validated before the cache is even opened.
-    let p = spec::load(&a.pipeline, &reg, &overrides).map_err(anyhow::Error::msg)?;
+    let mut p = spec::load(&a.pipeline, &reg, &overrides).map_err(anyhow::Error::msg)?;
+    if let (Some(n), Some(i)) = (a.shards, a.shard) {
+        select_shard(&mut p, n, i)?;
+        if p.outputs.is_empty() {
+            println!(
+                "{}: shard {i} of {n} has no outputs (the pipeline lists fewer than {n})",
+                a.pipeline.display()
+            );
+        }
+    }
     let dir = cache_dir(a.cache.as_deref());
     let reg = Arc::new(reg);
     let (store, exec) = crate::cluster::executor(
