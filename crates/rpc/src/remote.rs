@@ -12,8 +12,8 @@
 //! failure that is the stage's own (the node failed, a bad parameter)
 //! ends the stage at once with the worker's message.
 
-use std::collections::VecDeque;
-use std::sync::atomic::{AtomicU32, Ordering};
+use std::cmp::Reverse;
+use std::collections::{BTreeSet, BinaryHeap, VecDeque};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -23,8 +23,8 @@ use tonic::transport::Channel;
 
 use matflow_engine::store::Action;
 use matflow_engine::{
-    Done, Event, Executor, Failure, Job, LocalExecutor, Registry, Sink, Status as StageStatus,
-    Tiered,
+    execute_job, Done, Event, Executor, Failure, Job, LocalExecutor, Registry, Sink,
+    Status as StageStatus, Tiered,
 };
 
 use crate::auth::{AddToken, Token};
@@ -71,28 +71,115 @@ impl Default for RemoteOptions {
     }
 }
 
-struct Worker {
-    addr: String,
-    client: Client,
-    slots: u32,
-    busy: AtomicU32,
-    /// Not used until then (after a failure), and the back-off to apply
-    /// after the next one.
-    down: Mutex<(Option<Instant>, Duration)>,
+/// How stages reach a worker.
+enum Conn {
+    /// A `matflow worker` over the node service.
+    Grpc(Client),
+    /// A worker inside this process with its own store tiers: the
+    /// scheduler benchmark's simulated workers (everything but the wire).
+    InProcess(Arc<Tiered>),
 }
 
-impl Worker {
-    fn usable(&self, now: Instant) -> bool {
-        self.down.lock().unwrap().0.is_none_or(|t| t <= now)
+struct Worker {
+    addr: String,
+    conn: Conn,
+    slots: u32,
+    /// The pause after its next failure (doubling to 30 s; reset by a
+    /// success).
+    backoff: Mutex<Duration>,
+}
+
+const FIRST_BACKOFF: Duration = Duration::from_millis(500);
+
+/// Free slots of every worker, kept in placement order: the usable worker
+/// with the most free slots (lowest index on ties) is found in O(log W),
+/// and so are the updates, so dispatch cost does not grow with the pool.
+pub(crate) struct Slots {
+    free: Vec<u32>,
+    /// Usable workers with a free slot, as (free, Reverse(index)).
+    ready: BTreeSet<(u32, Reverse<usize>)>,
+    /// Backed off until then, after a failure.
+    down_until: Vec<Option<Instant>>,
+    revivals: BinaryHeap<Reverse<(Instant, usize)>>,
+}
+
+impl Slots {
+    pub(crate) fn new(caps: &[u32]) -> Slots {
+        Slots {
+            free: caps.to_vec(),
+            ready: caps
+                .iter()
+                .enumerate()
+                .filter(|(_, &c)| c > 0)
+                .map(|(i, &c)| (c, Reverse(i)))
+                .collect(),
+            down_until: vec![None; caps.len()],
+            revivals: BinaryHeap::new(),
+        }
     }
-    fn failed(&self) {
-        let mut d = self.down.lock().unwrap();
-        d.0 = Some(Instant::now() + d.1);
-        d.1 = (d.1 * 2).min(Duration::from_secs(30));
+
+    fn unlist(&mut self, i: usize) {
+        self.ready.remove(&(self.free[i], Reverse(i)));
     }
-    fn succeeded(&self) {
-        *self.down.lock().unwrap() = (None, Duration::from_millis(500));
+
+    fn list(&mut self, i: usize) {
+        if self.down_until[i].is_none() && self.free[i] > 0 {
+            self.ready.insert((self.free[i], Reverse(i)));
+        }
     }
+
+    /// Workers whose back-off has ended become usable again.
+    fn revive(&mut self, now: Instant) {
+        while let Some(Reverse((t, i))) = self.revivals.peek().copied() {
+            if t > now {
+                break;
+            }
+            self.revivals.pop();
+            if self.down_until[i] == Some(t) {
+                self.down_until[i] = None;
+                self.list(i);
+            }
+        }
+    }
+
+    /// Takes a slot on the usable worker with the most free slots,
+    /// preferring any other worker to `avoid` (where the stage last
+    /// failed) when one is free.
+    pub(crate) fn take(&mut self, avoid: Option<usize>, now: Instant) -> Option<usize> {
+        self.revive(now);
+        let mut best = self.ready.iter().rev();
+        let first = *best.next()?;
+        let pick = if Some(first.1 .0) == avoid {
+            best.next().copied().unwrap_or(first)
+        } else {
+            first
+        };
+        let i = pick.1 .0;
+        self.unlist(i);
+        self.free[i] -= 1;
+        self.list(i);
+        Some(i)
+    }
+
+    /// Gives a slot back.
+    pub(crate) fn release(&mut self, i: usize) {
+        self.unlist(i);
+        self.free[i] += 1;
+        self.list(i);
+    }
+
+    /// Leaves worker `i` out until `until`.
+    pub(crate) fn back_off(&mut self, i: usize, until: Instant) {
+        self.unlist(i);
+        self.down_until[i] = Some(until);
+        self.revivals.push(Reverse((until, i)));
+    }
+}
+
+/// The ready queue and the slots, under one lock.
+struct Sched {
+    queue: VecDeque<Queued>,
+    slots: Slots,
 }
 
 struct Queued {
@@ -108,7 +195,7 @@ struct Inner {
     store: Arc<Tiered>,
     reg: Arc<Registry>,
     opts: RemoteOptions,
-    queue: Mutex<VecDeque<Queued>>,
+    sched: Mutex<Sched>,
     notify: Notify,
 }
 
@@ -183,10 +270,9 @@ impl RemoteExecutor {
             };
             workers.push(Arc::new(Worker {
                 addr: a.clone(),
-                client,
+                conn: Conn::Grpc(client),
                 slots,
-                busy: AtomicU32::new(0),
-                down: Mutex::new((None, Duration::from_millis(500))),
+                backoff: Mutex::new(FIRST_BACKOFF),
             }));
         }
         if workers.is_empty() {
@@ -198,25 +284,66 @@ impl RemoteExecutor {
         for u in &unreachable {
             tracing::warn!("worker {u} left out of this run");
         }
+        Ok((
+            RemoteExecutor::start(rt, workers, reg, store, local_threads, opts),
+            infos,
+        ))
+    }
+
+    /// The same scheduler with `workers` simulated workers of `slots`
+    /// slots each, inside this process: each runs its stages with
+    /// [`execute_job`] on `worker_store` (its tiers in front of the store
+    /// shared with `store`), so everything but the network is real. For
+    /// measuring the scheduler (`matflow bench pipeline`).
+    pub fn simulated(
+        workers: usize,
+        slots: u32,
+        reg: Arc<Registry>,
+        store: Arc<Tiered>,
+        worker_store: Arc<Tiered>,
+    ) -> RemoteExecutor {
+        let rt = OwnRuntime::new(2, "matflow-dispatch");
+        let ws = (0..workers)
+            .map(|i| {
+                Arc::new(Worker {
+                    addr: format!("sim-{i}"),
+                    conn: Conn::InProcess(worker_store.clone()),
+                    slots: slots.max(1),
+                    backoff: Mutex::new(FIRST_BACKOFF),
+                })
+            })
+            .collect();
+        RemoteExecutor::start(rt, ws, reg, store, 1, RemoteOptions::default())
+    }
+
+    fn start(
+        rt: OwnRuntime,
+        workers: Vec<Arc<Worker>>,
+        reg: Arc<Registry>,
+        store: Arc<Tiered>,
+        local_threads: usize,
+        opts: RemoteOptions,
+    ) -> RemoteExecutor {
+        let caps: Vec<u32> = workers.iter().map(|w| w.slots).collect();
         let inner = Arc::new(Inner {
             workers,
             store: store.clone(),
             reg: reg.clone(),
             opts,
-            queue: Mutex::new(VecDeque::new()),
+            sched: Mutex::new(Sched {
+                queue: VecDeque::new(),
+                slots: Slots::new(&caps),
+            }),
             notify: Notify::new(),
         });
         let i2 = inner.clone();
         rt.get().spawn(async move { dispatcher(i2).await });
         let local = LocalExecutor::new(reg, store, local_threads);
-        Ok((
-            RemoteExecutor {
-                inner,
-                local,
-                _rt: rt,
-            },
-            infos,
-        ))
+        RemoteExecutor {
+            inner,
+            local,
+            _rt: rt,
+        }
     }
 }
 
@@ -250,7 +377,7 @@ impl Executor for RemoteExecutor {
         if job.local_only {
             return self.local.submit(job, sink);
         }
-        self.inner.queue.lock().unwrap().push_back(Queued {
+        self.inner.sched.lock().unwrap().queue.push_back(Queued {
             job,
             sink,
             attempts: 0,
@@ -270,32 +397,14 @@ impl Executor for RemoteExecutor {
     }
 }
 
-/// Picks the next (job, worker): the usable worker with the most free
-/// slots, avoiding the one a job last failed on when another is free.
+/// Picks the next (job, worker): the queue's first job on the usable
+/// worker with the most free slots, avoiding the one the job last failed
+/// on when another is free.
 fn pick(inner: &Inner) -> Option<(Queued, usize)> {
-    let now = Instant::now();
-    let mut q = inner.queue.lock().unwrap();
-    if q.is_empty() {
-        return None;
-    }
-    let free = |i: usize| {
-        let w = &inner.workers[i];
-        if !w.usable(now) {
-            return 0;
-        }
-        w.slots.saturating_sub(w.busy.load(Ordering::Relaxed))
-    };
-    for qi in 0..q.len() {
-        let avoid = q[qi].avoid;
-        let best = (0..inner.workers.len())
-            .filter(|&i| free(i) > 0)
-            .max_by_key(|&i| (Some(i) != avoid, free(i), std::cmp::Reverse(i)));
-        if let Some(w) = best {
-            inner.workers[w].busy.fetch_add(1, Ordering::Relaxed);
-            return q.remove(qi).map(|j| (j, w));
-        }
-    }
-    None
+    let mut s = inner.sched.lock().unwrap();
+    let avoid = s.queue.front()?.avoid;
+    let w = s.slots.take(avoid, Instant::now())?;
+    s.queue.pop_front().map(|q| (q, w))
 }
 
 async fn dispatcher(inner: Arc<Inner>) {
@@ -330,11 +439,21 @@ enum Outcome {
 async fn attempt(inner: Arc<Inner>, wi: usize, mut q: Queued) {
     let w = inner.workers[wi].clone();
     let outcome = try_once(&inner, &w, &q).await;
-    w.busy.fetch_sub(1, Ordering::Relaxed);
+    {
+        let mut s = inner.sched.lock().unwrap();
+        s.slots.release(wi);
+        let mut b = w.backoff.lock().unwrap();
+        if matches!(outcome, Outcome::Retry(_)) {
+            s.slots.back_off(wi, Instant::now() + *b);
+            *b = (*b * 2).min(Duration::from_secs(30));
+        } else {
+            *b = FIRST_BACKOFF;
+        }
+    }
+    inner.notify.notify_one();
     let stage = q.job.stage.clone();
     match outcome {
         Outcome::Done(done, outs, seconds) => {
-            w.succeeded();
             // Remember the entry here too, so the next run's lookup is
             // answered without a worker.
             let store = inner.store.clone();
@@ -363,14 +482,12 @@ async fn attempt(inner: Arc<Inner>, wi: usize, mut q: Queued) {
             });
         }
         Outcome::Final(f) => {
-            w.succeeded();
             (q.sink)(Event::Finished {
                 stage,
                 result: Err(f),
             });
         }
         Outcome::Retry(reason) => {
-            w.failed();
             q.attempts += 1;
             let reason = format!("attempt {} on {}: {reason}", q.attempts, w.addr);
             q.reasons.push(reason.clone());
@@ -386,7 +503,7 @@ async fn attempt(inner: Arc<Inner>, wi: usize, mut q: Queued) {
             } else {
                 (q.sink)(Event::Retry { stage, reason });
                 q.avoid = Some(wi);
-                inner.queue.lock().unwrap().push_front(q);
+                inner.sched.lock().unwrap().queue.push_front(q);
                 inner.notify.notify_one();
             }
         }
@@ -459,10 +576,14 @@ async fn try_once(inner: &Arc<Inner>, w: &Arc<Worker>, q: &Queued) -> Outcome {
     if !missing.is_empty() {
         return Outcome::Final(Failure::InputsMissing(missing));
     }
+    let client = match &w.conn {
+        Conn::Grpc(c) => c,
+        Conn::InProcess(ws) => return in_process(inner, w, ws.clone(), q).await,
+    };
     let t0 = Instant::now();
     let deadline = inner.opts.stage_timeout.map(|d| t0 + d);
     let hb = inner.opts.heartbeat_timeout;
-    let mut client = w.client.clone();
+    let mut client = client.clone();
     let call = tokio::time::timeout(hb, client.execute(req)).await;
     let mut stream = match call {
         Err(_) => return Outcome::Retry(format!("no answer within {:.1} s", hb.as_secs_f64())),
@@ -546,5 +667,108 @@ async fn try_once(inner: &Arc<Inner>, w: &Arc<Worker>, q: &Queued) -> Outcome {
                 };
             }
         }
+    }
+}
+
+/// A simulated worker's attempt: the stage runs here, through the same
+/// `execute_job` a `matflow worker` runs, on the worker's own tiers.
+async fn in_process(inner: &Arc<Inner>, w: &Arc<Worker>, ws: Arc<Tiered>, q: &Queued) -> Outcome {
+    (q.sink)(Event::Started {
+        stage: q.job.stage.clone(),
+        worker: w.addr.clone(),
+    });
+    let (reg, job, id) = (inner.reg.clone(), q.job.clone(), w.addr.clone());
+    let t0 = Instant::now();
+    let r = tokio::task::spawn_blocking(move || {
+        let r = execute_job(&reg, &ws, &job, &id, &|_, _| {});
+        r.map(|done| {
+            let outs = done
+                .outputs
+                .iter()
+                .map(|(n, d)| (n.clone(), *d, ws.cas_ref(d)))
+                .collect::<Vec<_>>();
+            (done, outs)
+        })
+    })
+    .await;
+    match r {
+        Ok(Ok((done, outs))) => Outcome::Done(done, outs, t0.elapsed().as_secs_f64()),
+        Ok(Err(Failure::Infra(m))) => Outcome::Retry(m),
+        Ok(Err(f)) => Outcome::Final(f),
+        Err(e) => Outcome::Retry(format!("the worker's task failed: {e}")),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The placement rule, stated the slow way.
+    fn brute(free: &[u32], down: &[bool], avoid: Option<usize>) -> Option<usize> {
+        (0..free.len())
+            .filter(|&i| free[i] > 0 && !down[i])
+            .max_by_key(|&i| (Some(i) != avoid, free[i], Reverse(i)))
+    }
+
+    #[test]
+    fn slots_place_like_the_rule_under_random_traffic() {
+        let caps = [3u32, 1, 2, 2, 4, 1, 3];
+        let mut s = Slots::new(&caps);
+        let mut free = caps.to_vec();
+        let mut down = vec![false; caps.len()];
+        let mut held: Vec<usize> = Vec::new();
+        let t0 = Instant::now();
+        let mut x = 0x9e3779b97f4a7c15u64;
+        for step in 0..5000u64 {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            let now = t0 + Duration::from_millis(step);
+            match x % 5 {
+                0..=2 => {
+                    let avoid = (x >> 8) as usize % (caps.len() + 1);
+                    let avoid = (avoid < caps.len()).then_some(avoid);
+                    // Revive exactly as the structure does: back-offs here
+                    // end 3 ms after they start.
+                    for (i, d) in down.iter_mut().enumerate() {
+                        if *d && s.down_until[i].is_some_and(|t| t <= now) {
+                            *d = false;
+                        }
+                    }
+                    let want = brute(&free, &down, avoid);
+                    let got = s.take(avoid, now);
+                    assert_eq!(got, want, "step {step}");
+                    if let Some(i) = got {
+                        free[i] -= 1;
+                        held.push(i);
+                    }
+                }
+                3 if !held.is_empty() => {
+                    let i = held.swap_remove((x >> 8) as usize % held.len());
+                    s.release(i);
+                    free[i] += 1;
+                }
+                4 if !held.is_empty() => {
+                    let i = held.swap_remove((x >> 8) as usize % held.len());
+                    s.release(i);
+                    free[i] += 1;
+                    if !down[i] {
+                        s.back_off(i, now + Duration::from_millis(3));
+                        down[i] = true;
+                    }
+                }
+                _ => {}
+            }
+        }
+    }
+
+    #[test]
+    fn a_backed_off_worker_returns_when_its_time_comes() {
+        let mut s = Slots::new(&[1, 1]);
+        let t = Instant::now();
+        s.back_off(0, t + Duration::from_secs(1));
+        assert_eq!(s.take(None, t), Some(1));
+        assert_eq!(s.take(None, t), None, "worker 0 is backed off");
+        assert_eq!(s.take(None, t + Duration::from_secs(1)), Some(0));
     }
 }
