@@ -7,7 +7,8 @@
 //! loses the stage to another and the retry is in the report; a wrong
 //! token is refused before anything runs; a blob the store serves
 //! corrupt is detected and recomputed; two fresh local caches share one
-//! remote.
+//! remote; a submitter killed mid-run and restarted finishes from what the
+//! store holds.
 
 mod support;
 
@@ -355,4 +356,67 @@ fn a_corrupt_blob_served_by_the_remote_store_is_detected_and_recomputed() {
         stage(&second, "relit")["outputs"],
         stage(&first, "relit")["outputs"]
     );
+}
+
+#[test]
+fn a_submitter_killed_mid_run_and_restarted_finishes_from_the_store() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let casd = Casd::start(&d.join("casd"));
+    let w = Worker::start(&bin(), &d.join("w"), &[], &[]);
+    let (out, local) = run(d, "local", &["--cache", s(&d.join("c0"))], &[]);
+    ok(&out);
+    let local = local.unwrap();
+    let cache = d.join("c1");
+    let remote = [
+        "--cache",
+        s(&cache),
+        "--workers",
+        &w.addr,
+        "--remote-cache",
+        &casd.endpoint,
+    ];
+    // The first submitter dies (SIGKILL) once the worker is on the
+    // material recovery, with scene, mesh and lighting done.
+    let set_e = format!("edited.output={}", s(&d.join("killed-edited.exr")));
+    let set_r = format!("relit.output={}", s(&d.join("killed-relit.exr")));
+    let mut first = Command::new(bin())
+        .args([
+            "run",
+            s(&demo()),
+            "--quiet",
+            "--set",
+            &set_e,
+            "--set",
+            &set_r,
+        ])
+        .args(SMALL)
+        .args(remote)
+        .env_remove("MATFLOW_TOKEN")
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    assert!(
+        w.wait_for("start recovered", Duration::from_secs(120)),
+        "the worker never started `recovered`"
+    );
+    first.kill().unwrap();
+    first.wait().unwrap();
+    // The restarted run finds what the store holds and finishes.
+    let (out, again) = run(d, "again", &remote, &[]);
+    ok(&out);
+    let again = again.unwrap();
+    let status = field(&again, "status");
+    for st in ["scene", "mesh", "lighting"] {
+        assert_eq!(status[st], "cached", "{st} was redone after the restart");
+    }
+    assert_eq!(field(&local, "outputs"), field(&again, "outputs"));
+    for f in ["edited.exr", "relit.exr"] {
+        assert_eq!(
+            std::fs::read(d.join(format!("local-{f}"))).unwrap(),
+            std::fs::read(d.join(format!("again-{f}"))).unwrap(),
+            "{f} differs"
+        );
+    }
 }
