@@ -138,9 +138,12 @@ impl Tiered {
     /// this a miss); blobs only the remote tier holds are checked for
     /// presence and re-hashed when read.
     pub fn lookup(&self, key: &Digest) -> Result<Option<BTreeMap<String, Digest>>, StoreError> {
+        // An entry without outputs (or with malformed ones) was not written
+        // by a finished stage: a miss, never an empty result.
+        let usable = |a: &Action| a.digests().filter(|ds| !ds.is_empty());
         if let Some(a) = self.local.get_action(key) {
-            let ds = a.digests().unwrap_or_default();
-            let mut intact = true;
+            let ds = usable(&a).unwrap_or_default();
+            let mut intact = !ds.is_empty();
             for d in ds.values() {
                 if self.memo.lock().unwrap().blobs.contains_key(d) {
                     continue;
@@ -167,7 +170,7 @@ impl Tiered {
         let Some(a) = r.get_action(key)? else {
             return Ok(None);
         };
-        let Some(ds) = a.digests() else {
+        let Some(ds) = usable(&a) else {
             return Ok(None);
         };
         let all: Vec<Digest> = ds.values().copied().collect();
@@ -352,5 +355,33 @@ mod tests {
         std::fs::write(t.local().blob_path(&d), b"abd").unwrap();
         assert!(t.lookup(&key).unwrap().is_none());
         assert!(t.local().get_action(&key).is_none(), "entry removed");
+    }
+
+    #[test]
+    fn an_entry_without_outputs_is_a_miss_in_either_tier() {
+        let dir = tempfile::tempdir().unwrap();
+        let remote: Arc<dyn StoreTier> =
+            Arc::new(Other(Store::open(dir.path().join("r")).unwrap()));
+        let t = Tiered::new(
+            Store::open(dir.path().join("a")).unwrap(),
+            Some(remote.clone()),
+        );
+        let key = Digest::of(b"key");
+        let mut empty = action(Digest::of(b"x"));
+        empty.outputs.clear();
+        remote.put_action(&key, &empty).unwrap();
+        assert!(
+            t.lookup(&key).unwrap().is_none(),
+            "remote entry without outputs"
+        );
+        t.local().put_action(&key, &empty).unwrap();
+        assert!(
+            t.lookup(&key).unwrap().is_none(),
+            "local entry without outputs"
+        );
+        let mut bad = action(Digest::of(b"x"));
+        bad.outputs.insert("o".into(), "not hex".into());
+        t.local().put_action(&key, &bad).unwrap();
+        assert!(t.lookup(&key).unwrap().is_none(), "malformed digest");
     }
 }

@@ -523,8 +523,24 @@ impl ActionCache for RemoteCas {
             Err(s) if s.code() == tonic::Code::NotFound => return Ok(None),
             Err(s) => return Err(self.err("GetActionResult", &s)),
         };
-        // Every output must name its BLAKE3 digest; anything else is an
-        // entry matflow did not write: a miss.
+        // Every output must name its BLAKE3 digest, and matflow's entries
+        // have outputs and its ActionInfo; anything else is an entry
+        // matflow did not write: a miss.
+        let has_info = ar.execution_metadata.as_ref().is_some_and(|m| {
+            m.auxiliary_metadata
+                .iter()
+                .any(|a| a.type_url == ACTION_INFO_URL)
+        });
+        if ar.output_files.is_empty() || !has_info {
+            tracing::warn!(
+                "{}: action entry {} is not matflow's ({} outputs, ActionInfo {}): a miss",
+                self.endpoint,
+                key.hex(),
+                ar.output_files.len(),
+                if has_info { "present" } else { "absent" }
+            );
+            return Ok(None);
+        }
         let mut outputs = BTreeMap::new();
         let mut learnt = Vec::new();
         for f in &ar.output_files {

@@ -99,3 +99,26 @@ fn two_fresh_local_caches_share_one_remote() {
     assert_eq!(back, act);
     assert!(r.get_action(&Digest::of(b"other")).unwrap().is_none());
 }
+
+#[test]
+fn a_fresh_server_answers_every_lookup_with_a_miss() {
+    let dir = tempfile::tempdir().unwrap();
+    let casd = support::Casd::start(&dir.path().join("casd"));
+    let r = Arc::new(connect(&casd.endpoint));
+    // Many lookups at once, as a scheduler's first wave makes them.
+    let hs: Vec<_> = (0..8)
+        .map(|t| {
+            let r = r.clone();
+            std::thread::spawn(move || {
+                for i in 0..50 {
+                    let key = Digest::of(format!("key {t} {i}").as_bytes());
+                    let got = r.get_action(&key).unwrap();
+                    assert!(got.is_none(), "fresh server answered {got:?} for {key:?}");
+                }
+            })
+        })
+        .collect();
+    for h in hs {
+        h.join().unwrap();
+    }
+}
