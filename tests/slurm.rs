@@ -76,6 +76,7 @@ impl Testbed {
             dir: dir.to_path_buf(),
             conf: dir.join("slurm.conf"),
         };
+        std::fs::create_dir_all(dir.join("tmp")).unwrap();
         assert!(
             out.status.success(),
             "testbed.sh start failed: {}{}",
@@ -90,8 +91,10 @@ impl Testbed {
         c.env("SLURM_CONF", &self.conf)
             .env("MATFLOW_BIN", bin())
             .env("MATFLOW_CASD", support::casd_binary())
+            .env("TMPDIR", self.dir.join("tmp"))
             .env_remove("MATFLOW_TOKEN")
-            .env_remove("MATFLOW_REMOTE_CACHE");
+            .env_remove("MATFLOW_REMOTE_CACHE")
+            .env_remove("MATFLOW_WORKER_CACHE");
         c
     }
 
