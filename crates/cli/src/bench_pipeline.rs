@@ -59,7 +59,7 @@ pub struct BenchPipelineArgs {
     pub skip_incremental: bool,
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
+pub(crate) fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(|a, b| a.total_cmp(b));
     v[v.len() / 2]
 }
@@ -72,19 +72,7 @@ pub fn bench_pipeline(a: BenchPipelineArgs) -> Result<()> {
     }
     std::fs::create_dir_all(&a.work)?;
     let cache = a.work.join("cache");
-    let scale = a.size as f64 / 256.0;
-    let base: Vec<String> = vec![
-        format!("scene.size={}", a.size),
-        format!("base.spp={}", a.spp),
-        format!("relit.spp={}", a.spp),
-        format!(
-            "shiny.mask_flood=[{}, {}]",
-            (205.0 * scale).round(),
-            (185.0 * scale).round()
-        ),
-        format!("edited.output={}", a.work.join("edited.exr").display()),
-        format!("relit.output={}", a.work.join("relit.exr").display()),
-    ];
+    let base = demo_sets(a.size, a.spp, &a.work);
     let run_file = |file: &std::path::Path, extra: &[String]| -> Result<(f64, String)> {
         let mut c = Command::new(&exe);
         c.arg("run")

@@ -670,6 +670,42 @@ async fn try_once(inner: &Arc<Inner>, w: &Arc<Worker>, q: &Queued) -> Outcome {
     }
 }
 
+/// Where stage `(layer, j)` of [`layered_pipeline`] takes its second
+/// input from in the layer before.
+pub fn layered_second_input(j: usize, width: usize) -> usize {
+    (j * 7 + 3) % width.max(1)
+}
+
+/// A pipeline file of `layers × width` stages of node kind `kind` (with an
+/// integer parameter `i` and optional references `a`, `b`), each stage past
+/// the first layer reading two of the layer before: the scheduler
+/// benchmark's and tests' workload. Stage `(l, j)` is `s{l}_{j}`; the last
+/// layer is the output.
+pub fn layered_pipeline(kind: &str, layers: usize, width: usize) -> String {
+    let mut y = String::from("pipeline: layered\noutputs: [");
+    y += &(0..width)
+        .map(|j| format!("s{}_{j}", layers.max(1) - 1))
+        .collect::<Vec<_>>()
+        .join(", ");
+    y += "]\nstages:\n";
+    for l in 0..layers {
+        for j in 0..width {
+            let i = l * width + j;
+            if l == 0 {
+                y += &format!("  s0_{j}: {{kind: {kind}, i: {i}}}\n");
+            } else {
+                y += &format!(
+                    "  s{l}_{j}: {{kind: {kind}, i: {i}, a: s{}_{j}, b: s{}_{}}}\n",
+                    l - 1,
+                    l - 1,
+                    layered_second_input(j, width)
+                );
+            }
+        }
+    }
+    y
+}
+
 /// A simulated worker's attempt: the stage runs here, through the same
 /// `execute_job` a `matflow worker` runs, on the worker's own tiers.
 async fn in_process(inner: &Arc<Inner>, w: &Arc<Worker>, ws: Arc<Tiered>, q: &Queued) -> Outcome {

@@ -11,7 +11,7 @@ use matflow_engine::{
     run_pipeline, LocalExecutor, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, Registry,
     RunContext, Status, Store, StoreTier, Tiered,
 };
-use matflow_rpc::remote::RemoteExecutor;
+use matflow_rpc::remote::{layered_pipeline, layered_second_input, RemoteExecutor};
 
 /// Concatenates its index and inputs; records the order stages ran in.
 struct Chain(Arc<Mutex<Vec<i64>>>);
@@ -71,29 +71,8 @@ impl matflow_engine::Node for Chain {
 }
 
 fn pipeline_file(dir: &std::path::Path, layers: usize, width: usize) -> std::path::PathBuf {
-    let mut y = String::from("pipeline: sched\noutputs: [");
-    y += &(0..width)
-        .map(|j| format!("s{}_{j}", layers - 1))
-        .collect::<Vec<_>>()
-        .join(", ");
-    y += "]\nstages:\n";
-    for l in 0..layers {
-        for j in 0..width {
-            let i = l * width + j;
-            if l == 0 {
-                y += &format!("  s0_{j}: {{kind: chain, i: {i}}}\n");
-            } else {
-                y += &format!(
-                    "  s{l}_{j}: {{kind: chain, i: {i}, a: s{}_{j}, b: s{}_{}}}\n",
-                    l - 1,
-                    l - 1,
-                    (j * 5 + 1) % width
-                );
-            }
-        }
-    }
     let f = dir.join("p.yaml");
-    std::fs::write(&f, y).unwrap();
+    std::fs::write(&f, layered_pipeline("chain", layers, width)).unwrap();
     f
 }
 
@@ -154,7 +133,7 @@ fn many_simulated_workers_compute_what_a_local_run_computes() {
         for j in 0..width {
             let i = (l * width + j) as i64;
             let a = ((l - 1) * width + j) as i64;
-            let b = ((l - 1) * width + (j * 5 + 1) % width) as i64;
+            let b = ((l - 1) * width + layered_second_input(j, width)) as i64;
             assert!(
                 pos[&a] < pos[&i] && pos[&b] < pos[&i],
                 "stage {i} before its inputs"
