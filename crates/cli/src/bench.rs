@@ -49,6 +49,10 @@ pub struct BenchRenderArgs {
     /// with the reference-compatible sampling frame.
     #[arg(long)]
     pub reference_compat: bool,
+    /// Only write the scene as rendered (mesh, envmap, material maps,
+    /// camera) to this folder for `bench/mitsuba_render.py`, then stop.
+    #[arg(long)]
+    pub export: Option<PathBuf>,
 }
 
 pub fn run(b: BenchCmd) -> Result<()> {
@@ -144,6 +148,13 @@ fn bench_render(a: BenchRenderArgs) -> Result<()> {
             Some((p + n * 1e-5 * (1.0 + p.abs().max_element()), l))
         })
         .collect();
+    if let Some(dir) = &a.export {
+        crate::bench_mitsuba::export_scene(scene, dir)?;
+        crate::bench_mitsuba::write_rays(&dir.join("primary.rays"), &primary)?;
+        crate::bench_mitsuba::write_rays(&dir.join("incoherent.rays"), &incoherent)?;
+        println!("wrote {}", dir.display());
+        return Ok(());
+    }
     let time_rays = |rays: &[(Vec3, Vec3)], occl: bool| -> f64 {
         median(
             (0..runs)

@@ -3,6 +3,7 @@
 mod bench;
 mod bench_distributed;
 mod bench_invert;
+mod bench_mitsuba;
 mod bench_pipeline;
 mod bench_synthetic;
 mod cluster;

@@ -1,22 +1,30 @@
 //! Bounding volume hierarchy over a triangle mesh and the two ray queries the
 //! renderer needs: closest hit and occlusion.
 //!
-//! Built with `obvhs`' BVH2 (PLOC + reinsertion). Its CWBVH layout is not
-//! used: it misses hits on axis-aligned planar geometry (see
-//! DEPENDENCIES.md), and depth meshes of rooms are full of such planes.
-//! Occlusion uses `ray_traverse_miss` (early exit on the first hit), not
-//! `ray_traverse_anyhit`, which visits every hit.
+//! The topology comes from `obvhs`' BVH2 builder (PLOC + reinsertion, leaves
+//! of at most four triangles); it is then collapsed into a 4-wide BVH whose
+//! nodes hold their children's boxes as structure-of-arrays, so one ray is
+//! tested against four boxes at once, and each leaf holds up to four
+//! triangles, tested at once (Embree's BVH4 + Triangle4 layout). Boxes are
+//! stored uncompressed in f32: `obvhs`' CWBVH, which quantises child boxes
+//! to 8 bits, misses hits on axis-aligned planar geometry (DEPENDENCIES.md),
+//! and depth meshes of rooms are full of such planes; zero-thickness boxes
+//! are exact here, and the far distance of each slab test is widened by
+//! 2γ₃ (pbrt's conservative box test) so rounding never drops a box.
 //!
-//! Triangles are stored in BVH leaf order with precomputed edges; the
-//! intersection test is Möller–Trumbore with a small barycentric tolerance so
-//! rays through shared edges of the grid mesh never slip between triangles.
+//! The triangle test is Möller–Trumbore with a small barycentric tolerance
+//! so rays through shared edges of the grid mesh never slip between
+//! triangles. Each lane evaluates exactly the scalar formula of
+//! [`intersect_tri`] (same operations in the same order, no fused
+//! multiply-add), so the wide test and the brute-force oracle agree bit for
+//! bit. Closest hits at equal t go to the lower original triangle index, so
+//! the answer does not depend on traversal order.
 
 use std::time::Duration;
 
-use glam::{Vec3, Vec3A};
+use glam::{BVec4A, Vec3, Vec4};
 use obvhs::bvh2::builder::build_bvh2_from_tris;
 use obvhs::bvh2::Bvh2;
-use obvhs::ray::{Ray, RayHit};
 use obvhs::triangle::Triangle;
 use obvhs::BvhBuildParams;
 
@@ -25,12 +33,13 @@ use crate::mesh::TriMesh;
 /// Barycentric tolerance (relative, so independent of scale).
 const BARY_EPS: f32 = 1e-4;
 
-#[derive(Clone, Copy, Debug)]
-struct PrecompTri {
-    v0: Vec3A,
-    e1: Vec3A,
-    e2: Vec3A,
-}
+/// 1 + 2γ₃ (pbrt-v4's bound on the rounding of the slab test).
+const SLAB_WIDEN: f32 = 1.0 + 2.0 * (3.0 * f32::EPSILON * 0.5) / (1.0 - 3.0 * f32::EPSILON * 0.5);
+
+/// Deepest traversal stack: a 4-wide tree of 2³² triangles is far shallower,
+/// but the builder does not bound depth, so the stack grows on the heap past
+/// this (never in practice).
+const STACK: usize = 128;
 
 /// A closest-hit result.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -44,42 +53,157 @@ pub struct Hit {
     pub v: f32,
 }
 
-pub struct Bvh {
-    bvh: Bvh2,
-    tris: Vec<PrecompTri>,
-    /// BVH order → original triangle index.
-    prim_ids: Vec<u32>,
+/// Child slot of a wide node: an inner node index, a leaf (high bit set,
+/// index of its triangle block) or empty.
+const LEAF: u32 = 1 << 31;
+const EMPTY: u32 = u32::MAX;
+
+/// Four children's boxes as [min x, min y, min z, max x, max y, max z],
+/// each a lane per child. Empty slots have min = +∞, max = −∞ and so are
+/// never entered.
+#[derive(Clone, Copy, Debug)]
+#[repr(C, align(64))]
+struct Node4 {
+    bounds: [Vec4; 6],
+    child: [u32; 4],
 }
 
+/// Up to four triangles, lane per triangle: v0, edge 1, edge 2 and the
+/// original index. Unused lanes have zero edges (determinant 0: no hit).
+#[derive(Clone, Copy, Debug)]
+#[repr(C, align(64))]
+struct Tri4 {
+    v0: [Vec4; 3],
+    e1: [Vec4; 3],
+    e2: [Vec4; 3],
+    prim: [u32; 4],
+}
+
+pub struct Bvh {
+    nodes: Vec<Node4>,
+    tris: Vec<Tri4>,
+    triangle_count: usize,
+    /// Root slot: an inner node, a single leaf, or empty.
+    root: u32,
+}
+
+/// Möller–Trumbore with the barycentric tolerance, written out
+/// component-wise in the order every SIMD lane of the wide test uses.
+/// Returns (t, u, v) for t in (tmin, tmax).
 #[inline(always)]
-fn intersect_tri(
-    tri: &PrecompTri,
-    o: Vec3A,
-    d: Vec3A,
+pub fn intersect_tri(
+    v0: Vec3,
+    e1: Vec3,
+    e2: Vec3,
+    o: Vec3,
+    d: Vec3,
     tmin: f32,
     tmax: f32,
 ) -> Option<(f32, f32, f32)> {
-    let p = d.cross(tri.e2);
-    let det = tri.e1.dot(p);
-    if det == 0.0 || !det.is_finite() {
-        return None;
-    }
+    let px = d.y * e2.z - d.z * e2.y;
+    let py = d.z * e2.x - d.x * e2.z;
+    let pz = d.x * e2.y - d.y * e2.x;
+    let det = e1.x * px + e1.y * py + e1.z * pz;
     let inv = 1.0 / det;
-    let s = o - tri.v0;
-    let u = s.dot(p) * inv;
-    if !(-BARY_EPS..=1.0 + BARY_EPS).contains(&u) {
-        return None;
+    let sx = o.x - v0.x;
+    let sy = o.y - v0.y;
+    let sz = o.z - v0.z;
+    let u = (sx * px + sy * py + sz * pz) * inv;
+    let qx = sy * e1.z - sz * e1.y;
+    let qy = sz * e1.x - sx * e1.z;
+    let qz = sx * e1.y - sy * e1.x;
+    let v = (d.x * qx + d.y * qy + d.z * qz) * inv;
+    let t = (e2.x * qx + e2.y * qy + e2.z * qz) * inv;
+    let ok = det != 0.0
+        && det.is_finite()
+        && (-BARY_EPS..=1.0 + BARY_EPS).contains(&u)
+        && v >= -BARY_EPS
+        && u + v <= 1.0 + BARY_EPS
+        && t > tmin
+        && t < tmax;
+    ok.then_some((t, u, v))
+}
+
+/// The ray as the wide tests need it: splatted origin and direction,
+/// the safe reciprocal direction and, per axis, which bound is near.
+struct WideRay {
+    o: [Vec4; 3],
+    d: [Vec4; 3],
+    inv: [Vec4; 3],
+    near: [usize; 3],
+    far: [usize; 3],
+}
+
+impl WideRay {
+    #[inline(always)]
+    fn new(o: Vec3, d: Vec3) -> WideRay {
+        // A zero component would make (bound − o)·(1/d) = 0·∞ = NaN; a tiny
+        // one keeps every product finite or ±∞ with the right sign.
+        let safe = |x: f32| {
+            if x.abs() < 1e-30 {
+                1e30f32.copysign(x)
+            } else {
+                1.0 / x
+            }
+        };
+        let inv = [safe(d.x), safe(d.y), safe(d.z)];
+        WideRay {
+            o: [Vec4::splat(o.x), Vec4::splat(o.y), Vec4::splat(o.z)],
+            d: [Vec4::splat(d.x), Vec4::splat(d.y), Vec4::splat(d.z)],
+            inv: inv.map(Vec4::splat),
+            near: [0, 1, 2].map(|a| if inv[a] < 0.0 { 3 + a } else { a }),
+            far: [0, 1, 2].map(|a| if inv[a] < 0.0 { a } else { 3 + a }),
+        }
     }
-    let q = s.cross(tri.e1);
-    let v = d.dot(q) * inv;
-    if v < -BARY_EPS || u + v > 1.0 + BARY_EPS {
-        return None;
+
+    /// Entry distances of the four boxes and which of them the segment
+    /// (tmin, tmax] enters.
+    #[inline(always)]
+    fn slabs(&self, n: &Node4, tmin: f32, tmax: f32) -> (Vec4, BVec4A) {
+        let b = &n.bounds;
+        let t0x = (b[self.near[0]] - self.o[0]) * self.inv[0];
+        let t0y = (b[self.near[1]] - self.o[1]) * self.inv[1];
+        let t0z = (b[self.near[2]] - self.o[2]) * self.inv[2];
+        let t1x = (b[self.far[0]] - self.o[0]) * self.inv[0];
+        let t1y = (b[self.far[1]] - self.o[1]) * self.inv[1];
+        let t1z = (b[self.far[2]] - self.o[2]) * self.inv[2];
+        let tn = t0x.max(t0y).max(t0z.max(Vec4::splat(tmin)));
+        let tf = t1x.min(t1y).min(t1z.min(Vec4::splat(tmax))) * SLAB_WIDEN;
+        (tn, tn.cmple(tf))
     }
-    let t = tri.e2.dot(q) * inv;
-    if t > tmin && t < tmax {
-        Some((t, u, v))
-    } else {
-        None
+
+    /// The four lanes of [`intersect_tri`]: hit distances and barycentrics,
+    /// and which lanes hit inside (tmin, tmax).
+    #[inline(always)]
+    fn triangles(&self, t: &Tri4, tmin: f32, tmax: Vec4) -> (Vec4, Vec4, Vec4, BVec4A) {
+        let [dx, dy, dz] = self.d;
+        let [e1x, e1y, e1z] = t.e1;
+        let [e2x, e2y, e2z] = t.e2;
+        let px = dy * e2z - dz * e2y;
+        let py = dz * e2x - dx * e2z;
+        let pz = dx * e2y - dy * e2x;
+        let det = e1x * px + e1y * py + e1z * pz;
+        let inv = Vec4::ONE / det;
+        let sx = self.o[0] - t.v0[0];
+        let sy = self.o[1] - t.v0[1];
+        let sz = self.o[2] - t.v0[2];
+        let u = (sx * px + sy * py + sz * pz) * inv;
+        let qx = sy * e1z - sz * e1y;
+        let qy = sz * e1x - sx * e1z;
+        let qz = sx * e1y - sy * e1x;
+        let v = (dx * qx + dy * qy + dz * qz) * inv;
+        let tt = (e2x * qx + e2y * qy + e2z * qz) * inv;
+        let eps = Vec4::splat(BARY_EPS);
+        let one = Vec4::splat(1.0 + BARY_EPS);
+        let ok = det.cmpne(Vec4::ZERO)
+            & det.abs().cmplt(Vec4::INFINITY)
+            & u.cmpge(-eps)
+            & u.cmple(one)
+            & v.cmpge(-eps)
+            & (u + v).cmple(one)
+            & tt.cmpgt(Vec4::splat(tmin))
+            & tt.cmplt(tmax);
+        (tt, u, v, ok)
     }
 }
 
@@ -90,7 +214,7 @@ impl Bvh {
         let mut tris = Vec::with_capacity(mesh.indices.len());
         let mut orig = Vec::with_capacity(mesh.indices.len());
         for (i, idx) in mesh.indices.iter().enumerate() {
-            let [a, b, c] = idx.map(|k| Vec3A::from(mesh.positions[k as usize]));
+            let [a, b, c] = idx.map(|k| glam::Vec3A::from(mesh.positions[k as usize]));
             let area2 = (b - a).cross(c - a).length_squared();
             if !(area2 > 0.0) || !area2.is_finite() {
                 continue;
@@ -102,39 +226,162 @@ impl Bvh {
             });
             orig.push(i as u32);
         }
-        let bvh = if tris.is_empty() {
-            Bvh2::default()
-        } else {
-            build_bvh2_from_tris(
-                &tris,
-                BvhBuildParams::medium_build(),
-                &mut Duration::default(),
-            )
+        if tris.is_empty() {
+            return Bvh {
+                nodes: Vec::new(),
+                tris: Vec::new(),
+                triangle_count: 0,
+                root: EMPTY,
+            };
+        }
+        let params = BvhBuildParams {
+            max_prims_per_leaf: 4,
+            ..BvhBuildParams::medium_build()
         };
-        let mut pre = Vec::with_capacity(bvh.primitive_indices.len());
-        let mut prim_ids = Vec::with_capacity(bvh.primitive_indices.len());
-        for &pi in &bvh.primitive_indices {
-            let t = &tris[pi as usize];
-            pre.push(PrecompTri {
-                v0: t.v0,
-                e1: t.v1 - t.v0,
-                e2: t.v2 - t.v0,
+        let bvh2 = build_bvh2_from_tris(&tris, params, &mut Duration::default());
+        let mut out = Bvh {
+            nodes: Vec::with_capacity(bvh2.nodes.len() / 2),
+            tris: Vec::with_capacity(tris.len() / 2),
+            triangle_count: tris.len(),
+            root: EMPTY,
+        };
+        out.root = out.collapse(&bvh2, 0, &tris, &orig);
+        out
+    }
+
+    /// Emits the BVH2 subtree at `id` as a wide slot (depth first, so a
+    /// node's children lie close to it in memory).
+    fn collapse(&mut self, b: &Bvh2, id: usize, tris: &[Triangle], orig: &[u32]) -> u32 {
+        let node = &b.nodes[id];
+        if node.prim_count > 0 {
+            return self.leaf(
+                b,
+                node.first_index as usize,
+                node.prim_count as usize,
+                tris,
+                orig,
+            );
+        }
+        // Open the largest inner child until there are four children.
+        let mut kids: Vec<usize> = vec![node.first_index as usize, node.first_index as usize + 1];
+        while kids.len() < 4 {
+            let best = kids
+                .iter()
+                .enumerate()
+                .filter(|(_, &k)| b.nodes[k].prim_count == 0)
+                .max_by(|(_, &x), (_, &y)| {
+                    let ax = b.nodes[x].aabb.half_area();
+                    let ay = b.nodes[y].aabb.half_area();
+                    ax.total_cmp(&ay)
+                })
+                .map(|(i, _)| i);
+            let Some(i) = best else { break };
+            let k = kids.remove(i);
+            let first = b.nodes[k].first_index as usize;
+            kids.insert(i, first + 1);
+            kids.insert(i, first);
+        }
+        let me = self.nodes.len();
+        self.nodes.push(Node4 {
+            bounds: [
+                Vec4::INFINITY,
+                Vec4::INFINITY,
+                Vec4::INFINITY,
+                Vec4::NEG_INFINITY,
+                Vec4::NEG_INFINITY,
+                Vec4::NEG_INFINITY,
+            ],
+            child: [EMPTY; 4],
+        });
+        for (lane, &k) in kids.iter().enumerate() {
+            let bb = b.nodes[k].aabb;
+            let slot = self.collapse(b, k, tris, orig);
+            let n = &mut self.nodes[me];
+            for a in 0..3 {
+                n.bounds[a][lane] = bb.min[a];
+                n.bounds[a + 3][lane] = bb.max[a];
+            }
+            n.child[lane] = slot;
+        }
+        me as u32
+    }
+
+    fn leaf(
+        &mut self,
+        b: &Bvh2,
+        first: usize,
+        count: usize,
+        tris: &[Triangle],
+        orig: &[u32],
+    ) -> u32 {
+        self.leaf_of(&b.primitive_indices[first..first + count], tris, orig)
+    }
+
+    /// A slot for these triangles: one leaf of up to four blocks of four,
+    /// or (never with the builder's leaf limit, but kept correct) an inner
+    /// node over up to four such parts.
+    fn leaf_of(&mut self, prims: &[u32], tris: &[Triangle], orig: &[u32]) -> u32 {
+        if prims.len() > 16 {
+            let me = self.nodes.len();
+            self.nodes.push(Node4 {
+                bounds: [
+                    Vec4::INFINITY,
+                    Vec4::INFINITY,
+                    Vec4::INFINITY,
+                    Vec4::NEG_INFINITY,
+                    Vec4::NEG_INFINITY,
+                    Vec4::NEG_INFINITY,
+                ],
+                child: [EMPTY; 4],
             });
-            prim_ids.push(orig[pi as usize]);
+            for (lane, part) in prims.chunks(prims.len().div_ceil(4)).enumerate() {
+                let slot = self.leaf_of(part, tris, orig);
+                let n = &mut self.nodes[me];
+                for &pi in part {
+                    let t = &tris[pi as usize];
+                    for v in [t.v0, t.v1, t.v2] {
+                        for a in 0..3 {
+                            n.bounds[a][lane] = n.bounds[a][lane].min(v[a]);
+                            n.bounds[a + 3][lane] = n.bounds[a + 3][lane].max(v[a]);
+                        }
+                    }
+                }
+                n.child[lane] = slot;
+            }
+            return me as u32;
         }
-        Bvh {
-            bvh,
-            tris: pre,
-            prim_ids,
+        let at = self.tris.len();
+        for chunk in prims.chunks(4) {
+            let mut t = Tri4 {
+                v0: [Vec4::ZERO; 3],
+                e1: [Vec4::ZERO; 3],
+                e2: [Vec4::ZERO; 3],
+                prim: [u32::MAX; 4],
+            };
+            for (lane, &pi) in chunk.iter().enumerate() {
+                let tri = &tris[pi as usize];
+                let (e1, e2) = (tri.v1 - tri.v0, tri.v2 - tri.v0);
+                for a in 0..3 {
+                    t.v0[a][lane] = tri.v0[a];
+                    t.e1[a][lane] = e1[a];
+                    t.e2[a][lane] = e2[a];
+                }
+                t.prim[lane] = orig[pi as usize];
+            }
+            self.tris.push(t);
         }
+        // The blocks of a leaf are consecutive; the slot keeps the first
+        // block's index and, in bits 28–29, the count less one.
+        let blocks = self.tris.len() - at;
+        LEAF | ((blocks as u32 - 1) << 28) | at as u32
     }
 
     pub fn triangle_count(&self) -> usize {
-        self.tris.len()
+        self.triangle_count
     }
 
     pub fn node_count(&self) -> usize {
-        self.bvh.nodes.len()
+        self.nodes.len()
     }
 
     /// Closest hit with t in (tmin, tmax). Ties at equal t go to the lower
@@ -142,54 +389,163 @@ impl Bvh {
     /// in which the hierarchy is traversed.
     #[inline]
     pub fn intersect(&self, origin: Vec3, dir: Vec3, tmin: f32, tmax: f32) -> Option<Hit> {
-        if self.tris.is_empty() {
+        if self.root == EMPTY {
             return None;
         }
-        let o = Vec3A::from(origin);
-        let d = Vec3A::from(dir);
-        let ray = Ray::new(o, d, tmin, tmax);
+        let ray = WideRay::new(origin, dir);
         let mut best: Option<Hit> = None;
-        let mut hit = RayHit::none();
-        let tris = &self.tris;
-        let ids = &self.prim_ids;
-        self.bvh.ray_traverse(ray, &mut hit, |r, id| {
-            let tri = &tris[id];
-            // Accept t == current tmax so ties can be resolved by index.
-            match intersect_tri(tri, o, d, r.tmin, r.tmax.next_up_f32()) {
-                Some((t, u, v)) => {
-                    let prim = ids[id];
-                    let better = match best {
-                        None => true,
-                        Some(b) => t < b.t || (t == b.t && prim < b.prim),
-                    };
-                    if better {
-                        best = Some(Hit { t, prim, u, v });
+        // Hits must lie below tmax; once one is found, at or below its t
+        // (ties are resolved by index).
+        let mut limit = tmax;
+        let mut inclusive = false;
+        let mut stack: [(u32, f32); STACK] = [(0, 0.0); STACK];
+        let mut spill: Vec<(u32, f32)> = Vec::new();
+        let mut sp = 0usize;
+        let mut slot = self.root;
+        let mut entry = tmin;
+        loop {
+            if entry <= limit {
+                if slot & LEAF == 0 {
+                    let node = &self.nodes[slot as usize];
+                    let (tn, mask) = ray.slabs(node, tmin, limit);
+                    let mut bits = mask.bitmask();
+                    // Push entered children far to near so the nearest is
+                    // visited first.
+                    let mut order = [(0u32, 0f32); 4];
+                    let mut k = 0;
+                    while bits != 0 {
+                        let lane = bits.trailing_zeros() as usize;
+                        bits &= bits - 1;
+                        let e = (node.child[lane], tn[lane]);
+                        let mut j = k;
+                        while j > 0 && order[j - 1].1 < e.1 {
+                            order[j] = order[j - 1];
+                            j -= 1;
+                        }
+                        order[j] = e;
+                        k += 1;
                     }
-                    t
+                    if k > 0 {
+                        for &e in &order[..k - 1] {
+                            push(&mut stack, &mut spill, &mut sp, e);
+                        }
+                        (slot, entry) = order[k - 1];
+                        continue;
+                    }
+                } else {
+                    let at = (slot & 0x0fff_ffff) as usize;
+                    let blocks = ((slot >> 28) & 3) as usize + 1;
+                    for tri in &self.tris[at..at + blocks] {
+                        let lim = if inclusive {
+                            limit.next_up_f32()
+                        } else {
+                            limit
+                        };
+                        let (t, u, v, ok) = ray.triangles(tri, tmin, Vec4::splat(lim));
+                        let mut bits = ok.bitmask();
+                        while bits != 0 {
+                            let lane = bits.trailing_zeros() as usize;
+                            bits &= bits - 1;
+                            let (t, prim) = (t[lane], tri.prim[lane]);
+                            let better = match best {
+                                None => true,
+                                Some(b) => t < b.t || (t == b.t && prim < b.prim),
+                            };
+                            if better {
+                                best = Some(Hit {
+                                    t,
+                                    prim,
+                                    u: u[lane],
+                                    v: v[lane],
+                                });
+                                limit = t;
+                                inclusive = true;
+                            }
+                        }
+                    }
                 }
-                None => f32::INFINITY,
             }
-        });
-        best
+            match pop(&stack, &mut spill, &mut sp) {
+                Some(e) => (slot, entry) = e,
+                None => return best,
+            }
+        }
     }
 
     /// True when anything lies on the segment t in (tmin, tmax).
     #[inline]
     pub fn occluded(&self, origin: Vec3, dir: Vec3, tmin: f32, tmax: f32) -> bool {
-        if self.tris.is_empty() {
+        if self.root == EMPTY {
             return false;
         }
-        let o = Vec3A::from(origin);
-        let d = Vec3A::from(dir);
-        let ray = Ray::new(o, d, tmin, tmax);
-        let tris = &self.tris;
-        !self.bvh.ray_traverse_miss(ray, |r, id| {
-            match intersect_tri(&tris[id], o, d, r.tmin, r.tmax) {
-                Some((t, _, _)) => t,
-                None => f32::INFINITY,
+        let ray = WideRay::new(origin, dir);
+        let tmax4 = Vec4::splat(tmax);
+        let mut stack: [(u32, f32); STACK] = [(0, 0.0); STACK];
+        let mut spill: Vec<(u32, f32)> = Vec::new();
+        let mut sp = 0usize;
+        let mut slot = self.root;
+        loop {
+            if slot & LEAF == 0 {
+                let node = &self.nodes[slot as usize];
+                let (_, mask) = ray.slabs(node, tmin, tmax);
+                let mut bits = mask.bitmask();
+                if bits != 0 {
+                    let lane = bits.trailing_zeros() as usize;
+                    bits &= bits - 1;
+                    while bits != 0 {
+                        let l = bits.trailing_zeros() as usize;
+                        bits &= bits - 1;
+                        push(&mut stack, &mut spill, &mut sp, (node.child[l], 0.0));
+                    }
+                    slot = node.child[lane];
+                    continue;
+                }
+            } else {
+                let at = (slot & 0x0fff_ffff) as usize;
+                let blocks = ((slot >> 28) & 3) as usize + 1;
+                for tri in &self.tris[at..at + blocks] {
+                    if ray.triangles(tri, tmin, tmax4).3.any() {
+                        return true;
+                    }
+                }
             }
-        })
+            match pop(&stack, &mut spill, &mut sp) {
+                Some((s, _)) => slot = s,
+                None => return false,
+            }
+        }
     }
+}
+
+#[inline(always)]
+fn push(
+    stack: &mut [(u32, f32); STACK],
+    spill: &mut Vec<(u32, f32)>,
+    sp: &mut usize,
+    e: (u32, f32),
+) {
+    if *sp < STACK {
+        stack[*sp] = e;
+        *sp += 1;
+    } else {
+        spill.push(e);
+    }
+}
+
+#[inline(always)]
+fn pop(
+    stack: &[(u32, f32); STACK],
+    spill: &mut Vec<(u32, f32)>,
+    sp: &mut usize,
+) -> Option<(u32, f32)> {
+    if let Some(e) = spill.pop() {
+        return Some(e);
+    }
+    if *sp == 0 {
+        return None;
+    }
+    *sp -= 1;
+    Some(stack[*sp])
 }
 
 trait NextUp {
@@ -221,22 +577,18 @@ pub fn brute_force_intersect(
     tmin: f32,
     tmax: f32,
 ) -> Option<Hit> {
-    let o = Vec3A::from(origin);
-    let d = Vec3A::from(dir);
     let mut best: Option<Hit> = None;
     for (i, idx) in mesh.indices.iter().enumerate() {
-        let [a, b, c] = idx.map(|k| Vec3A::from(mesh.positions[k as usize]));
-        let tri = PrecompTri {
-            v0: a,
-            e1: b - a,
-            e2: c - a,
-        };
-        let area2 = tri.e1.cross(tri.e2).length_squared();
+        let [a, b, c] = idx.map(|k| mesh.positions[k as usize]);
+        let (e1, e2) = (b - a, c - a);
+        let area2 = glam::Vec3A::from(e1)
+            .cross(glam::Vec3A::from(e2))
+            .length_squared();
         if !(area2 > 0.0) || !area2.is_finite() {
             continue;
         }
         let limit = best.map(|b| b.t.next_up_f32()).unwrap_or(tmax);
-        if let Some((t, u, v)) = intersect_tri(&tri, o, d, tmin, limit) {
+        if let Some((t, u, v)) = intersect_tri(a, e1, e2, origin, dir, tmin, limit) {
             let better = match best {
                 None => true,
                 Some(b) => t < b.t || (t == b.t && (i as u32) < b.prim),

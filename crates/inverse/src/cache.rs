@@ -25,9 +25,9 @@ use std::time::Instant;
 
 use glam::{Vec2, Vec3};
 use matflow_render::envmap::locate_cell;
-use matflow_render::integrator::{mis_power, offset_origin};
+use matflow_render::integrator::{trace_path, PathSink};
 use matflow_render::rng::Sampler;
-use matflow_render::{bsdf, RenderScene};
+use matflow_render::{RenderOptions, RenderScene, RenderStats};
 use rayon::prelude::*;
 
 use crate::brdf::Geo;
@@ -276,21 +276,105 @@ fn sky_record(geo: Geo, w: f32, d: Vec3, ew: usize, eh: usize) -> Record {
     }
 }
 
+/// The path tracer's events, kept as vertices and records of one row
+/// (see the module documentation for the layout).
+struct Recorder<'a> {
+    row: &'a mut RowPaths,
+    ew: usize,
+    eh: usize,
+    /// Index of the current vertex in `row.vertices`.
+    vi: usize,
+    /// Cached angles of the BSDF sample being traced.
+    geo: Geo,
+}
+
+impl Recorder<'_> {
+    fn sky(&mut self, geo: Geo, w: f32, d: Vec3) {
+        if w.is_finite() && w > 0.0 {
+            self.row
+                .records
+                .push(sky_record(geo, w, d, self.ew, self.eh));
+            self.row.vertices[self.vi].n_env += 1;
+        }
+    }
+}
+
+impl PathSink for Recorder<'_> {
+    fn camera_sky(&mut self, dir: Vec3) {
+        self.row.vertices.push(Vertex {
+            q: NO_MATERIAL,
+            n_env: 1,
+            flags: V_START,
+        });
+        self.row
+            .records
+            .push(sky_record(Geo::default(), 1.0, dir, self.ew, self.eh));
+    }
+
+    fn vertex(&mut self, q: usize, first: bool) {
+        self.vi = self.row.vertices.len();
+        self.row.vertices.push(Vertex {
+            q: q as u32,
+            n_env: 0,
+            flags: if first { V_START } else { 0 },
+        });
+    }
+
+    fn emitter(&mut self, n: Vec3, v: Vec3, l: Vec3, weight: f32) {
+        let geo = Geo::new(n, v, l);
+        if geo.lit() {
+            self.sky(geo, weight, l);
+        }
+    }
+
+    fn bsdf_dir(&mut self, n: Vec3, v: Vec3, l: Vec3) -> bool {
+        self.geo = Geo::new(n, v, l);
+        // A direction whose n·l quantises to 0 reflects nothing here.
+        self.geo.lit()
+    }
+
+    fn bsdf_sky(&mut self, l: Vec3, weight: f32) {
+        self.sky(self.geo, weight, l);
+    }
+
+    fn bounce(&mut self, weight: f32) -> bool {
+        if !weight.is_finite() {
+            return false;
+        }
+        self.row.records.push(Record {
+            geo: self.geo,
+            w: weight,
+            cell: 0,
+            fx: 0,
+            fy: 0,
+            _pad: 0,
+        });
+        self.row.vertices[self.vi].flags |= V_CONT;
+        true
+    }
+}
+
+/// Traces row `y`: the renderer's own loop ([`trace_path`]) with a
+/// [`Recorder`] as its sink, box-filtered (each sample in its pixel).
 fn trace_row(
     scene: &RenderScene,
     opts: &CacheOptions,
     y: usize,
 ) -> Result<(RowPaths, u64), CacheError> {
     let w = scene.camera.width;
-    let (ew, eh) = (opts.env_width, opts.env_height);
-    let env = &scene.env;
     let mut row = RowPaths {
         vert_start: Vec::with_capacity(w + 1),
         rec_start: Vec::with_capacity(w + 1),
         vertices: Vec::new(),
         records: Vec::new(),
     };
-    let mut rays = 0u64;
+    let render_opts = RenderOptions {
+        spp: opts.spp,
+        max_depth: opts.max_depth,
+        seed: opts.seed,
+        ..Default::default()
+    };
+    let mut st = RenderStats::default();
     let push_start = |row: &mut RowPaths| -> Result<(), CacheError> {
         let (nv, nr) = (row.vertices.len(), row.records.len());
         if nv > u32::MAX as usize || nr > u32::MAX as usize {
@@ -307,117 +391,80 @@ fn trace_row(
             let mut rng = Sampler::for_sample(opts.seed, pix, s, opts.spp);
             let (jx, jy) = rng.next_2d();
             let film = Vec2::new(x as f32 + jx, y as f32 + jy);
-            let dir0 = scene.camera_ray(film);
-            rays += 1;
-            let Some(mut hit) = scene.bvh.intersect(Vec3::ZERO, dir0, 0.0, f32::INFINITY) else {
-                row.vertices.push(Vertex {
-                    q: NO_MATERIAL,
-                    n_env: 1,
-                    flags: V_START,
-                });
-                row.records
-                    .push(sky_record(Geo::default(), 1.0, dir0, ew, eh));
-                continue;
+            let mut rec = Recorder {
+                row: &mut row,
+                ew: opts.env_width,
+                eh: opts.env_height,
+                vi: 0,
+                geo: Geo::default(),
             };
-            let mut origin = Vec3::ZERO;
-            let mut dir = dir0;
-            let mut depth = 0u32;
-            loop {
-                if depth + 1 >= opts.max_depth {
-                    break;
-                }
-                let p = origin + dir * hit.t;
-                let Some(q) = scene.material_index(p) else {
-                    if depth > 0 {
-                        // Undo the continuation that led here.
-                        row.records.pop();
-                        if let Some(last) = row.vertices.last_mut() {
-                            last.flags &= !V_CONT;
-                        }
-                    }
-                    break;
-                };
-                let n = scene.face_normals[hit.prim as usize];
-                let v = -dir;
-                let mat = scene.materials[q];
-                let vi = row.vertices.len();
-                row.vertices.push(Vertex {
-                    q: q as u32,
-                    n_env: 0,
-                    flags: if depth == 0 { V_START } else { 0 },
-                });
-                // Next-event estimation towards the envmap.
-                let (ue1, ue2) = rng.next_2d();
-                if let Some((wl, _le, pdf_e)) = env.sample(ue1, ue2) {
-                    if n.dot(wl) > 0.0 && pdf_e > 0.0 {
-                        rays += 1;
-                        if !scene
-                            .bvh
-                            .occluded(offset_origin(p, n, wl), wl, 0.0, f32::INFINITY)
-                        {
-                            let pdf_b = bsdf::pdf(&mat, n, v, wl);
-                            let wgt = mis_power(pdf_e, pdf_b) / pdf_e;
-                            let geo = Geo::new(n, v, wl);
-                            if wgt.is_finite() && wgt > 0.0 && geo.lit() {
-                                row.records.push(sky_record(geo, wgt, wl, ew, eh));
-                                row.vertices[vi].n_env += 1;
-                            }
-                        }
-                    }
-                }
-                // Continue by sampling the BSDF.
-                let u_lobe = rng.next_f32();
-                let (u1, u2) = rng.next_2d();
-                let Some(smp) = bsdf::sample(&mat, n, v, u_lobe, u1, u2) else {
-                    break;
-                };
-                if !(smp.pdf > 0.0) || smp.weight.max_element() <= 0.0 {
-                    break;
-                }
-                let d = smp.dir;
-                let geo = Geo::new(n, v, d);
-                if !geo.lit() {
-                    break;
-                }
-                let o2 = offset_origin(p, n, d);
-                rays += 1;
-                match scene.bvh.intersect(o2, d, 0.0, f32::INFINITY) {
-                    None => {
-                        let wgt = mis_power(smp.pdf, env.pdf(d)) / smp.pdf;
-                        if wgt.is_finite() && wgt > 0.0 {
-                            row.records.push(sky_record(geo, wgt, d, ew, eh));
-                            row.vertices[vi].n_env += 1;
-                        }
-                        break;
-                    }
-                    Some(h2) => {
-                        if depth + 2 >= opts.max_depth {
-                            break;
-                        }
-                        let wgt = 1.0 / smp.pdf;
-                        if !wgt.is_finite() {
-                            break;
-                        }
-                        row.records.push(Record {
-                            geo,
-                            w: wgt,
-                            cell: 0,
-                            fx: 0,
-                            fy: 0,
-                            _pad: 0,
-                        });
-                        row.vertices[vi].flags |= V_CONT;
-                        origin = o2;
-                        dir = d;
-                        hit = h2;
-                        depth += 1;
-                    }
-                }
-            }
+            trace_path(scene, &render_opts, &mut rng, film, &mut st, &mut rec);
         }
     }
     push_start(&mut row)?;
     row.vertices.shrink_to_fit();
     row.records.shrink_to_fit();
-    Ok((row, rays))
+    Ok((row, st.total_rays()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::testutil::{materials_of, room, texels};
+    use crate::transport::pixel_sum;
+    use matflow_render::integrator::radiance;
+
+    /// The recorder is the renderer's loop with a sink: replaying each
+    /// recorded path with the materials and envmap it was traced with gives
+    /// the radiance the forward renderer computes for that (pixel, sample),
+    /// up to the recorder's 16-bit quantisation of angles and envmap taps.
+    #[test]
+    fn recorded_paths_replay_to_the_renderers_radiance() {
+        for seed in [3u64, 8] {
+            let t = room(seed, 40);
+            let (ew, eh) = (t.env.width, t.env.height);
+            let opts = CacheOptions {
+                spp: 1,
+                max_depth: 4,
+                seed: 11,
+                env_width: ew,
+                env_height: eh,
+            };
+            let cache = PathCache::build(&t.scene, &opts, &|_, _| {}).unwrap();
+            let mats = materials_of(&t.maps);
+            let env = texels(&t.env);
+            let ropts = RenderOptions {
+                spp: 1,
+                max_depth: 4,
+                seed: 11,
+                ..Default::default()
+            };
+            let mut st = RenderStats::default();
+            let (mut worst, mut lit) = (0.0f32, 0);
+            let (mut sum_diff, mut sum_abs) = (0.0f64, 0.0f64);
+            for y in 0..cache.height {
+                for x in 0..cache.width {
+                    let pix = (y * cache.width + x) as u64;
+                    let mut rng = Sampler::for_sample(11, pix, 0, 1);
+                    let (jx, jy) = rng.next_2d();
+                    let film = Vec2::new(x as f32 + jx, y as f32 + jy);
+                    let a = radiance(&t.scene, &ropts, &mut rng, film, &mut st);
+                    let b = pixel_sum(&cache, x, y, &mats, &env);
+                    let err = (a - b).abs().max_element() / (a.max_element() + 1e-3);
+                    worst = worst.max(err);
+                    lit += (a.max_element() > 0.0) as usize;
+                    assert!(
+                        err < 1e-2,
+                        "seed {seed} pixel ({x}, {y}): render {a} replay {b}"
+                    );
+                    sum_diff += (a - b).abs().element_sum() as f64;
+                    sum_abs += a.element_sum() as f64;
+                }
+            }
+            assert!(lit > cache.npix() / 2, "most pixels carry light");
+            assert!(worst > 0.0, "quantisation shows somewhere");
+            let rel = sum_diff / sum_abs;
+            assert!(rel < 1e-4, "seed {seed}: mean relative difference {rel}");
+        }
+    }
 }

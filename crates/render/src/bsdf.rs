@@ -67,17 +67,31 @@ fn ggx_d(noh: f32, alpha2: f32) -> f32 {
 /// (towards the light). Returns zero for l below the surface.
 #[inline]
 pub fn eval(m: &Material, n: Vec3, v: Vec3, l: Vec3) -> Vec3 {
+    eval_pdf(m, n, v, l).0
+}
+
+/// Solid-angle pdf of [`sample`] for direction l.
+#[inline]
+pub fn pdf(m: &Material, n: Vec3, v: Vec3, l: Vec3) -> f32 {
+    eval_pdf(m, n, v, l).1
+}
+
+/// [`eval`] and [`pdf`] together, sharing the half vector and the GGX
+/// term (what a path tracer needs at every light sample and BSDF sample).
+#[inline]
+pub fn eval_pdf(m: &Material, n: Vec3, v: Vec3, l: Vec3) -> (Vec3, f32) {
     let nol = n.dot(l).max(0.0);
-    if nol <= 0.0 {
-        return Vec3::ZERO;
-    }
-    let nov = n.dot(v).max(0.0);
     let h = (l + v).normalize_or_zero();
     let voh = v.dot(h).max(0.0);
     let noh = n.dot(h).max(0.0);
     let r = m.roughness.clamp(MIN_ROUGHNESS, 1.0);
     let alpha = r * r;
     let d = ggx_d(noh, alpha * alpha);
+    let pdf = 0.5 * d * noh / (4.0 * voh.max(1e-6)) + 0.5 * nol / PI;
+    if nol <= 0.0 {
+        return (Vec3::ZERO, pdf);
+    }
+    let nov = n.dot(v).max(0.0);
     let k = (r + 1.0) * (r + 1.0) / 8.0;
     let vis = 1.0 / ((nov * (1.0 - k) + k + 1e-6) * (nol * (1.0 - k) + k + 1e-6));
     let f0 = Vec3::splat(0.04 * (1.0 - m.metallic)) + m.albedo * m.metallic;
@@ -86,20 +100,7 @@ pub fn eval(m: &Material, n: Vec3, v: Vec3, l: Vec3) -> Vec3 {
     let fd = |x: f32| 1.0 + (fd90 - 1.0) * pow5(1.0 - x);
     let diffuse = m.albedo * ((1.0 - m.metallic) / PI * fd(nov) * fd(nol) * nol);
     let specular = fr * (d * vis / 4.0 * nol);
-    diffuse + specular
-}
-
-/// Solid-angle pdf of [`sample`] for direction l.
-#[inline]
-pub fn pdf(m: &Material, n: Vec3, v: Vec3, l: Vec3) -> f32 {
-    let nol = n.dot(l).max(0.0);
-    let h = (l + v).normalize_or_zero();
-    let voh = v.dot(h).max(0.0);
-    let noh = n.dot(h).max(0.0);
-    let r = m.roughness.clamp(MIN_ROUGHNESS, 1.0);
-    let alpha = r * r;
-    let d = ggx_d(noh, alpha * alpha);
-    0.5 * d * noh / (4.0 * voh.max(1e-6)) + 0.5 * nol / PI
+    (diffuse + specular, pdf)
 }
 
 /// A sampled direction with its weight f·cos/pdf and pdf.
@@ -131,11 +132,10 @@ pub fn sample(m: &Material, n: Vec3, v: Vec3, u_lobe: f32, u1: f32, u2: f32) -> 
     if l == Vec3::ZERO {
         return None;
     }
-    let p = pdf(m, n, v, l);
+    let (f, p) = eval_pdf(m, n, v, l);
     if !(p > 1e-6) || !p.is_finite() {
         return None;
     }
-    let f = eval(m, n, v, l);
     let weight = f / (p + 1e-6);
     if !weight.is_finite() {
         return None;

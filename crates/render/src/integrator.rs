@@ -4,8 +4,8 @@
 //! (4 = camera ray + up to three bounces), no Russian roulette below that,
 //! emitters visible to camera rays.
 //!
-//! Determinism: every (pixel, sample) draws from its own PCG32 stream seeded
-//! by (seed, pixel, sample); tiles are rendered in parallel into private
+//! Determinism: every (pixel, sample) draws from its own [`Sampler`] stream
+//! keyed by (seed, pixel, sample); tiles are rendered in parallel into private
 //! buffers and merged in tile order, so the image bytes do not depend on the
 //! thread count.
 
@@ -100,60 +100,102 @@ pub fn offset_origin(p: Vec3, n: Vec3, d: Vec3) -> Vec3 {
     }
 }
 
-/// Radiance along the camera ray through `film`.
+/// What a path-tracing pass does with each light-transport event besides
+/// summing radiance. The forward render passes `()`, which does nothing;
+/// inverse rendering's frozen-path recorder keeps the events so the same
+/// estimator can be re-evaluated for other materials and envmaps (path
+/// replay, as Mitsuba 3 reuses its forward loop). Both therefore trace the
+/// same rays with the same random numbers in one loop, [`trace_path`].
+pub trait PathSink {
+    /// The camera ray escaped; the pixel sees the sky in `dir`.
+    #[inline(always)]
+    fn camera_sky(&mut self, _dir: Vec3) {}
+    /// A surface vertex shaded with the material of pixel `q`; `first` for
+    /// the camera ray's hit.
+    #[inline(always)]
+    fn vertex(&mut self, _q: usize, _first: bool) {}
+    /// An unoccluded envmap sample `l` at the current vertex (normal `n`,
+    /// towards the viewer `v`), estimator weight MIS/pdf.
+    #[inline(always)]
+    fn emitter(&mut self, _n: Vec3, _v: Vec3, _l: Vec3, _weight: f32) {}
+    /// The BSDF sampled `l`, about to be traced; false ends the path here
+    /// (for a recorder that cannot represent it).
+    #[inline(always)]
+    fn bsdf_dir(&mut self, _n: Vec3, _v: Vec3, _l: Vec3) -> bool {
+        true
+    }
+    /// The BSDF sample escaped to the sky, estimator weight MIS/pdf.
+    #[inline(always)]
+    fn bsdf_sky(&mut self, _l: Vec3, _weight: f32) {}
+    /// The BSDF sample reached the next vertex, estimator weight 1/pdf;
+    /// false ends the path here.
+    #[inline(always)]
+    fn bounce(&mut self, _weight: f32) -> bool {
+        true
+    }
+}
+
+/// The forward render's sink: radiance only.
+impl PathSink for () {}
+
+/// The one path-tracing loop: radiance along the camera ray through `film`,
+/// with every event also reported to `sink`.
+///
+/// Per vertex the sampler is drawn in a fixed order — envmap sample (2-D),
+/// lobe (1-D), direction (2-D) — after the pixel jitter the caller drew, so
+/// a (pixel, sample) pair gives the same path for every sink. A vertex whose
+/// point projects to no pixel (at or behind the camera plane) has no
+/// material and ends the path.
 #[inline]
-pub fn radiance(
+pub fn trace_path<S: PathSink>(
     scene: &RenderScene,
     opts: &RenderOptions,
     rng: &mut Sampler,
     film: Vec2,
     st: &mut RenderStats,
+    sink: &mut S,
 ) -> Vec3 {
+    let mut l = Vec3::ZERO;
+    if opts.max_depth == 0 {
+        return l;
+    }
     let mut dir = scene.camera_ray(film);
     let mut origin = Vec3::ZERO;
     let mut throughput = Vec3::ONE;
-    let mut l = Vec3::ZERO;
-    let mut prev_pdf = 0.0f32;
     let env = &scene.env;
-    for depth in 0..opts.max_depth {
-        if depth == 0 {
-            st.primary_rays += 1;
-        } else {
-            st.bounce_rays += 1;
-        }
-        let hit = scene.bvh.intersect(origin, dir, 0.0, f32::INFINITY);
-        let Some(hit) = hit else {
-            let le = env.eval(dir);
-            let w = if depth == 0 {
-                1.0
-            } else {
-                mis_power(prev_pdf, env.pdf(dir))
-            };
-            l += throughput * le * w;
-            break;
-        };
-        if depth + 1 >= opts.max_depth {
-            break;
-        }
-        let p = origin + dir * hit.t;
+    st.primary_rays += 1;
+    let Some(mut hit) = scene.bvh.intersect(origin, dir, 0.0, f32::INFINITY) else {
+        sink.camera_sky(dir);
+        return l + env.eval(dir);
+    };
+    if opts.max_depth < 2 {
+        return l;
+    }
+    let mut p = origin + dir * hit.t;
+    let Some(mut q) = scene.material_index(p) else {
+        return l;
+    };
+    // Vertex `depth` is the end of ray segment `depth + 1`; segment
+    // `depth + 2` leaves it, so it may continue while depth + 2 < max_depth.
+    for depth in 0..opts.max_depth - 1 {
         let n = scene.face_normals[hit.prim as usize];
         let v = -dir;
-        let mat = scene.material_at(p);
+        let mat = scene.materials[q];
+        sink.vertex(q, depth == 0);
 
         // Next-event estimation towards the environment map.
         let (ue1, ue2) = rng.next_2d();
         if let Some((wl, le, pdf_e)) = env.sample(ue1, ue2) {
             if n.dot(wl) > 0.0 && pdf_e > 0.0 {
-                let f = bsdf::eval(&mat, n, v, wl);
-                if f.max_element() > 0.0 {
-                    st.shadow_rays += 1;
-                    if !scene
-                        .bvh
-                        .occluded(offset_origin(p, n, wl), wl, 0.0, f32::INFINITY)
-                    {
-                        let pdf_b = bsdf::pdf(&mat, n, v, wl);
-                        l += throughput * f * le * (mis_power(pdf_e, pdf_b) / pdf_e);
-                    }
+                st.shadow_rays += 1;
+                if !scene
+                    .bvh
+                    .occluded(offset_origin(p, n, wl), wl, 0.0, f32::INFINITY)
+                {
+                    let (f, pdf_b) = bsdf::eval_pdf(&mat, n, v, wl);
+                    let w = mis_power(pdf_e, pdf_b) / pdf_e;
+                    sink.emitter(n, v, wl, w);
+                    l += throughput * f * le * w;
                 }
             }
         }
@@ -176,12 +218,48 @@ pub fn radiance(
         } else {
             s.dir
         };
+        if !sink.bsdf_dir(n, v, d) {
+            break;
+        }
         throughput *= s.weight;
-        prev_pdf = s.pdf;
         origin = offset_origin(p, n, d);
         dir = d;
+        st.bounce_rays += 1;
+        let Some(h) = scene.bvh.intersect(origin, dir, 0.0, f32::INFINITY) else {
+            let w = mis_power(s.pdf, env.pdf(dir));
+            sink.bsdf_sky(dir, w / s.pdf);
+            l += throughput * env.eval(dir) * w;
+            break;
+        };
+        // The next vertex contributes only if a segment may still leave it,
+        // and only if it has a material.
+        if depth + 3 > opts.max_depth {
+            break;
+        }
+        p = origin + dir * h.t;
+        let Some(q2) = scene.material_index(p) else {
+            break;
+        };
+        if !sink.bounce(1.0 / s.pdf) {
+            break;
+        }
+        hit = h;
+        q = q2;
     }
     l
+}
+
+/// Radiance along the camera ray through `film` (the forward render's
+/// [`trace_path`]).
+#[inline]
+pub fn radiance(
+    scene: &RenderScene,
+    opts: &RenderOptions,
+    rng: &mut Sampler,
+    film: Vec2,
+    st: &mut RenderStats,
+) -> Vec3 {
+    trace_path(scene, opts, rng, film, st, &mut ())
 }
 
 struct Tile {
