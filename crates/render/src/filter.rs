@@ -30,6 +30,26 @@ impl PixelFilter {
         }
     }
 
+    /// The filter with its constants evaluated once, for weighting many
+    /// samples (the same values as [`PixelFilter::weight_1d`]).
+    pub fn weights(&self) -> FilterWeights {
+        match *self {
+            PixelFilter::Gaussian { stddev, radius } => {
+                let a = -1.0 / (2.0 * stddev * stddev);
+                FilterWeights {
+                    filter: *self,
+                    a,
+                    floor: (a * radius * radius).exp(),
+                }
+            }
+            PixelFilter::Box => FilterWeights {
+                filter: *self,
+                a: 0.0,
+                floor: 0.0,
+            },
+        }
+    }
+
     /// 1-D weight at offset `x` (pixels) from a pixel centre.
     #[inline]
     pub fn weight_1d(&self, x: f32) -> f32 {
@@ -48,6 +68,30 @@ impl PixelFilter {
                     0.0
                 }
             }
+        }
+    }
+}
+
+/// [`PixelFilter`] with its constant terms precomputed.
+#[derive(Clone, Copy, Debug)]
+pub struct FilterWeights {
+    filter: PixelFilter,
+    a: f32,
+    floor: f32,
+}
+
+impl FilterWeights {
+    /// Exactly [`PixelFilter::weight_1d`].
+    #[inline]
+    pub fn weight_1d(&self, x: f32) -> f32 {
+        match self.filter {
+            PixelFilter::Gaussian { radius, .. } => {
+                if x.abs() >= radius {
+                    return 0.0;
+                }
+                ((self.a * x * x).exp() - self.floor).max(0.0)
+            }
+            PixelFilter::Box => self.filter.weight_1d(x),
         }
     }
 }

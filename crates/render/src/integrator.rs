@@ -294,6 +294,7 @@ pub fn render(
     let r = opts.filter.radius();
     let border = r.ceil() as usize;
     let spp = opts.spp.max(1);
+    let weights = opts.filter.weights();
 
     let results: Vec<(Vec<[f32; 4]>, RenderStats)> = tiles
         .par_iter()
@@ -302,6 +303,8 @@ pub fn render(
             let bh = t.y1 - t.y0 + 2 * border;
             let mut buf = vec![[0f32; 4]; bw * bh];
             let mut st = RenderStats::default();
+            // 1-D filter weights of a sample's footprint columns.
+            let mut wx = vec![0f32; 2 * border + 2];
             for y in t.y0..t.y1 {
                 for x in t.x0..t.x1 {
                     let pix = (y * w + x) as u64;
@@ -328,15 +331,19 @@ pub fn render(
                                 let hi_x = ((film.x - 0.5 + r).floor() as i64).min(w as i64 - 1);
                                 let lo_y = ((film.y - 0.5 - r).ceil() as i64).max(0);
                                 let hi_y = ((film.y - 0.5 + r).floor() as i64).min(h as i64 - 1);
+                                // Separable: the 1-D weights of the
+                                // footprint's columns, once per sample.
+                                for (i, px) in (lo_x..=hi_x).enumerate() {
+                                    wx[i] = weights.weight_1d(px as f32 + 0.5 - film.x);
+                                }
                                 for py in lo_y..=hi_y {
-                                    let wy = opts.filter.weight_1d(py as f32 + 0.5 - film.y);
+                                    let wy = weights.weight_1d(py as f32 + 0.5 - film.y);
                                     if wy <= 0.0 {
                                         continue;
                                     }
                                     let by = (py - t.y0 as i64 + border as i64) as usize;
-                                    for px in lo_x..=hi_x {
-                                        let wgt =
-                                            wy * opts.filter.weight_1d(px as f32 + 0.5 - film.x);
+                                    for (i, px) in (lo_x..=hi_x).enumerate() {
+                                        let wgt = wy * wx[i];
                                         if wgt <= 0.0 {
                                             continue;
                                         }
