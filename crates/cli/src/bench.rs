@@ -9,7 +9,7 @@ use glam::{Vec2, Vec3};
 use matflow_geom::Bvh;
 use matflow_render::rng::Pcg32;
 use matflow_render::warp::{square_to_cosine_hemisphere, Frame};
-use matflow_render::{render, RenderOptions};
+use matflow_render::{render, Crop, RenderOptions};
 use matflow_scene::metrics::psnr_gamma;
 use matflow_scene::{io, MaterialSource};
 use rayon::prelude::*;
@@ -50,9 +50,30 @@ pub struct BenchRenderArgs {
     #[arg(long)]
     pub reference_compat: bool,
     /// Only write the scene as rendered (mesh, envmap, material maps,
-    /// camera) to this folder for `bench/mitsuba_render.py`, then stop.
+    /// camera) and the ray sets to this folder for `bench/mitsuba_render.py`
+    /// and `bench/embree_rays.c`, then stop.
     #[arg(long)]
     pub export: Option<PathBuf>,
+    /// Skip the side-by-side runs of Embree and Mitsuba 3 (they run when
+    /// installed: libembree-dev; pip mitsuba with libllvm19).
+    #[arg(long)]
+    pub no_compare: bool,
+    /// Also measure time to equal error against each renderer's own
+    /// converged render of a window of the image.
+    #[arg(long)]
+    pub equal_error: bool,
+    /// Samples per pixel of the converged renders of --equal-error.
+    #[arg(long, default_value_t = 4096)]
+    pub reference_spp: u32,
+    /// Window of --equal-error: X Y W H (default: the central 128×128).
+    #[arg(long, num_args = 4)]
+    pub window: Option<Vec<usize>>,
+    /// Folder of the comparison programs (default: the repository's bench/).
+    #[arg(long)]
+    pub bench_dir: Option<PathBuf>,
+    /// Scratch folder for the exported scene and compiled programs.
+    #[arg(long, default_value = "target/bench-render")]
+    pub work_dir: PathBuf,
 }
 
 pub fn run(b: BenchCmd) -> Result<()> {
@@ -148,10 +169,13 @@ fn bench_render(a: BenchRenderArgs) -> Result<()> {
             Some((p + n * 1e-5 * (1.0 + p.abs().max_element()), l))
         })
         .collect();
+    let export = |dir: &std::path::Path| -> Result<()> {
+        crate::bench_compare::export_scene(scene, dir)?;
+        crate::bench_compare::write_rays(&dir.join("primary.rays"), &primary)?;
+        crate::bench_compare::write_rays(&dir.join("incoherent.rays"), &incoherent)
+    };
     if let Some(dir) = &a.export {
-        crate::bench_mitsuba::export_scene(scene, dir)?;
-        crate::bench_mitsuba::write_rays(&dir.join("primary.rays"), &primary)?;
-        crate::bench_mitsuba::write_rays(&dir.join("incoherent.rays"), &incoherent)?;
+        export(dir)?;
         println!("wrote {}", dir.display());
         return Ok(());
     }
@@ -180,19 +204,24 @@ fn bench_render(a: BenchRenderArgs) -> Result<()> {
                 .collect(),
         )
     };
+    let ours = [
+        time_rays(&primary, false),
+        time_rays(&incoherent, false),
+        time_rays(&incoherent, true),
+    ];
     println!(
         "  primary closest-hit   {:8.2} Mrays/s ({} rays)",
-        time_rays(&primary, false),
+        ours[0],
         primary.len()
     );
     println!(
         "  incoherent closest-hit{:8.2} Mrays/s ({} rays)",
-        time_rays(&incoherent, false),
+        ours[1],
         incoherent.len()
     );
     println!(
         "  incoherent occlusion  {:8.2} Mrays/s ({} rays)",
-        time_rays(&incoherent, true),
+        ours[2],
         incoherent.len()
     );
 
@@ -217,11 +246,12 @@ fn bench_render(a: BenchRenderArgs) -> Result<()> {
         last = Some(out);
     }
     let out = last.unwrap();
+    let render_s = median(times);
     println!(
         "  render {} spp, depth {} {:8.2} s wall ({:.2} Mrays/s overall, {:.1} M rays)",
         a.spp,
         a.depth,
-        median(times),
+        render_s,
         median(mrays),
         out.stats.total_rays() as f64 / 1e6
     );
@@ -241,5 +271,186 @@ fn bench_render(a: BenchRenderArgs) -> Result<()> {
             );
         }
     }
+    if a.no_compare {
+        return Ok(());
+    }
+    compare(&a, scene, &export, build_t, ours, render_s, threads, runs)
+}
+
+/// Embree's ray throughput and Mitsuba 3's render time on the same scene,
+/// rays, spp and depth, in this run, beside matflow's; then, with
+/// `--equal-error`, the time each needs to reach the same error.
+#[allow(clippy::too_many_arguments)]
+fn compare(
+    a: &BenchRenderArgs,
+    scene: &matflow_render::RenderScene,
+    export: &dyn Fn(&std::path::Path) -> Result<()>,
+    build_t: f64,
+    ours: [f64; 3],
+    render_s: f64,
+    threads: usize,
+    runs: usize,
+) -> Result<()> {
+    use crate::bench_compare::*;
+    let bench_dir = a.bench_dir.clone().unwrap_or_else(default_bench_dir);
+    let work = &a.work_dir;
+    let scene_dir = work.join("scene");
+    export(&scene_dir)?;
+    println!("side by side ({threads} threads, same rays, scene, spp and depth):");
+    let embree = run_embree(&bench_dir, &scene_dir, work, threads, runs)?;
+    match &embree {
+        None => println!("  Embree: not installed (apt-get install libembree-dev)"),
+        Some(e) => {
+            println!(
+                "  {:<26}{:>12}{:>16}",
+                "",
+                "matflow",
+                format!("Embree {}", e.embree)
+            );
+            println!(
+                "  {:<26}{:>12.1}{:>16.1}",
+                "BVH build (ms)",
+                build_t * 1e3,
+                e.build_ms
+            );
+            for (name, m, em) in [
+                ("primary closest-hit", ours[0], e.primary_hit_mrays),
+                ("incoherent closest-hit", ours[1], e.incoherent_hit_mrays),
+                ("incoherent occlusion", ours[2], e.incoherent_occl_mrays),
+            ] {
+                println!(
+                    "  {:<26}{:>12.2}{:>16.2}   Mrays/s, matflow/Embree {:.2}",
+                    name,
+                    m,
+                    em,
+                    m / em
+                );
+            }
+        }
+    }
+    if mitsuba_version().is_none() {
+        println!("  Mitsuba 3: not installed (pip install mitsuba; apt-get install libllvm19)");
+        return Ok(());
+    }
+    if a.reference_compat {
+        println!("  Mitsuba 3: skipped (--reference-compat renders a different estimator)");
+        return Ok(());
+    }
+    let mi = run_mitsuba(
+        &bench_dir, &scene_dir, a.spp, a.depth, runs, threads, 0, None, None,
+    )?;
+    println!(
+        "  render {} spp, depth {}: matflow {:.2} s, {} {:.2} s (first run {:.2} s); matflow/Mitsuba {:.2}",
+        a.spp, a.depth, render_s, mi.renderer, mi.median_s, mi.first_s, render_s / mi.median_s
+    );
+    if !a.equal_error {
+        return Ok(());
+    }
+
+    // Equal error: each renderer against its own converged render of a
+    // window, at increasing spp; interior pixels only (a window's edge
+    // misses the filter splats of samples outside it).
+    let cam = scene.camera;
+    let crop = match &a.window {
+        Some(v) => Crop {
+            x: v[0],
+            y: v[1],
+            width: v[2],
+            height: v[3],
+        },
+        None => {
+            let s = 128.min(cam.width).min(cam.height);
+            Crop {
+                x: (cam.width - s) / 2,
+                y: (cam.height - s) / 2,
+                width: s,
+                height: s,
+            }
+        }
+    };
+    let margin = 2;
+    println!(
+        "equal error: window {}x{} at ({}, {}), RMSE (linear) against each renderer's own {} spp render",
+        crop.width, crop.height, crop.x, crop.y, a.reference_spp
+    );
+    let ours_at = |spp: u32, seed: u64| {
+        let o = RenderOptions {
+            spp,
+            max_depth: a.depth,
+            seed,
+            crop: Some(crop),
+            ..Default::default()
+        };
+        let out = render(scene, &o, &|_, _| {});
+        (out.image, out.stats.seconds)
+    };
+    let (ref_m, _) = ours_at(a.reference_spp, 1 << 20);
+    let ref_path = work.join("mitsuba-reference.exr");
+    run_mitsuba(
+        &bench_dir,
+        &scene_dir,
+        a.reference_spp,
+        a.depth,
+        1,
+        threads,
+        1 << 20,
+        Some(crop),
+        Some(&ref_path),
+    )?;
+    let ref_mi = io::read_exr_rgb(&ref_path)?;
+    println!(
+        "  the two converged renders differ by RMSE {:.5} (mean {:.4})",
+        rmse_interior(&ref_m, &ref_mi, margin),
+        ref_m
+            .data
+            .iter()
+            .map(|v| v.element_sum() as f64)
+            .sum::<f64>()
+            / (3 * ref_m.data.len()) as f64
+    );
+    println!(
+        "  {:>6} {:>12} {:>10} {:>12} {:>10}",
+        "spp", "matflow s", "RMSE", "Mitsuba s", "RMSE"
+    );
+    let (mut pts_m, mut pts_mi) = (Vec::new(), Vec::new());
+    let img_path = work.join("mitsuba-window.exr");
+    for spp in [4u32, 16, 64, 256] {
+        let mut t = Vec::new();
+        let mut err = 0.0;
+        for r in 0..runs {
+            let (img, secs) = ours_at(spp, r as u64);
+            t.push(secs);
+            err = rmse_interior(&img, &ref_m, margin);
+        }
+        let tm = median(t);
+        let mi = run_mitsuba(
+            &bench_dir,
+            &scene_dir,
+            spp,
+            a.depth,
+            runs,
+            threads,
+            0,
+            Some(crop),
+            Some(&img_path),
+        )?;
+        let err_mi = rmse_interior(&io::read_exr_rgb(&img_path)?, &ref_mi, margin);
+        println!(
+            "  {:>6} {:>12.3} {:>10.5} {:>12.3} {:>10.5}",
+            spp, tm, err, mi.median_s, err_mi
+        );
+        pts_m.push((tm, err));
+        pts_mi.push((mi.median_s, err_mi));
+    }
+    // The target: Mitsuba's error at 64 spp.
+    let target = pts_mi[2].1;
+    let (tm, tmi) = (
+        time_to_error(&pts_m, target),
+        time_to_error(&pts_mi, target),
+    );
+    println!(
+        "  time to RMSE {target:.5} (Mitsuba's at 64 spp): matflow {tm:.3} s, Mitsuba {tmi:.3} s; matflow/Mitsuba {:.2}",
+        tm / tmi
+    );
     Ok(())
 }

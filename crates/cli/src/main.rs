@@ -1,9 +1,9 @@
 //! `matflow`: single-image inverse rendering and physically based editing.
 
 mod bench;
+mod bench_compare;
 mod bench_distributed;
 mod bench_invert;
-mod bench_mitsuba;
 mod bench_pipeline;
 mod bench_synthetic;
 mod cluster;

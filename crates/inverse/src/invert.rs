@@ -724,6 +724,7 @@ pub fn invert(
             filter: PixelFilter::Box,
             reference_compat: false,
             tile_size: 16,
+            crop: None,
         },
         &|d, t| events(Event::Trace { done: d, total: t }),
     );

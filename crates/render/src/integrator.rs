@@ -36,6 +36,20 @@ pub struct RenderOptions {
     /// correct); on to compare with the reference's stored renders.
     pub reference_compat: bool,
     pub tile_size: usize,
+    /// Render only this window of the film (the image has its size);
+    /// pixels keep their random streams, so the window equals that part
+    /// of the full render except within the filter radius of its edges,
+    /// which samples from outside would also reach.
+    pub crop: Option<Crop>,
+}
+
+/// A window of the film, in pixels.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Crop {
+    pub x: usize,
+    pub y: usize,
+    pub width: usize,
+    pub height: usize,
 }
 
 impl Default for RenderOptions {
@@ -47,6 +61,7 @@ impl Default for RenderOptions {
             filter: PixelFilter::default(),
             reference_compat: false,
             tile_size: 16,
+            crop: None,
         }
     }
 }
@@ -277,15 +292,27 @@ pub fn render(
 ) -> RenderOutput {
     let start = Instant::now();
     let (w, h) = (scene.camera.width, scene.camera.height);
+    // The window rendered: [wx0, wx1) × [wy0, wy1), inside the film.
+    let (wx0, wy0, wx1, wy1) = match opts.crop {
+        Some(c) => {
+            let x0 = c.x.min(w);
+            let y0 = c.y.min(h);
+            (x0, y0, (x0 + c.width).min(w), (y0 + c.height).min(h))
+        }
+        None => (0, 0, w, h),
+    };
+    let (ww, wh) = (wx1 - wx0, wy1 - wy0);
     let ts = opts.tile_size.max(1);
     let mut tiles = Vec::new();
-    for y0 in (0..h).step_by(ts) {
-        for x0 in (0..w).step_by(ts) {
+    // Tiles of the full film's grid, cut to the window: a pixel's sums
+    // then run in the same order as in the full render.
+    for ty in (wy0 / ts * ts..wy1).step_by(ts) {
+        for tx in (wx0 / ts * ts..wx1).step_by(ts) {
             tiles.push(Tile {
-                x0,
-                y0,
-                x1: (x0 + ts).min(w),
-                y1: (y0 + ts).min(h),
+                x0: tx.max(wx0),
+                y0: ty.max(wy0),
+                x1: (tx + ts).min(wx1),
+                y1: (ty + ts).min(wy1),
             });
         }
     }
@@ -327,10 +354,10 @@ pub fn render(
                                 b[3] += 1.0;
                             }
                             PixelFilter::Gaussian { .. } => {
-                                let lo_x = ((film.x - 0.5 - r).ceil() as i64).max(0);
-                                let hi_x = ((film.x - 0.5 + r).floor() as i64).min(w as i64 - 1);
-                                let lo_y = ((film.y - 0.5 - r).ceil() as i64).max(0);
-                                let hi_y = ((film.y - 0.5 + r).floor() as i64).min(h as i64 - 1);
+                                let lo_x = ((film.x - 0.5 - r).ceil() as i64).max(wx0 as i64);
+                                let hi_x = ((film.x - 0.5 + r).floor() as i64).min(wx1 as i64 - 1);
+                                let lo_y = ((film.y - 0.5 - r).ceil() as i64).max(wy0 as i64);
+                                let hi_y = ((film.y - 0.5 + r).floor() as i64).min(wy1 as i64 - 1);
                                 // Separable: the 1-D weights of the
                                 // footprint's columns, once per sample.
                                 for (i, px) in (lo_x..=hi_x).enumerate() {
@@ -367,7 +394,7 @@ pub fn render(
         .collect();
 
     // Merge tiles in a fixed order (deterministic whatever the threads did).
-    let mut acc = vec![[0f64; 4]; w * h];
+    let mut acc = vec![[0f64; 4]; ww * wh];
     let mut stats = RenderStats::default();
     for (t, (buf, st)) in tiles.iter().zip(results.iter()) {
         stats.add(st);
@@ -375,16 +402,16 @@ pub fn render(
         let bh = t.y1 - t.y0 + 2 * border;
         for by in 0..bh {
             let py = t.y0 as i64 + by as i64 - border as i64;
-            if py < 0 || py >= h as i64 {
+            if py < wy0 as i64 || py >= wy1 as i64 {
                 continue;
             }
             for bx in 0..bw {
                 let px = t.x0 as i64 + bx as i64 - border as i64;
-                if px < 0 || px >= w as i64 {
+                if px < wx0 as i64 || px >= wx1 as i64 {
                     continue;
                 }
                 let b = buf[by * bw + bx];
-                let a = &mut acc[py as usize * w + px as usize];
+                let a = &mut acc[(py as usize - wy0) * ww + (px as usize - wx0)];
                 for c in 0..4 {
                     a[c] += b[c] as f64;
                 }
@@ -408,7 +435,7 @@ pub fn render(
         .collect();
     stats.seconds = start.elapsed().as_secs_f64();
     RenderOutput {
-        image: Image::from_vec(w, h, data),
+        image: Image::from_vec(ww, wh, data),
         stats,
     }
 }
@@ -511,6 +538,52 @@ mod tests {
         let part = render_pixels(&scene, &opts, &px);
         for (k, &p) in px.iter().enumerate() {
             assert_eq!(part[k], full.image.data[p as usize], "pixel {p}");
+        }
+    }
+
+    /// A cropped render is that window of the full render, bit for bit,
+    /// away from the filter radius of its edges.
+    #[test]
+    fn crop_is_the_window_of_the_full_render() {
+        let scene = plane_scene(
+            20,
+            crate::Material {
+                albedo: Vec3::new(0.3, 0.6, 0.2),
+                roughness: 0.5,
+                metallic: 0.2,
+            },
+        );
+        let opts = RenderOptions {
+            spp: 4,
+            seed: 3,
+            tile_size: 8,
+            ..Default::default()
+        };
+        let full = render(&scene, &opts, &|_, _| {}).image;
+        let c = Crop {
+            x: 5,
+            y: 3,
+            width: 11,
+            height: 9,
+        };
+        let part = render(
+            &scene,
+            &RenderOptions {
+                crop: Some(c),
+                ..opts
+            },
+            &|_, _| {},
+        )
+        .image;
+        assert_eq!((part.width, part.height), (11, 9));
+        for y in 2..c.height - 2 {
+            for x in 2..c.width - 2 {
+                assert_eq!(
+                    part.data[y * c.width + x],
+                    full.data[(y + c.y) * 20 + x + c.x],
+                    "({x}, {y})"
+                );
+            }
         }
     }
 

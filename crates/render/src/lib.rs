@@ -16,7 +16,7 @@ pub mod warp;
 pub use bsdf::Material;
 pub use envmap::EnvMap;
 pub use filter::PixelFilter;
-pub use integrator::{render, RenderOptions, RenderOutput, RenderStats};
+pub use integrator::{render, Crop, RenderOptions, RenderOutput, RenderStats};
 pub use scene::RenderScene;
 
 #[derive(Debug, thiserror::Error)]
