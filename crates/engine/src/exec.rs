@@ -313,10 +313,29 @@ pub fn execute_job(
     })
 }
 
-/// Calls the node; a panic becomes an error naming it.
+/// Calls the node; a panic becomes an error naming it, and so does an
+/// output the node kind does not declare (nothing is stored then).
 pub fn run_node(node: &dyn Node, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
     match catch_unwind(AssertUnwindSafe(|| node.run(ctx))) {
-        Ok(r) => r,
+        Ok(Ok(outs)) => {
+            let declared = node.outputs();
+            let extra: Vec<&str> = outs
+                .keys()
+                .map(String::as_str)
+                .filter(|k| !declared.iter().any(|o| o.name == *k))
+                .collect();
+            if extra.is_empty() {
+                Ok(outs)
+            } else {
+                Err(NodeError::new(format!(
+                    "internal error: node kind `{}` returned undeclared output(s) {} (declared: {})",
+                    node.kind(),
+                    extra.join(", "),
+                    declared.iter().map(|o| o.name).collect::<Vec<_>>().join(", ")
+                )))
+            }
+        }
+        Ok(Err(e)) => Err(e),
         Err(p) => {
             let msg = p
                 .downcast_ref::<String>()
@@ -802,4 +821,63 @@ pub fn cached_keys(p: &Pipeline, reg: &Registry, store: &Store) -> BTreeSet<Dige
         }
     }
     keys
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::node::{NodeInfo, OutputSpec, Params};
+
+    /// Declares `image`, returns `image` and `extra`.
+    struct Sloppy;
+    static SLOPPY: NodeInfo = NodeInfo {
+        kind: "sloppy",
+        version: 1,
+        doc: "returns an output it does not declare",
+        params: &[],
+        outputs: &[OutputSpec {
+            name: "image",
+            ty: "rgb",
+            doc: "an image",
+        }],
+    };
+    impl Node for Sloppy {
+        fn info(&self) -> &'static NodeInfo {
+            &SLOPPY
+        }
+        fn run(&self, _ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
+            Ok(BTreeMap::from([
+                ("image".to_string(), vec![1, 2, 3]),
+                ("extra".to_string(), vec![4]),
+            ]))
+        }
+    }
+
+    #[test]
+    fn a_node_returning_an_undeclared_output_fails_and_stores_nothing() {
+        let dir = std::env::temp_dir().join(format!("matflow-exec-test-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let store = Tiered::new(crate::store::Store::open(&dir).unwrap(), None);
+        let mut reg = Registry::default();
+        reg.add(Box::new(Sloppy));
+        let job = Job {
+            stage: "s".into(),
+            kind: "sloppy".into(),
+            pipeline: "p.yaml".into(),
+            params: Params(BTreeMap::new()),
+            key: crate::store::Digest::of(b"sloppy job"),
+            inputs: BTreeMap::new(),
+            skip_cache: false,
+            local_only: false,
+        };
+        match execute_job(&reg, &store, &job, "here", &|_, _| {}) {
+            Err(Failure::Node(msg)) => {
+                assert!(msg.contains("`sloppy`") && msg.contains("extra"), "{msg}");
+                assert!(msg.contains("declared: image"), "{msg}");
+            }
+            other => panic!("expected a node failure, got {other:?}"),
+        }
+        assert!(store.lookup(&job.key).unwrap().is_none(), "no action entry");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }

@@ -118,11 +118,6 @@ impl EnvTransport {
         }
     }
 
-    pub fn bytes(&self) -> usize {
-        self.terms.capacity() * std::mem::size_of::<EnvTerm>()
-            + (self.start.capacity() + self.pixels.capacity()) * 4
-    }
-
     /// Image values at the selected pixels for envmap `env`.
     pub fn apply(&self, env: &[Vec3]) -> Vec<Vec3> {
         let ew = self.env_width;
@@ -180,22 +175,6 @@ impl EnvTransport {
         tot.iter()
             .map(|t| Vec3::new(t[0] as f32, t[1] as f32, t[2] as f32))
             .collect()
-    }
-
-    /// Which texels any selected pixel depends on.
-    pub fn visible_texels(&self) -> Vec<bool> {
-        let mut v = vec![false; self.env_width * self.env_height];
-        for t in &self.terms {
-            if t.w.max_element() > 0.0 {
-                let (idx, wt) = tap_of(t, self.env_width);
-                for k in 0..4 {
-                    if wt[k] > 0.0 {
-                        v[idx[k]] = true;
-                    }
-                }
-            }
-        }
-        v
     }
 }
 

@@ -31,10 +31,6 @@ impl Adam {
         }
     }
 
-    pub fn steps_taken(&self) -> i32 {
-        self.t
-    }
-
     /// One update; non-finite gradient entries are treated as zero.
     pub fn step(&mut self, params: &mut [f32], grad: &[f32]) {
         assert_eq!(params.len(), grad.len());

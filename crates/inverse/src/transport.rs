@@ -14,14 +14,22 @@ use glam::Vec3;
 use matflow_render::Material;
 use rayon::prelude::*;
 
-use crate::brdf::{eval, eval_grad};
-use crate::cache::{sky, taps, PathCache, Record, Vertex, MAX_DEPTH, NO_MATERIAL};
+use crate::brdf::eval;
+#[cfg(test)]
+use crate::brdf::eval_grad;
+#[cfg(test)]
+use crate::cache::taps;
+use crate::cache::{sky, PathCache, Record, Vertex, MAX_DEPTH, NO_MATERIAL};
 
 /// Number of row bands gradient accumulation is split into (fixed so that
 /// results do not depend on the machine).
+#[cfg(test)]
 pub const BANDS: usize = 16;
 
-/// Gradients of a scalar loss.
+/// Gradients of a scalar loss through every path vertex (the reference
+/// for the per-pixel tables and the envmap transport production uses;
+/// kept for the finite-difference checks).
+#[cfg(test)]
 #[derive(Clone, Debug)]
 pub struct Gradients {
     pub albedo: Vec<Vec3>,
@@ -30,6 +38,7 @@ pub struct Gradients {
     pub env: Vec<Vec3>,
 }
 
+#[cfg(test)]
 impl Gradients {
     pub fn zeros(npix: usize, ntex: usize) -> Gradients {
         Gradients {
@@ -151,6 +160,7 @@ pub(crate) fn sanitize(v: Vec3) -> Vec3 {
     Vec3::new(f(v.x), f(v.y), f(v.z))
 }
 
+#[cfg(test)]
 struct BandAcc {
     albedo: Vec<Vec3>,
     rough: Vec<f32>,
@@ -158,6 +168,7 @@ struct BandAcc {
     env: Vec<[f64; 3]>,
 }
 
+#[cfg(test)]
 /// Reverse mode: given ∂loss/∂I per pixel (`adj`), the gradient with
 /// respect to all materials and envmap texels.
 pub fn backward(cache: &PathCache, mats: &[Material], env: &[Vec3], adj: &[Vec3]) -> Gradients {
@@ -263,6 +274,7 @@ pub fn backward(cache: &PathCache, mats: &[Material], env: &[Vec3], adj: &[Vec3]
 }
 
 #[inline]
+#[cfg(test)]
 fn add_env(env: &mut [[f64; 3]], rec: &Record, ew: usize, c: Vec3) {
     let (i, wt) = taps(rec, ew);
     for k in 0..4 {

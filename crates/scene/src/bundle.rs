@@ -295,12 +295,6 @@ impl Bundle {
             .find(|p| exists(p))
     }
 
-    /// `best_results/rendered_img.exr`, as stored (see
-    /// [`Bundle::rendered_img_is_gamma_encoded`]).
-    pub fn load_rendered_img(&self) -> Result<RgbImage> {
-        self.read_rgb_checked("best_results/rendered_img.exr")
-    }
-
     /// The reference stores `rendered_img.exr` linear on its MLP path but
     /// gamma-encoded (power 1/2.2) on its direct path (`"model_name":
     /// "none"` in `config.json`), e.g. for `jinjya`.
