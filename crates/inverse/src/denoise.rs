@@ -209,7 +209,7 @@ pub fn denoise_tables(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::cache::{CacheOptions, PathCache};
+    use crate::paths::{CacheOptions, PathCache};
     use crate::tables::build_tables_with_variance;
     use crate::testutil::{materials_of, room, texels};
 

@@ -11,7 +11,7 @@ use matflow_render::Material;
 use rayon::prelude::*;
 
 use crate::brdf::eval;
-use crate::cache::{taps, PathCache, Record, MAX_DEPTH, NO_MATERIAL};
+use crate::paths::{taps, PathCache, Record, MAX_DEPTH, NO_MATERIAL};
 use crate::transport::for_each_path;
 
 #[derive(Clone, Copy, Debug)]

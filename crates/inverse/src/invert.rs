@@ -22,7 +22,6 @@ use glam::Vec3;
 use matflow_render::{EnvMap, Material, PixelFilter, RenderOptions, RenderScene};
 use matflow_scene::{Image, MaterialMaps, RgbImage};
 
-use crate::cache::{CacheOptions, PathCache};
 use crate::denoise::{denoise_tables, Guide};
 use crate::envfit::{
     exposure_scale, fit_texels, strided_pixels, EnvFitOptions, EnvMlp, EnvMlpOptions, EnvTransport,
@@ -30,6 +29,7 @@ use crate::envfit::{
 };
 use crate::loss::{loss_and_grad, Target};
 use crate::matfit::{fit_pixels, MatFitOptions, MatMlp, MatMlpOptions, Parts};
+use crate::paths::{CacheOptions, PathCache};
 use crate::solve::{solve_pixels, SolveOptions};
 use crate::tables::build_tables_with_variance;
 use crate::transport;
@@ -388,7 +388,7 @@ pub enum InvertError {
     #[error("{0}")]
     Invalid(String),
     #[error(transparent)]
-    Cache(#[from] crate::cache::CacheError),
+    Cache(#[from] crate::paths::CacheError),
     #[error("{0}")]
     Render(String),
 }

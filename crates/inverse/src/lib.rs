@@ -3,7 +3,7 @@
 //! physically based render matches the photograph.
 //!
 //! Where the speed comes from: geometry never changes, so the path
-//! tracer's rays are traced once ([`cache`]) and the estimator is
+//! tracer's rays are traced once ([`paths`], frozen light paths) and the estimator is
 //! re-evaluated for new parameters without tracing ([`transport`]). With
 //! materials fixed the image is linear in the envmap ([`envfit`]); with the
 //! envmap and the deeper bounces' light fixed, each pixel depends only on
@@ -17,7 +17,6 @@
 )]
 
 pub mod brdf;
-pub mod cache;
 pub mod denoise;
 pub mod envfit;
 pub mod invert;
@@ -25,6 +24,7 @@ pub mod loss;
 pub mod matfit;
 pub mod mlp;
 pub mod optim;
+pub mod paths;
 pub mod solve;
 pub mod tables;
 pub mod transport;

@@ -21,7 +21,7 @@ use matflow_render::Material;
 use rayon::prelude::*;
 
 use crate::brdf::{clamp_roughness, kd_poly, ks};
-use crate::cache::{sky, PathCache, MAX_DEPTH, NO_MATERIAL};
+use crate::paths::{sky, PathCache, MAX_DEPTH, NO_MATERIAL};
 use crate::transport::{for_each_path, path_radiance};
 
 /// Roughness nodes: R_i = 0.07 + 0.93·(i/(N−1))², denser where the GGX
@@ -240,7 +240,7 @@ mod tests {
 #[cfg(test)]
 mod model_tests {
     use super::*;
-    use crate::cache::PathCache;
+    use crate::paths::PathCache;
     use crate::testutil::{cache_of, hash01, materials_of, room, texels};
     use crate::transport::render;
 

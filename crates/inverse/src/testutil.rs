@@ -39,10 +39,10 @@ pub fn texels(img: &RgbImage) -> Vec<Vec3> {
 }
 
 /// A path cache of `scene` with default options and `spp` paths per pixel.
-pub fn cache_of(scene: &RenderScene, spp: u32) -> crate::cache::PathCache {
-    crate::cache::PathCache::build(
+pub fn cache_of(scene: &RenderScene, spp: u32) -> crate::paths::PathCache {
+    crate::paths::PathCache::build(
         scene,
-        &crate::cache::CacheOptions {
+        &crate::paths::CacheOptions {
             spp,
             ..Default::default()
         },

@@ -18,8 +18,8 @@ use crate::brdf::eval;
 #[cfg(test)]
 use crate::brdf::eval_grad;
 #[cfg(test)]
-use crate::cache::taps;
-use crate::cache::{sky, PathCache, Record, Vertex, MAX_DEPTH, NO_MATERIAL};
+use crate::paths::taps;
+use crate::paths::{sky, PathCache, Record, Vertex, MAX_DEPTH, NO_MATERIAL};
 
 /// Number of row bands gradient accumulation is split into (fixed so that
 /// results do not depend on the machine).
@@ -288,7 +288,7 @@ fn add_env(env: &mut [[f64; 3]], rec: &Record, ew: usize, c: Vec3) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::cache::{CacheOptions, PathCache};
+    use crate::paths::{CacheOptions, PathCache};
     use crate::testutil::{hash01, materials_of, room, texels};
 
     fn setup() -> (PathCache, Vec<Material>, Vec<Vec3>, usize) {

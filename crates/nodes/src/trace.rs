@@ -18,7 +18,7 @@ use std::collections::BTreeMap;
 
 use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
 use matflow_inverse::brdf::Geo;
-use matflow_inverse::cache::{
+use matflow_inverse::paths::{
     CacheOptions, CacheStats, PathCache, Record, RowPaths, Vertex, NO_MATERIAL,
 };
 use matflow_render::integrator::render_pixels;
