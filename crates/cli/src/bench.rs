@@ -14,6 +14,7 @@ use matflow_scene::metrics::psnr_gamma;
 use matflow_scene::{io, MaterialSource};
 use rayon::prelude::*;
 
+use crate::bench_pipeline::median;
 use crate::commands::load_scene;
 
 #[derive(Subcommand)]
@@ -82,19 +83,6 @@ pub fn run(b: BenchCmd) -> Result<()> {
         BenchCmd::Invert(a) => crate::bench_invert::bench_invert(a),
         BenchCmd::Synthetic(a) => crate::bench_synthetic::bench_synthetic(a),
         BenchCmd::Pipeline(a) => crate::bench_pipeline::bench_pipeline(a),
-    }
-}
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(|a, b| a.partial_cmp(b).unwrap());
-    let n = v.len();
-    if n == 0 {
-        return f64::NAN;
-    }
-    if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
     }
 }
 
