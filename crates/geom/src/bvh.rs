@@ -59,7 +59,8 @@ const LEAF: u32 = 1 << 31;
 const EMPTY: u32 = u32::MAX;
 
 /// Children per node. The boxes of a node's children are tested together,
-/// four lanes at a time.
+/// four lanes at a time (an 8-wide AVX version of the box test measured no
+/// faster: traversal waits on memory, not arithmetic).
 const LANES: usize = 8;
 const HALVES: usize = LANES / 4;
 
@@ -110,15 +111,13 @@ pub struct Bvh {
     triangle_count: usize,
     /// Root slot: an inner node, a single leaf, or empty.
     root: u32,
-    /// The CPU has AVX: box tests run 8 wide.
-    avx: bool,
 }
 
 /// Möller–Trumbore with the barycentric tolerance, written out
 /// component-wise in the order every SIMD lane of the wide test uses.
 /// Returns (t, u, v) for t in (tmin, tmax).
 #[inline(always)]
-pub fn intersect_tri(
+fn intersect_tri(
     v0: Vec3,
     e1: Vec3,
     e2: Vec3,
@@ -153,10 +152,7 @@ pub fn intersect_tri(
 
 /// The ray as the wide tests need it: splatted origin and direction,
 /// the safe reciprocal direction and, per axis, which bound is near.
-/// `AVX`: test a node's eight boxes in one 8-wide AVX operation instead of
-/// two 4-wide SSE ones (chosen at run time; the triangle test and so every
-/// result are the same either way).
-struct WideRay<const AVX: bool> {
+struct WideRay {
     o: [Vec4; 3],
     d: [Vec4; 3],
     inv: [Vec4; 3],
@@ -164,9 +160,7 @@ struct WideRay<const AVX: bool> {
     far: [usize; 3],
 }
 
-impl<const AVX: bool> WideRay<AVX> {
-    const AVX: bool = AVX;
-
+impl WideRay {
     #[inline(always)]
     fn new(o: Vec3, d: Vec3) -> Self {
         // A zero component would make (bound − o)·(1/d) = 0·∞ = NaN; a tiny
@@ -192,12 +186,6 @@ impl<const AVX: bool> WideRay<AVX> {
     /// of the boxes the segment (tmin, tmax] enters.
     #[inline(always)]
     fn slabs(&self, n: &Node, tmin: f32, tmax: f32) -> ([Vec4; HALVES], u32) {
-        #[cfg(target_arch = "x86_64")]
-        if Self::AVX {
-            // SAFETY: only reached from `Bvh::*_avx`, which run only where
-            // the CPU reported AVX at build time.
-            return unsafe { avx::slabs(self, n, tmin, tmax) };
-        }
         let b = &n.bounds;
         let (bnx, bny, bnz) = (&b[self.near[0]], &b[self.near[1]], &b[self.near[2]]);
         let (bfx, bfy, bfz) = (&b[self.far[0]], &b[self.far[1]], &b[self.far[2]]);
@@ -280,7 +268,6 @@ impl Bvh {
                 tris: Vec::new(),
                 triangle_count: 0,
                 root: EMPTY,
-                avx: false,
             };
         }
         // Leaves of up to four triangles (one 4-wide test); the builder's
@@ -297,7 +284,6 @@ impl Bvh {
             tris: Vec::with_capacity(tris.len() / 2),
             triangle_count: tris.len(),
             root: EMPTY,
-            avx: has_avx(),
         };
         out.root = out.collapse(&bvh2, 0, &tris, &orig);
         out
@@ -308,13 +294,9 @@ impl Bvh {
     fn collapse(&mut self, b: &Bvh2, id: usize, tris: &[Triangle], orig: &[u32]) -> u32 {
         let node = &b.nodes[id];
         if node.prim_count > 0 {
-            return self.leaf(
-                b,
-                node.first_index as usize,
-                node.prim_count as usize,
-                tris,
-                orig,
-            );
+            let first = node.first_index as usize;
+            let prims = &b.primitive_indices[first..first + node.prim_count as usize];
+            return self.leaf_of(prims, tris, orig);
         }
         // Open the largest inner child until the node is full.
         let mut kids: Vec<usize> = vec![node.first_index as usize, node.first_index as usize + 1];
@@ -343,17 +325,6 @@ impl Bvh {
             self.nodes[me].set_lane(lane, bb.min.into(), bb.max.into(), slot);
         }
         me as u32
-    }
-
-    fn leaf(
-        &mut self,
-        b: &Bvh2,
-        first: usize,
-        count: usize,
-        tris: &[Triangle],
-        orig: &[u32],
-    ) -> u32 {
-        self.leaf_of(&b.primitive_indices[first..first + count], tris, orig)
     }
 
     /// A slot for these triangles: one leaf of up to four blocks of four,
@@ -421,29 +392,7 @@ impl Bvh {
         if self.root == EMPTY {
             return None;
         }
-        #[cfg(target_arch = "x86_64")]
-        if self.avx {
-            // SAFETY: `avx` is set only where the CPU reports AVX.
-            return unsafe { self.intersect_avx(origin, dir, tmin, tmax) };
-        }
-        self.intersect_with::<false>(origin, dir, tmin, tmax)
-    }
-
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx")]
-    unsafe fn intersect_avx(&self, origin: Vec3, dir: Vec3, tmin: f32, tmax: f32) -> Option<Hit> {
-        self.intersect_with::<true>(origin, dir, tmin, tmax)
-    }
-
-    #[inline(always)]
-    fn intersect_with<const AVX: bool>(
-        &self,
-        origin: Vec3,
-        dir: Vec3,
-        tmin: f32,
-        tmax: f32,
-    ) -> Option<Hit> {
-        let ray = WideRay::<AVX>::new(origin, dir);
+        let ray = WideRay::new(origin, dir);
         let mut best: Option<Hit> = None;
         // Hits must lie below tmax; once one is found, at or below its t
         // (ties are resolved by index).
@@ -528,29 +477,7 @@ impl Bvh {
         if self.root == EMPTY {
             return false;
         }
-        #[cfg(target_arch = "x86_64")]
-        if self.avx {
-            // SAFETY: `avx` is set only where the CPU reports AVX.
-            return unsafe { self.occluded_avx(origin, dir, tmin, tmax) };
-        }
-        self.occluded_with::<false>(origin, dir, tmin, tmax)
-    }
-
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx")]
-    unsafe fn occluded_avx(&self, origin: Vec3, dir: Vec3, tmin: f32, tmax: f32) -> bool {
-        self.occluded_with::<true>(origin, dir, tmin, tmax)
-    }
-
-    #[inline(always)]
-    fn occluded_with<const AVX: bool>(
-        &self,
-        origin: Vec3,
-        dir: Vec3,
-        tmin: f32,
-        tmax: f32,
-    ) -> bool {
-        let ray = WideRay::<AVX>::new(origin, dir);
+        let ray = WideRay::new(origin, dir);
         let tmax4 = Vec4::splat(tmax);
         let mut stack: [(u32, f32); STACK] = [(0, 0.0); STACK];
         let mut spill: Vec<(u32, f32)> = Vec::new();
@@ -584,64 +511,6 @@ impl Bvh {
                 Some((s, _)) => slot = s,
                 None => return false,
             }
-        }
-    }
-}
-
-fn has_avx() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    {
-        std::arch::is_x86_feature_detected!("avx")
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    false
-}
-
-/// The 8-wide box test with AVX intrinsics: the same operations as the
-/// SSE path, on all eight lanes at once.
-#[cfg(target_arch = "x86_64")]
-mod avx {
-    use super::{Node, WideRay, HALVES, SLAB_WIDEN};
-    use glam::Vec4;
-    use std::arch::x86_64::*;
-
-    /// # Safety
-    /// The CPU must support AVX.
-    #[inline(always)]
-    pub unsafe fn slabs<const A: bool>(
-        r: &WideRay<A>,
-        n: &Node,
-        tmin: f32,
-        tmax: f32,
-    ) -> ([Vec4; HALVES], u32) {
-        // SAFETY: each bounds entry is 8 contiguous f32 (two Vec4), 32-byte
-        // aligned inside the 64-byte aligned node; the caller guarantees AVX.
-        unsafe {
-            let load = |k: usize| _mm256_load_ps(n.bounds[k].as_ptr() as *const f32);
-            let splat = |v: Vec4| _mm256_set1_ps(v.x);
-            let (ox, oy, oz) = (splat(r.o[0]), splat(r.o[1]), splat(r.o[2]));
-            let (ix, iy, iz) = (splat(r.inv[0]), splat(r.inv[1]), splat(r.inv[2]));
-            let t0x = _mm256_mul_ps(_mm256_sub_ps(load(r.near[0]), ox), ix);
-            let t0y = _mm256_mul_ps(_mm256_sub_ps(load(r.near[1]), oy), iy);
-            let t0z = _mm256_mul_ps(_mm256_sub_ps(load(r.near[2]), oz), iz);
-            let t1x = _mm256_mul_ps(_mm256_sub_ps(load(r.far[0]), ox), ix);
-            let t1y = _mm256_mul_ps(_mm256_sub_ps(load(r.far[1]), oy), iy);
-            let t1z = _mm256_mul_ps(_mm256_sub_ps(load(r.far[2]), oz), iz);
-            let near = _mm256_max_ps(
-                _mm256_max_ps(t0x, t0y),
-                _mm256_max_ps(t0z, _mm256_set1_ps(tmin)),
-            );
-            let far = _mm256_mul_ps(
-                _mm256_min_ps(
-                    _mm256_min_ps(t1x, t1y),
-                    _mm256_min_ps(t1z, _mm256_set1_ps(tmax)),
-                ),
-                _mm256_set1_ps(SLAB_WIDEN),
-            );
-            let mask = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(near, far)) as u32;
-            let mut tn = [Vec4::ZERO; HALVES];
-            _mm256_storeu_ps(tn.as_mut_ptr() as *mut f32, near);
-            (tn, mask)
         }
     }
 }
@@ -830,34 +699,6 @@ mod tests {
         }
         // Inside a closed room every ray hits something.
         assert_eq!(hits, 4000);
-    }
-
-    /// The 8-wide AVX box test and the two 4-wide SSE ones give the same
-    /// answers (the triangle test, shared, decides every result).
-    #[test]
-    fn avx_and_sse_traversals_agree() {
-        let mesh = test_mesh();
-        // Where the CPU has no AVX, both run the SSE path.
-        let wide = Bvh::build(&mesh);
-        let mut narrow = Bvh::build(&mesh);
-        narrow.avx = false;
-        let mut rng = Rng(7);
-        for _ in 0..4000 {
-            let o = Vec3::new(
-                rng.f() * 8.0 - 4.0,
-                rng.f() * 8.0 - 4.0,
-                rng.f() * 8.0 - 4.0,
-            );
-            let d = rng.dir();
-            assert_eq!(
-                wide.intersect(o, d, 1e-4, f32::INFINITY),
-                narrow.intersect(o, d, 1e-4, f32::INFINITY)
-            );
-            assert_eq!(
-                wide.occluded(o, d, 1e-4, 2.0),
-                narrow.occluded(o, d, 1e-4, 2.0)
-            );
-        }
     }
 
     #[test]

@@ -31,7 +31,7 @@ impl PixelFilter {
     }
 
     /// The filter with its constants evaluated once, for weighting many
-    /// samples (the same values as [`PixelFilter::weight_1d`]).
+    /// samples.
     pub fn weights(&self) -> FilterWeights {
         match *self {
             PixelFilter::Gaussian { stddev, radius } => {
@@ -53,22 +53,7 @@ impl PixelFilter {
     /// 1-D weight at offset `x` (pixels) from a pixel centre.
     #[inline]
     pub fn weight_1d(&self, x: f32) -> f32 {
-        match *self {
-            PixelFilter::Gaussian { stddev, radius } => {
-                if x.abs() >= radius {
-                    return 0.0;
-                }
-                let a = -1.0 / (2.0 * stddev * stddev);
-                ((a * x * x).exp() - (a * radius * radius).exp()).max(0.0)
-            }
-            PixelFilter::Box => {
-                if x.abs() <= 0.5 {
-                    1.0
-                } else {
-                    0.0
-                }
-            }
-        }
+        self.weights().weight_1d(x)
     }
 }
 
@@ -81,7 +66,7 @@ pub struct FilterWeights {
 }
 
 impl FilterWeights {
-    /// Exactly [`PixelFilter::weight_1d`].
+    /// 1-D weight at offset `x` (pixels) from a pixel centre.
     #[inline]
     pub fn weight_1d(&self, x: f32) -> f32 {
         match self.filter {
@@ -91,7 +76,13 @@ impl FilterWeights {
                 }
                 ((self.a * x * x).exp() - self.floor).max(0.0)
             }
-            PixelFilter::Box => self.filter.weight_1d(x),
+            PixelFilter::Box => {
+                if x.abs() <= 0.5 {
+                    1.0
+                } else {
+                    0.0
+                }
+            }
         }
     }
 }

@@ -93,20 +93,6 @@ impl RenderScene {
         Some(y * w + x)
     }
 
-    /// Material of the pixel a camera-space point projects into; black for
-    /// points that project nowhere.
-    #[inline]
-    pub fn material_at(&self, p: Vec3) -> Material {
-        match self.material_index(p) {
-            Some(i) => self.materials[i],
-            None => Material {
-                albedo: Vec3::ZERO,
-                roughness: 1.0,
-                metallic: 0.0,
-            },
-        }
-    }
-
     /// Interpolated vertex normal at a hit.
     #[inline]
     pub fn shading_normal(&self, prim: u32, u: f32, v: f32) -> Vec3 {
