@@ -332,3 +332,104 @@ fn invert_writes_best_results_deterministically_and_rerenders() {
         None,
     ));
 }
+
+/// The inverse routes come from one registry (`matflow_inverse::routes`):
+/// every registered route and each of its options appears in the pipeline
+/// schema (`matflow kinds`), in `matflow invert --help` and among `matflow
+/// bench invert`'s configurations, with no list of routes anywhere else;
+/// an option given for a route that is not chosen is refused by name.
+#[test]
+fn registered_routes_reach_cli_schema_and_benchmarks() {
+    use matflow_inverse::routes::{all_options, Side, ENV_ROUTES, MAT_ROUTES};
+    let kinds = ok(&matflow(&["kinds"], None));
+    let help = ok(&matflow(&["invert", "--help"], None));
+    let tmp = tempfile::tempdir().unwrap();
+    let bench = ok(&matflow(
+        &[
+            "bench",
+            "invert",
+            "--dry-run",
+            "--budgets",
+            "5",
+            "--bundles",
+            s(tmp.path()),
+        ],
+        None,
+    ));
+    let schema_line = |param: &str| -> Vec<String> {
+        kinds
+            .lines()
+            .filter(|l| l.starts_with(&format!("| `{param}` |")))
+            .map(String::from)
+            .collect()
+    };
+    for (side, param, names) in [
+        (
+            Side::Env,
+            "env_route",
+            ENV_ROUTES
+                .iter()
+                .map(|e| (e.name, e.doc))
+                .collect::<Vec<_>>(),
+        ),
+        (
+            Side::Mat,
+            "mat_route",
+            MAT_ROUTES.iter().map(|e| (e.name, e.doc)).collect(),
+        ),
+    ] {
+        let lines = schema_line(param);
+        assert!(!lines.is_empty(), "`{param}` missing from matflow kinds");
+        for (name, doc) in &names {
+            for l in &lines {
+                assert!(l.contains(name), "{param} choice {name} missing: {l}");
+            }
+            // clap aligns the docs: "- mlp:   the paper's …".
+            assert!(
+                help.lines().any(|l| {
+                    let l = l.trim_start();
+                    l.starts_with(&format!("- {name}:")) && l.ends_with(doc)
+                }),
+                "--{} {name} missing from invert --help",
+                param.replace('_', "-")
+            );
+            let in_bench = match side {
+                Side::Env => format!("--env-route {name}"),
+                Side::Mat => format!("material route {name} "),
+            };
+            assert!(
+                bench.contains(&in_bench),
+                "{name} not benchmarked:\n{bench}"
+            );
+        }
+        for (q, route, _) in all_options(side) {
+            assert!(
+                !schema_line(&q).is_empty(),
+                "route {route}'s option {q} missing from matflow kinds"
+            );
+            let flag = format!("--{}", q.replace('_', "-"));
+            assert!(help.contains(&flag), "{flag} missing from invert --help");
+        }
+    }
+    // An option of a route that is not chosen is an error, not ignored.
+    let o = matflow(
+        &[
+            "invert",
+            "--bundle",
+            "x",
+            "--out",
+            "y",
+            "--mat-route",
+            "solve",
+            "--mat-mlp-width",
+            "8",
+        ],
+        None,
+    );
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("--mat-mlp-width applies to --mat-route mlp"),
+        "{err}"
+    );
+}

@@ -10,8 +10,11 @@ use std::process::Command;
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
+use matflow_inverse::routes::Side;
 use matflow_scene::metrics::psnr_gamma;
 use matflow_scene::{io, Image};
+
+use crate::routes::{route_names, route_parser};
 
 #[derive(Args)]
 pub struct BenchInvertArgs {
@@ -21,13 +24,19 @@ pub struct BenchInvertArgs {
     /// Budgets in seconds.
     #[arg(long, num_args = 1.., default_values_t = [5.0, 15.0, 60.0])]
     pub budgets: Vec<f64>,
-    /// Material routes.
-    #[arg(long, num_args = 1.., default_values = ["solve", "pixel"])]
+    /// Material routes. Given with --env-routes, every pair runs. By
+    /// default every registered route runs once: each material route with
+    /// the default envmap route, each other envmap route with the default
+    /// material route.
+    #[arg(long, num_args = 1.., value_parser = route_parser(Side::Mat))]
     pub mat_routes: Vec<String>,
-    /// Envmap routes.
-    #[arg(long, num_args = 1.., default_values = ["texel"])]
+    /// Envmap routes (see --mat-routes).
+    #[arg(long, num_args = 1.., value_parser = route_parser(Side::Env))]
     pub env_routes: Vec<String>,
-    /// Also run the skip ablations at the largest budget (solve route):
+    /// Print the configurations and run nothing.
+    #[arg(long)]
+    pub dry_run: bool,
+    /// Also run the skip ablations at the largest budget (default routes):
     /// no table denoising, no exposure ratio, one bounce fewer, no early
     /// stopping.
     #[arg(long)]
@@ -108,6 +117,35 @@ pub fn bench_invert(a: BenchInvertArgs) -> Result<()> {
          independent render of the recovered scene vs the input (sRGB γ 2.2)",
         rayon::current_num_threads()
     );
+    let default_env = route_names(Side::Env)[0];
+    let default_mat = route_names(Side::Mat)[0];
+    let pairs: Vec<(&str, &str)> = if a.env_routes.is_empty() && a.mat_routes.is_empty() {
+        let mut v: Vec<(&str, &str)> = route_names(Side::Mat)
+            .into_iter()
+            .map(|m| (default_env, m))
+            .collect();
+        v.extend(
+            route_names(Side::Env)
+                .into_iter()
+                .skip(1)
+                .map(|e| (e, default_mat)),
+        );
+        v
+    } else {
+        let envs: Vec<&str> = if a.env_routes.is_empty() {
+            vec![default_env]
+        } else {
+            a.env_routes.iter().map(|s| s.as_str()).collect()
+        };
+        let mats: Vec<&str> = if a.mat_routes.is_empty() {
+            vec![default_mat]
+        } else {
+            a.mat_routes.iter().map(|s| s.as_str()).collect()
+        };
+        envs.iter()
+            .flat_map(|e| mats.iter().map(move |m| (*e, *m)))
+            .collect()
+    };
     let mut rows = Vec::new();
     let max_budget = a.budgets.iter().cloned().fold(f64::NAN, f64::max);
     for bundle in &a.bundles {
@@ -120,15 +158,13 @@ pub fn bench_invert(a: BenchInvertArgs) -> Result<()> {
         }
         let mut configs: Vec<(f64, String, String, Vec<&str>)> = Vec::new();
         for &b in &a.budgets {
-            for e in &a.env_routes {
-                for r in &a.mat_routes {
-                    let variant = if e == "texel" {
-                        "default".to_string()
-                    } else {
-                        format!("envmap {e}")
-                    };
-                    configs.push((b, r.clone(), variant, vec!["--env-route", e.as_str()]));
-                }
+            for (env, mat) in &pairs {
+                let variant = if *env == default_env {
+                    "default".to_string()
+                } else {
+                    format!("envmap {env}")
+                };
+                configs.push((b, mat.to_string(), variant, vec!["--env-route", env]));
             }
         }
         if a.skips {
@@ -138,8 +174,17 @@ pub fn bench_invert(a: BenchInvertArgs) -> Result<()> {
                 ("depth 3 (one bounce fewer)", vec!["--depth", "3"]),
                 ("no early stopping", vec!["--no-early-stop"]),
             ] {
-                configs.push((max_budget, "solve".into(), name.into(), flags));
+                configs.push((max_budget, default_mat.into(), name.into(), flags));
             }
+        }
+        if a.dry_run {
+            for (b, route, variant, flags) in &configs {
+                println!(
+                    "  {scene:<8} budget {b:>5.0} s  material route {route:<8} {variant:<28} extra flags: {}",
+                    flags.join(" ")
+                );
+            }
+            continue;
         }
         for (b, route, variant, flags) in configs {
             let out = a.work.join(format!(

@@ -17,8 +17,11 @@ use std::process::Command;
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
+use matflow_inverse::routes::{Side, ENV_ROUTE_NAMES, MAT_ROUTE_NAMES};
 use matflow_scene::metrics::{mse_linear, psnr_from_mse, psnr_gamma, sh_error, ssim_linear};
 use matflow_scene::{io, Bundle, MaterialSource};
+
+use crate::routes::route_parser;
 
 #[derive(Args)]
 pub struct BenchSyntheticArgs {
@@ -34,11 +37,11 @@ pub struct BenchSyntheticArgs {
     /// Budgets in seconds.
     #[arg(long, num_args = 1.., default_values_t = [15.0, 60.0])]
     pub budgets: Vec<f64>,
-    /// Envmap routes.
-    #[arg(long, num_args = 1.., default_values = ["texel"])]
+    /// Envmap routes (default: the default route).
+    #[arg(long, num_args = 1.., value_parser = route_parser(Side::Env), default_values = [ENV_ROUTE_NAMES[0]])]
     pub env_routes: Vec<String>,
-    /// Material routes.
-    #[arg(long, num_args = 1.., default_values = ["solve"])]
+    /// Material routes (default: the default route).
+    #[arg(long, num_args = 1.., value_parser = route_parser(Side::Mat), default_values = [MAT_ROUTE_NAMES[0]])]
     pub mat_routes: Vec<String>,
     /// Samples per pixel of the relighting renders.
     #[arg(long, default_value_t = 64)]

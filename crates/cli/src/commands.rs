@@ -4,9 +4,10 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use matflow_geom::{mesh_from_depth, DepthMesh, MeshParams};
+use matflow_geom::{mesh_from_depth, MeshParams};
 use matflow_render::{
-    render as render_scene, EnvMap, PixelFilter, RenderOptions, RenderOutput, RenderScene,
+    render as render_scene, scene_from_depth, EnvMap, PixelFilter, RenderOptions, RenderOutput,
+    RenderScene,
 };
 use matflow_scene::metrics::psnr_gamma;
 use matflow_scene::{io, Bundle, Camera, MaterialSource, RgbImage};
@@ -89,10 +90,8 @@ pub struct SynthArgs {
 
 pub struct LoadedScene {
     pub scene: RenderScene,
-    #[allow(dead_code)]
-    pub mesh: DepthMesh,
-    pub mesh_seconds: f64,
-    pub bvh_seconds: f64,
+    /// Building mesh and BVH.
+    pub seconds: f64,
 }
 
 /// Builds mesh, BVH, materials and envmap for a bundle.
@@ -120,35 +119,12 @@ pub fn load_scene(
         env_img = matflow_render::envmap::merge_seam_columns(&env_img);
     }
     let env = EnvMap::new(&env_img).with_context(|| format!("{}", env_path.display()))?;
-    let cam = Camera::new(depth.width, depth.height);
-    if maps.width() != depth.width || maps.height() != depth.height {
-        bail!(
-            "{}: material maps are {}x{} but the depth is {}x{}",
-            bundle_dir.display(),
-            maps.width(),
-            maps.height(),
-            depth.width,
-            depth.height
-        );
-    }
     let t0 = Instant::now();
-    let mesh = mesh_from_depth(
-        &depth,
-        &cam,
-        &MeshParams {
-            min_angle_deg: mesh_angle,
-        },
-    )
-    .with_context(|| format!("{}: meshing the depth map", bundle_dir.display()))?;
-    let mesh_seconds = t0.elapsed().as_secs_f64();
-    let t1 = Instant::now();
-    let scene = RenderScene::new(cam, mesh.mesh.clone(), &maps, env)?;
-    let bvh_seconds = t1.elapsed().as_secs_f64();
+    let (scene, _) = scene_from_depth(&depth, &maps, env, mesh_angle)
+        .with_context(|| format!("{}: building the scene", bundle_dir.display()))?;
     Ok(LoadedScene {
         scene,
-        mesh,
-        mesh_seconds,
-        bvh_seconds,
+        seconds: t0.elapsed().as_secs_f64(),
     })
 }
 
@@ -165,17 +141,20 @@ pub fn progress_bar(total: u64, msg: &str) -> ProgressBar {
     pb
 }
 
+/// Renders with a progress bar; returns the output and its wall time in
+/// seconds.
 pub fn render_with_progress(
     scene: &RenderScene,
     opts: &RenderOptions,
     label: &str,
-) -> RenderOutput {
+) -> (RenderOutput, f64) {
     let ts = opts.tile_size.max(1);
     let tiles = scene.camera.width.div_ceil(ts) * scene.camera.height.div_ceil(ts);
     let pb = progress_bar(tiles as u64, label);
+    let t0 = Instant::now();
     let out = render_scene(scene, opts, &|d, _| pb.set_position(d as u64));
     pb.finish_and_clear();
-    out
+    (out, t0.elapsed().as_secs_f64())
 }
 
 /// Writes `out` (EXR) and a PNG with the same stem.
@@ -203,21 +182,20 @@ pub fn render(a: RenderArgs) -> Result<()> {
         reference_compat: a.reference_compat,
         ..Default::default()
     };
-    let out = render_with_progress(&loaded.scene, &opts, "render");
+    let (out, seconds) = render_with_progress(&loaded.scene, &opts, "render");
     let png = write_outputs(&a.out, &out.image)?;
     let s = out.stats;
     println!(
-        "rendered {}x{} at {} spp, depth {} in {:.2} s (mesh {:.2} s, bvh {:.2} s, total {:.2} s): {:.1} M rays, {:.2} Mrays/s -> {}, {}",
+        "rendered {}x{} at {} spp, depth {} in {:.2} s (mesh and BVH {:.2} s, total {:.2} s): {:.1} M rays, {:.2} Mrays/s -> {}, {}",
         loaded.scene.camera.width,
         loaded.scene.camera.height,
         a.spp,
         a.depth,
-        s.seconds,
-        loaded.mesh_seconds,
-        loaded.bvh_seconds,
+        seconds,
+        loaded.seconds,
         t_all.elapsed().as_secs_f64(),
         s.total_rays() as f64 / 1e6,
-        s.total_rays() as f64 / 1e6 / s.seconds.max(1e-9),
+        s.total_rays() as f64 / 1e6 / seconds.max(1e-9),
         a.out.display(),
         png.display()
     );
@@ -295,7 +273,7 @@ pub fn synth(a: SynthArgs) -> Result<()> {
         seed: a.seed,
         ..Default::default()
     };
-    let out = render_with_progress(&loaded.scene, &opts, "render gt_image");
+    let (out, seconds) = render_with_progress(&loaded.scene, &opts, "render gt_image");
     io::write_exr_rgb(&bundle.path("gt_image.exr"), &out.image)?;
     io::write_png_gamma(&bundle.path("gt_image.png"), &out.image)?;
     if a.relight_spp > 0 {
@@ -316,7 +294,7 @@ pub fn synth(a: SynthArgs) -> Result<()> {
             seed: a.seed ^ 0x7e11,
             ..Default::default()
         };
-        let img = render_with_progress(&relit.scene, &opts, "render relit_image");
+        let (img, _) = render_with_progress(&relit.scene, &opts, "render relit_image");
         io::write_exr_rgb(&bundle.path("ground_truth/relit_image.exr"), &img.image)?;
         io::write_png_gamma(&bundle.path("ground_truth/relit_image.png"), &img.image)?;
     }
@@ -327,7 +305,7 @@ pub fn synth(a: SynthArgs) -> Result<()> {
         a.size,
         loaded.scene.mesh.triangle_count(),
         a.spp,
-        out.stats.seconds,
+        seconds,
         t0.elapsed().as_secs_f64(),
         a.out.display()
     );

@@ -5,34 +5,15 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
-use clap::{Args, ValueEnum};
+use clap::Args;
 use glam::Vec3;
 use indicatif::{ProgressBar, ProgressStyle};
-use matflow_geom::{mesh_from_depth, MeshParams};
-use matflow_inverse::invert::{
-    invert, materials_to_maps, EnvRoute, Event, InvertOptions, InvertResult, MatRoute,
-};
-use matflow_render::{EnvMap, RenderScene};
+use matflow_inverse::invert::{invert, materials_to_maps, Event, InvertOptions, InvertResult};
+use matflow_render::{scene_from_depth, EnvMap, RenderScene};
 use matflow_scene::metrics::{mse_gamma, psnr_gamma, ssim_gamma};
-use matflow_scene::{io, Bundle, Camera, Image, MaterialMaps, MaterialSource, RgbImage};
+use matflow_scene::{io, Bundle, Image, MaterialMaps, MaterialSource, RgbImage};
 
-#[derive(Clone, Copy, Debug, ValueEnum)]
-pub enum EnvRouteArg {
-    /// Free log-space texels (fast).
-    Texel,
-    /// The paper's positional-encoding MLP with a Softplus head.
-    Mlp,
-}
-
-#[derive(Clone, Copy, Debug, ValueEnum)]
-pub enum MatRouteArg {
-    /// Per-pixel exact solves on the tables (fast).
-    Solve,
-    /// Per-pixel Adam on ζ·tanh offsets.
-    Pixel,
-    /// The paper's positional-encoding MLP (minibatched AdamW).
-    Mlp,
-}
+use crate::routes::RouteArgs;
 
 #[derive(Args, Clone)]
 pub struct InvertArgs {
@@ -48,25 +29,9 @@ pub struct InvertArgs {
     /// clock).
     #[arg(long, default_value_t = 60.0)]
     pub budget_seconds: f64,
-    /// Envmap route.
-    #[arg(long, value_enum, default_value = "texel")]
-    pub env_route: EnvRouteArg,
-    /// Hidden width of the envmap MLP (the reference: 256).
-    #[arg(long, default_value_t = 64)]
-    pub mlp_width: usize,
-    /// Hidden width of the material MLP (the reference: 256; each step
-    /// costs ∝ width² per pixel on the CPU).
-    #[arg(long, default_value_t = 32)]
-    pub mat_mlp_width: usize,
-    /// Adam learning rate of the envmap MLP (the reference: 1e-3).
-    #[arg(long, default_value_t = 1e-3)]
-    pub env_mlp_lr: f32,
-    /// AdamW learning rate of the material MLP (the reference: 3e-4).
-    #[arg(long, default_value_t = 1e-3)]
-    pub mat_mlp_lr: f32,
-    /// Material route.
-    #[arg(long, value_enum, default_value = "solve")]
-    pub mat_route: MatRouteArg,
+    /// The envmap and material routes and their options.
+    #[command(flatten)]
+    pub routes: RouteArgs,
     /// Trust the predicted roughness and metallic (synthetic data). By
     /// default they start at 0.7 / 0.05 as the reference does for photos.
     #[arg(long)]
@@ -90,9 +55,6 @@ pub struct InvertArgs {
     /// Envmap/material alternations (default: from the budget).
     #[arg(long)]
     pub loops: Option<usize>,
-    /// Rounds of the per-pixel solve per material stage (default: from the budget).
-    #[arg(long)]
-    pub solve_rounds: Option<usize>,
     /// Maximum steps per optimisation stage (default: from the budget).
     #[arg(long)]
     pub steps: Option<usize>,
@@ -113,11 +75,6 @@ pub struct InvertArgs {
     /// Disable early stopping (run every stage for its full step count).
     #[arg(long)]
     pub no_early_stop: bool,
-    /// Weight of the smoothness prior on the texel envmap's log radiance
-    /// (mean squared log difference of neighbouring texels; 0: off).
-    /// Default: 0.01 with --trust-rm, off for photos.
-    #[arg(long)]
-    pub env_smooth: Option<f32>,
     /// Hide the progress bar.
     #[arg(long)]
     pub quiet: bool,
@@ -149,7 +106,6 @@ pub fn peak_memory_bytes() -> Option<u64> {
 
 /// Everything `invert` reads from a bundle.
 pub struct InvertInput {
-    pub bundle: Bundle,
     pub depth: matflow_scene::GrayImage,
     pub maps: MaterialMaps,
     pub target: RgbImage,
@@ -173,20 +129,10 @@ pub fn load_input(dir: &Path, source: MaterialSource, mesh_angle: f64) -> Result
             maps.height()
         );
     }
-    let cam = Camera::new(depth.width, depth.height);
-    let mesh = mesh_from_depth(
-        &depth,
-        &cam,
-        &MeshParams {
-            min_angle_deg: mesh_angle,
-        },
-    )
-    .with_context(|| format!("{}: meshing the depth map", dir.display()))?
-    .mesh;
     let flat = Image::new(32, 16, Vec3::ONE);
-    let scene = RenderScene::new(cam, mesh, &maps, EnvMap::new(&flat)?)?;
+    let (scene, _) = scene_from_depth(&depth, &maps, EnvMap::new(&flat)?, mesh_angle)
+        .with_context(|| format!("{}: building the scene", dir.display()))?;
     Ok(InvertInput {
-        bundle,
         depth,
         maps,
         target,
@@ -197,25 +143,8 @@ pub fn load_input(dir: &Path, source: MaterialSource, mesh_angle: f64) -> Result
 pub fn options_from(a: &InvertArgs) -> InvertOptions {
     InvertOptions {
         budget_seconds: a.budget_seconds,
-        env_route: match a.env_route {
-            EnvRouteArg::Texel => EnvRoute::Texel,
-            EnvRouteArg::Mlp => EnvRoute::Mlp,
-        },
-        env_mlp: matflow_inverse::envfit::EnvMlpOptions {
-            width: a.mlp_width,
-            lr: a.env_mlp_lr,
-            ..Default::default()
-        },
-        mat_route: match a.mat_route {
-            MatRouteArg::Pixel => MatRoute::Pixel,
-            MatRouteArg::Solve => MatRoute::Solve,
-            MatRouteArg::Mlp => MatRoute::Mlp,
-        },
-        mat_mlp: matflow_inverse::matfit::MatMlpOptions {
-            width: a.mat_mlp_width,
-            lr: a.mat_mlp_lr,
-            ..Default::default()
-        },
+        env_route: a.routes.env.clone(),
+        mat_route: a.routes.mat.clone(),
         trust_rm: a.trust_rm,
         max_depth: a.depth,
         delta: a.delta,
@@ -223,11 +152,9 @@ pub fn options_from(a: &InvertArgs) -> InvertOptions {
         spp: a.spp,
         final_spp: a.final_spp,
         loops: a.loops,
-        solve_rounds: a.solve_rounds,
         env_steps: a.steps,
         mat_steps: a.steps,
         early_stop: !a.no_early_stop,
-        env_smooth: a.env_smooth,
         denoise: a.denoise,
         rescale: !a.no_rescale,
         env_only: a.env_only,
@@ -235,19 +162,16 @@ pub fn options_from(a: &InvertArgs) -> InvertOptions {
     }
 }
 
-/// Runs the recovery with a progress bar showing stage and loss.
+/// Runs the recovery with a progress bar; returns its result and each
+/// stage's wall time in seconds (the order of the report's stages).
 pub fn run_invert(
-    input: InvertInput,
+    scene: RenderScene,
+    target: &RgbImage,
+    maps: &MaterialMaps,
     opts: &InvertOptions,
     quiet: bool,
-) -> Result<(
-    InvertResult,
-    Bundle,
-    matflow_scene::GrayImage,
-    MaterialMaps,
-    RgbImage,
-)> {
-    let pred = matflow_render::scene::materials_from_maps(&input.maps);
+) -> Result<(InvertResult, Vec<f64>)> {
+    let pred = matflow_render::scene::materials_from_maps(maps);
     let pb = if quiet {
         ProgressBar::hidden()
     } else {
@@ -259,8 +183,14 @@ pub fn run_invert(
         );
         pb
     };
-    let res = invert(input.scene, &input.target, &pred, opts, &|e| match e {
+    // The clock is the front end's: stage durations are measured between
+    // the events that open and close each stage.
+    let timing = std::sync::Mutex::new((Instant::now(), Vec::new()));
+    let res = invert(scene, target, &pred, opts, &|e| match e {
         Event::Stage { name, steps } => {
+            if let Ok(mut t) = timing.lock() {
+                t.0 = Instant::now();
+            }
             pb.set_prefix(name.to_string());
             pb.set_length(steps as u64);
             pb.set_position(0);
@@ -274,9 +204,29 @@ pub fn run_invert(
             pb.set_length(total as u64);
             pb.set_position(done as u64);
         }
+        Event::StageDone => {
+            if let Ok(mut t) = timing.lock() {
+                let s = t.0.elapsed().as_secs_f64();
+                t.1.push(s);
+            }
+        }
     })?;
     pb.finish_and_clear();
-    Ok((res, input.bundle, input.depth, input.maps, input.target))
+    let seconds = timing.into_inner().map(|t| t.1).unwrap_or_default();
+    Ok((res, seconds))
+}
+
+/// The report's stages, each with its measured wall time.
+fn stages_with_seconds(res: &InvertResult, seconds: &[f64]) -> serde_json::Value {
+    let mut v = serde_json::to_value(&res.report.stages).unwrap_or_default();
+    if let serde_json::Value::Array(stages) = &mut v {
+        for (s, t) in stages.iter_mut().zip(seconds) {
+            if let serde_json::Value::Object(m) = s {
+                m.insert("seconds".into(), serde_json::json!(t));
+            }
+        }
+    }
+    v
 }
 
 /// Writes the output bundle: geometry inputs and predictions (so that
@@ -316,15 +266,22 @@ pub fn invert_cmd(a: InvertArgs) -> Result<()> {
     let t0 = Instant::now();
     let input = load_input(&a.bundle, a.materials, a.mesh_angle)?;
     let opts = options_from(&a);
-    let (res, _b, depth, pred, target) = run_invert(input, &opts, a.quiet)?;
-    let rerender = image_metrics(&res.rendered, &target);
-    let fit = image_metrics(&res.fit_image, &target);
+    let InvertInput {
+        depth,
+        maps,
+        target,
+        scene,
+    } = input;
+    let (res, stage_seconds) = run_invert(scene, &target, &maps, &opts, a.quiet)?;
+    let (depth, pred, target) = (&depth, &maps, &target);
+    let rerender = image_metrics(&res.rendered, target);
+    let fit = image_metrics(&res.fit_image, target);
     let summary = serde_json::json!({
         "input": a.bundle.display().to_string(),
         "options": {
             "budget_seconds": opts.budget_seconds,
-            "env_route": format!("{:?}", opts.env_route).to_lowercase(),
-            "mat_route": format!("{:?}", opts.mat_route).to_lowercase(),
+            "env_route": format!("{:?}", opts.env_route),
+            "mat_route": format!("{:?}", opts.mat_route),
             "trust_rm": opts.trust_rm,
             "materials": format!("{:?}", a.materials),
             "env_only": opts.env_only,
@@ -334,7 +291,7 @@ pub fn invert_cmd(a: InvertArgs) -> Result<()> {
             "seed": opts.seed,
         },
         "plan": res.report.plan,
-        "stages": res.report.stages,
+        "stages": stages_with_seconds(&res, &stage_seconds),
         "cache_bytes": res.report.cache_bytes,
         "cache_rays": res.report.cache_rays,
         "rerender": rerender,
@@ -342,7 +299,7 @@ pub fn invert_cmd(a: InvertArgs) -> Result<()> {
         "seconds": t0.elapsed().as_secs_f64(),
         "peak_memory_bytes": peak_memory_bytes(),
     });
-    write_bundle(&a.out, &res, &depth, &pred, &target, &summary)?;
+    write_bundle(&a.out, &res, depth, pred, target, &summary)?;
     println!(
         "inverted {} in {:.1} s: rerender PSNR {:.2} dB, SSIM {:.4}, MSE {:.5} (sRGB, gamma 2.2; frozen-path fit {:.2} dB); peak memory {:.0} MB -> {}",
         a.bundle.display(),

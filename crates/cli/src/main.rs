@@ -9,6 +9,7 @@ mod bench_synthetic;
 mod cluster;
 mod commands;
 mod invert;
+mod routes;
 mod run;
 
 use anyhow::Result;

@@ -162,6 +162,18 @@ impl Params {
             _ => "",
         }
     }
+    /// A choice parameter parsed into its type. The engine has already
+    /// checked the word against the declared choices; a word the type does
+    /// not know is an error naming the parameter, never a fallback.
+    pub fn parse<T>(&self, name: &str) -> Result<T, NodeError>
+    where
+        T: std::str::FromStr,
+        T::Err: std::fmt::Display,
+    {
+        self.str(name)
+            .parse()
+            .map_err(|e| NodeError::new(format!("parameter `{name}`: {e}")))
+    }
     pub fn path(&self, name: &str) -> Option<PathBuf> {
         match self.get(name) {
             Value::Str(s) => Some(PathBuf::from(s)),

@@ -25,6 +25,8 @@ pub mod matfit;
 pub mod mlp;
 pub mod optim;
 pub mod paths;
+pub mod plan;
+pub mod routes;
 pub mod solve;
 pub mod tables;
 pub mod transport;

@@ -20,8 +20,8 @@
 //! each vertex followed in the record array by its sky records and then, if
 //! the path continues, its continuation record.
 
+use std::borrow::Cow;
 use std::sync::atomic::{AtomicUsize, Ordering};
-use std::time::Instant;
 
 use glam::{Vec2, Vec3};
 use matflow_render::envmap::locate_cell;
@@ -153,7 +153,6 @@ pub struct CacheStats {
     pub vertices: u64,
     pub records: u64,
     pub bytes: u64,
-    pub seconds: f64,
 }
 
 pub struct PathCache {
@@ -173,6 +172,29 @@ pub enum CacheError {
     Options(String),
     #[error("row {row} holds more than 4 294 967 295 records; lower spp")]
     Overflow { row: usize },
+    #[error("stored paths: {0}")]
+    Layout(&'static str),
+}
+
+/// Frozen paths as flat arrays of words, the layout they are stored in
+/// (little-endian when written): everything [`PathCache`] holds but its
+/// statistics.
+/// Read back, the arrays may borrow the stored bytes.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PathWords<'a> {
+    /// width, height, spp, max_depth, env_width, env_height.
+    pub meta: [u32; 6],
+    /// Per row, its `vert_start` (width + 1 each).
+    pub vert_start: Cow<'a, [u32]>,
+    /// Per row, its `rec_start` (width + 1 each).
+    pub rec_start: Cow<'a, [u32]>,
+    /// Per row, its vertex and record counts.
+    pub row_counts: Cow<'a, [u32]>,
+    /// Two words per vertex: q; n_env | flags << 16.
+    pub vertices: Cow<'a, [u32]>,
+    /// Five words per record: geo q0 | q1 << 16; q2 | q3 << 16; w's bits;
+    /// cell | fx << 16; fy | pad << 16.
+    pub records: Cow<'a, [u32]>,
 }
 
 impl PathCache {
@@ -204,7 +226,6 @@ impl PathCache {
                 opts.env_width, opts.env_height
             )));
         }
-        let start = Instant::now();
         let (w, h) = (scene.camera.width, scene.camera.height);
         let done = AtomicUsize::new(0);
         let rows: Vec<Result<(RowPaths, u64), CacheError>> = (0..h)
@@ -229,7 +250,6 @@ impl PathCache {
                 as u64;
             out.push(row);
         }
-        stats.seconds = start.elapsed().as_secs_f64();
         Ok(PathCache {
             width: w,
             height: h,
@@ -261,6 +281,169 @@ impl PathCache {
         let (v0, v1) = (row.vert_start[x] as usize, row.vert_start[x + 1] as usize);
         let (r0, r1) = (row.rec_start[x] as usize, row.rec_start[x + 1] as usize);
         (&row.vertices[v0..v1], &row.records[r0..r1])
+    }
+
+    /// Pixels whose value a change of the materials at `changed` texels
+    /// can alter: those whose own texel changed or whose paths meet a
+    /// changed texel (row-major, ascending).
+    pub fn pixels_reaching(&self, changed: &[bool]) -> Vec<u32> {
+        let (w, h) = (self.width, self.height);
+        let rows: Vec<Vec<u32>> = (0..h)
+            .into_par_iter()
+            .map(|y| {
+                (0..w)
+                    .filter(|&x| {
+                        changed.get(y * w + x) == Some(&true)
+                            || self.pixel(x, y).0.iter().any(|v| {
+                                v.q != NO_MATERIAL && changed.get(v.q as usize) == Some(&true)
+                            })
+                    })
+                    .map(|x| (y * w + x) as u32)
+                    .collect()
+            })
+            .collect();
+        rows.concat()
+    }
+
+    /// An image rendered with `opts` from a scene whose materials have
+    /// changed at the `changed` texels since `base` was rendered (with
+    /// the same options, geometry and lighting): the pixels these paths
+    /// say the change can reach are re-traced with the base render's own
+    /// sample streams (so they equal a full re-render bit for bit), the
+    /// rest keep their base value.
+    pub fn rerender_changed(
+        &self,
+        base: &matflow_scene::RgbImage,
+        edited: &RenderScene,
+        opts: &RenderOptions,
+        changed: &[bool],
+    ) -> matflow_scene::RgbImage {
+        let px = self.pixels_reaching(changed);
+        let mut img = base.clone();
+        if !px.is_empty() {
+            let vals = matflow_render::integrator::render_pixels(edited, opts, &px);
+            for (p, v) in px.iter().zip(vals) {
+                img.data[*p as usize] = v;
+            }
+        }
+        img
+    }
+
+    /// The paths as flat words (see [`PathWords`]).
+    pub fn to_words(&self) -> PathWords<'static> {
+        let (mut vs, mut rs, mut counts) = (Vec::new(), Vec::new(), Vec::new());
+        let (mut verts, mut recs) = (Vec::new(), Vec::new());
+        for row in &self.rows {
+            vs.extend_from_slice(&row.vert_start);
+            rs.extend_from_slice(&row.rec_start);
+            counts.push(row.vertices.len() as u32);
+            counts.push(row.records.len() as u32);
+            for v in &row.vertices {
+                verts.push(v.q);
+                verts.push(v.n_env as u32 | (v.flags as u32) << 16);
+            }
+            for r in &row.records {
+                recs.push(r.geo.q[0] as u32 | (r.geo.q[1] as u32) << 16);
+                recs.push(r.geo.q[2] as u32 | (r.geo.q[3] as u32) << 16);
+                recs.push(r.w.to_bits());
+                recs.push(r.cell as u32 | (r.fx as u32) << 16);
+                recs.push(r.fy as u32 | (r._pad as u32) << 16);
+            }
+        }
+        PathWords {
+            meta: [
+                self.width as u32,
+                self.height as u32,
+                self.spp,
+                self.max_depth,
+                self.env_width as u32,
+                self.env_height as u32,
+            ],
+            vert_start: vs.into(),
+            rec_start: rs.into(),
+            row_counts: counts.into(),
+            vertices: verts.into(),
+            records: recs.into(),
+        }
+    }
+
+    /// Paths from flat words, with every offset checked (a damaged store
+    /// is an error, never a panic or an out-of-range read later).
+    pub fn from_words(words: &PathWords<'_>) -> Result<PathCache, CacheError> {
+        let [w, h, spp, max_depth, ew, eh] = words.meta;
+        let (w, h) = (w as usize, h as usize);
+        let (vs, rs, counts) = (&words.vert_start, &words.rec_start, &words.row_counts);
+        let (verts, recs) = (&words.vertices, &words.records);
+        let row_len = w.checked_add(1).ok_or(CacheError::Layout("width"))?;
+        let starts = h.checked_mul(row_len).ok_or(CacheError::Layout("height"))?;
+        if vs.len() != starts || rs.len() != starts || counts.len() != 2 * h {
+            return Err(CacheError::Layout("row tables do not match the size"));
+        }
+        if verts.len() % 2 != 0 || recs.len() % 5 != 0 {
+            return Err(CacheError::Layout("vertex or record words are cut short"));
+        }
+        let mut rows = Vec::with_capacity(h);
+        let (mut vo, mut ro) = (0usize, 0usize);
+        for y in 0..h {
+            let (nv, nr) = (counts[2 * y] as usize, counts[2 * y + 1] as usize);
+            if 2 * (vo + nv) > verts.len() || 5 * (ro + nr) > recs.len() {
+                return Err(CacheError::Layout("a row runs past the stored paths"));
+            }
+            let vst = vs[y * row_len..(y + 1) * row_len].to_vec();
+            let rst = rs[y * row_len..(y + 1) * row_len].to_vec();
+            let monotone = |s: &[u32], n: usize| {
+                s.first() == Some(&0)
+                    && s.last().copied() == Some(n as u32)
+                    && s.windows(2).all(|p| p[0] <= p[1])
+            };
+            if !monotone(&vst, nv) || !monotone(&rst, nr) {
+                return Err(CacheError::Layout("a row's pixel offsets are inconsistent"));
+            }
+            let vertices: Vec<Vertex> = verts[2 * vo..2 * (vo + nv)]
+                .chunks_exact(2)
+                .map(|c| Vertex {
+                    q: c[0],
+                    n_env: (c[1] & 0xffff) as u16,
+                    flags: (c[1] >> 16) as u16,
+                })
+                .collect();
+            let records: Vec<Record> = recs[5 * ro..5 * (ro + nr)]
+                .chunks_exact(5)
+                .map(|c| Record {
+                    geo: Geo {
+                        q: [
+                            (c[0] & 0xffff) as u16,
+                            (c[0] >> 16) as u16,
+                            (c[1] & 0xffff) as u16,
+                            (c[1] >> 16) as u16,
+                        ],
+                    },
+                    w: f32::from_bits(c[2]),
+                    cell: (c[3] & 0xffff) as u16,
+                    fx: (c[3] >> 16) as u16,
+                    fy: (c[4] & 0xffff) as u16,
+                    _pad: (c[4] >> 16) as u16,
+                })
+                .collect();
+            rows.push(RowPaths {
+                vert_start: vst,
+                rec_start: rst,
+                vertices,
+                records,
+            });
+            vo += nv;
+            ro += nr;
+        }
+        Ok(PathCache {
+            width: w,
+            height: h,
+            spp,
+            max_depth,
+            env_width: ew as usize,
+            env_height: eh as usize,
+            rows,
+            stats: CacheStats::default(),
+        })
     }
 }
 

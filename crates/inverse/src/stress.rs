@@ -7,7 +7,8 @@ use matflow_geom::{mesh_from_depth, MeshParams};
 use matflow_render::{EnvMap, Material, RenderOptions, RenderScene};
 use matflow_scene::{synthetic, Camera, GrayImage, Image, MaterialMaps, RgbImage};
 
-use crate::invert::{invert, EnvRoute, InvertOptions, InvertResult, MatRoute};
+use crate::invert::{invert, InvertOptions, InvertResult};
+use crate::routes::{env_route, mat_route};
 use crate::testutil::{cache_of, hash01, materials_of};
 
 const N: usize = 20;
@@ -59,11 +60,11 @@ fn target_of(c: &Case) -> RgbImage {
     .image
 }
 
-fn opts(env_route: EnvRoute, mat_route: MatRoute) -> InvertOptions {
+fn opts(env: &str, mat: &str) -> InvertOptions {
     InvertOptions {
         budget_seconds: 1.0,
-        env_route,
-        mat_route,
+        env_route: env_route(env, &[]).expect("env route"),
+        mat_route: mat_route(mat, &[]).expect("mat route"),
         trust_rm: true,
         spp: Some(4),
         final_spp: Some(2),
@@ -115,11 +116,7 @@ fn check(name: &str, r: &InvertResult) {
 
 fn run_all_routes(name: &str, c: &Case, target: &RgbImage) {
     let pred = materials_of(&c.maps);
-    for (e, m) in [
-        (EnvRoute::Texel, MatRoute::Solve),
-        (EnvRoute::Texel, MatRoute::Pixel),
-        (EnvRoute::Mlp, MatRoute::Mlp),
-    ] {
+    for (e, m) in [("texel", "solve"), ("texel", "pixel"), ("mlp", "mlp")] {
         let r = invert(
             build(&c.depth, &c.maps, &c.env),
             target,
@@ -127,7 +124,7 @@ fn run_all_routes(name: &str, c: &Case, target: &RgbImage) {
             &opts(e, m),
             &|_| {},
         )
-        .unwrap_or_else(|err| panic!("{name} ({e:?}, {m:?}): {err}"));
+        .unwrap_or_else(|err| panic!("{name} ({e}, {m}): {err}"));
         check(&format!("{name} ({e:?}, {m:?})"), &r);
     }
 }

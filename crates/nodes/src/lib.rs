@@ -1,6 +1,8 @@
-//! The node kinds of matflow pipelines. Each wraps a numerical crate
-//! (scene, geom, render, inverse) behind the engine's [`Node`] trait; the
-//! engine sees only parameters and bytes.
+//! The node kinds of matflow pipelines, one per file in `kinds/`. Each
+//! adapts a numerical crate (scene, geom, render, inverse) to the engine's
+//! [`Node`] trait: parameters and bytes in, bytes out; the domain logic
+//! lives in those crates. `data` holds the artifact codecs the kinds
+//! share, `recovery` what the two recovery kinds share.
 //!
 //! Artifact types flowing between stages: `image` (linear RGB), `scene`
 //! (camera-space depth, the input image when there is one, predicted
@@ -8,31 +10,26 @@
 //! and `report` (JSON).
 
 pub mod artifact;
-mod edit;
-mod inputs;
-mod optimise;
-mod relight;
-mod render;
-mod trace;
+mod data;
+mod kinds;
+mod recovery;
 
 use matflow_engine::{Node, NodeError, Registry};
-
-pub use edit::{apply_ops, flood_mask, hsv_shift, EditOps};
 
 /// Every node kind.
 pub fn registry() -> Registry {
     let mut r = Registry::new();
     let nodes: Vec<Box<dyn Node>> = vec![
-        Box::new(inputs::ImageNode),
-        Box::new(inputs::BundleNode),
-        Box::new(inputs::SyntheticSceneNode),
-        Box::new(inputs::MeshNode),
-        Box::new(optimise::EnvmapOptNode),
-        Box::new(optimise::MaterialOptNode),
-        Box::new(edit::EditNode),
-        Box::new(relight::RelightNode),
-        Box::new(render::RenderNode),
-        Box::new(trace::TraceNode),
+        Box::new(kinds::image::ImageNode),
+        Box::new(kinds::bundle::BundleNode),
+        Box::new(kinds::synthetic_scene::SyntheticSceneNode),
+        Box::new(kinds::mesh::MeshNode),
+        Box::new(kinds::envmap_opt::EnvmapOptNode),
+        Box::new(kinds::material_opt::MaterialOptNode),
+        Box::new(kinds::edit::EditNode),
+        Box::new(kinds::relight::RelightNode),
+        Box::new(kinds::render::RenderNode),
+        Box::new(kinds::trace::TraceNode),
     ];
     for n in nodes {
         r.add(n);
@@ -40,8 +37,22 @@ pub fn registry() -> Registry {
     r
 }
 
+/// A node error from a message.
 pub(crate) fn err(e: impl std::fmt::Display) -> NodeError {
     NodeError::new(e.to_string())
+}
+
+/// A node error from a typed error, its causes joined ("building the
+/// scene: meshing the depth map: depth has 3 NaN values").
+pub(crate) fn failed(e: impl std::error::Error) -> NodeError {
+    let mut msg = e.to_string();
+    let mut src = e.source();
+    while let Some(s) = src {
+        msg.push_str(": ");
+        msg.push_str(&s.to_string());
+        src = s.source();
+    }
+    NodeError::new(msg)
 }
 
 /// Markdown reference of every node kind: parameters with type, default,

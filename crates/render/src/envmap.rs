@@ -16,7 +16,7 @@ use std::f32::consts::PI;
 
 use glam::Vec3;
 use matflow_scene::color::luminance;
-use matflow_scene::RgbImage;
+use matflow_scene::{Image, RgbImage};
 
 use crate::RenderError;
 
@@ -86,15 +86,14 @@ impl EnvMap {
     pub fn new(img: &RgbImage) -> Result<EnvMap, RenderError> {
         let (w, h) = (img.width, img.height);
         if w < 2 || h < 2 {
-            return Err(RenderError::Invalid(format!(
-                "environment map must be at least 2x2, got {w}x{h}"
-            )));
+            return Err(RenderError::EnvmapTooSmall {
+                width: w,
+                height: h,
+            });
         }
         let bad = img.data.iter().filter(|v| !v.is_finite()).count();
         if bad > 0 {
-            return Err(RenderError::Invalid(format!(
-                "environment map has {bad} texel(s) with NaN or Inf"
-            )));
+            return Err(RenderError::EnvmapNotFinite { count: bad });
         }
         let texels: Vec<Vec3> = img
             .data
@@ -289,10 +288,24 @@ pub fn merge_seam_columns(img: &RgbImage) -> RgbImage {
     })
 }
 
+/// Rotates a lat-long map by `deg` about the vertical axis (a horizontal
+/// shift that wraps, linear between columns) and scales it by 2^ev.
+pub fn rotate_and_expose(env: &RgbImage, deg: f64, ev: f64) -> RgbImage {
+    let w = env.width;
+    let shift = (deg / 360.0).rem_euclid(1.0) * w as f64;
+    let k = 2f64.powf(ev) as f32;
+    Image::from_fn(w, env.height, |x, y| {
+        let src = (x as f64 - shift).rem_euclid(w as f64);
+        let x0 = src.floor() as usize % w;
+        let x1 = (x0 + 1) % w;
+        let t = (src - src.floor()) as f32;
+        (env.get(x0, y) * (1.0 - t) + env.get(x1, y) * t) * k
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-    use matflow_scene::Image;
 
     fn test_map() -> RgbImage {
         Image::from_fn(32, 16, |x, y| {
@@ -410,5 +423,16 @@ mod tests {
         let huge = EnvMap::new(&Image::new(8, 4, Vec3::splat(f32::MAX))).unwrap();
         assert!(huge.eval(Vec3::X).is_finite());
         assert!(huge.pdf(Vec3::X).is_finite() && huge.pdf(Vec3::X) > 0.0);
+    }
+
+    #[test]
+    fn rotation_shifts_columns_and_exposure_scales() {
+        let env = Image::from_fn(8, 2, |x, _| Vec3::splat(x as f32));
+        let r = rotate_and_expose(&env, 90.0, 1.0);
+        // 90° = 2 columns: output column 2 reads input column 0.
+        assert_eq!(r.get(2, 0), Vec3::splat(0.0));
+        assert_eq!(r.get(3, 1), Vec3::splat(2.0));
+        let full = rotate_and_expose(&env, 360.0, 0.0);
+        assert_eq!(full.data, env.data);
     }
 }

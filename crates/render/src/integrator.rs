@@ -10,7 +10,6 @@
 //! thread count.
 
 use std::sync::atomic::{AtomicUsize, Ordering};
-use std::time::Instant;
 
 use glam::{Vec2, Vec3};
 use matflow_scene::{Image, RgbImage};
@@ -73,7 +72,6 @@ pub struct RenderStats {
     pub shadow_rays: u64,
     /// Samples whose radiance was NaN/Inf and were dropped (should be 0).
     pub discarded_samples: u64,
-    pub seconds: f64,
 }
 
 impl RenderStats {
@@ -290,7 +288,6 @@ pub fn render(
     opts: &RenderOptions,
     progress: &(dyn Fn(usize, usize) + Sync),
 ) -> RenderOutput {
-    let start = Instant::now();
     let (w, h) = (scene.camera.width, scene.camera.height);
     // The window rendered: [wx0, wx1) × [wy0, wy1), inside the film.
     let (wx0, wy0, wx1, wy1) = match opts.crop {
@@ -433,7 +430,6 @@ pub fn render(
             }
         })
         .collect();
-    stats.seconds = start.elapsed().as_secs_f64();
     RenderOutput {
         image: Image::from_vec(ww, wh, data),
         stats,

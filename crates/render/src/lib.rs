@@ -17,10 +17,21 @@ pub use bsdf::Material;
 pub use envmap::EnvMap;
 pub use filter::PixelFilter;
 pub use integrator::{render, Crop, RenderOptions, RenderOutput, RenderStats};
-pub use scene::RenderScene;
+pub use scene::{scene_from_depth, RenderScene};
 
 #[derive(Debug, thiserror::Error)]
 pub enum RenderError {
-    #[error("{0}")]
-    Invalid(String),
+    #[error("material maps are {maps_width}x{maps_height} but the camera is {width}x{height}")]
+    MaterialSize {
+        maps_width: usize,
+        maps_height: usize,
+        width: usize,
+        height: usize,
+    },
+    #[error("environment map must be at least 2x2, got {width}x{height}")]
+    EnvmapTooSmall { width: usize, height: usize },
+    #[error("environment map has {count} texel(s) with NaN or Inf")]
+    EnvmapNotFinite { count: usize },
+    #[error("meshing the depth map")]
+    Mesh(#[from] matflow_geom::MeshError),
 }

@@ -2,8 +2,10 @@
 //! and the environment map.
 
 use glam::{Vec2, Vec3};
-use matflow_geom::{vertex_normals, Bvh, TriMesh};
-use matflow_scene::{Camera, MaterialMaps};
+use matflow_geom::{
+    mesh_from_depth, vertex_normals, Bvh, DepthMesh, MeshParams, MeshStats, TriMesh,
+};
+use matflow_scene::{Camera, GrayImage, MaterialMaps};
 
 use crate::bsdf::Material;
 use crate::envmap::EnvMap;
@@ -21,6 +23,37 @@ pub fn materials_from_maps(maps: &MaterialMaps) -> Vec<Material> {
             .sanitized()
         })
         .collect()
+}
+
+/// The scene of a depth map (camera-space z, 0 for sky) seen by the
+/// default camera of its size: the mesh cut at depth discontinuities
+/// (`mesh_angle_deg`, the reference's angle test), its BVH, the
+/// screen-space materials and the envmap. The one way the CLI and the
+/// pipeline nodes turn a bundle's depth into something to render; the
+/// mesh's statistics come back too.
+pub fn scene_from_depth(
+    depth: &GrayImage,
+    maps: &MaterialMaps,
+    env: EnvMap,
+    mesh_angle_deg: f64,
+) -> Result<(RenderScene, MeshStats), RenderError> {
+    let cam = Camera::new(depth.width, depth.height);
+    if maps.width() != cam.width || maps.height() != cam.height {
+        return Err(RenderError::MaterialSize {
+            maps_width: maps.width(),
+            maps_height: maps.height(),
+            width: cam.width,
+            height: cam.height,
+        });
+    }
+    let DepthMesh { mesh, stats, .. } = mesh_from_depth(
+        depth,
+        &cam,
+        &MeshParams {
+            min_angle_deg: mesh_angle_deg,
+        },
+    )?;
+    Ok((RenderScene::new(cam, mesh, maps, env)?, stats))
 }
 
 pub struct RenderScene {
@@ -46,13 +79,12 @@ impl RenderScene {
         env: EnvMap,
     ) -> Result<RenderScene, RenderError> {
         if maps.width() != camera.width || maps.height() != camera.height {
-            return Err(RenderError::Invalid(format!(
-                "material maps are {}x{} but the camera is {}x{}",
-                maps.width(),
-                maps.height(),
-                camera.width,
-                camera.height
-            )));
+            return Err(RenderError::MaterialSize {
+                maps_width: maps.width(),
+                maps_height: maps.height(),
+                width: camera.width,
+                height: camera.height,
+            });
         }
         let bvh = Bvh::build(&mesh);
         let face_normals = (0..mesh.triangle_count())

@@ -70,6 +70,20 @@ pub struct MaterialMaps {
 }
 
 impl MaterialMaps {
+    /// Per texel, whether albedo, roughness or metallic differ from
+    /// `other`'s (maps of the same size).
+    pub fn changed_texels(&self, other: &MaterialMaps) -> Vec<bool> {
+        (0..self.albedo.data.len())
+            .map(|i| {
+                self.albedo.data[i] != other.albedo.data[i]
+                    || self.roughness.data[i] != other.roughness.data[i]
+                    || self.metallic.data[i] != other.metallic.data[i]
+            })
+            .collect()
+    }
+}
+
+impl MaterialMaps {
     pub fn width(&self) -> usize {
         self.albedo.width
     }

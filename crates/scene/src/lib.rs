@@ -10,6 +10,7 @@
 pub mod bundle;
 pub mod camera;
 pub mod color;
+pub mod edit;
 pub mod error;
 pub mod image;
 pub mod io;

@@ -1,4 +1,5 @@
-//! Path-traced renders of a scene's mesh with given materials and lighting.
+//! `render`: a path-traced render of a scene's mesh with given materials
+//! and lighting, or an edit's render from a `trace` stage's kept paths.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -6,11 +7,11 @@ use std::path::{Path, PathBuf};
 use matflow_engine::node::{Bytes, Params};
 use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
 use matflow_render::{render, RenderOptions};
-use matflow_scene::io;
+use matflow_scene::{io, MaterialMaps, RgbImage};
 
 use crate::artifact::Artifact;
+use crate::data::{encode_image, envmap_from, materials_from, render_scene, Kept, MESH};
 use crate::err;
-use crate::inputs::{encode_image, envmap_from, materials_from, render_scene, MESH};
 
 pub struct RenderNode;
 
@@ -109,6 +110,29 @@ const RENDER_INFO: NodeInfo = NodeInfo {
     }],
 };
 
+/// The image of a `trace` stage's scene with its materials edited to
+/// `edited`: the base render, re-traced where the kept paths say the edit
+/// reaches ([`matflow_inverse::paths::PathCache::rerender_changed`]).
+pub(crate) fn edited_image(
+    k: &Kept,
+    mesh: &[u8],
+    edited: &MaterialMaps,
+) -> Result<RgbImage, NodeError> {
+    if edited.width() != k.cache.width || edited.height() != k.cache.height {
+        return Err(err(format!(
+            "the materials are {}x{} but the kept paths are {}x{}",
+            edited.width(),
+            edited.height(),
+            k.cache.width,
+            k.cache.height
+        )));
+    }
+    let scene = render_scene(mesh, edited, &k.envmap)?;
+    let changed = k.materials.changed_texels(edited);
+    Ok(k.cache
+        .rerender_changed(&k.image, &scene, &k.render_options(), &changed))
+}
+
 impl Node for RenderNode {
     fn info(&self) -> &'static NodeInfo {
         &RENDER_INFO
@@ -127,8 +151,8 @@ impl Node for RenderNode {
         let p = ctx.params;
         let maps = materials_from(ctx.input("materials")?)?;
         if let Some(b) = ctx.opt_input("paths") {
-            let kept = crate::trace::decode_paths(b)?;
-            let img = crate::trace::edited_image(&kept, ctx.input("mesh")?, &maps)?;
+            let kept = Kept::decode(b)?;
+            let img = edited_image(&kept, ctx.input("mesh")?, &maps)?;
             return Ok([("image".to_string(), encode_image("image", "image", &img))].into());
         }
         let env = envmap_from(ctx.input("envmap")?)?;
@@ -140,11 +164,7 @@ impl Node for RenderNode {
             spp: p.i64("spp") as u32,
             max_depth: p.i64("depth") as u32,
             seed: ctx.seed ^ p.i64("seed") as u64,
-            filter: if p.str("filter") == "box" {
-                matflow_render::PixelFilter::Box
-            } else {
-                matflow_render::PixelFilter::default()
-            },
+            filter: p.parse("filter").map_err(err)?,
             ..Default::default()
         };
         let out = render(&scene, &opts, &|d, t| (ctx.progress)(d as u64, t as u64));

@@ -1,30 +1,15 @@
-//! New lighting: an HDR environment map from a file or an upstream stage,
+//! `relight`: new lighting, an HDR environment map from a file or an upstream stage,
 //! rotated about the vertical axis and scaled in exposure.
 
 use std::collections::BTreeMap;
 
 use matflow_engine::node::Params;
 use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
-use matflow_scene::{Image, RgbImage};
+use matflow_render::envmap::rotate_and_expose;
 
 use crate::artifact::Artifact;
+use crate::data::{encode_image, read_image};
 use crate::err;
-use crate::inputs::{encode_image, read_image};
-
-/// Rotates a lat-long map by `deg` about the vertical axis (a horizontal
-/// shift that wraps, linear between columns) and scales it by 2^ev.
-pub fn rotate_and_expose(env: &RgbImage, deg: f64, ev: f64) -> RgbImage {
-    let w = env.width;
-    let shift = (deg / 360.0).rem_euclid(1.0) * w as f64;
-    let k = 2f64.powf(ev) as f32;
-    Image::from_fn(w, env.height, |x, y| {
-        let src = (x as f64 - shift).rem_euclid(w as f64);
-        let x0 = src.floor() as usize % w;
-        let x1 = (x0 + 1) % w;
-        let t = (src - src.floor()) as f32;
-        (env.get(x0, y) * (1.0 - t) + env.get(x1, y) * t) * k
-    })
-}
 
 pub struct RelightNode;
 
@@ -122,22 +107,5 @@ impl Node for RelightNode {
             ));
         }
         Ok([("envmap".to_string(), encode_image("envmap", "envmap", &out))].into())
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use glam::Vec3;
-
-    #[test]
-    fn rotation_shifts_columns_and_exposure_scales() {
-        let env = Image::from_fn(8, 2, |x, _| Vec3::splat(x as f32));
-        let r = rotate_and_expose(&env, 90.0, 1.0);
-        // 90° = 2 columns: output column 2 reads input column 0.
-        assert_eq!(r.get(2, 0), Vec3::splat(0.0));
-        assert_eq!(r.get(3, 1), Vec3::splat(2.0));
-        let full = rotate_and_expose(&env, 360.0, 0.0);
-        assert_eq!(full.data, env.data);
     }
 }

@@ -1,0 +1,248 @@
+//! The budget plan: sample and step counts from a time budget through a
+//! fixed cost model, so that results never depend on the clock.
+
+use crate::invert::InvertOptions;
+use crate::paths::PathCache;
+use crate::routes::{env_texel, EnvRoute, MatRoute, PlanInputs};
+
+/// With trusted R/M (synthetic data: every prediction is a degraded
+/// truth) further loops only bake light the envmap misses into the
+/// albedo, and texels few paths see fit noise; with photos (R/M start at
+/// constants) the loops are what finds R and M. Measured at budget 60 on
+/// synthetic rooms: 2 loops 40.29 dB rerender against 38.98 at 5–7 (see
+/// [`env_texel::SYNTHETIC_SMOOTH`]).
+pub const SYNTHETIC_MAX_LOOPS: usize = 2;
+
+/// Sample and step counts derived from the budget.
+#[derive(Clone, Copy, Debug, serde::Serialize)]
+pub struct Plan {
+    pub scout_spp: u32,
+    pub spp: u32,
+    pub final_spp: u32,
+    pub loops: usize,
+    pub env_steps: usize,
+    pub mat_steps: usize,
+    pub env_stride: usize,
+    /// What the counts were planned for (the scout's measurements once
+    /// it has run).
+    pub scene: SceneCost,
+}
+
+/// What makes one scene dearer than another at the same size, counted
+/// (not timed) by the scout trace.
+#[derive(Clone, Copy, Debug, serde::Serialize)]
+pub struct SceneCost {
+    /// Rays per traced path.
+    pub rays_per_sample: f64,
+    /// Share of pixels whose paths start on a surface: only those have
+    /// materials to solve (sky pixels cost next to nothing there).
+    pub surface_fraction: f64,
+}
+
+impl Default for SceneCost {
+    /// The calibration scene (indoor: every pixel a surface).
+    fn default() -> Self {
+        SceneCost {
+            rays_per_sample: cost::RAYS_PER_SAMPLE,
+            surface_fraction: 1.0,
+        }
+    }
+}
+
+impl SceneCost {
+    pub fn of(cache: &PathCache) -> SceneCost {
+        let n = (cache.width * cache.height).max(1) as f64;
+        SceneCost {
+            rays_per_sample: cache.stats.rays as f64 / (n * cache.spp.max(1) as f64),
+            surface_fraction: cache.surface_pixels() as f64 / n,
+        }
+    }
+}
+
+/// Cost model of the reference 2-core machine for what every route shares,
+/// used only to turn a budget into counts. Seconds per pixel (per ray or
+/// pass where stated), measured on indoor and jinjya at 512². Tracing
+/// costs scale with the rays a sample needs, which the scout trace counts
+/// (a deterministic number: sky pixels end at once, interiors bounce), so
+/// the plan fits the scene without a clock. Each route prices its own
+/// stages (`routes/*.rs`).
+pub mod cost {
+    /// Tracing and recording one ray of the frozen cache.
+    pub const TRACE_PER_RAY: f64 = 3.8e-7;
+    /// One ray of the final re-render.
+    pub const RENDER_PER_RAY: f64 = 3.7e-7;
+    /// Rays per sample assumed before the scout has counted them (indoor).
+    pub const RAYS_PER_SAMPLE: f64 = 2.6;
+    /// Building a pixel's table, per cached path.
+    pub const TABLE_PER_SAMPLE: f64 = 8.5e-8;
+    /// One à-trous pass over a pixel's table.
+    pub const DENOISE_PER_PASS: f64 = 9.0e-7;
+    /// Loading, meshing, BVH, guide, scout trace and two envmap stages of
+    /// the texel route.
+    pub const FIXED: f64 = 1.6e-5;
+}
+
+impl Plan {
+    /// The plan for a budget and a scene's costs (before the scout:
+    /// [`SceneCost::default`]) with the chosen routes.
+    ///
+    /// Split, from measurements on both reference scenes: the frozen
+    /// cache gets up to 32 paths per pixel (memory caps it); then about
+    /// 55 % of what is left buys alternation loops (each refreshes the
+    /// light reaching primary vertices and re-solves every pixel: indoor
+    /// at 92 final spp went 28.9 → 30.3 → 30.8 → 31.1 dB for 2, 4, 6, 8
+    /// loops) and the rest buys samples of the final re-render (92 → 200
+    /// spp: +0.45 dB).
+    pub fn from_budget(
+        budget: f64,
+        npix: usize,
+        scene: SceneCost,
+        opts: &InvertOptions,
+        env_route: &dyn EnvRoute,
+        mat_route: &dyn MatRoute,
+    ) -> Plan {
+        use cost::*;
+        let n = npix as f64;
+        let b = budget.max(1.0);
+        let finite_or = |x: f64, d: f64| if x.is_finite() { x } else { d };
+        let rho = finite_or(scene.rays_per_sample, RAYS_PER_SAMPLE).clamp(1.0, 8.0);
+        // Per-pixel material work scales with the surface pixels (at
+        // least a tenth: loading and sweeping the tables is not free).
+        let surf = finite_or(scene.surface_fraction, 1.0).clamp(0.1, 1.0);
+        let passes = opts.denoise as f64;
+        // Plan for 90 % of the budget: the model is a median, not a bound.
+        let avail0 = (0.9 * b - FIXED * n).max(0.0);
+        // Envmap stages see about 64k pixels.
+        let env_stride = ((n / 65536.0).sqrt().ceil() as usize).max(1);
+        let inputs = PlanInputs {
+            budget_seconds: b,
+            pixels: n,
+            env_pixels: n / (env_stride * env_stride) as f64,
+            surface_fraction: surf,
+            available: avail0,
+            steps: ((b * 10.0) as usize).clamp(60, 400),
+        };
+        let mat_steps = opts.mat_steps.unwrap_or(mat_route.steps(&inputs));
+        let env_steps = opts.env_steps.unwrap_or(env_route.steps(&inputs));
+        let env_stage = env_route.stage_seconds(&inputs, env_steps);
+        // The scout's and the final envmap stage (FIXED prices texel ones).
+        let avail = (avail0 - 2.0 * (env_stage - env_texel::STAGE_PER_PIXEL * n)).max(0.0);
+        // A loop's cost with s cached paths per pixel; the first loop
+        // solves from a grid, later ones from the previous answer.
+        let loop_cost = |s: f64, warm: bool| -> f64 {
+            let tables = (TABLE_PER_SAMPLE * s + DENOISE_PER_PASS * passes) * surf * n;
+            env_stage + mat_route.loop_seconds(&inputs, tables, mat_steps, warm)
+        };
+        let trace_spp = TRACE_PER_RAY * rho * n;
+        // ~40 % of the budget tracing the cache, capped at 32 paths.
+        let spp = opts.spp.unwrap_or(
+            ((0.4 * avail / (trace_spp + loop_cost(0.0, false) / 32.0)) as u32).clamp(2, 32),
+        );
+        let rest = (avail - spp as f64 * trace_spp - loop_cost(spp as f64, false)).max(0.0);
+        let warm = loop_cost(spp as f64, true);
+        let max_loops = if opts.trust_rm {
+            SYNTHETIC_MAX_LOOPS
+        } else {
+            8
+        };
+        let loops = opts
+            .loops
+            .unwrap_or((1 + (0.55 * rest / warm) as usize).min(max_loops));
+        let spent = loop_cost(spp as f64, false) + (loops.max(1) - 1) as f64 * warm;
+        let left = (avail - spp as f64 * trace_spp - spent).max(0.0);
+        let final_spp = opts
+            .final_spp
+            .unwrap_or(((left / (RENDER_PER_RAY * rho * n)) as u32).clamp(2, 256));
+        let scout_spp = (spp / 8).clamp(1, 4);
+        Plan {
+            scout_spp,
+            spp,
+            final_spp,
+            loops,
+            env_steps,
+            mat_steps,
+            env_stride,
+            scene: SceneCost {
+                rays_per_sample: rho,
+                surface_fraction: surf,
+            },
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::routes::{env_route, mat_route};
+
+    fn plan(budget: f64, scene: SceneCost, o: &InvertOptions) -> Plan {
+        Plan::from_budget(
+            budget,
+            512 * 512,
+            scene,
+            o,
+            &*o.env_route.build(),
+            &*o.mat_route.build(),
+        )
+    }
+
+    /// The plan is a pure function of budget, size and the scout's
+    /// counts: a scene of cheap (sky) paths gets more samples for the
+    /// same budget, a bigger budget never buys less, and trusted R/M cap
+    /// the loops.
+    #[test]
+    fn plan_follows_budget_and_counted_scene_cost() {
+        let o = InvertOptions::default();
+        let base = plan(60.0, SceneCost::default(), &o);
+        let cheap = plan(
+            60.0,
+            SceneCost {
+                rays_per_sample: 1.6,
+                surface_fraction: 0.5,
+            },
+            &o,
+        );
+        assert!(cheap.final_spp > base.final_spp || cheap.loops > base.loops);
+        assert!(cheap.final_spp >= base.final_spp && cheap.loops >= base.loops);
+        let mut prev = plan(5.0, SceneCost::default(), &o);
+        for b in [15.0, 30.0, 60.0, 240.0] {
+            let p = plan(b, SceneCost::default(), &o);
+            assert!(p.spp >= prev.spp && p.loops >= prev.loops, "budget {b}");
+            assert!(p.loops >= 1 && p.final_spp >= 2 && p.spp >= 2);
+            prev = p;
+        }
+        assert!(base.loops > SYNTHETIC_MAX_LOOPS);
+        let trusted = InvertOptions {
+            trust_rm: true,
+            ..InvertOptions::default()
+        };
+        let t = plan(60.0, SceneCost::default(), &trusted);
+        assert_eq!(t.loops, SYNTHETIC_MAX_LOOPS);
+        assert!(t.final_spp > base.final_spp);
+        // Nonsense counts fall back to the calibration scene.
+        let nan = SceneCost {
+            rays_per_sample: f64::NAN,
+            surface_fraction: f64::INFINITY,
+        };
+        let p = plan(60.0, nan, &o);
+        assert_eq!(p.final_spp, base.final_spp);
+        // Dearer routes buy fewer loops (and the MLP fewer steps) from the
+        // same budget.
+        let route = |m: &str, e: &str| InvertOptions {
+            mat_route: mat_route(m, &[]).unwrap(),
+            env_route: env_route(e, &[]).unwrap(),
+            ..InvertOptions::default()
+        };
+        let pixel = plan(60.0, SceneCost::default(), &route("pixel", "texel"));
+        let mlp = plan(60.0, SceneCost::default(), &route("mlp", "texel"));
+        let env_mlp = plan(60.0, SceneCost::default(), &route("solve", "mlp"));
+        assert!(
+            pixel.loops < base.loops && mlp.loops <= pixel.loops,
+            "{pixel:?} {mlp:?}"
+        );
+        assert!(env_mlp.loops < base.loops);
+        // At small budgets the MLP gets fewer steps.
+        let small = plan(15.0, SceneCost::default(), &route("mlp", "texel"));
+        assert!(small.mat_steps < plan(15.0, SceneCost::default(), &o).mat_steps);
+    }
+}

@@ -1,0 +1,12 @@
+//! One file per node kind.
+
+pub mod bundle;
+pub mod edit;
+pub mod envmap_opt;
+pub mod image;
+pub mod material_opt;
+pub mod mesh;
+pub mod relight;
+pub mod render;
+pub mod synthetic_scene;
+pub mod trace;

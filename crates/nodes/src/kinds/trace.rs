@@ -1,0 +1,230 @@
+//! `trace`: a full render of the unedited scene that also keeps its light
+//! paths, so that renders of material edits cost an evaluation, not a
+//! path trace.
+//!
+//! Geometry and lighting do not change under a material edit, and every
+//! (pixel, sample) of the render has its own random stream, so a pixel's
+//! value changes only if one of its paths meets a changed material. The
+//! kept paths (`inverse::paths`, a separate set of `path_spp` paths per
+//! pixel) show which pixels' light passes through which material texels:
+//! an edit re-traces exactly the pixels that see a changed texel directly
+//! or along a kept path, with the base render's own sample streams — so
+//! those pixels are bit-identical to a full re-render — and keeps the base
+//! value elsewhere. What this misses is light the kept paths never carried
+//! from the edited region to a pixel (a rare indirect path); the benchmark
+//! measures it against full renders.
+
+use std::collections::BTreeMap;
+
+use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
+use matflow_inverse::paths::{CacheOptions, PathCache};
+use matflow_render::{render, PixelFilter, RenderOptions};
+
+use crate::data::{encode_image, envmap_from, materials_from, render_scene, Kept, MESH};
+use crate::failed;
+
+pub struct TraceNode;
+
+const TRACE_INFO: NodeInfo = NodeInfo {
+    kind: "trace",
+    version: 1,
+    doc: "A full render of the unedited scene (box pixel filter) that also keeps a set of its \
+         light paths: a `render` given these `paths` re-traces only the pixels whose own \
+         material changed or whose kept paths meet a changed material, with the base \
+         render's sample streams (bit-identical there to a full re-render), and keeps the \
+         base elsewhere.",
+    params: &[
+            MESH,
+            ParamSpec {
+                name: "materials",
+                ty: ParamType::Ref(&["materials", "scene"]),
+                default: None,
+                unit: "",
+                doc: "the unedited materials (they also guide path sampling)",
+            },
+            ParamSpec {
+                name: "envmap",
+                ty: ParamType::Ref(&["envmap"]),
+                default: None,
+                unit: "",
+                doc: "lighting (fixed for every edit rendered from these paths)",
+            },
+            ParamSpec {
+                name: "spp",
+                ty: ParamType::Int {
+                    min: 1,
+                    max: 65536,
+                },
+                default: Some("64"),
+                unit: "samples/px",
+                doc: "samples per pixel of the full render",
+            },
+            ParamSpec {
+                name: "path_spp",
+                ty: ParamType::Int { min: 1, max: 1024 },
+                default: Some("8"),
+                unit: "paths/px",
+                doc: "paths kept per pixel to find which pixels an edit reaches (~11 MB per path/px at 512²)",
+            },
+            ParamSpec {
+                name: "depth",
+                ty: ParamType::Int { min: 2, max: 8 },
+                default: Some("4"),
+                unit: "segments",
+                doc: "maximum path length (Mitsuba's max_depth)",
+            },
+        ],
+    outputs: &[
+            OutputSpec {
+                name: "paths",
+                ty: "paths",
+                doc: "kept paths, the unedited materials, envmap and image",
+            },
+            OutputSpec {
+                name: "image",
+                ty: "image",
+                doc: "the unedited render",
+            },
+        ],
+};
+
+impl Node for TraceNode {
+    fn info(&self) -> &'static NodeInfo {
+        &TRACE_INFO
+    }
+    fn run(&self, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
+        let p = ctx.params;
+        let maps = materials_from(ctx.input("materials")?)?;
+        let env = envmap_from(ctx.input("envmap")?)?;
+        let scene = render_scene(ctx.input("mesh")?, &maps, &env)?;
+        let depth = p.i64("depth") as u32;
+        let spp = p.i64("spp") as u32;
+        let image = render(
+            &scene,
+            &RenderOptions {
+                spp,
+                max_depth: depth,
+                seed: ctx.seed,
+                filter: PixelFilter::Box,
+                ..Default::default()
+            },
+            &|d, t| (ctx.progress)(d as u64, 2 * t as u64),
+        )
+        .image;
+        let cache = PathCache::build(
+            &scene,
+            &CacheOptions {
+                spp: p.i64("path_spp") as u32,
+                max_depth: depth,
+                seed: ctx.seed ^ 0x7a7a,
+                env_width: env.width,
+                env_height: env.height,
+            },
+            &|d, t| (ctx.progress)((t + d) as u64, 2 * t as u64),
+        )
+        .map_err(failed)?;
+        let kept = Kept {
+            spp,
+            seed: ctx.seed,
+            cache,
+            materials: maps,
+            envmap: env,
+            image,
+        };
+        let img = encode_image("image", "image", &kept.image);
+        Ok([
+            ("paths".to_string(), kept.encode()),
+            ("image".to_string(), img),
+        ]
+        .into())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::data::encode_mesh;
+    use crate::kinds::render::edited_image;
+    use glam::Vec3;
+    use matflow_scene::Camera;
+
+    /// An edit re-traces exactly the pixels it can reach: there the result
+    /// equals a full re-render bit for bit, elsewhere the base; and the
+    /// kept paths round-trip through their bytes.
+    #[test]
+    fn edits_retrace_what_they_reach_bit_identically() {
+        let n = 24;
+        let s = matflow_scene::synthetic::generate(3, n, n);
+        let cam = Camera::new(n, n);
+        let tri = matflow_geom::mesh_from_depth(&s.depth, &cam, &Default::default())
+            .unwrap()
+            .mesh;
+        let mesh = encode_mesh(n, n, &tri);
+        let scene = render_scene(&mesh, &s.maps, &s.envmap).unwrap();
+        let opts = RenderOptions {
+            spp: 6,
+            max_depth: 4,
+            seed: 11,
+            filter: PixelFilter::Box,
+            ..Default::default()
+        };
+        let image = render(&scene, &opts, &|_, _| {}).image;
+        let cache = PathCache::build(
+            &scene,
+            &CacheOptions {
+                spp: 4,
+                max_depth: 4,
+                seed: 5,
+                env_width: 32,
+                env_height: 16,
+            },
+            &|_, _| {},
+        )
+        .unwrap();
+        let kept = Kept {
+            cache,
+            spp: 6,
+            seed: 11,
+            materials: s.maps.clone(),
+            envmap: s.envmap.clone(),
+            image,
+        };
+        let kept = Kept::decode(&kept.encode()).unwrap();
+        let mut edited = s.maps.clone();
+        for y in 14..20 {
+            for x in 4..10 {
+                edited.albedo.set(x, y, Vec3::new(0.9, 0.1, 0.1));
+                edited.roughness.set(x, y, 0.1);
+                edited.metallic.set(x, y, 1.0);
+            }
+        }
+        let got = edited_image(&kept, &mesh, &edited).unwrap();
+        let full = render(
+            &render_scene(&mesh, &edited, &s.envmap).unwrap(),
+            &opts,
+            &|_, _| {},
+        )
+        .image;
+        let hit: std::collections::BTreeSet<u32> = kept
+            .cache
+            .pixels_reaching(&kept.materials.changed_texels(&edited))
+            .into_iter()
+            .collect();
+        assert!(hit.len() >= 36 && hit.len() < n * n, "{} pixels", hit.len());
+        let mut differ = 0;
+        for p in 0..n * n {
+            if hit.contains(&(p as u32)) {
+                assert_eq!(got.data[p], full.data[p], "re-traced pixel {p}");
+            } else {
+                assert_eq!(got.data[p], kept.image.data[p], "kept pixel {p}");
+                differ += (full.data[p] != kept.image.data[p]) as usize;
+            }
+        }
+        // What the kept paths miss is rare indirect light.
+        assert!(differ * 4 < n * n, "{differ} pixels missed");
+        assert!(kept
+            .cache
+            .pixels_reaching(&kept.materials.changed_texels(&s.maps))
+            .is_empty());
+    }
+}

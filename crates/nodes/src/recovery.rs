@@ -1,0 +1,206 @@
+//! What the two recovery kinds (`envmap_opt`, `material_opt`) share: the
+//! route parameters built from the inverse route registry, the options
+//! common to both, loading the scene and the deterministic report.
+
+use std::sync::OnceLock;
+
+use matflow_engine::node::Params;
+use matflow_engine::{NodeError, ParamSpec, ParamType, RunContext};
+use matflow_inverse::invert::{Event, InvertOptions, InvertReport};
+use matflow_inverse::routes::{
+    self, all_options, Chosen, EnvRoute, MatRoute, OptionKind, Side, ENV_ROUTE_NAMES,
+    MAT_ROUTE_NAMES,
+};
+use matflow_scene::metrics::{psnr_gamma, ssim_gamma};
+use matflow_scene::{Image, RgbImage};
+
+use crate::artifact::Artifact;
+use crate::data::{materials_from, render_scene, SceneData};
+use crate::err;
+
+pub(crate) const BUDGET: ParamSpec = ParamSpec {
+    name: "budget_seconds",
+    ty: ParamType::Float {
+        min: 1.0,
+        max: 86400.0,
+    },
+    default: Some("30"),
+    unit: "s",
+    doc: "time budget on the reference 2-core machine; sets sample and step counts through \
+          a fixed cost model (results never depend on the clock)",
+};
+pub(crate) const TRUST: ParamSpec = ParamSpec {
+    name: "trust_rm",
+    ty: ParamType::Bool,
+    default: Some("false"),
+    unit: "",
+    doc: "trust predicted roughness/metallic (synthetic data); photos start them at 0.7/0.05",
+};
+pub(crate) const ENV_ROUTE: ParamSpec = ParamSpec {
+    name: "env_route",
+    ty: ParamType::Choice(&ENV_ROUTE_NAMES),
+    default: Some(ENV_ROUTE_NAMES[0]),
+    unit: "",
+    doc: "how envmap stages fit (each route's options: env_ROUTE_OPTION)",
+};
+pub(crate) const MAT_ROUTE: ParamSpec = ParamSpec {
+    name: "mat_route",
+    ty: ParamType::Choice(&MAT_ROUTE_NAMES),
+    default: Some(MAT_ROUTE_NAMES[0]),
+    unit: "",
+    doc: "how material stages fit (each route's options: mat_ROUTE_OPTION)",
+};
+
+fn leak(s: String) -> &'static str {
+    Box::leak(s.into_boxed_str())
+}
+
+/// One optional parameter per route option of `side`
+/// (`env_mlp_width`, …), from the registry.
+fn route_option_params(side: Side) -> Vec<ParamSpec> {
+    let doc_of = |side: Side, route: &str| -> &'static str {
+        match side {
+            Side::Env => routes::ENV_ROUTES
+                .iter()
+                .find(|e| e.name == route)
+                .map(|e| e.doc),
+            Side::Mat => routes::MAT_ROUTES
+                .iter()
+                .find(|e| e.name == route)
+                .map(|e| e.doc),
+        }
+        .unwrap_or("")
+    };
+    all_options(side)
+        .into_iter()
+        .map(|(q, route, o)| ParamSpec {
+            name: leak(q),
+            ty: match o.kind {
+                OptionKind::Int { min, max } => ParamType::Int { min, max },
+                OptionKind::Float { min, max } => ParamType::Float { min, max },
+            },
+            default: Some("~"),
+            unit: "",
+            doc: leak(format!(
+                "{} route `{route}` ({}): {}{}",
+                side.prefix(),
+                doc_of(side, route),
+                o.doc,
+                o.default
+                    .map(|d| format!("; default {d}"))
+                    .unwrap_or_default()
+            )),
+        })
+        .collect()
+}
+
+/// A node kind's parameter list: its own, then the route options of the
+/// given sides. Built once per kind.
+pub(crate) fn with_route_params(
+    cell: &'static OnceLock<Vec<ParamSpec>>,
+    own: &[ParamSpec],
+    sides: &[Side],
+) -> &'static [ParamSpec] {
+    cell.get_or_init(|| {
+        let mut v = own.to_vec();
+        for &s in sides {
+            v.extend(route_option_params(s));
+        }
+        v
+    })
+}
+
+/// The values given for the chosen route's options; an option of another
+/// route is an error (it would silently do nothing).
+fn option_values(p: &Params, side: Side, chosen: &str) -> Result<Vec<(String, f64)>, NodeError> {
+    let mut v = Vec::new();
+    for (q, route, o) in all_options(side) {
+        if !p.is_set(&q) {
+            continue;
+        }
+        if route != chosen {
+            return Err(err(format!(
+                "`{q}` is an option of {}_route `{route}`, but the route is `{chosen}`",
+                side.prefix()
+            )));
+        }
+        let x = p
+            .opt_f64(&q)
+            .ok_or_else(|| err(format!("`{q}`: expected a number")))?;
+        v.push((o.name.to_string(), x));
+    }
+    Ok(v)
+}
+
+pub(crate) fn env_route(p: &Params) -> Result<Chosen<dyn EnvRoute>, NodeError> {
+    let name = p.str("env_route");
+    routes::env_route(name, &option_values(p, Side::Env, name)?).map_err(err)
+}
+
+pub(crate) fn mat_route(p: &Params) -> Result<Chosen<dyn MatRoute>, NodeError> {
+    let name = p.str("mat_route");
+    routes::mat_route(name, &option_values(p, Side::Mat, name)?).map_err(err)
+}
+
+/// The options both kinds set.
+pub(crate) fn base_options(p: &Params, seed: u64) -> Result<InvertOptions, NodeError> {
+    Ok(InvertOptions {
+        budget_seconds: p.f64("budget_seconds"),
+        env_route: env_route(p)?,
+        trust_rm: p.bool("trust_rm"),
+        seed,
+        ..Default::default()
+    })
+}
+
+/// A deterministic summary (the report holds no timings: the blob must
+/// not depend on the clock) with the rerender error against the input.
+pub(crate) fn summary(report: &InvertReport, rendered: &RgbImage, target: &RgbImage) -> Vec<u8> {
+    let s = serde_json::json!({
+        "rerender": {"psnr": psnr_gamma(rendered, target), "ssim": ssim_gamma(rendered, target)},
+        "invert": report,
+    });
+    let mut a = Artifact::new("report");
+    a.put_bytes("json", serde_json::to_vec_pretty(&s).unwrap_or_default());
+    a.encode()
+}
+
+pub(crate) struct Prepared {
+    pub scene: matflow_render::RenderScene,
+    pub target: RgbImage,
+    pub start: Vec<matflow_render::Material>,
+}
+
+/// The scene to recover: geometry from the mesh stage, the input image and
+/// starting materials from the scene (or the `materials_param` stage).
+pub(crate) fn prepare(
+    ctx: &RunContext,
+    materials_param: Option<&str>,
+) -> Result<Prepared, NodeError> {
+    let s = SceneData::decode(ctx.input("scene")?)?;
+    let target = s
+        .target
+        .ok_or_else(|| err("the scene has no input image to fit (give the bundle an image)"))?;
+    let maps = match materials_param.and_then(|m| ctx.opt_input(m)) {
+        Some(b) => materials_from(b)?,
+        None => s.pred,
+    };
+    let flat = Image::new(32, 16, glam::Vec3::ONE);
+    let scene = render_scene(ctx.input("mesh")?, &maps, &flat)?;
+    if !target.same_size(&maps.albedo) {
+        return Err(err("the input image and the materials differ in size"));
+    }
+    let start = matflow_render::scene::materials_from_maps(&maps);
+    Ok(Prepared {
+        scene,
+        target,
+        start,
+    })
+}
+
+/// Progress: the optimisation steps of the current stage.
+pub(crate) fn on_event(ctx: &RunContext, e: Event) {
+    if let Event::Step { step, .. } = e {
+        (ctx.progress)(step as u64, 0)
+    }
+}
