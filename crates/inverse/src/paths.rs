@@ -168,8 +168,12 @@ pub struct PathCache {
 
 #[derive(Debug, thiserror::Error)]
 pub enum CacheError {
-    #[error("invalid cache options: {0}")]
-    Options(String),
+    #[error("frozen paths need at least 1 sample per pixel")]
+    NoSamples,
+    #[error("max_depth must be in 2..={max}, got {got}")]
+    Depth { got: u32, max: u32 },
+    #[error("envmap size {width}x{height} unsupported (2x2 up to 65535 texels)")]
+    EnvmapSize { width: usize, height: usize },
     #[error("row {row} holds more than 4 294 967 295 records; lower spp")]
     Overflow { row: usize },
     #[error("stored paths: {0}")]
@@ -212,19 +216,19 @@ impl PathCache {
         progress: &(dyn Fn(usize, usize) + Sync),
     ) -> Result<PathCache, CacheError> {
         if opts.spp == 0 {
-            return Err(CacheError::Options("spp must be at least 1".into()));
+            return Err(CacheError::NoSamples);
         }
         if !(2..=MAX_DEPTH).contains(&opts.max_depth) {
-            return Err(CacheError::Options(format!(
-                "max_depth must be in 2..={MAX_DEPTH}, got {}",
-                opts.max_depth
-            )));
+            return Err(CacheError::Depth {
+                got: opts.max_depth,
+                max: MAX_DEPTH,
+            });
         }
         if opts.env_width < 2 || opts.env_height < 2 || opts.env_width * opts.env_height > 65535 {
-            return Err(CacheError::Options(format!(
-                "envmap size {}x{} unsupported (2x2 up to 65535 texels)",
-                opts.env_width, opts.env_height
-            )));
+            return Err(CacheError::EnvmapSize {
+                width: opts.env_width,
+                height: opts.env_height,
+            });
         }
         let (w, h) = (scene.camera.width, scene.camera.height);
         let done = AtomicUsize::new(0);

@@ -1,6 +1,8 @@
-//! Deterministic random numbers: a PCG32 stream seeded by hashing the render
-//! seed, the pixel and the sample index, so every pixel's samples are the
-//! same whatever the thread count or tile order.
+//! Deterministic random numbers. The renderer draws from [`Sampler`]: an
+//! Owen-scrambled (0,2)-sequence per dimension pair, keyed by hashing the
+//! render seed, the pixel and the sample index, so every pixel's samples
+//! are the same whatever the thread count or tile order. [`Pcg32`] is a
+//! plain stream for tests and benchmarks.
 
 /// SplitMix64 finaliser: a strong 64-bit mixing function.
 #[inline]
@@ -11,7 +13,8 @@ pub fn mix64(mut z: u64) -> u64 {
     z ^ (z >> 31)
 }
 
-/// PCG32 (XSH-RR), O'Neill 2014.
+/// PCG32 (XSH-RR), O'Neill 2014: for tests and the benchmark's random
+/// rays (rendering samples with [`Sampler`]).
 #[derive(Clone, Debug)]
 pub struct Pcg32 {
     state: u64,
