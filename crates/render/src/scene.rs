@@ -38,14 +38,6 @@ pub fn scene_from_depth(
     mesh_angle_deg: f64,
 ) -> Result<(RenderScene, MeshStats), RenderError> {
     let cam = Camera::new(depth.width, depth.height);
-    if maps.width() != cam.width || maps.height() != cam.height {
-        return Err(RenderError::MaterialSize {
-            maps_width: maps.width(),
-            maps_height: maps.height(),
-            width: cam.width,
-            height: cam.height,
-        });
-    }
     let DepthMesh { mesh, stats, .. } = mesh_from_depth(
         depth,
         &cam,
