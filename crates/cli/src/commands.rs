@@ -4,13 +4,13 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use matflow_geom::{mesh_from_depth, MeshParams};
+use matflow_geom::mesh_for_view;
 use matflow_render::{
     render as render_scene, scene_from_depth, EnvMap, PixelFilter, RenderOptions, RenderOutput,
     RenderScene,
 };
 use matflow_scene::metrics::psnr_gamma;
-use matflow_scene::{io, Bundle, Camera, MaterialSource, RgbImage};
+use matflow_scene::{io, Bundle, MaterialSource, RgbImage};
 
 #[derive(Args, Clone)]
 pub struct RenderArgs {
@@ -222,15 +222,8 @@ pub fn render(a: RenderArgs) -> Result<()> {
 pub fn mesh(a: MeshArgs) -> Result<()> {
     let bundle = Bundle::open(&a.bundle)?;
     let depth = bundle.load_depth()?;
-    let cam = Camera::new(depth.width, depth.height);
     let t0 = Instant::now();
-    let m = mesh_from_depth(
-        &depth,
-        &cam,
-        &MeshParams {
-            min_angle_deg: a.angle,
-        },
-    )?;
+    let (cam, m) = mesh_for_view(&depth, a.angle)?;
     let secs = t0.elapsed().as_secs_f64();
     let mut buf = Vec::new();
     m.mesh.write_ply(&mut buf, cam.width, cam.height)?;

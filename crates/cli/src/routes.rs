@@ -63,32 +63,24 @@ fn option_help(route: &str, o: &RouteOption) -> String {
     )
 }
 
-fn option_values(
-    m: &ArgMatches,
-    side: Side,
-    chosen: &str,
-) -> Result<Vec<(String, f64)>, clap::Error> {
-    let mut v = Vec::new();
-    for (q, route, o) in all_options(side) {
-        if let Some(x) = m.get_one::<f64>(&q) {
-            if route != chosen {
-                return Err(clap::Error::raw(
-                    clap::error::ErrorKind::ArgumentConflict,
-                    format!(
-                        "--{} applies to --{} {route}, but the route is {chosen}\n",
-                        q.replace('_', "-"),
-                        flag(side).replace('_', "-"),
-                    ),
-                ));
-            }
-            v.push((o.name.to_string(), *x));
-        }
-    }
-    Ok(v)
-}
-
+/// A route error as the command line words it (flags, not parameters).
 fn invalid(e: routes::RouteError) -> clap::Error {
-    clap::Error::raw(clap::error::ErrorKind::ValueValidation, format!("{e}\n"))
+    use clap::error::ErrorKind;
+    match e {
+        routes::RouteError::NotChosen {
+            side,
+            option,
+            route,
+            chosen,
+        } => clap::Error::raw(
+            ErrorKind::ArgumentConflict,
+            format!(
+                "--{} applies to --{side}-route {route}, but the route is {chosen}\n",
+                option.replace('_', "-")
+            ),
+        ),
+        e => clap::Error::raw(ErrorKind::ValueValidation, format!("{e}\n")),
+    }
 }
 
 impl FromArgMatches for RouteArgs {
@@ -98,10 +90,10 @@ impl FromArgMatches for RouteArgs {
                 .cloned()
                 .unwrap_or_else(|| route_names(side)[0].to_string())
         };
-        let (e, t) = (name(Side::Env), name(Side::Mat));
+        let given = |q: &str| m.get_one::<f64>(q).copied();
         Ok(RouteArgs {
-            env: routes::env_route(&e, &option_values(m, Side::Env, &e)?).map_err(invalid)?,
-            mat: routes::mat_route(&t, &option_values(m, Side::Mat, &t)?).map_err(invalid)?,
+            env: routes::env_route_given(&name(Side::Env), &given).map_err(invalid)?,
+            mat: routes::mat_route_given(&name(Side::Mat), &given).map_err(invalid)?,
         })
     }
     fn update_from_arg_matches(&mut self, m: &ArgMatches) -> Result<(), clap::Error> {

@@ -118,6 +118,18 @@ fn view_angle_deg(a: DVec3, b: DVec3, c: DVec3) -> f64 {
     cosang.asin().to_degrees()
 }
 
+/// The mesh of a depth map seen by the default camera of its size (the
+/// one every bundle uses), cut at `min_angle_deg`: the one way the CLI,
+/// the renderer's scene builder and the pipeline's mesh stage mesh a view.
+pub fn mesh_for_view(
+    depth: &GrayImage,
+    min_angle_deg: f64,
+) -> Result<(Camera, DepthMesh), MeshError> {
+    let cam = Camera::new(depth.width, depth.height);
+    let mesh = mesh_from_depth(depth, &cam, &MeshParams { min_angle_deg })?;
+    Ok((cam, mesh))
+}
+
 /// Builds the mesh from camera-space depth `z` (0 = no geometry).
 pub fn mesh_from_depth(
     z: &GrayImage,

@@ -10,6 +10,6 @@ pub mod mesh;
 
 pub use bvh::{Bvh, Hit};
 pub use depth_mesh::{
-    mesh_from_depth, vertex_normals, DepthMesh, MeshError, MeshParams, MeshStats,
+    mesh_for_view, mesh_from_depth, vertex_normals, DepthMesh, MeshError, MeshParams, MeshStats,
 };
 pub use mesh::TriMesh;

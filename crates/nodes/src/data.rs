@@ -5,7 +5,7 @@ use std::path::Path;
 
 use glam::{Vec2, Vec3};
 use matflow_engine::{NodeError, ParamSpec, ParamType};
-use matflow_geom::{mesh_from_depth, MeshParams, TriMesh};
+use matflow_geom::{mesh_for_view, TriMesh};
 use matflow_inverse::paths::{PathCache, PathWords};
 use matflow_render::{EnvMap, PixelFilter, RenderOptions, RenderScene};
 use matflow_scene::{io, Camera, GrayImage, MaterialMaps, RgbImage};
@@ -169,16 +169,10 @@ pub fn render_scene(
 }
 
 pub(crate) fn mesh_of(depth: &GrayImage, angle: f64) -> Result<TriMesh, NodeError> {
-    let cam = Camera::new(depth.width, depth.height);
-    Ok(mesh_from_depth(
-        depth,
-        &cam,
-        &MeshParams {
-            min_angle_deg: angle,
-        },
-    )
-    .map_err(|e| err(format!("meshing the depth map: {e}")))?
-    .mesh)
+    Ok(mesh_for_view(depth, angle)
+        .map_err(|e| err(format!("meshing the depth map: {e}")))?
+        .1
+        .mesh)
 }
 
 /// Reads a photo (PNG/JPEG: centre-cropped, resized, linearised with

@@ -5,7 +5,7 @@
 use std::sync::OnceLock;
 
 use matflow_engine::node::Params;
-use matflow_engine::{NodeError, ParamSpec, ParamType, RunContext};
+use matflow_engine::{NodeError, OutputSpec, ParamSpec, ParamType, RunContext};
 use matflow_inverse::invert::{Event, InvertOptions, InvertReport};
 use matflow_inverse::routes::{
     self, all_options, Chosen, EnvRoute, MatRoute, OptionKind, Side, ENV_ROUTE_NAMES,
@@ -18,6 +18,12 @@ use crate::artifact::Artifact;
 use crate::data::{materials_from, render_scene, SceneData};
 use crate::err;
 
+/// The deterministic report both kinds output (see [`summary`]).
+pub(crate) const REPORT: OutputSpec = OutputSpec {
+    name: "report",
+    ty: "report",
+    doc: "plan, per-stage steps and losses, rerender PSNR/SSIM",
+};
 pub(crate) const BUDGET: ParamSpec = ParamSpec {
     name: "budget_seconds",
     ty: ParamType::Float {
@@ -110,36 +116,14 @@ pub(crate) fn with_route_params(
     })
 }
 
-/// The values given for the chosen route's options; an option of another
-/// route is an error (it would silently do nothing).
-fn option_values(p: &Params, side: Side, chosen: &str) -> Result<Vec<(String, f64)>, NodeError> {
-    let mut v = Vec::new();
-    for (q, route, o) in all_options(side) {
-        if !p.is_set(&q) {
-            continue;
-        }
-        if route != chosen {
-            return Err(err(format!(
-                "`{q}` is an option of {}_route `{route}`, but the route is `{chosen}`",
-                side.prefix()
-            )));
-        }
-        let x = p
-            .opt_f64(&q)
-            .ok_or_else(|| err(format!("`{q}`: expected a number")))?;
-        v.push((o.name.to_string(), x));
-    }
-    Ok(v)
-}
-
+/// The chosen envmap route and its options (`env_ROUTE_OPTION`).
 pub(crate) fn env_route(p: &Params) -> Result<Chosen<dyn EnvRoute>, NodeError> {
-    let name = p.str("env_route");
-    routes::env_route(name, &option_values(p, Side::Env, name)?).map_err(err)
+    routes::env_route_given(p.str("env_route"), &|q| p.opt_f64(q)).map_err(err)
 }
 
+/// The chosen material route and its options (`mat_ROUTE_OPTION`).
 pub(crate) fn mat_route(p: &Params) -> Result<Chosen<dyn MatRoute>, NodeError> {
-    let name = p.str("mat_route");
-    routes::mat_route(name, &option_values(p, Side::Mat, name)?).map_err(err)
+    routes::mat_route_given(p.str("mat_route"), &|q| p.opt_f64(q)).map_err(err)
 }
 
 /// The options both kinds set.

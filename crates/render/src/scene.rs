@@ -2,9 +2,7 @@
 //! and the environment map.
 
 use glam::{Vec2, Vec3};
-use matflow_geom::{
-    mesh_from_depth, vertex_normals, Bvh, DepthMesh, MeshParams, MeshStats, TriMesh,
-};
+use matflow_geom::{mesh_for_view, vertex_normals, Bvh, DepthMesh, MeshStats, TriMesh};
 use matflow_scene::{Camera, GrayImage, MaterialMaps};
 
 use crate::bsdf::Material;
@@ -37,14 +35,7 @@ pub fn scene_from_depth(
     env: EnvMap,
     mesh_angle_deg: f64,
 ) -> Result<(RenderScene, MeshStats), RenderError> {
-    let cam = Camera::new(depth.width, depth.height);
-    let DepthMesh { mesh, stats, .. } = mesh_from_depth(
-        depth,
-        &cam,
-        &MeshParams {
-            min_angle_deg: mesh_angle_deg,
-        },
-    )?;
+    let (cam, DepthMesh { mesh, stats, .. }) = mesh_for_view(depth, mesh_angle_deg)?;
     Ok((RenderScene::new(cam, mesh, maps, env)?, stats))
 }
 

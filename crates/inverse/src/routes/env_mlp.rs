@@ -4,7 +4,8 @@
 use glam::Vec3;
 
 use super::{
-    Entry, EnvFitter, EnvRoute, EnvStage, EnvStart, OptionKind, PlanInputs, RouteOption, Settings,
+    network_options, Entry, EnvFitter, EnvRoute, EnvStage, EnvStart, Network, PlanInputs,
+    RouteOption, Settings,
 };
 use crate::envfit::{EnvFitOptions, EnvMlp, EnvMlpOptions, EnvTransport, FitTrace};
 use crate::loss::Target;
@@ -16,35 +17,12 @@ pub const ROUTE: Entry<dyn EnvRoute> = Entry {
     build: |s| Box::new(Mlp::from_settings(s)),
 };
 
-const OPTIONS: &[RouteOption] = &[
-    RouteOption {
-        name: "width",
-        kind: OptionKind::Int { min: 4, max: 1024 },
-        default: Some("64"),
-        doc: "hidden width (the reference: 256)",
-    },
-    RouteOption {
-        name: "depth",
-        kind: OptionKind::Int { min: 2, max: 16 },
-        default: Some("4"),
-        doc: "hidden layers (the reference: 4)",
-    },
-    RouteOption {
-        name: "octaves",
-        kind: OptionKind::Int { min: 0, max: 16 },
-        default: Some("2"),
-        doc: "positional-encoding octaves (the reference: 2)",
-    },
-    RouteOption {
-        name: "lr",
-        kind: OptionKind::Float {
-            min: 1e-7,
-            max: 1.0,
-        },
-        default: Some("0.001"),
-        doc: "Adam learning rate, ×0.8 every 100 steps (the reference: 1e-3)",
-    },
-];
+const OPTIONS: &[RouteOption] = &network_options(
+    "64",
+    "hidden width (the reference: 256)",
+    "0.001",
+    "Adam learning rate, ×0.8 every 100 steps (the reference: 1e-3)",
+);
 
 /// One step of the network, per pixel the envmap stage sees; a stage
 /// takes about half its steps before its stopping rule.
@@ -56,14 +34,14 @@ pub struct Mlp {
 
 impl Mlp {
     fn from_settings(s: &Settings) -> Mlp {
-        let d = EnvMlpOptions::default();
+        let n = Network::of(s, OPTIONS);
         Mlp {
             net: EnvMlpOptions {
-                lr: s.f32_or(OPTIONS, "lr", d.lr),
-                width: s.usize_or(OPTIONS, "width", d.width),
-                depth: s.usize_or(OPTIONS, "depth", d.depth),
-                multires: s.usize_or(OPTIONS, "octaves", d.multires),
-                seed: d.seed,
+                lr: n.lr,
+                width: n.width,
+                depth: n.depth,
+                multires: n.octaves,
+                ..EnvMlpOptions::default()
             },
         }
     }

@@ -4,7 +4,8 @@
 use matflow_render::Material;
 
 use super::{
-    Entry, MatFitter, MatRoute, MatStage, MatStart, OptionKind, PlanInputs, RouteOption, Settings,
+    network_options, Entry, MatFitter, MatRoute, MatStage, MatStart, Network, PlanInputs,
+    RouteOption, Settings,
 };
 use crate::loss::Target;
 use crate::matfit::{MatFit, MatFitOptions, MatMlp, MatMlpOptions, Parts};
@@ -17,35 +18,12 @@ pub const ROUTE: Entry<dyn MatRoute> = Entry {
     build: |s| Box::new(Mlp::from_settings(s)),
 };
 
-const OPTIONS: &[RouteOption] = &[
-    RouteOption {
-        name: "width",
-        kind: OptionKind::Int { min: 4, max: 1024 },
-        default: Some("32"),
-        doc: "hidden width (the reference: 256; a step costs ∝ width² per pixel on the CPU)",
-    },
-    RouteOption {
-        name: "depth",
-        kind: OptionKind::Int { min: 2, max: 16 },
-        default: Some("4"),
-        doc: "hidden layers (the reference: 4)",
-    },
-    RouteOption {
-        name: "octaves",
-        kind: OptionKind::Int { min: 0, max: 16 },
-        default: Some("2"),
-        doc: "positional-encoding octaves (the reference: 2)",
-    },
-    RouteOption {
-        name: "lr",
-        kind: OptionKind::Float {
-            min: 1e-7,
-            max: 1.0,
-        },
-        default: Some("0.001"),
-        doc: "AdamW learning rate, ×0.8 every 100 steps (the reference: 3e-4)",
-    },
-];
+const OPTIONS: &[RouteOption] = &network_options(
+    "32",
+    "hidden width (the reference: 256; a step costs ∝ width² per pixel on the CPU)",
+    "0.001",
+    "AdamW learning rate, ×0.8 every 100 steps (the reference: 3e-4)",
+);
 
 /// One step (forward, reverse, AdamW) per pixel. A loop's two stages
 /// take about `steps` steps together (the R+M stage stops early, the
@@ -58,14 +36,14 @@ pub struct Mlp {
 
 impl Mlp {
     fn from_settings(s: &Settings) -> Mlp {
-        let d = MatMlpOptions::default();
+        let n = Network::of(s, OPTIONS);
         Mlp {
             net: MatMlpOptions {
-                lr: s.f32_or(OPTIONS, "lr", d.lr),
-                width: s.usize_or(OPTIONS, "width", d.width),
-                depth: s.usize_or(OPTIONS, "depth", d.depth),
-                multires: s.usize_or(OPTIONS, "octaves", d.multires),
-                ..d
+                lr: n.lr,
+                width: n.width,
+                depth: n.depth,
+                multires: n.octaves,
+                ..MatMlpOptions::default()
             },
         }
     }

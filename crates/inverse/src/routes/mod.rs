@@ -85,6 +85,66 @@ pub struct RouteOption {
     pub doc: &'static str,
 }
 
+/// The options of a positional-encoding MLP route (width, depth,
+/// octaves, learning rate); the defaults and the rate's doc are the
+/// route's.
+pub(crate) const fn network_options(
+    width: &'static str,
+    width_doc: &'static str,
+    lr: &'static str,
+    lr_doc: &'static str,
+) -> [RouteOption; 4] {
+    [
+        RouteOption {
+            name: "width",
+            kind: OptionKind::Int { min: 4, max: 1024 },
+            default: Some(width),
+            doc: width_doc,
+        },
+        RouteOption {
+            name: "depth",
+            kind: OptionKind::Int { min: 2, max: 16 },
+            default: Some("4"),
+            doc: "hidden layers (the reference: 4)",
+        },
+        RouteOption {
+            name: "octaves",
+            kind: OptionKind::Int { min: 0, max: 16 },
+            default: Some("2"),
+            doc: "positional-encoding octaves (the reference: 2)",
+        },
+        RouteOption {
+            name: "lr",
+            kind: OptionKind::Float {
+                min: 1e-7,
+                max: 1.0,
+            },
+            default: Some(lr),
+            doc: lr_doc,
+        },
+    ]
+}
+
+/// A network route's settings: width, depth, octaves and learning rate,
+/// each set or the route's default.
+pub(crate) struct Network {
+    pub width: usize,
+    pub depth: usize,
+    pub octaves: usize,
+    pub lr: f32,
+}
+
+impl Network {
+    pub fn of(s: &Settings, options: &[RouteOption]) -> Network {
+        Network {
+            width: s.usize_or(options, "width", 0),
+            depth: s.usize_or(options, "depth", 0),
+            octaves: s.usize_or(options, "octaves", 0),
+            lr: s.f32_or(options, "lr", 0.0),
+        }
+    }
+}
+
 /// A route's registration: what the CLI, the pipeline schema and the
 /// benchmarks know it by, and how to build it from its settings.
 pub struct Entry<R: ?Sized + 'static> {
@@ -150,6 +210,14 @@ pub enum RouteError {
         route: &'static str,
         option: String,
         known: String,
+    },
+    #[error("`{option}` is an option of {side}_route `{route}`, but the route is `{chosen}`")]
+    NotChosen {
+        side: &'static str,
+        /// The qualified name (`mat_mlp_width`).
+        option: String,
+        route: &'static str,
+        chosen: String,
     },
     #[error("route `{route}`, option `{option}`: expected {expected}, got {got}")]
     BadValue {
@@ -276,6 +344,49 @@ impl<R: ?Sized> Chosen<R> {
     pub fn build(&self) -> Box<R> {
         (self.entry.build)(&self.settings)
     }
+}
+
+/// The chosen route's option values among what a front end was given by
+/// qualified name (`given("mat_mlp_width")`); a value given for an option
+/// of another route is an error (it would silently do nothing).
+fn given_values(
+    side: Side,
+    chosen: &str,
+    given: &dyn Fn(&str) -> Option<f64>,
+) -> Result<Vec<(String, f64)>, RouteError> {
+    let mut v = Vec::new();
+    for (q, route, o) in all_options(side) {
+        let Some(x) = given(&q) else {
+            continue;
+        };
+        if route != chosen {
+            return Err(RouteError::NotChosen {
+                side: side.prefix(),
+                option: q,
+                route,
+                chosen: chosen.to_string(),
+            });
+        }
+        v.push((o.name.to_string(), x));
+    }
+    Ok(v)
+}
+
+/// The envmap route `name` with its options taken from what a front end
+/// was given by qualified name (see [`qualified_name`]).
+pub fn env_route_given(
+    name: &str,
+    given: &dyn Fn(&str) -> Option<f64>,
+) -> Result<Chosen<dyn EnvRoute>, RouteError> {
+    env_route(name, &given_values(Side::Env, name, given)?)
+}
+
+/// The material route `name` with its options given by qualified name.
+pub fn mat_route_given(
+    name: &str,
+    given: &dyn Fn(&str) -> Option<f64>,
+) -> Result<Chosen<dyn MatRoute>, RouteError> {
+    mat_route(name, &given_values(Side::Mat, name, given)?)
 }
 
 fn choose<R: ?Sized>(

@@ -11,7 +11,7 @@ use matflow_inverse::routes::Side;
 use crate::data::{encode_image, MESH, SCENE};
 use crate::err;
 use crate::recovery::{base_options, env_route, on_event, prepare, summary, with_route_params};
-use crate::recovery::{BUDGET, ENV_ROUTE, TRUST};
+use crate::recovery::{BUDGET, ENV_ROUTE, REPORT, TRUST};
 
 pub struct EnvmapOptNode;
 
@@ -36,11 +36,7 @@ const OUTPUTS: &[OutputSpec] = &[
         ty: "envmap",
         doc: "the recovered lighting",
     },
-    OutputSpec {
-        name: "report",
-        ty: "report",
-        doc: "plan, per-stage steps and losses, rerender PSNR/SSIM",
-    },
+    REPORT,
 ];
 
 impl Node for EnvmapOptNode {

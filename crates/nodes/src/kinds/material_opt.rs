@@ -14,7 +14,7 @@ use crate::err;
 use crate::recovery::{
     base_options, env_route, mat_route, on_event, prepare, summary, with_route_params,
 };
-use crate::recovery::{BUDGET, ENV_ROUTE, MAT_ROUTE, TRUST};
+use crate::recovery::{BUDGET, ENV_ROUTE, MAT_ROUTE, REPORT, TRUST};
 
 pub struct MaterialOptNode;
 
@@ -67,11 +67,7 @@ const OUTPUTS: &[OutputSpec] = &[
         ty: "image",
         doc: "independent re-render of the result",
     },
-    OutputSpec {
-        name: "report",
-        ty: "report",
-        doc: "plan, per-stage steps and losses, rerender PSNR/SSIM",
-    },
+    REPORT,
 ];
 
 impl Node for MaterialOptNode {
