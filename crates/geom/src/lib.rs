@@ -8,7 +8,7 @@ pub mod bvh;
 pub mod depth_mesh;
 pub mod mesh;
 
-pub use bvh::{Bvh, Hit};
+pub use bvh::{Bvh, Hit, PACKET};
 pub use depth_mesh::{
     mesh_for_view, mesh_from_depth, vertex_normals, DepthMesh, MeshError, MeshParams, MeshStats,
 };

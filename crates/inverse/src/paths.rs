@@ -23,10 +23,10 @@
 use std::borrow::Cow;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
-use glam::{Vec2, Vec3};
+use glam::Vec3;
+use matflow_geom::PACKET;
 use matflow_render::envmap::locate_cell;
-use matflow_render::integrator::{trace_path, PathSink};
-use matflow_render::rng::Sampler;
+use matflow_render::integrator::{continue_path, CameraPacket, PathSink};
 use matflow_render::{RenderOptions, RenderScene, RenderStats};
 use rayon::prelude::*;
 
@@ -541,7 +541,8 @@ impl PathSink for Recorder<'_> {
     }
 }
 
-/// Traces row `y`: the renderer's own loop ([`trace_path`]) with a
+/// Traces row `y`: the renderer's own loop ([`continue_path`] after the
+/// pixel's [`CameraPacket`], as in `render`) with a
 /// [`Recorder`] as its sink, box-filtered (each sample in its pixel).
 fn trace_row(
     scene: &RenderScene,
@@ -571,21 +572,30 @@ fn trace_row(
         row.rec_start.push(nr as u32);
         Ok(())
     };
+    let mut packet = CameraPacket::default();
     for x in 0..w {
         push_start(&mut row)?;
-        let pix = (y * w + x) as u64;
-        for s in 0..opts.spp {
-            let mut rng = Sampler::for_sample(opts.seed, pix, s, opts.spp);
-            let (jx, jy) = rng.next_2d();
-            let film = Vec2::new(x as f32 + jx, y as f32 + jy);
-            let mut rec = Recorder {
-                row: &mut row,
-                ew: opts.env_width,
-                eh: opts.env_height,
-                vi: 0,
-                geo: Geo::default(),
-            };
-            trace_path(scene, &render_opts, &mut rng, film, &mut st, &mut rec);
+        for s0 in (0..opts.spp).step_by(PACKET) {
+            let s1 = (s0 + PACKET as u32).min(opts.spp);
+            packet.trace(scene, &render_opts, (x, y), s0..s1, opts.spp, &mut st);
+            for i in 0..packet.dirs.len() {
+                let mut rec = Recorder {
+                    row: &mut row,
+                    ew: opts.env_width,
+                    eh: opts.env_height,
+                    vi: 0,
+                    geo: Geo::default(),
+                };
+                continue_path(
+                    scene,
+                    &render_opts,
+                    &mut packet.samplers[i],
+                    packet.dirs[i],
+                    packet.hits[i],
+                    &mut st,
+                    &mut rec,
+                );
+            }
         }
     }
     push_start(&mut row)?;
@@ -599,7 +609,6 @@ mod tests {
     use super::*;
     use crate::testutil::{materials_of, room, texels};
     use crate::transport::pixel_sum;
-    use matflow_render::integrator::radiance;
 
     /// The recorder is the renderer's loop with a sink: replaying each
     /// recorded path with the materials and envmap it was traced with gives
@@ -627,15 +636,22 @@ mod tests {
                 ..Default::default()
             };
             let mut st = RenderStats::default();
+            let mut packet = CameraPacket::default();
             let (mut worst, mut lit) = (0.0f32, 0);
             let (mut sum_diff, mut sum_abs) = (0.0f64, 0.0f64);
             for y in 0..cache.height {
                 for x in 0..cache.width {
-                    let pix = (y * cache.width + x) as u64;
-                    let mut rng = Sampler::for_sample(11, pix, 0, 1);
-                    let (jx, jy) = rng.next_2d();
-                    let film = Vec2::new(x as f32 + jx, y as f32 + jy);
-                    let a = radiance(&t.scene, &ropts, &mut rng, film, &mut st);
+                    // The renderer's own route for the pixel's sample.
+                    packet.trace(&t.scene, &ropts, (x, y), 0..1, 1, &mut st);
+                    let a = continue_path(
+                        &t.scene,
+                        &ropts,
+                        &mut packet.samplers[0],
+                        packet.dirs[0],
+                        packet.hits[0],
+                        &mut st,
+                        &mut (),
+                    );
                     let b = pixel_sum(&cache, x, y, &mats, &env);
                     let err = (a - b).abs().max_element() / (a.max_element() + 1e-3);
                     worst = worst.max(err);

@@ -15,6 +15,8 @@ use glam::{Vec2, Vec3};
 use matflow_scene::{Image, RgbImage};
 use rayon::prelude::*;
 
+use matflow_geom::{Hit, PACKET};
+
 use crate::bsdf;
 use crate::filter::PixelFilter;
 use crate::rng::Sampler;
@@ -168,16 +170,38 @@ pub fn trace_path<S: PathSink>(
     st: &mut RenderStats,
     sink: &mut S,
 ) -> Vec3 {
+    if opts.max_depth == 0 {
+        return Vec3::ZERO;
+    }
+    let dir = scene.camera_ray(film);
+    st.primary_rays += 1;
+    let hit = scene.bvh.intersect(Vec3::ZERO, dir, 0.0, f32::INFINITY);
+    continue_path(scene, opts, rng, dir, hit, st, sink)
+}
+
+/// [`trace_path`] once the camera ray `dir` (from the camera at the
+/// origin) and its closest hit are known — found for a whole pixel's
+/// samples at once by [`CameraPacket`]. The sampler has drawn only the
+/// pixel jitter.
+#[inline]
+pub fn continue_path<S: PathSink>(
+    scene: &RenderScene,
+    opts: &RenderOptions,
+    rng: &mut Sampler,
+    camera_dir: Vec3,
+    camera_hit: Option<Hit>,
+    st: &mut RenderStats,
+    sink: &mut S,
+) -> Vec3 {
     let mut l = Vec3::ZERO;
     if opts.max_depth == 0 {
         return l;
     }
-    let mut dir = scene.camera_ray(film);
+    let mut dir = camera_dir;
     let mut origin = Vec3::ZERO;
     let mut throughput = Vec3::ONE;
     let env = &scene.env;
-    st.primary_rays += 1;
-    let Some(mut hit) = scene.bvh.intersect(origin, dir, 0.0, f32::INFINITY) else {
+    let Some(mut hit) = camera_hit else {
         sink.camera_sky(dir);
         return l + env.eval(dir);
     };
@@ -275,6 +299,55 @@ pub fn radiance(
     trace_path(scene, opts, rng, film, st, &mut ())
 }
 
+/// The camera samples of one pixel, traced together: each sample's
+/// sampler (having drawn its pixel jitter), film position, camera ray and
+/// closest hit. The camera rays of a pixel leave one point in nearly one
+/// direction, so [`matflow_geom::Bvh::intersect_packet`] finds their hits
+/// in one traversal; the hits are exactly those of one ray at a time.
+#[derive(Default)]
+pub struct CameraPacket {
+    pub samplers: Vec<Sampler>,
+    pub films: Vec<Vec2>,
+    pub dirs: Vec<Vec3>,
+    pub hits: Vec<Option<Hit>>,
+}
+
+impl CameraPacket {
+    /// Samples `samples` (of `spp`) of pixel (x, y) of a render with
+    /// `seed`: draws each one's jitter, as [`trace_path`]'s callers do,
+    /// and traces the camera rays (none when `max_depth` is 0).
+    pub fn trace(
+        &mut self,
+        scene: &RenderScene,
+        opts: &RenderOptions,
+        (x, y): (usize, usize),
+        samples: std::ops::Range<u32>,
+        spp: u32,
+        st: &mut RenderStats,
+    ) {
+        let pix = (y * scene.camera.width + x) as u64;
+        self.samplers.clear();
+        self.films.clear();
+        self.dirs.clear();
+        for s in samples {
+            let mut rng = Sampler::for_sample(opts.seed, pix, s, spp);
+            let (jx, jy) = rng.next_2d();
+            let film = Vec2::new(x as f32 + jx, y as f32 + jy);
+            self.samplers.push(rng);
+            self.films.push(film);
+            self.dirs.push(scene.camera_ray(film));
+        }
+        self.hits.clear();
+        self.hits.resize(self.dirs.len(), None);
+        if opts.max_depth > 0 {
+            st.primary_rays += self.dirs.len() as u64;
+            scene
+                .bvh
+                .intersect_packet(Vec3::ZERO, &self.dirs, 0.0, f32::INFINITY, &mut self.hits);
+        }
+    }
+}
+
 struct Tile {
     x0: usize,
     y0: usize,
@@ -329,14 +402,25 @@ pub fn render(
             let mut st = RenderStats::default();
             // 1-D filter weights of a sample's footprint columns.
             let mut wx = vec![0f32; 2 * border + 2];
+            let mut packet = CameraPacket::default();
             for y in t.y0..t.y1 {
                 for x in t.x0..t.x1 {
-                    let pix = (y * w + x) as u64;
                     for s in 0..spp {
-                        let mut rng = Sampler::for_sample(opts.seed, pix, s, spp);
-                        let (jx, jy) = rng.next_2d();
-                        let film = Vec2::new(x as f32 + jx, y as f32 + jy);
-                        let li = radiance(scene, opts, &mut rng, film, &mut st);
+                        let i = (s as usize) % PACKET;
+                        if i == 0 {
+                            let end = (s + PACKET as u32).min(spp);
+                            packet.trace(scene, opts, (x, y), s..end, spp, &mut st);
+                        }
+                        let film = packet.films[i];
+                        let li = continue_path(
+                            scene,
+                            opts,
+                            &mut packet.samplers[i],
+                            packet.dirs[i],
+                            packet.hits[i],
+                            &mut st,
+                            &mut (),
+                        );
                         if !li.is_finite() {
                             st.discarded_samples += 1;
                             continue;
