@@ -36,6 +36,8 @@ pub struct EnvMap {
     cell_prob: Vec<f32>,
     /// Solid angle of the cells of each row.
     row_solid_angle: Vec<f32>,
+    /// cos θ of each row boundary (H values), as [`EnvMap::sample`] needs.
+    row_cos: Vec<f32>,
     total_weight: f64,
 }
 
@@ -145,6 +147,9 @@ impl EnvMap {
                 }
             }
         }
+        let row_cos = (0..=rows)
+            .map(|r| (PI * r as f32 / rows as f32).cos())
+            .collect();
         Ok(EnvMap {
             width: w,
             height: h,
@@ -153,6 +158,7 @@ impl EnvMap {
             col_cdf,
             cell_prob,
             row_solid_angle,
+            row_cos,
             total_weight: total,
         })
     }
@@ -193,13 +199,28 @@ impl EnvMap {
         a * (1.0 - fy) + b * fy
     }
 
+    /// [`EnvMap::eval`] and [`EnvMap::pdf`] with one lookup of the cell.
+    #[inline]
+    pub fn eval_pdf(&self, d: Vec3) -> (Vec3, f32) {
+        let (r, c, fx, fy) = self.locate(d);
+        let c1 = (c + 1) % self.width;
+        let a = self.texel(c, r) * (1.0 - fx) + self.texel(c1, r) * fx;
+        let b = self.texel(c, r + 1) * (1.0 - fx) + self.texel(c1, r + 1) * fx;
+        (a * (1.0 - fy) + b * fy, self.cell_pdf(r, c))
+    }
+
     /// Solid-angle density of [`EnvMap::sample`] for direction `d`.
     #[inline]
     pub fn pdf(&self, d: Vec3) -> f32 {
+        let (r, c, _, _) = self.locate(d);
+        self.cell_pdf(r, c)
+    }
+
+    #[inline]
+    fn cell_pdf(&self, r: usize, c: usize) -> f32 {
         if !self.can_sample() {
             return 0.0;
         }
-        let (r, c, _, _) = self.locate(d);
         let omega = self.row_solid_angle[r];
         if omega <= 0.0 {
             return 0.0;
@@ -223,9 +244,7 @@ impl EnvMap {
             return None;
         }
         // Uniform in solid angle inside the cell.
-        let t0 = PI * r as f32 / rows as f32;
-        let t1 = PI * (r + 1) as f32 / rows as f32;
-        let (c0, c1) = (t0.cos(), t1.cos());
+        let (c0, c1) = (self.row_cos[r], self.row_cos[r + 1]);
         let cos_t = (c0 + (c1 - c0) * uc as f32).clamp(-1.0, 1.0);
         let u = ((c as f32 + 0.5 + ur as f32) / w as f32).rem_euclid(1.0);
         let sin_t = (1.0 - cos_t * cos_t).max(0.0).sqrt();
@@ -386,6 +405,7 @@ mod tests {
             let q = env.pdf(d);
             assert!((p - q).abs() <= 1e-3 * p.max(q), "{p} vs {q}");
             assert!((l - env.eval(d)).abs().max_element() < 1e-3 * (1.0 + l.max_element()));
+            assert_eq!(env.eval_pdf(d), (env.eval(d), q), "one lookup, same answers");
         }
     }
 

@@ -263,9 +263,10 @@ pub fn continue_path<S: PathSink>(
         dir = d;
         st.bounce_rays += 1;
         let Some(h) = scene.bvh.intersect(origin, dir, 0.0, f32::INFINITY) else {
-            let w = mis_power(s.pdf, env.pdf(dir));
+            let (le, pdf_e) = env.eval_pdf(dir);
+            let w = mis_power(s.pdf, pdf_e);
             sink.bsdf_sky(dir, w / s.pdf);
-            l += throughput * env.eval(dir) * w;
+            l += throughput * le * w;
             break;
         };
         // The next vertex contributes only if a segment may still leave it,
