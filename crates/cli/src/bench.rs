@@ -221,7 +221,9 @@ fn bench_render(a: BenchRenderArgs) -> Result<()> {
                                 let film = Vec2::new((k % w) as f32 + jx, (k / w) as f32 + jy);
                                 dirs.push(scene.camera_ray(film));
                             }
-                            scene.bvh.intersect_packet(Vec3::ZERO, dirs, 0.0, f32::INFINITY, out);
+                            scene
+                                .bvh
+                                .intersect_packet(Vec3::ZERO, dirs, 0.0, f32::INFINITY, out);
                             out.iter().filter(|h| h.is_some()).count()
                         },
                     )

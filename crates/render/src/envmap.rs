@@ -405,7 +405,11 @@ mod tests {
             let q = env.pdf(d);
             assert!((p - q).abs() <= 1e-3 * p.max(q), "{p} vs {q}");
             assert!((l - env.eval(d)).abs().max_element() < 1e-3 * (1.0 + l.max_element()));
-            assert_eq!(env.eval_pdf(d), (env.eval(d), q), "one lookup, same answers");
+            assert_eq!(
+                env.eval_pdf(d),
+                (env.eval(d), q),
+                "one lookup, same answers"
+            );
         }
     }
 
