@@ -69,6 +69,8 @@ pub struct Hit {
 /// index of its triangle block) or empty.
 const LEAF: u32 = 1 << 31;
 const EMPTY: u32 = u32::MAX;
+/// The first-block index in a leaf slot (bits 28–29 hold the count less one).
+const BLOCK_INDEX: u32 = 0x0fff_ffff;
 
 /// Children per node. The boxes of a node's children are tested together,
 /// four lanes at a time (an 8-wide AVX version of the box test measured no
@@ -210,12 +212,6 @@ impl WideRay {
         }
         (tn, mask)
     }
-
-    /// The four lanes of [`intersect_tri`] for this ray.
-    #[inline(always)]
-    fn triangles(&self, t: &Tri4, tmin: f32, tmax: Vec4) -> (Vec4, Vec4, Vec4, BVec4A) {
-        triangles4(&self.o, &self.d, t, tmin, tmax)
-    }
 }
 
 /// The four lanes of [`intersect_tri`] for the ray with splatted origin `o`
@@ -275,14 +271,89 @@ fn safe_inv(x: f32) -> f32 {
 /// slices are traced in packets of this many.
 pub const PACKET: usize = 64;
 
-/// Per-ray state of a packet: the closest hit so far and the bound on
-/// further hits (as in [`Bvh::intersect`]).
+/// One ray's closest hit so far and the bound on further hits: below
+/// the ray's tmax, then at or below the best t (ties are resolved by
+/// index, so a hit at exactly that t may still win).
 #[derive(Clone, Copy)]
-struct PacketRay {
-    d: Vec3,
+struct Closest {
     best: Option<Hit>,
     limit: f32,
     inclusive: bool,
+}
+
+impl Closest {
+    fn new(tmax: f32) -> Closest {
+        Closest {
+            best: None,
+            limit: tmax,
+            inclusive: false,
+        }
+    }
+
+    /// Tests the ray (splatted origin `o`, direction `d`) against a leaf's
+    /// triangle blocks; true when the best hit changed.
+    #[inline(always)]
+    fn leaf(&mut self, o: &[Vec4; 3], d: &[Vec4; 3], blocks: &[Tri4], tmin: f32) -> bool {
+        let mut changed = false;
+        for tri in blocks {
+            let lim = if self.inclusive {
+                self.limit.next_up_f32()
+            } else {
+                self.limit
+            };
+            let (t, u, v, ok) = triangles4(o, d, tri, tmin, Vec4::splat(lim));
+            let mut bits = ok.bitmask();
+            while bits != 0 {
+                let lane = bits.trailing_zeros() as usize;
+                bits &= bits - 1;
+                let (t, prim) = (t[lane], tri.prim[lane]);
+                let better = match self.best {
+                    None => true,
+                    Some(b) => t < b.t || (t == b.t && prim < b.prim),
+                };
+                if better {
+                    self.best = Some(Hit {
+                        t,
+                        prim,
+                        u: u[lane],
+                        v: v[lane],
+                    });
+                    self.limit = t;
+                    self.inclusive = true;
+                    changed = true;
+                }
+            }
+        }
+        changed
+    }
+}
+
+/// The entered children of a node (bit mask `bits`, entry distances `tn`)
+/// ordered far to near, so that the last is visited first; each one's
+/// memory is prefetched. Returns them and their count.
+#[inline(always)]
+fn far_to_near(
+    bvh: &Bvh,
+    node: &Node,
+    mut bits: u32,
+    tn: &[Vec4; HALVES],
+) -> ([(u32, f32); LANES], usize) {
+    let mut order = [(0u32, 0f32); LANES];
+    let mut k = 0;
+    while bits != 0 {
+        let lane = bits.trailing_zeros() as usize;
+        bits &= bits - 1;
+        let e = (node.child[lane], tn[lane / 4][lane % 4]);
+        prefetch(bvh, e.0);
+        let mut j = k;
+        while j > 0 && order[j - 1].1 < e.1 {
+            order[j] = order[j - 1];
+            j -= 1;
+        }
+        order[j] = e;
+        k += 1;
+    }
+    (order, k)
 }
 
 impl Bvh {
@@ -435,38 +506,20 @@ impl Bvh {
             return None;
         }
         let ray = WideRay::new(origin, dir);
-        let mut best: Option<Hit> = None;
-        // Hits must lie below tmax; once one is found, at or below its t
-        // (ties are resolved by index).
-        let mut limit = tmax;
-        let mut inclusive = false;
+        let mut hit = Closest::new(tmax);
         let mut stack: [(u32, f32); STACK] = [(0, 0.0); STACK];
         let mut spill: Vec<(u32, f32)> = Vec::new();
         let mut sp = 0usize;
         let mut slot = self.root;
         let mut entry = tmin;
         loop {
-            if entry <= limit {
+            if entry <= hit.limit {
                 if slot & LEAF == 0 {
                     let node = &self.nodes[slot as usize];
-                    let (tn, mut bits) = ray.slabs(node, tmin, limit);
+                    let (tn, bits) = ray.slabs(node, tmin, hit.limit);
                     // Push entered children far to near so the nearest is
                     // visited first.
-                    let mut order = [(0u32, 0f32); LANES];
-                    let mut k = 0;
-                    while bits != 0 {
-                        let lane = bits.trailing_zeros() as usize;
-                        bits &= bits - 1;
-                        let e = (node.child[lane], tn[lane / 4][lane % 4]);
-                        prefetch(self, e.0);
-                        let mut j = k;
-                        while j > 0 && order[j - 1].1 < e.1 {
-                            order[j] = order[j - 1];
-                            j -= 1;
-                        }
-                        order[j] = e;
-                        k += 1;
-                    }
+                    let (order, k) = far_to_near(self, node, bits, &tn);
                     if k > 0 {
                         for &e in &order[..k - 1] {
                             push(&mut stack, &mut spill, &mut sp, e);
@@ -475,41 +528,12 @@ impl Bvh {
                         continue;
                     }
                 } else {
-                    let at = (slot & 0x0fff_ffff) as usize;
-                    let blocks = ((slot >> 28) & 3) as usize + 1;
-                    for tri in &self.tris[at..at + blocks] {
-                        let lim = if inclusive {
-                            limit.next_up_f32()
-                        } else {
-                            limit
-                        };
-                        let (t, u, v, ok) = ray.triangles(tri, tmin, Vec4::splat(lim));
-                        let mut bits = ok.bitmask();
-                        while bits != 0 {
-                            let lane = bits.trailing_zeros() as usize;
-                            bits &= bits - 1;
-                            let (t, prim) = (t[lane], tri.prim[lane]);
-                            let better = match best {
-                                None => true,
-                                Some(b) => t < b.t || (t == b.t && prim < b.prim),
-                            };
-                            if better {
-                                best = Some(Hit {
-                                    t,
-                                    prim,
-                                    u: u[lane],
-                                    v: v[lane],
-                                });
-                                limit = t;
-                                inclusive = true;
-                            }
-                        }
-                    }
+                    hit.leaf(&ray.o, &ray.d, self.leaf_blocks(slot), tmin);
                 }
             }
             match pop(&stack, &mut spill, &mut sp) {
                 Some(e) => (slot, entry) = e,
-                None => return best,
+                None => return hit.best,
             }
         }
     }
@@ -539,29 +563,22 @@ impl Bvh {
     }
 
     fn packet(&self, origin: Vec3, dirs: &[Vec3], tmin: f32, tmax: f32, out: &mut [Option<Hit>]) {
-        let n = dirs.len();
         out.fill(None);
-        if self.root == EMPTY || n == 0 {
+        if self.root == EMPTY || dirs.is_empty() {
             return;
         }
-        let mut rays = [PacketRay {
-            d: Vec3::ZERO,
-            best: None,
-            limit: tmax,
-            inclusive: false,
-        }; PACKET];
+        let mut hits = [Closest::new(tmax); PACKET];
+        let hits = &mut hits[..dirs.len()];
         // Bounds of the reciprocal directions per axis over the packet.
         let mut inv_lo = [f32::INFINITY; 3];
         let mut inv_hi = [f32::NEG_INFINITY; 3];
-        for (r, &d) in rays.iter_mut().zip(dirs) {
-            r.d = d;
+        for d in dirs {
             for a in 0..3 {
                 let inv = safe_inv(d[a]);
                 inv_lo[a] = inv_lo[a].min(inv);
                 inv_hi[a] = inv_hi[a].max(inv);
             }
         }
-        let rays = &mut rays[..n];
         let o4 = [origin.x, origin.y, origin.z].map(Vec4::splat);
         let il = inv_lo.map(Vec4::splat);
         let ih = inv_hi.map(Vec4::splat);
@@ -599,25 +616,14 @@ impl Bvh {
                         bits |= near.cmple(far * SLAB_WIDEN).bitmask() << (4 * h);
                         tn[h] = near;
                     }
-                    let mut order = [(0u32, 0f32); LANES];
-                    let mut k = 0;
-                    while bits != 0 {
-                        let lane = bits.trailing_zeros() as usize;
-                        bits &= bits - 1;
-                        // Empty slots have infinite bounds, which the
-                        // interval test cannot reject.
+                    // Empty slots have infinite bounds, which the interval
+                    // test cannot reject.
+                    for lane in 0..LANES {
                         if node.child[lane] == EMPTY {
-                            continue;
+                            bits &= !(1 << lane);
                         }
-                        let e = (node.child[lane], tn[lane / 4][lane % 4]);
-                        let mut j = k;
-                        while j > 0 && order[j - 1].1 < e.1 {
-                            order[j] = order[j - 1];
-                            j -= 1;
-                        }
-                        order[j] = e;
-                        k += 1;
                     }
+                    let (order, k) = far_to_near(self, node, bits, &tn);
                     if k > 0 {
                         for &e in &order[..k - 1] {
                             push(&mut stack, &mut spill, &mut sp, e);
@@ -626,45 +632,16 @@ impl Bvh {
                         continue;
                     }
                 } else {
-                    let at = (slot & 0x0fff_ffff) as usize;
-                    let blocks = ((slot >> 28) & 3) as usize + 1;
+                    let blocks = self.leaf_blocks(slot);
                     let mut changed = false;
-                    for r in rays.iter_mut() {
-                        let d4 = [Vec4::splat(r.d.x), Vec4::splat(r.d.y), Vec4::splat(r.d.z)];
-                        for tri in &self.tris[at..at + blocks] {
-                            let lim = if r.inclusive {
-                                r.limit.next_up_f32()
-                            } else {
-                                r.limit
-                            };
-                            let (t, u, v, ok) = triangles4(&o4, &d4, tri, tmin, Vec4::splat(lim));
-                            let mut bits = ok.bitmask();
-                            while bits != 0 {
-                                let lane = bits.trailing_zeros() as usize;
-                                bits &= bits - 1;
-                                let (t, prim) = (t[lane], tri.prim[lane]);
-                                let better = match r.best {
-                                    None => true,
-                                    Some(b) => t < b.t || (t == b.t && prim < b.prim),
-                                };
-                                if better {
-                                    r.best = Some(Hit {
-                                        t,
-                                        prim,
-                                        u: u[lane],
-                                        v: v[lane],
-                                    });
-                                    r.limit = t;
-                                    r.inclusive = true;
-                                    changed = true;
-                                }
-                            }
-                        }
+                    for (hit, d) in hits.iter_mut().zip(dirs) {
+                        let d4 = [d.x, d.y, d.z].map(Vec4::splat);
+                        changed |= hit.leaf(&o4, &d4, blocks, tmin);
                     }
                     if changed {
                         // A ray at its limit still takes ties (inclusive),
                         // so the packet's bound is the largest limit.
-                        limit = rays.iter().fold(f32::NEG_INFINITY, |m, r| m.max(r.limit));
+                        limit = hits.iter().fold(f32::NEG_INFINITY, |m, h| m.max(h.limit));
                     }
                 }
             }
@@ -673,9 +650,18 @@ impl Bvh {
                 None => break,
             }
         }
-        for (o, r) in out.iter_mut().zip(rays.iter()) {
-            *o = r.best;
+        for (o, h) in out.iter_mut().zip(hits.iter()) {
+            *o = h.best;
         }
+    }
+
+    /// The triangle blocks of a leaf slot (consecutive; the slot keeps
+    /// the first block's index and, in bits 28–29, the count less one).
+    #[inline(always)]
+    fn leaf_blocks(&self, slot: u32) -> &[Tri4] {
+        let at = (slot & BLOCK_INDEX) as usize;
+        let blocks = ((slot >> 28) & 3) as usize + 1;
+        &self.tris[at..at + blocks]
     }
 
     /// True when anything lies on the segment t in (tmin, tmax).
@@ -707,10 +693,8 @@ impl Bvh {
                     continue;
                 }
             } else {
-                let at = (slot & 0x0fff_ffff) as usize;
-                let blocks = ((slot >> 28) & 3) as usize + 1;
-                for tri in &self.tris[at..at + blocks] {
-                    if ray.triangles(tri, tmin, tmax4).3.any() {
+                for tri in self.leaf_blocks(slot) {
+                    if triangles4(&ray.o, &ray.d, tri, tmin, tmax4).3.any() {
                         return true;
                     }
                 }
@@ -733,7 +717,7 @@ fn prefetch(bvh: &Bvh, slot: u32) {
         let p: *const i8 = if slot & LEAF == 0 {
             bvh.nodes.as_ptr().add(slot as usize) as *const i8
         } else {
-            bvh.tris.as_ptr().add((slot & 0x0fff_ffff) as usize) as *const i8
+            bvh.tris.as_ptr().add((slot & BLOCK_INDEX) as usize) as *const i8
         };
         for k in 0..4 {
             _mm_prefetch::<_MM_HINT_T0>(p.add(64 * k));

@@ -24,7 +24,6 @@ use std::borrow::Cow;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 use glam::Vec3;
-use matflow_geom::PACKET;
 use matflow_render::envmap::locate_cell;
 use matflow_render::integrator::{continue_path, CameraPacket, PathSink};
 use matflow_render::{RenderOptions, RenderScene, RenderStats};
@@ -575,10 +574,13 @@ fn trace_row(
     let mut packet = CameraPacket::default();
     for x in 0..w {
         push_start(&mut row)?;
-        for s0 in (0..opts.spp).step_by(PACKET) {
-            let s1 = (s0 + PACKET as u32).min(opts.spp);
-            packet.trace(scene, &render_opts, (x, y), s0..s1, opts.spp, &mut st);
-            for i in 0..packet.dirs.len() {
+        packet.pixel(
+            scene,
+            &render_opts,
+            (x, y),
+            opts.spp,
+            &mut st,
+            |_, rng, dir, hit, st| {
                 let mut rec = Recorder {
                     row: &mut row,
                     ew: opts.env_width,
@@ -586,17 +588,9 @@ fn trace_row(
                     vi: 0,
                     geo: Geo::default(),
                 };
-                continue_path(
-                    scene,
-                    &render_opts,
-                    &mut packet.samplers[i],
-                    packet.dirs[i],
-                    packet.hits[i],
-                    &mut st,
-                    &mut rec,
-                );
-            }
-        }
+                continue_path(scene, &render_opts, rng, dir, hit, st, &mut rec);
+            },
+        );
     }
     push_start(&mut row)?;
     row.vertices.shrink_to_fit();
@@ -642,15 +636,16 @@ mod tests {
             for y in 0..cache.height {
                 for x in 0..cache.width {
                     // The renderer's own route for the pixel's sample.
-                    packet.trace(&t.scene, &ropts, (x, y), 0..1, 1, &mut st);
-                    let a = continue_path(
+                    let mut a = Vec3::ZERO;
+                    packet.pixel(
                         &t.scene,
                         &ropts,
-                        &mut packet.samplers[0],
-                        packet.dirs[0],
-                        packet.hits[0],
+                        (x, y),
+                        1,
                         &mut st,
-                        &mut (),
+                        |_, rng, dir, hit, st| {
+                            a = continue_path(&t.scene, &ropts, rng, dir, hit, st, &mut ());
+                        },
                     );
                     let b = pixel_sum(&cache, x, y, &mats, &env);
                     let err = (a - b).abs().max_element() / (a.max_element() + 1e-3);

@@ -300,51 +300,68 @@ pub fn radiance(
     trace_path(scene, opts, rng, film, st, &mut ())
 }
 
-/// The camera samples of one pixel, traced together: each sample's
-/// sampler (having drawn its pixel jitter), film position, camera ray and
-/// closest hit. The camera rays of a pixel leave one point in nearly one
-/// direction, so [`matflow_geom::Bvh::intersect_packet`] finds their hits
-/// in one traversal; the hits are exactly those of one ray at a time.
+/// The camera samples of one pixel, traced together. A pixel's camera rays
+/// leave one point in nearly one direction, so
+/// [`matflow_geom::Bvh::intersect_packet`] finds their hits in one
+/// traversal (the hits of one ray at a time, up to the rounding exception
+/// the BVH documents). Holds its buffers between pixels.
 #[derive(Default)]
 pub struct CameraPacket {
-    pub samplers: Vec<Sampler>,
-    pub films: Vec<Vec2>,
-    pub dirs: Vec<Vec3>,
-    pub hits: Vec<Option<Hit>>,
+    samplers: Vec<Sampler>,
+    films: Vec<Vec2>,
+    dirs: Vec<Vec3>,
+    hits: Vec<Option<Hit>>,
 }
 
 impl CameraPacket {
-    /// Samples `samples` (of `spp`) of pixel (x, y) of a render with
-    /// `seed`: draws each one's jitter, as [`trace_path`]'s callers do,
-    /// and traces the camera rays (none when `max_depth` is 0).
-    pub fn trace(
+    /// Every sample of pixel (x, y), in sample order: draws each one's
+    /// pixel jitter from its sampler, traces the camera rays [`PACKET`] at
+    /// a time (none when `max_depth` is 0), then calls `path(film,
+    /// sampler, camera ray, camera hit, stats)` for each sample, which
+    /// continues it (with [`continue_path`]).
+    pub fn pixel(
         &mut self,
         scene: &RenderScene,
         opts: &RenderOptions,
         (x, y): (usize, usize),
-        samples: std::ops::Range<u32>,
         spp: u32,
         st: &mut RenderStats,
+        mut path: impl FnMut(Vec2, &mut Sampler, Vec3, Option<Hit>, &mut RenderStats),
     ) {
         let pix = (y * scene.camera.width + x) as u64;
-        self.samplers.clear();
-        self.films.clear();
-        self.dirs.clear();
-        for s in samples {
-            let mut rng = Sampler::for_sample(opts.seed, pix, s, spp);
-            let (jx, jy) = rng.next_2d();
-            let film = Vec2::new(x as f32 + jx, y as f32 + jy);
-            self.samplers.push(rng);
-            self.films.push(film);
-            self.dirs.push(scene.camera_ray(film));
-        }
-        self.hits.clear();
-        self.hits.resize(self.dirs.len(), None);
-        if opts.max_depth > 0 {
-            st.primary_rays += self.dirs.len() as u64;
-            scene
-                .bvh
-                .intersect_packet(Vec3::ZERO, &self.dirs, 0.0, f32::INFINITY, &mut self.hits);
+        for s0 in (0..spp).step_by(PACKET) {
+            self.samplers.clear();
+            self.films.clear();
+            self.dirs.clear();
+            for s in s0..(s0 + PACKET as u32).min(spp) {
+                let mut rng = Sampler::for_sample(opts.seed, pix, s, spp);
+                let (jx, jy) = rng.next_2d();
+                let film = Vec2::new(x as f32 + jx, y as f32 + jy);
+                self.samplers.push(rng);
+                self.films.push(film);
+                self.dirs.push(scene.camera_ray(film));
+            }
+            self.hits.clear();
+            self.hits.resize(self.dirs.len(), None);
+            if opts.max_depth > 0 {
+                st.primary_rays += self.dirs.len() as u64;
+                scene.bvh.intersect_packet(
+                    Vec3::ZERO,
+                    &self.dirs,
+                    0.0,
+                    f32::INFINITY,
+                    &mut self.hits,
+                );
+            }
+            for i in 0..self.dirs.len() {
+                path(
+                    self.films[i],
+                    &mut self.samplers[i],
+                    self.dirs[i],
+                    self.hits[i],
+                    st,
+                );
+            }
         }
     }
 }
@@ -406,67 +423,62 @@ pub fn render(
             let mut packet = CameraPacket::default();
             for y in t.y0..t.y1 {
                 for x in t.x0..t.x1 {
-                    for s in 0..spp {
-                        let i = (s as usize) % PACKET;
-                        if i == 0 {
-                            let end = (s + PACKET as u32).min(spp);
-                            packet.trace(scene, opts, (x, y), s..end, spp, &mut st);
-                        }
-                        let film = packet.films[i];
-                        let li = continue_path(
-                            scene,
-                            opts,
-                            &mut packet.samplers[i],
-                            packet.dirs[i],
-                            packet.hits[i],
-                            &mut st,
-                            &mut (),
-                        );
-                        if !li.is_finite() {
-                            st.discarded_samples += 1;
-                            continue;
-                        }
-                        match opts.filter {
-                            PixelFilter::Box => {
-                                let k = (y - t.y0 + border) * bw + (x - t.x0 + border);
-                                let b = &mut buf[k];
-                                b[0] += li.x;
-                                b[1] += li.y;
-                                b[2] += li.z;
-                                b[3] += 1.0;
+                    packet.pixel(
+                        scene,
+                        opts,
+                        (x, y),
+                        spp,
+                        &mut st,
+                        |film, rng, dir, hit, st| {
+                            let li = continue_path(scene, opts, rng, dir, hit, st, &mut ());
+                            if !li.is_finite() {
+                                st.discarded_samples += 1;
+                                return;
                             }
-                            PixelFilter::Gaussian { .. } => {
-                                let lo_x = ((film.x - 0.5 - r).ceil() as i64).max(wx0 as i64);
-                                let hi_x = ((film.x - 0.5 + r).floor() as i64).min(wx1 as i64 - 1);
-                                let lo_y = ((film.y - 0.5 - r).ceil() as i64).max(wy0 as i64);
-                                let hi_y = ((film.y - 0.5 + r).floor() as i64).min(wy1 as i64 - 1);
-                                // Separable: the 1-D weights of the
-                                // footprint's columns, once per sample.
-                                for (i, px) in (lo_x..=hi_x).enumerate() {
-                                    wx[i] = weights.weight_1d(px as f32 + 0.5 - film.x);
+                            match opts.filter {
+                                PixelFilter::Box => {
+                                    let k = (y - t.y0 + border) * bw + (x - t.x0 + border);
+                                    let b = &mut buf[k];
+                                    b[0] += li.x;
+                                    b[1] += li.y;
+                                    b[2] += li.z;
+                                    b[3] += 1.0;
                                 }
-                                for py in lo_y..=hi_y {
-                                    let wy = weights.weight_1d(py as f32 + 0.5 - film.y);
-                                    if wy <= 0.0 {
-                                        continue;
-                                    }
-                                    let by = (py - t.y0 as i64 + border as i64) as usize;
+                                PixelFilter::Gaussian { .. } => {
+                                    let lo_x = ((film.x - 0.5 - r).ceil() as i64).max(wx0 as i64);
+                                    let hi_x =
+                                        ((film.x - 0.5 + r).floor() as i64).min(wx1 as i64 - 1);
+                                    let lo_y = ((film.y - 0.5 - r).ceil() as i64).max(wy0 as i64);
+                                    let hi_y =
+                                        ((film.y - 0.5 + r).floor() as i64).min(wy1 as i64 - 1);
+                                    // Separable: the 1-D weights of the
+                                    // footprint's columns, once per sample.
                                     for (i, px) in (lo_x..=hi_x).enumerate() {
-                                        let wgt = wy * wx[i];
-                                        if wgt <= 0.0 {
+                                        wx[i] = weights.weight_1d(px as f32 + 0.5 - film.x);
+                                    }
+                                    for py in lo_y..=hi_y {
+                                        let wy = weights.weight_1d(py as f32 + 0.5 - film.y);
+                                        if wy <= 0.0 {
                                             continue;
                                         }
-                                        let bx = (px - t.x0 as i64 + border as i64) as usize;
-                                        let b = &mut buf[by * bw + bx];
-                                        b[0] += li.x * wgt;
-                                        b[1] += li.y * wgt;
-                                        b[2] += li.z * wgt;
-                                        b[3] += wgt;
+                                        let by = (py - t.y0 as i64 + border as i64) as usize;
+                                        for (i, px) in (lo_x..=hi_x).enumerate() {
+                                            let wgt = wy * wx[i];
+                                            if wgt <= 0.0 {
+                                                continue;
+                                            }
+                                            let bx = (px - t.x0 as i64 + border as i64) as usize;
+                                            let b = &mut buf[by * bw + bx];
+                                            b[0] += li.x * wgt;
+                                            b[1] += li.y * wgt;
+                                            b[2] += li.z * wgt;
+                                            b[3] += wgt;
+                                        }
                                     }
                                 }
                             }
-                        }
-                    }
+                        },
+                    );
                 }
             }
             let d = done.fetch_add(1, Ordering::Relaxed) + 1;
