@@ -26,7 +26,11 @@
  *   - the build is repeated R times from the shared vertex/index buffers
  *     (no copies inside the timed region) and the median time is reported;
  *   - rays are traced one at a time (rtcIntersect1 / rtcOccluded1) with
- *     tnear = 0, tfar = +inf, unnormalised directions as stored;
+ *     tnear = 0, tfar = +inf, unnormalised directions as stored; the
+ *     incoherent set is also traced as streams of 1024 rays
+ *     (rtcIntersect1M / rtcOccluded1M with RTC_INTERSECT_CONTEXT_FLAG_INCOHERENT,
+ *     Embree's own route for many incoherent rays at once), beside
+ *     matflow's streams;
  *   - N threads (the calling thread plus N-1 pthreads) take chunks of 1024
  *     rays from an atomic counter, like rayon's par_chunks(1024);
  *   - each ray set is timed R times, throughput = rays / wall time, and the
@@ -402,6 +406,7 @@ typedef struct {
     RTCScene scene;
     const Rays *rays;
     int occlusion;
+    int stream; /* trace each chunk with one rtcIntersect1M / rtcOccluded1M call */
     atomic_size_t next_chunk;
     size_t nchunks;
 } Job;
@@ -410,12 +415,16 @@ typedef struct {
     Job *job;
     size_t count; /* hits or occluded rays found by this worker */
     pthread_t tid;
+    struct RTCRayHit *buf; /* a chunk of rays for the stream calls */
 } Worker;
 
 /* Embree's documented recommendation: flush-to-zero and denormals-are-zero
  * in every thread that builds or traces (Rust/matflow leaves MXCSR at its
  * default; --no-ftz reproduces that). */
 static int g_ftz = 1;
+
+/* Per-thread ray buffers of the stream calls. */
+static struct RTCRayHit *g_bufs[MAX_THREADS];
 
 static void set_ftz_daz(void)
 {
@@ -441,6 +450,39 @@ static void *worker_main(void *arg)
         if (c >= job->nchunks)
             break;
         size_t begin = c * CHUNK, end = begin + CHUNK < n ? begin + CHUNK : n;
+        if (job->stream) {
+            struct RTCIntersectContext sctx;
+            rtcInitIntersectContext(&sctx);
+            sctx.flags = RTC_INTERSECT_CONTEXT_FLAG_INCOHERENT;
+            for (size_t i = begin; i < end; i++) {
+                const float *q = rays + 6 * i;
+                struct RTCRayHit *rh = &w->buf[i - begin];
+                rh->ray.org_x = q[0]; rh->ray.org_y = q[1]; rh->ray.org_z = q[2];
+                rh->ray.dir_x = q[3]; rh->ray.dir_y = q[4]; rh->ray.dir_z = q[5];
+                rh->ray.tnear = 0.0f;
+                rh->ray.tfar = INFINITY;
+                rh->ray.time = 0.0f;
+                rh->ray.mask = 0xFFFFFFFFu;
+                rh->ray.id = (unsigned)i;
+                rh->ray.flags = 0;
+                rh->hit.geomID = RTC_INVALID_GEOMETRY_ID;
+                rh->hit.primID = RTC_INVALID_GEOMETRY_ID;
+                rh->hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
+            }
+            unsigned m = (unsigned)(end - begin);
+            if (job->occlusion) {
+                /* RTCRay is the first member of RTCRayHit: a stream of rays
+                 * with the RTCRayHit stride. */
+                rtcOccluded1M(job->scene, &sctx, &w->buf[0].ray, m, sizeof(struct RTCRayHit));
+                for (unsigned k = 0; k < m; k++)
+                    count += (w->buf[k].ray.tfar < 0.0f);
+            } else {
+                rtcIntersect1M(job->scene, &sctx, w->buf, m, sizeof(struct RTCRayHit));
+                for (unsigned k = 0; k < m; k++)
+                    count += (w->buf[k].hit.geomID != RTC_INVALID_GEOMETRY_ID);
+            }
+            continue;
+        }
         for (size_t i = begin; i < end; i++) {
             const float *q = rays + 6 * i;
             if (job->occlusion) {
@@ -479,12 +521,14 @@ static void *worker_main(void *arg)
 }
 
 /* One timed pass over all rays with nthreads threads; returns seconds. */
-static double trace_once(RTCScene scene, const Rays *rays, int occlusion, int nthreads, size_t *count_out)
+static double trace_once(RTCScene scene, const Rays *rays, int occlusion, int stream, int nthreads,
+                         size_t *count_out)
 {
     Job job;
     job.scene = scene;
     job.rays = rays;
     job.occlusion = occlusion;
+    job.stream = stream;
     job.nchunks = (rays->n + CHUNK - 1) / CHUNK;
     atomic_init(&job.next_chunk, 0);
 
@@ -492,6 +536,7 @@ static double trace_once(RTCScene scene, const Rays *rays, int occlusion, int nt
     for (int t = 0; t < nthreads; t++) {
         w[t].job = &job;
         w[t].count = 0;
+        w[t].buf = g_bufs[t];
     }
     double t0 = now_s();
     for (int t = 1; t < nthreads; t++) {
@@ -514,14 +559,14 @@ static double trace_once(RTCScene scene, const Rays *rays, int occlusion, int nt
 }
 
 /* Times a ray set `runs` times; returns median Mrays/s, stores the count. */
-static double bench_rays(const char *label, RTCScene scene, const Rays *rays, int occlusion, int nthreads,
-                         int runs, size_t *count_out)
+static double bench_rays(const char *label, RTCScene scene, const Rays *rays, int occlusion, int stream,
+                         int nthreads, int runs, size_t *count_out)
 {
     double *mr = xmalloc(sizeof(double) * (size_t)runs);
     size_t count = 0;
     for (int r = 0; r < runs; r++) {
         size_t c = 0;
-        double dt = trace_once(scene, rays, occlusion, nthreads, &c);
+        double dt = trace_once(scene, rays, occlusion, stream, nthreads, &c);
         check_embree(label);
         if (r > 0 && c != count)
             die("%s: hit count changed between runs (%zu vs %zu)", label, count, c);
@@ -671,11 +716,20 @@ int main(int argc, char **argv)
     fprintf(stderr, "  %-24s %8.1f ms (bounds [%g %g %g] .. [%g %g %g])\n", "BVH build", build_ms, b.lower_x,
             b.lower_y, b.lower_z, b.upper_x, b.upper_y, b.upper_z);
 
-    size_t prim_hits, prim_occl, inco_hits, inco_occl;
-    double prim_hit_mr = bench_rays("primary closest-hit", scene, &primary, 0, nthreads, runs, &prim_hits);
-    double prim_occl_mr = bench_rays("primary occlusion", scene, &primary, 1, nthreads, runs, &prim_occl);
-    double inco_hit_mr = bench_rays("incoherent closest-hit", scene, &incoherent, 0, nthreads, runs, &inco_hits);
-    double inco_occl_mr = bench_rays("incoherent occlusion", scene, &incoherent, 1, nthreads, runs, &inco_occl);
+    for (int t = 0; t < nthreads; t++)
+        g_bufs[t] = xmalloc(sizeof(struct RTCRayHit) * CHUNK);
+    size_t prim_hits, prim_occl, inco_hits, inco_occl, s_hits, s_occl;
+    double prim_hit_mr = bench_rays("primary closest-hit", scene, &primary, 0, 0, nthreads, runs, &prim_hits);
+    double prim_occl_mr = bench_rays("primary occlusion", scene, &primary, 1, 0, nthreads, runs, &prim_occl);
+    double inco_hit_mr = bench_rays("incoherent closest-hit", scene, &incoherent, 0, 0, nthreads, runs, &inco_hits);
+    double inco_occl_mr = bench_rays("incoherent occlusion", scene, &incoherent, 1, 0, nthreads, runs, &inco_occl);
+    double s_hit_mr = bench_rays("incoherent hit, 1M", scene, &incoherent, 0, 1, nthreads, runs, &s_hits);
+    double s_occl_mr = bench_rays("incoherent occl., 1M", scene, &incoherent, 1, 1, nthreads, runs, &s_occl);
+    if (s_hits != inco_hits || s_occl != inco_occl)
+        die("streams found %zu hits and %zu occluded, single rays %zu and %zu", s_hits, s_occl, inco_hits,
+            inco_occl);
+    for (int t = 0; t < nthreads; t++)
+        free(g_bufs[t]);
 
     if (prim_occl != prim_hits || inco_occl != inco_hits)
         fprintf(stderr,
@@ -687,11 +741,12 @@ int main(int argc, char **argv)
            "\"ftz_daz\": %s, \"triangles\": %zu, \"build_ms\": %.2f, "
            "\"primary_hit_mrays\": %.3f, \"primary_occl_mrays\": %.3f, "
            "\"incoherent_hit_mrays\": %.3f, \"incoherent_occl_mrays\": %.3f, "
+           "\"incoherent_hit_stream_mrays\": %.3f, \"incoherent_occl_stream_mrays\": %.3f, "
            "\"primary_rays\": %zu, \"incoherent_rays\": %zu, "
            "\"primary_hits\": %zu, \"primary_occluded\": %zu, "
            "\"incoherent_hits\": %zu, \"incoherent_occluded\": %zu}\n",
            version, nthreads, runs, quality_name, (g_ftz && HAVE_MXCSR) ? "true" : "false", mesh.ntris, build_ms, prim_hit_mr, prim_occl_mr, inco_hit_mr,
-           inco_occl_mr, primary.n, incoherent.n, prim_hits, prim_occl, inco_hits, inco_occl);
+           inco_occl_mr, s_hit_mr, s_occl_mr, primary.n, incoherent.n, prim_hits, prim_occl, inco_hits, inco_occl);
     if (fflush(stdout) != 0)
         die("writing to stdout failed: %s", strerror(errno));
 

@@ -192,10 +192,39 @@ fn bench_render(a: BenchRenderArgs) -> Result<()> {
                 .collect(),
         )
     };
+    let time_stream = |rays: &[(Vec3, Vec3)], occl: bool| -> f64 {
+        median(
+            (0..runs)
+                .map(|_| {
+                    let t = Instant::now();
+                    let c: usize = rays
+                        .par_chunks(1024)
+                        .map(|ch| {
+                            if occl {
+                                let mut out = vec![false; ch.len()];
+                                scene.bvh.occluded_stream(ch, 0.0, f32::INFINITY, &mut out);
+                                out.iter().filter(|&&b| b).count()
+                            } else {
+                                let mut out = vec![None; ch.len()];
+                                scene.bvh.intersect_stream(ch, 0.0, f32::INFINITY, &mut out);
+                                out.iter().filter(|h| h.is_some()).count()
+                            }
+                        })
+                        .sum();
+                    std::hint::black_box(c);
+                    rays.len() as f64 / t.elapsed().as_secs_f64() / 1e6
+                })
+                .collect(),
+        )
+    };
+    // One ray at a time, then as the renderer traces its shadow and
+    // continuation rays: streams (here of 1024, as chunked).
     let ours = [
         time_rays(&primary, false),
         time_rays(&incoherent, false),
         time_rays(&incoherent, true),
+        time_stream(&incoherent, false),
+        time_stream(&incoherent, true),
     ];
     println!(
         "  primary closest-hit   {:8.2} Mrays/s ({} rays)",
@@ -238,16 +267,14 @@ fn bench_render(a: BenchRenderArgs) -> Result<()> {
         (w * h * spp) as f64 / packet_t / 1e6,
         spp
     );
-    println!(
-        "  incoherent closest-hit{:8.2} Mrays/s ({} rays)",
-        ours[1],
-        incoherent.len()
-    );
-    println!(
-        "  incoherent occlusion  {:8.2} Mrays/s ({} rays)",
-        ours[2],
-        incoherent.len()
-    );
+    for (name, v) in [
+        ("incoherent closest-hit", ours[1]),
+        ("incoherent occlusion", ours[2]),
+        ("  as streams", ours[3]),
+        ("  occlusion as streams", ours[4]),
+    ] {
+        println!("  {name:<22}{v:8.2} Mrays/s ({} rays)", incoherent.len());
+    }
 
     // Full renders.
     let opts = RenderOptions {
@@ -312,7 +339,7 @@ fn compare(
     scene: &matflow_render::RenderScene,
     export: &dyn Fn(&std::path::Path) -> Result<()>,
     build_t: f64,
-    ours: [f64; 3],
+    ours: [f64; 5],
     render_s: f64,
     threads: usize,
     runs: usize,
@@ -343,6 +370,16 @@ fn compare(
                 ("primary closest-hit", ours[0], e.primary_hit_mrays),
                 ("incoherent closest-hit", ours[1], e.incoherent_hit_mrays),
                 ("incoherent occlusion", ours[2], e.incoherent_occl_mrays),
+                (
+                    "  streams (Embree 1M)",
+                    ours[3],
+                    e.incoherent_hit_stream_mrays,
+                ),
+                (
+                    "  occlusion streams (1M)",
+                    ours[4],
+                    e.incoherent_occl_stream_mrays,
+                ),
             ] {
                 println!(
                     "  {:<26}{:>12.2}{:>16.2}   Mrays/s, matflow/Embree {:.2}",

@@ -154,6 +154,10 @@ pub struct EmbreeRun {
     pub primary_hit_mrays: f64,
     pub incoherent_hit_mrays: f64,
     pub incoherent_occl_mrays: f64,
+    /// The incoherent rays as streams of 1024 (rtcIntersect1M /
+    /// rtcOccluded1M, incoherent flag).
+    pub incoherent_hit_stream_mrays: f64,
+    pub incoherent_occl_stream_mrays: f64,
 }
 
 /// Compiles and runs the Embree throughput program on the exported mesh

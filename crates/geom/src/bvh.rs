@@ -329,22 +329,30 @@ impl Closest {
 }
 
 /// The entered children of a node (bit mask `bits`, entry distances `tn`)
-/// ordered far to near, so that the last is visited first; each one's
-/// memory is prefetched. Returns them and their count.
+/// ordered far to near, so that the last is visited first. With
+/// `prefetch_all` each one's memory is prefetched, else only the nearest
+/// one's. Returns them and their count.
 #[inline(always)]
 fn far_to_near(
     bvh: &Bvh,
     node: &Node,
     mut bits: u32,
     tn: &[Vec4; HALVES],
+    prefetch_all: bool,
 ) -> ([(u32, f32); LANES], usize) {
+    let mut entry = [0f32; LANES];
+    for h in 0..HALVES {
+        tn[h].write_to_slice(&mut entry[4 * h..4 * h + 4]);
+    }
     let mut order = [(0u32, 0f32); LANES];
     let mut k = 0;
     while bits != 0 {
         let lane = bits.trailing_zeros() as usize;
         bits &= bits - 1;
-        let e = (node.child[lane], tn[lane / 4][lane % 4]);
-        prefetch(bvh, e.0);
+        let e = (node.child[lane], entry[lane]);
+        if prefetch_all {
+            prefetch(bvh, e.0);
+        }
         let mut j = k;
         while j > 0 && order[j - 1].1 < e.1 {
             order[j] = order[j - 1];
@@ -352,6 +360,9 @@ fn far_to_near(
         }
         order[j] = e;
         k += 1;
+    }
+    if !prefetch_all && k > 0 {
+        prefetch(bvh, order[k - 1].0);
     }
     (order, k)
 }
@@ -519,7 +530,7 @@ impl Bvh {
                     let (tn, bits) = ray.slabs(node, tmin, hit.limit);
                     // Push entered children far to near so the nearest is
                     // visited first.
-                    let (order, k) = far_to_near(self, node, bits, &tn);
+                    let (order, k) = far_to_near(self, node, bits, &tn, true);
                     if k > 0 {
                         for &e in &order[..k - 1] {
                             push(&mut stack, &mut spill, &mut sp, e);
@@ -623,7 +634,7 @@ impl Bvh {
                             bits &= !(1 << lane);
                         }
                     }
-                    let (order, k) = far_to_near(self, node, bits, &tn);
+                    let (order, k) = far_to_near(self, node, bits, &tn, true);
                     if k > 0 {
                         for &e in &order[..k - 1] {
                             push(&mut stack, &mut spill, &mut sp, e);
@@ -754,6 +765,259 @@ fn pop(
     }
     *sp -= 1;
     Some(stack[*sp])
+}
+
+/// How many rays [`Bvh::intersect_stream`] and [`Bvh::occluded_stream`]
+/// keep in flight. Traversal of incoherent rays waits on memory (a node or
+/// a triangle block missed in cache); stepping several independent rays in
+/// turn, each one's next node prefetched while the others step, overlaps
+/// those waits (asynchronous memory-access chaining).
+pub const IN_FLIGHT: usize = 32;
+const PREFETCH_ALL: bool = false;
+
+/// A traversal stack: fixed depth on the stack, spilling to the heap.
+struct Stack {
+    items: [(u32, f32); STACK],
+    sp: usize,
+    spill: Vec<(u32, f32)>,
+}
+
+impl Stack {
+    #[inline(always)]
+    fn new() -> Stack {
+        Stack {
+            items: [(0, 0.0); STACK],
+            sp: 0,
+            spill: Vec::new(),
+        }
+    }
+
+    #[inline(always)]
+    fn push(&mut self, e: (u32, f32)) {
+        if self.sp < STACK {
+            self.items[self.sp] = e;
+            self.sp += 1;
+        } else {
+            self.spill.push(e);
+        }
+    }
+
+    #[inline(always)]
+    fn pop(&mut self) -> Option<(u32, f32)> {
+        if let Some(e) = self.spill.pop() {
+            return Some(e);
+        }
+        if self.sp == 0 {
+            return None;
+        }
+        self.sp -= 1;
+        Some(self.items[self.sp])
+    }
+}
+
+/// One ray's traversal in progress: the slot to visit next (with its
+/// entry distance), the stack of slots still to visit and the closest hit
+/// so far.
+struct Walk {
+    ray: WideRay,
+    tmin: f32,
+    tmax: f32,
+    hit: Closest,
+    stack: Stack,
+    slot: u32,
+    entry: f32,
+}
+
+impl Walk {
+    #[inline(always)]
+    fn new(bvh: &Bvh, o: Vec3, d: Vec3, tmin: f32, tmax: f32) -> Walk {
+        prefetch(bvh, bvh.root);
+        Walk {
+            ray: WideRay::new(o, d),
+            tmin,
+            tmax,
+            hit: Closest::new(tmax),
+            stack: Stack::new(),
+            slot: bvh.root,
+            entry: tmin,
+        }
+    }
+
+    #[inline(always)]
+    fn restart(&mut self, bvh: &Bvh, o: Vec3, d: Vec3, tmin: f32, tmax: f32) {
+        prefetch(bvh, bvh.root);
+        self.ray = WideRay::new(o, d);
+        self.tmin = tmin;
+        self.tmax = tmax;
+        self.hit = Closest::new(tmax);
+        self.stack.sp = 0;
+        self.stack.spill.clear();
+        self.slot = bvh.root;
+        self.entry = tmin;
+    }
+
+    /// Closest hit: visits the current slot; false when the traversal is
+    /// over (the answer is in `hit`).
+    #[inline(always)]
+    fn step_closest(&mut self, bvh: &Bvh) -> bool {
+        if self.slot & LEAF == 0 {
+            let node = &bvh.nodes[self.slot as usize];
+            let (tn, bits) = self.ray.slabs(node, self.tmin, self.hit.limit);
+            // Entered children far to near, so the nearest is visited
+            // first (all are prefetched).
+            let (order, k) = far_to_near(bvh, node, bits, &tn, PREFETCH_ALL);
+            if k > 0 {
+                for &e in &order[..k - 1] {
+                    self.stack.push(e);
+                }
+                (self.slot, self.entry) = order[k - 1];
+                return true;
+            }
+        } else {
+            self.hit.leaf(
+                &self.ray.o,
+                &self.ray.d,
+                bvh.leaf_blocks(self.slot),
+                self.tmin,
+            );
+        }
+        // Next: the nearest pushed slot the ray may still hit before its
+        // best (skipping the others costs no memory).
+        while let Some((slot, entry)) = self.stack.pop() {
+            if entry <= self.hit.limit {
+                (self.slot, self.entry) = (slot, entry);
+                prefetch(bvh, slot);
+                return true;
+            }
+        }
+        false
+    }
+
+    /// Occlusion: visits the current slot; `Some(answer)` when known.
+    #[inline(always)]
+    fn step_occluded(&mut self, bvh: &Bvh) -> Option<bool> {
+        if self.slot & LEAF == 0 {
+            let node = &bvh.nodes[self.slot as usize];
+            let (_, mut bits) = self.ray.slabs(node, self.tmin, self.tmax);
+            if bits != 0 {
+                let lane = bits.trailing_zeros() as usize;
+                bits &= bits - 1;
+                while bits != 0 {
+                    let l = bits.trailing_zeros() as usize;
+                    bits &= bits - 1;
+                    if PREFETCH_ALL {
+                        prefetch(bvh, node.child[l]);
+                    }
+                    self.stack.push((node.child[l], 0.0));
+                }
+                self.slot = node.child[lane];
+                prefetch(bvh, self.slot);
+                return None;
+            }
+        } else {
+            let tmax4 = Vec4::splat(self.tmax);
+            for tri in bvh.leaf_blocks(self.slot) {
+                if triangles4(&self.ray.o, &self.ray.d, tri, self.tmin, tmax4)
+                    .3
+                    .any()
+                {
+                    return Some(true);
+                }
+            }
+        }
+        match self.stack.pop() {
+            Some((slot, _)) => {
+                self.slot = slot;
+                prefetch(bvh, slot);
+                None
+            }
+            None => Some(false),
+        }
+    }
+}
+
+impl Bvh {
+    /// Closest hits of many rays (origin, direction) with t in (tmin, tmax):
+    /// `out[i]` is exactly [`Bvh::intersect`] of ray i (each ray's traversal
+    /// is the single ray's, step for step), but [`IN_FLIGHT`] rays are
+    /// traversed in turn so that their memory waits overlap.
+    pub fn intersect_stream(
+        &self,
+        rays: &[(Vec3, Vec3)],
+        tmin: f32,
+        tmax: f32,
+        out: &mut [Option<Hit>],
+    ) {
+        assert_eq!(rays.len(), out.len(), "one result per ray");
+        if self.root == EMPTY {
+            out.fill(None);
+            return;
+        }
+        let mut lanes: Vec<(usize, Walk)> = Vec::with_capacity(IN_FLIGHT);
+        let mut next = 0;
+        while next < rays.len() && lanes.len() < IN_FLIGHT {
+            let (o, d) = rays[next];
+            lanes.push((next, Walk::new(self, o, d, tmin, tmax)));
+            next += 1;
+        }
+        while !lanes.is_empty() {
+            let mut i = 0;
+            while i < lanes.len() {
+                let (k, w) = &mut lanes[i];
+                if !(w.entry <= w.hit.limit) || !w.step_closest(self) {
+                    // (The first test only matters for the root.)
+                    out[*k] = w.hit.best;
+                    if next < rays.len() {
+                        let (o, d) = rays[next];
+                        *k = next;
+                        w.restart(self, o, d, tmin, tmax);
+                        next += 1;
+                    } else {
+                        lanes.swap_remove(i);
+                        continue;
+                    }
+                }
+                i += 1;
+            }
+        }
+    }
+
+    /// Occlusion of many rays: `out[i]` is [`Bvh::occluded`] of ray i,
+    /// with [`IN_FLIGHT`] rays traversed in turn (as
+    /// [`Bvh::intersect_stream`]).
+    pub fn occluded_stream(&self, rays: &[(Vec3, Vec3)], tmin: f32, tmax: f32, out: &mut [bool]) {
+        assert_eq!(rays.len(), out.len(), "one result per ray");
+        if self.root == EMPTY {
+            out.fill(false);
+            return;
+        }
+        let mut lanes: Vec<(usize, Walk)> = Vec::with_capacity(IN_FLIGHT);
+        let mut next = 0;
+        while next < rays.len() && lanes.len() < IN_FLIGHT {
+            let (o, d) = rays[next];
+            lanes.push((next, Walk::new(self, o, d, tmin, tmax)));
+            next += 1;
+        }
+        while !lanes.is_empty() {
+            let mut i = 0;
+            while i < lanes.len() {
+                let (k, w) = &mut lanes[i];
+                if let Some(a) = w.step_occluded(self) {
+                    out[*k] = a;
+                    if next < rays.len() {
+                        let (o, d) = rays[next];
+                        *k = next;
+                        w.restart(self, o, d, tmin, tmax);
+                        next += 1;
+                    } else {
+                        lanes.swap_remove(i);
+                        continue;
+                    }
+                }
+                i += 1;
+            }
+        }
+    }
 }
 
 trait NextUp {
@@ -954,6 +1218,64 @@ mod tests {
             &mut out,
         );
         assert_eq!(out[0], None);
+    }
+
+    /// Streams are many single rays traversed in turn: each answer is the
+    /// single ray's, closest hit and occlusion, for streams shorter and
+    /// longer than the number in flight, with rays that end early (short
+    /// tmax) mixed with ones that cross the whole mesh.
+    #[test]
+    fn streams_answer_exactly_as_single_rays() {
+        let mesh = test_mesh();
+        let bvh = Bvh::build(&mesh);
+        let mut rng = Rng(0x9e3779b97f4a7c15);
+        for n in [0usize, 1, 5, IN_FLIGHT, IN_FLIGHT + 1, 300] {
+            let rays: Vec<(Vec3, Vec3)> = (0..n)
+                .map(|k| {
+                    let o = Vec3::new(
+                        rng.f() * 8.0 - 4.0,
+                        rng.f() * 8.0 - 4.0,
+                        rng.f() * 8.0 - 4.0,
+                    );
+                    let d = match k % 7 {
+                        0 => Vec3::NEG_Y,
+                        1 => Vec3::Z,
+                        _ => rng.dir(),
+                    };
+                    (o, d)
+                })
+                .collect();
+            for tmax in [0.5, f32::INFINITY] {
+                let mut hits = vec![None; n];
+                bvh.intersect_stream(&rays, 1e-4, tmax, &mut hits);
+                let mut blocked = vec![false; n];
+                bvh.occluded_stream(&rays, 1e-4, tmax, &mut blocked);
+                for (i, &(o, d)) in rays.iter().enumerate() {
+                    let single = bvh.intersect(o, d, 1e-4, tmax);
+                    assert_eq!(hits[i], single, "stream of {n}, ray {i} from {o} dir {d}");
+                    assert_eq!(
+                        hits[i],
+                        brute_force_intersect(&mesh, o, d, 1e-4, tmax),
+                        "stream of {n}, ray {i}: brute force"
+                    );
+                    assert_eq!(blocked[i], bvh.occluded(o, d, 1e-4, tmax), "ray {i}");
+                    assert_eq!(blocked[i], single.is_some(), "ray {i}: occluded = any hit");
+                }
+            }
+        }
+        let empty = Bvh::build(&TriMesh::default());
+        let (mut h, mut b) = (
+            [Some(Hit {
+                t: 1.0,
+                prim: 0,
+                u: 0.0,
+                v: 0.0,
+            })],
+            [true],
+        );
+        empty.intersect_stream(&[(Vec3::ZERO, Vec3::X)], 0.0, 1.0, &mut h);
+        empty.occluded_stream(&[(Vec3::ZERO, Vec3::X)], 0.0, 1.0, &mut b);
+        assert_eq!((h[0], b[0]), (None, false));
     }
 
     #[test]

@@ -25,7 +25,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 
 use glam::Vec3;
 use matflow_render::envmap::locate_cell;
-use matflow_render::integrator::{continue_path, CameraPacket, PathSink};
+use matflow_render::integrator::{PathSink, Wavefront, BATCH_PIXELS};
 use matflow_render::{RenderOptions, RenderScene, RenderStats};
 use rayon::prelude::*;
 
@@ -462,44 +462,44 @@ fn sky_record(geo: Geo, w: f32, d: Vec3, ew: usize, eh: usize) -> Record {
     }
 }
 
-/// The path tracer's events, kept as vertices and records of one row
-/// (see the module documentation for the layout).
-struct Recorder<'a> {
-    row: &'a mut RowPaths,
+/// The path tracer's events for one path, kept as vertices and records
+/// (see the module documentation for the layout); a row is its pixels'
+/// paths' in order.
+#[derive(Default, Clone)]
+struct Recorder {
+    vertices: Vec<Vertex>,
+    records: Vec<Record>,
     ew: usize,
     eh: usize,
-    /// Index of the current vertex in `row.vertices`.
+    /// Index of the current vertex in `vertices`.
     vi: usize,
     /// Cached angles of the BSDF sample being traced.
     geo: Geo,
 }
 
-impl Recorder<'_> {
+impl Recorder {
     fn sky(&mut self, geo: Geo, w: f32, d: Vec3) {
         if w.is_finite() && w > 0.0 {
-            self.row
-                .records
-                .push(sky_record(geo, w, d, self.ew, self.eh));
-            self.row.vertices[self.vi].n_env += 1;
+            self.records.push(sky_record(geo, w, d, self.ew, self.eh));
+            self.vertices[self.vi].n_env += 1;
         }
     }
 }
 
-impl PathSink for Recorder<'_> {
+impl PathSink for Recorder {
     fn camera_sky(&mut self, dir: Vec3) {
-        self.row.vertices.push(Vertex {
+        self.vertices.push(Vertex {
             q: NO_MATERIAL,
             n_env: 1,
             flags: V_START,
         });
-        self.row
-            .records
+        self.records
             .push(sky_record(Geo::default(), 1.0, dir, self.ew, self.eh));
     }
 
     fn vertex(&mut self, q: usize, first: bool) {
-        self.vi = self.row.vertices.len();
-        self.row.vertices.push(Vertex {
+        self.vi = self.vertices.len();
+        self.vertices.push(Vertex {
             q: q as u32,
             n_env: 0,
             flags: if first { V_START } else { 0 },
@@ -527,7 +527,7 @@ impl PathSink for Recorder<'_> {
         if !weight.is_finite() {
             return false;
         }
-        self.row.records.push(Record {
+        self.records.push(Record {
             geo: self.geo,
             w: weight,
             cell: 0,
@@ -535,14 +535,14 @@ impl PathSink for Recorder<'_> {
             fy: 0,
             _pad: 0,
         });
-        self.row.vertices[self.vi].flags |= V_CONT;
+        self.vertices[self.vi].flags |= V_CONT;
         true
     }
 }
 
-/// Traces row `y`: the renderer's own loop ([`continue_path`] after the
-/// pixel's [`CameraPacket`], as in `render`) with a
-/// [`Recorder`] as its sink, box-filtered (each sample in its pixel).
+/// Traces row `y` with the renderer's own loop (its [`Wavefront`], in
+/// batches of [`BATCH_PIXELS`] pixels) and a [`Recorder`] per path as the
+/// sink, box-filtered (each sample in its pixel).
 fn trace_row(
     scene: &RenderScene,
     opts: &CacheOptions,
@@ -561,6 +561,7 @@ fn trace_row(
         seed: opts.seed,
         ..Default::default()
     };
+    let spp = opts.spp.max(1) as usize;
     let mut st = RenderStats::default();
     let push_start = |row: &mut RowPaths| -> Result<(), CacheError> {
         let (nv, nr) = (row.vertices.len(), row.records.len());
@@ -571,26 +572,40 @@ fn trace_row(
         row.rec_start.push(nr as u32);
         Ok(())
     };
-    let mut packet = CameraPacket::default();
-    for x in 0..w {
-        push_start(&mut row)?;
-        packet.pixel(
+    let mut wave = Wavefront::default();
+    let mut sinks = vec![
+        Recorder {
+            ew: opts.env_width,
+            eh: opts.env_height,
+            ..Default::default()
+        };
+        BATCH_PIXELS * spp
+    ];
+    let mut pixels = Vec::with_capacity(BATCH_PIXELS);
+    for x0 in (0..w).step_by(BATCH_PIXELS) {
+        pixels.clear();
+        pixels.extend((x0..(x0 + BATCH_PIXELS).min(w)).map(|x| (y * w + x) as u32));
+        let n = pixels.len() * spp;
+        for r in &mut sinks[..n] {
+            r.vertices.clear();
+            r.records.clear();
+        }
+        wave.trace_pixels(
             scene,
             &render_opts,
-            (x, y),
+            &pixels,
             opts.spp,
             &mut st,
-            |_, rng, dir, hit, st| {
-                let mut rec = Recorder {
-                    row: &mut row,
-                    ew: opts.env_width,
-                    eh: opts.env_height,
-                    vi: 0,
-                    geo: Geo::default(),
-                };
-                continue_path(scene, &render_opts, rng, dir, hit, st, &mut rec);
-            },
+            &mut sinks[..n],
         );
+        for (k, paths) in sinks[..n].chunks(spp).enumerate() {
+            debug_assert!(k < pixels.len());
+            push_start(&mut row)?;
+            for r in paths {
+                row.vertices.extend_from_slice(&r.vertices);
+                row.records.extend_from_slice(&r.records);
+            }
+        }
     }
     push_start(&mut row)?;
     row.vertices.shrink_to_fit();
@@ -630,23 +645,15 @@ mod tests {
                 ..Default::default()
             };
             let mut st = RenderStats::default();
-            let mut packet = CameraPacket::default();
+            let mut wave = Wavefront::default();
             let (mut worst, mut lit) = (0.0f32, 0);
             let (mut sum_diff, mut sum_abs) = (0.0f64, 0.0f64);
             for y in 0..cache.height {
                 for x in 0..cache.width {
                     // The renderer's own route for the pixel's sample.
-                    let mut a = Vec3::ZERO;
-                    packet.pixel(
-                        &t.scene,
-                        &ropts,
-                        (x, y),
-                        1,
-                        &mut st,
-                        |_, rng, dir, hit, st| {
-                            a = continue_path(&t.scene, &ropts, rng, dir, hit, st, &mut ());
-                        },
-                    );
+                    let pix = (y * cache.width + x) as u32;
+                    wave.trace_pixels(&t.scene, &ropts, &[pix], 1, &mut st, &mut [()]);
+                    let a = wave.result(0).1;
                     let b = pixel_sum(&cache, x, y, &mats, &env);
                     let err = (a - b).abs().max_element() / (a.max_element() + 1e-3);
                     worst = worst.max(err);

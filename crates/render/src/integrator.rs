@@ -153,215 +153,411 @@ pub trait PathSink {
 /// The forward render's sink: radiance only.
 impl PathSink for () {}
 
-/// The one path-tracing loop: radiance along the camera ray through `film`,
-/// with every event also reported to `sink`.
+/// One camera sample of a [`Wavefront`]: where it leaves the film and the
+/// sampler that has drawn its jitter.
+#[derive(Clone, Debug)]
+pub struct CameraSample {
+    pub film: Vec2,
+    pub rng: Sampler,
+}
+
+/// The BSDF sample a vertex continues with: the direction traced, its
+/// weight f·cos/pdf and pdf.
+#[derive(Clone, Copy)]
+struct Continuation {
+    dir: Vec3,
+    weight: Vec3,
+    pdf: f32,
+}
+
+/// An envmap sample towards which a shadow ray is traced: direction,
+/// radiance, pdf and the shadow ray's index.
+#[derive(Clone, Copy)]
+struct LightSample {
+    dir: Vec3,
+    le: Vec3,
+    pdf: f32,
+    ray: u32,
+}
+
+/// One path in flight: its sampler and radiance so far, and the vertex it
+/// stands at (point `p`, triangle `prim`, material of pixel `q`, the
+/// segment `dir` that reached it).
+#[derive(Clone)]
+struct Path {
+    rng: Sampler,
+    film: Vec2,
+    l: Vec3,
+    throughput: Vec3,
+    dir: Vec3,
+    p: Vec3,
+    hit: Hit,
+    q: usize,
+    // What the vertex being shaded has drawn.
+    n: Vec3,
+    mat: bsdf::Material,
+    light: Option<LightSample>,
+    next: Option<Continuation>,
+}
+
+/// The one path-tracing loop, run over a batch of paths in lock-step
+/// (a wavefront): every path's camera ray, then vertex by vertex each live
+/// path's envmap sample and BSDF sample, its shadow ray, its continuation
+/// ray. The rays of a step are traced together — camera rays of a pixel
+/// as one packet ([`matflow_geom::Bvh::intersect_packet`]), shadow and
+/// continuation rays as streams ([`matflow_geom::Bvh::occluded_stream`],
+/// [`matflow_geom::Bvh::intersect_stream`]) whose memory waits overlap —
+/// and per-vertex tables (normals, materials) are prefetched a step
+/// ahead. Each path does exactly what it would do alone, in the same
+/// order: the same random numbers, the same sums, the same events for its
+/// sink, so the result of a path does not depend on the batch it is in.
 ///
 /// Per vertex the sampler is drawn in a fixed order — envmap sample (2-D),
-/// lobe (1-D), direction (2-D) — after the pixel jitter the caller drew, so
-/// a (pixel, sample) pair gives the same path for every sink. A vertex whose
-/// point projects to no pixel (at or behind the camera plane) has no
-/// material and ends the path.
-#[inline]
-pub fn trace_path<S: PathSink>(
-    scene: &RenderScene,
-    opts: &RenderOptions,
-    rng: &mut Sampler,
-    film: Vec2,
-    st: &mut RenderStats,
-    sink: &mut S,
-) -> Vec3 {
-    if opts.max_depth == 0 {
-        return Vec3::ZERO;
-    }
-    let dir = scene.camera_ray(film);
-    st.primary_rays += 1;
-    let hit = scene.bvh.intersect(Vec3::ZERO, dir, 0.0, f32::INFINITY);
-    continue_path(scene, opts, rng, dir, hit, st, sink)
-}
-
-/// [`trace_path`] once the camera ray `dir` (from the camera at the
-/// origin) and its closest hit are known — found for a whole pixel's
-/// samples at once by [`CameraPacket`]. The sampler has drawn only the
-/// pixel jitter.
-#[inline]
-pub fn continue_path<S: PathSink>(
-    scene: &RenderScene,
-    opts: &RenderOptions,
-    rng: &mut Sampler,
-    camera_dir: Vec3,
-    camera_hit: Option<Hit>,
-    st: &mut RenderStats,
-    sink: &mut S,
-) -> Vec3 {
-    let mut l = Vec3::ZERO;
-    if opts.max_depth == 0 {
-        return l;
-    }
-    let mut dir = camera_dir;
-    let mut origin = Vec3::ZERO;
-    let mut throughput = Vec3::ONE;
-    let env = &scene.env;
-    let Some(mut hit) = camera_hit else {
-        sink.camera_sky(dir);
-        return l + env.eval(dir);
-    };
-    if opts.max_depth < 2 {
-        return l;
-    }
-    let mut p = origin + dir * hit.t;
-    let Some(mut q) = scene.material_index(p) else {
-        return l;
-    };
-    // Vertex `depth` is the end of ray segment `depth + 1`; segment
-    // `depth + 2` leaves it, so it may continue while depth + 2 < max_depth.
-    for depth in 0..opts.max_depth - 1 {
-        let n = scene.face_normals[hit.prim as usize];
-        let v = -dir;
-        let mat = scene.materials[q];
-        sink.vertex(q, depth == 0);
-
-        // Next-event estimation towards the environment map.
-        let (ue1, ue2) = rng.next_2d();
-        if let Some((wl, le, pdf_e)) = env.sample(ue1, ue2) {
-            if n.dot(wl) > 0.0 && pdf_e > 0.0 {
-                st.shadow_rays += 1;
-                if !scene
-                    .bvh
-                    .occluded(offset_origin(p, n, wl), wl, 0.0, f32::INFINITY)
-                {
-                    let (f, pdf_b) = bsdf::eval_pdf(&mat, n, v, wl);
-                    let w = mis_power(pdf_e, pdf_b) / pdf_e;
-                    sink.emitter(n, v, wl, w);
-                    l += throughput * f * le * w;
-                }
-            }
-        }
-
-        // Continue the path by sampling the BSDF.
-        let u_lobe = rng.next_f32();
-        let (u1, u2) = rng.next_2d();
-        let Some(s) = bsdf::sample(&mat, n, v, u_lobe, u1, u2) else {
-            break;
-        };
-        if s.weight.max_element() <= 0.0 {
-            break;
-        }
-        let d = if opts.reference_compat {
-            let n_sh = scene.shading_normal(hit.prim, hit.u, hit.v);
-            let s0 = Frame::from_normal(n).s;
-            let sx = (s0 - n_sh * n_sh.dot(s0)).normalize_or(Frame::from_normal(n_sh).s);
-            let ty = n_sh.cross(sx);
-            (sx * s.dir.x + ty * s.dir.y + n_sh * s.dir.z).normalize_or(s.dir)
-        } else {
-            s.dir
-        };
-        if !sink.bsdf_dir(n, v, d) {
-            break;
-        }
-        throughput *= s.weight;
-        origin = offset_origin(p, n, d);
-        dir = d;
-        st.bounce_rays += 1;
-        let Some(h) = scene.bvh.intersect(origin, dir, 0.0, f32::INFINITY) else {
-            let (le, pdf_e) = env.eval_pdf(dir);
-            let w = mis_power(s.pdf, pdf_e);
-            sink.bsdf_sky(dir, w / s.pdf);
-            l += throughput * le * w;
-            break;
-        };
-        // The next vertex contributes only if a segment may still leave it,
-        // and only if it has a material.
-        if depth + 3 > opts.max_depth {
-            break;
-        }
-        p = origin + dir * h.t;
-        let Some(q2) = scene.material_index(p) else {
-            break;
-        };
-        if !sink.bounce(1.0 / s.pdf) {
-            break;
-        }
-        hit = h;
-        q = q2;
-    }
-    l
-}
-
-/// Radiance along the camera ray through `film` (the forward render's
-/// [`trace_path`]).
-#[inline]
-pub fn radiance(
-    scene: &RenderScene,
-    opts: &RenderOptions,
-    rng: &mut Sampler,
-    film: Vec2,
-    st: &mut RenderStats,
-) -> Vec3 {
-    trace_path(scene, opts, rng, film, st, &mut ())
-}
-
-/// The camera samples of one pixel, traced together. A pixel's camera rays
-/// leave one point in nearly one direction, so
-/// [`matflow_geom::Bvh::intersect_packet`] finds their hits in one
-/// traversal (the hits of one ray at a time, up to the rounding exception
-/// the BVH documents). Holds its buffers between pixels.
+/// lobe (1-D), direction (2-D) — after the pixel jitter, so a (pixel,
+/// sample) pair gives the same path for every sink. A vertex whose point
+/// projects to no pixel (at or behind the camera plane) has no material
+/// and ends the path.
+///
+/// Holds its buffers between batches.
 #[derive(Default)]
-pub struct CameraPacket {
-    samplers: Vec<Sampler>,
-    films: Vec<Vec2>,
-    dirs: Vec<Vec3>,
+pub struct Wavefront {
+    paths: Vec<Path>,
+    active: Vec<u32>,
+    next_active: Vec<u32>,
+    rays: Vec<(Vec3, Vec3)>,
+    ray_path: Vec<u32>,
+    blocked: Vec<bool>,
     hits: Vec<Option<Hit>>,
+    dirs: Vec<Vec3>,
 }
 
-impl CameraPacket {
-    /// Every sample of pixel (x, y), in sample order: draws each one's
-    /// pixel jitter from its sampler, traces the camera rays [`PACKET`] at
-    /// a time (none when `max_depth` is 0), then calls `path(film,
-    /// sampler, camera ray, camera hit, stats)` for each sample, which
-    /// continues it (with [`continue_path`]).
-    pub fn pixel(
+/// Pixels per batch of the renderer's [`Wavefront`]: enough paths that
+/// the ray streams keep their rays in flight, few enough that a batch's
+/// state stays in cache.
+pub const BATCH_PIXELS: usize = 16;
+
+impl Wavefront {
+    /// Traces every sample of each pixel (row-major index) of `pixels`:
+    /// path `i` is sample `i % spp` of pixel `pixels[i / spp]`, with the
+    /// render's per-(pixel, sample) sampler, and reports its events to
+    /// `sinks[i]`. A pixel's camera rays form its packets.
+    pub fn trace_pixels<S: PathSink>(
         &mut self,
         scene: &RenderScene,
         opts: &RenderOptions,
-        (x, y): (usize, usize),
+        pixels: &[u32],
         spp: u32,
         st: &mut RenderStats,
-        mut path: impl FnMut(Vec2, &mut Sampler, Vec3, Option<Hit>, &mut RenderStats),
+        sinks: &mut [S],
     ) {
-        let pix = (y * scene.camera.width + x) as u64;
-        for s0 in (0..spp).step_by(PACKET) {
-            self.samplers.clear();
-            self.films.clear();
-            self.dirs.clear();
-            for s in s0..(s0 + PACKET as u32).min(spp) {
-                let mut rng = Sampler::for_sample(opts.seed, pix, s, spp);
+        let w = scene.camera.width;
+        let spp = spp.max(1);
+        let samples = pixels.iter().flat_map(|&pix| {
+            let (x, y) = (pix as usize % w, pix as usize / w);
+            (0..spp).map(move |s| {
+                let mut rng = Sampler::for_sample(opts.seed, pix as u64, s, spp);
                 let (jx, jy) = rng.next_2d();
-                let film = Vec2::new(x as f32 + jx, y as f32 + jy);
-                self.samplers.push(rng);
-                self.films.push(film);
-                self.dirs.push(scene.camera_ray(film));
+                CameraSample {
+                    film: Vec2::new(x as f32 + jx, y as f32 + jy),
+                    rng,
+                }
+            })
+        });
+        self.trace(scene, opts, samples, spp as usize, st, sinks);
+    }
+
+    /// Traces the camera samples `samples`; consecutive groups of `group`
+    /// of them (a pixel's) have their camera rays traced as packets.
+    /// Reports path `i`'s events to `sinks[i]`.
+    pub fn trace<S: PathSink>(
+        &mut self,
+        scene: &RenderScene,
+        opts: &RenderOptions,
+        samples: impl IntoIterator<Item = CameraSample>,
+        group: usize,
+        st: &mut RenderStats,
+        sinks: &mut [S],
+    ) {
+        self.paths.clear();
+        self.paths.extend(samples.into_iter().map(|c| Path {
+            rng: c.rng,
+            film: c.film,
+            l: Vec3::ZERO,
+            throughput: Vec3::ONE,
+            dir: scene.camera_ray(c.film),
+            p: Vec3::ZERO,
+            hit: Hit {
+                t: 0.0,
+                prim: 0,
+                u: 0.0,
+                v: 0.0,
+            },
+            q: 0,
+            n: Vec3::ZERO,
+            mat: bsdf::Material {
+                albedo: Vec3::ZERO,
+                roughness: 1.0,
+                metallic: 0.0,
+            },
+            light: None,
+            next: None,
+        }));
+        assert_eq!(sinks.len(), self.paths.len(), "one sink per path");
+        self.active.clear();
+        if opts.max_depth == 0 {
+            return;
+        }
+        self.camera(scene, opts, group.max(1), st, sinks);
+        // Vertex `depth` is the end of ray segment `depth + 1`; segment
+        // `depth + 2` leaves it, so it may continue while depth + 2 <
+        // max_depth.
+        for depth in 0..opts.max_depth - 1 {
+            if self.active.is_empty() {
+                break;
             }
-            self.hits.clear();
-            self.hits.resize(self.dirs.len(), None);
-            if opts.max_depth > 0 {
-                st.primary_rays += self.dirs.len() as u64;
+            self.shade(scene, opts, depth, st, sinks);
+            self.shadows(scene);
+            self.continuations(scene, st, sinks);
+            self.vertices(scene, opts, depth, sinks);
+        }
+    }
+
+    /// Number of paths of the last batch.
+    pub fn len(&self) -> usize {
+        self.paths.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.paths.is_empty()
+    }
+
+    /// Film position and radiance of path `i` of the last batch.
+    pub fn result(&self, i: usize) -> (Vec2, Vec3) {
+        (self.paths[i].film, self.paths[i].l)
+    }
+
+    /// Camera rays, [`PACKET`] at a time within each group; the paths
+    /// whose camera ray found a surface with a material become active.
+    fn camera<S: PathSink>(
+        &mut self,
+        scene: &RenderScene,
+        opts: &RenderOptions,
+        group: usize,
+        st: &mut RenderStats,
+        sinks: &mut [S],
+    ) {
+        let n = self.paths.len();
+        st.primary_rays += n as u64;
+        self.hits.clear();
+        self.hits.resize(n, None);
+        let mut g0 = 0;
+        while g0 < n {
+            let g1 = (g0 + group).min(n);
+            let mut s0 = g0;
+            while s0 < g1 {
+                let s1 = (s0 + PACKET).min(g1);
+                self.dirs.clear();
+                self.dirs.extend(self.paths[s0..s1].iter().map(|p| p.dir));
                 scene.bvh.intersect_packet(
                     Vec3::ZERO,
                     &self.dirs,
                     0.0,
                     f32::INFINITY,
-                    &mut self.hits,
+                    &mut self.hits[s0..s1],
                 );
+                s0 = s1;
             }
-            for i in 0..self.dirs.len() {
-                path(
-                    self.films[i],
-                    &mut self.samplers[i],
-                    self.dirs[i],
-                    self.hits[i],
-                    st,
-                );
+            g0 = g1;
+        }
+        for (i, (path, hit)) in self.paths.iter_mut().zip(&self.hits).enumerate() {
+            let Some(hit) = *hit else {
+                sinks[i].camera_sky(path.dir);
+                path.l += scene.env.eval(path.dir);
+                continue;
+            };
+            if opts.max_depth < 2 {
+                continue;
             }
+            path.p = Vec3::ZERO + path.dir * hit.t;
+            let Some(q) = scene.material_index(path.p) else {
+                continue;
+            };
+            path.hit = hit;
+            path.q = q;
+            prefetch(&scene.face_normals, hit.prim as usize);
+            prefetch(&scene.materials, q);
+            self.active.push(i as u32);
+        }
+    }
+
+    /// Each active path's vertex: its envmap sample (queued as a shadow
+    /// ray) and BSDF sample.
+    fn shade<S: PathSink>(
+        &mut self,
+        scene: &RenderScene,
+        opts: &RenderOptions,
+        depth: u32,
+        st: &mut RenderStats,
+        sinks: &mut [S],
+    ) {
+        self.rays.clear();
+        for &i in &self.active {
+            let path = &mut self.paths[i as usize];
+            let n = scene.face_normals[path.hit.prim as usize];
+            let v = -path.dir;
+            let mat = scene.materials[path.q];
+            sinks[i as usize].vertex(path.q, depth == 0);
+            path.n = n;
+            path.mat = mat;
+
+            // Next-event estimation towards the environment map.
+            let (ue1, ue2) = path.rng.next_2d();
+            path.light = None;
+            if let Some((wl, le, pdf_e)) = scene.env.sample(ue1, ue2) {
+                if n.dot(wl) > 0.0 && pdf_e > 0.0 {
+                    st.shadow_rays += 1;
+                    path.light = Some(LightSample {
+                        dir: wl,
+                        le,
+                        pdf: pdf_e,
+                        ray: self.rays.len() as u32,
+                    });
+                    self.rays.push((offset_origin(path.p, n, wl), wl));
+                }
+            }
+
+            // The BSDF sample the path continues with.
+            let u_lobe = path.rng.next_f32();
+            let (u1, u2) = path.rng.next_2d();
+            path.next = bsdf::sample(&mat, n, v, u_lobe, u1, u2)
+                .filter(|s| s.weight.max_element() > 0.0)
+                .map(|s| {
+                    let dir = if opts.reference_compat {
+                        let n_sh = scene.shading_normal(path.hit.prim, path.hit.u, path.hit.v);
+                        let s0 = Frame::from_normal(n).s;
+                        let sx =
+                            (s0 - n_sh * n_sh.dot(s0)).normalize_or(Frame::from_normal(n_sh).s);
+                        let ty = n_sh.cross(sx);
+                        (sx * s.dir.x + ty * s.dir.y + n_sh * s.dir.z).normalize_or(s.dir)
+                    } else {
+                        s.dir
+                    };
+                    Continuation {
+                        dir,
+                        weight: s.weight,
+                        pdf: s.pdf,
+                    }
+                });
+        }
+    }
+
+    /// Traces the shadow rays.
+    fn shadows(&mut self, scene: &RenderScene) {
+        self.blocked.clear();
+        self.blocked.resize(self.rays.len(), false);
+        scene
+            .bvh
+            .occluded_stream(&self.rays, 0.0, f32::INFINITY, &mut self.blocked);
+    }
+
+    /// Adds the light of the unblocked envmap samples; traces the
+    /// continuation rays of the paths that go on.
+    fn continuations<S: PathSink>(
+        &mut self,
+        scene: &RenderScene,
+        st: &mut RenderStats,
+        sinks: &mut [S],
+    ) {
+        self.rays.clear();
+        self.ray_path.clear();
+        for &i in &self.active {
+            let path = &mut self.paths[i as usize];
+            let sink = &mut sinks[i as usize];
+            let (n, v) = (path.n, -path.dir);
+            if let Some(ls) = path.light {
+                if !self.blocked[ls.ray as usize] {
+                    let (f, pdf_b) = bsdf::eval_pdf(&path.mat, n, v, ls.dir);
+                    let w = mis_power(ls.pdf, pdf_b) / ls.pdf;
+                    sink.emitter(n, v, ls.dir, w);
+                    path.l += path.throughput * f * ls.le * w;
+                }
+            }
+            let Some(c) = path.next else {
+                continue;
+            };
+            if !sink.bsdf_dir(n, v, c.dir) {
+                path.next = None;
+                continue;
+            }
+            path.throughput *= c.weight;
+            path.p = offset_origin(path.p, n, c.dir);
+            path.dir = c.dir;
+            st.bounce_rays += 1;
+            self.rays.push((path.p, c.dir));
+            self.ray_path.push(i);
+        }
+        self.hits.clear();
+        self.hits.resize(self.rays.len(), None);
+        scene
+            .bvh
+            .intersect_stream(&self.rays, 0.0, f32::INFINITY, &mut self.hits);
+    }
+
+    /// Where the continuation rays went: the sky (light by MIS, the path
+    /// ends) or the next vertex, whose paths stay active.
+    fn vertices<S: PathSink>(
+        &mut self,
+        scene: &RenderScene,
+        opts: &RenderOptions,
+        depth: u32,
+        sinks: &mut [S],
+    ) {
+        self.next_active.clear();
+        for (&i, hit) in self.ray_path.iter().zip(&self.hits) {
+            let path = &mut self.paths[i as usize];
+            let sink = &mut sinks[i as usize];
+            let Some(c) = path.next else {
+                continue;
+            };
+            let Some(h) = *hit else {
+                let (le, pdf_e) = scene.env.eval_pdf(path.dir);
+                let w = mis_power(c.pdf, pdf_e);
+                sink.bsdf_sky(path.dir, w / c.pdf);
+                path.l += path.throughput * le * w;
+                continue;
+            };
+            // The next vertex contributes only if a segment may still
+            // leave it, and only if it has a material.
+            if depth + 3 > opts.max_depth {
+                continue;
+            }
+            path.p += path.dir * h.t;
+            let Some(q) = scene.material_index(path.p) else {
+                continue;
+            };
+            if !sink.bounce(1.0 / c.pdf) {
+                continue;
+            }
+            path.hit = h;
+            path.q = q;
+            prefetch(&scene.face_normals, h.prim as usize);
+            prefetch(&scene.materials, q);
+            self.next_active.push(i);
+        }
+        std::mem::swap(&mut self.active, &mut self.next_active);
+    }
+}
+
+/// Asks for the cache line of `v[i]` ahead of its use.
+#[inline(always)]
+fn prefetch<T>(v: &[T], i: usize) {
+    #[cfg(target_arch = "x86_64")]
+    if i < v.len() {
+        // SAFETY: the address is inside the slice; prefetching has no
+        // other effect.
+        unsafe {
+            use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+            _mm_prefetch::<_MM_HINT_T0>(v.as_ptr().add(i) as *const i8);
         }
     }
 }
@@ -420,65 +616,63 @@ pub fn render(
             let mut st = RenderStats::default();
             // 1-D filter weights of a sample's footprint columns.
             let mut wx = vec![0f32; 2 * border + 2];
-            let mut packet = CameraPacket::default();
+            let mut wave = Wavefront::default();
+            let mut sinks = Vec::new();
+            let mut pixels = Vec::with_capacity(BATCH_PIXELS);
             for y in t.y0..t.y1 {
-                for x in t.x0..t.x1 {
-                    packet.pixel(
-                        scene,
-                        opts,
-                        (x, y),
-                        spp,
-                        &mut st,
-                        |film, rng, dir, hit, st| {
-                            let li = continue_path(scene, opts, rng, dir, hit, st, &mut ());
-                            if !li.is_finite() {
-                                st.discarded_samples += 1;
-                                return;
+                for x0 in (t.x0..t.x1).step_by(BATCH_PIXELS) {
+                    pixels.clear();
+                    pixels.extend((x0..(x0 + BATCH_PIXELS).min(t.x1)).map(|x| (y * w + x) as u32));
+                    sinks.resize(pixels.len() * spp as usize, ());
+                    wave.trace_pixels(scene, opts, &pixels, spp, &mut st, &mut sinks);
+                    for i in 0..wave.len() {
+                        let (film, li) = wave.result(i);
+                        if !li.is_finite() {
+                            st.discarded_samples += 1;
+                            continue;
+                        }
+                        let x = x0 + i / spp as usize;
+                        match opts.filter {
+                            PixelFilter::Box => {
+                                let k = (y - t.y0 + border) * bw + (x - t.x0 + border);
+                                let b = &mut buf[k];
+                                b[0] += li.x;
+                                b[1] += li.y;
+                                b[2] += li.z;
+                                b[3] += 1.0;
                             }
-                            match opts.filter {
-                                PixelFilter::Box => {
-                                    let k = (y - t.y0 + border) * bw + (x - t.x0 + border);
-                                    let b = &mut buf[k];
-                                    b[0] += li.x;
-                                    b[1] += li.y;
-                                    b[2] += li.z;
-                                    b[3] += 1.0;
+                            PixelFilter::Gaussian { .. } => {
+                                let lo_x = ((film.x - 0.5 - r).ceil() as i64).max(wx0 as i64);
+                                let hi_x = ((film.x - 0.5 + r).floor() as i64).min(wx1 as i64 - 1);
+                                let lo_y = ((film.y - 0.5 - r).ceil() as i64).max(wy0 as i64);
+                                let hi_y = ((film.y - 0.5 + r).floor() as i64).min(wy1 as i64 - 1);
+                                // Separable: the 1-D weights of the
+                                // footprint's columns, once per sample.
+                                for (i, px) in (lo_x..=hi_x).enumerate() {
+                                    wx[i] = weights.weight_1d(px as f32 + 0.5 - film.x);
                                 }
-                                PixelFilter::Gaussian { .. } => {
-                                    let lo_x = ((film.x - 0.5 - r).ceil() as i64).max(wx0 as i64);
-                                    let hi_x =
-                                        ((film.x - 0.5 + r).floor() as i64).min(wx1 as i64 - 1);
-                                    let lo_y = ((film.y - 0.5 - r).ceil() as i64).max(wy0 as i64);
-                                    let hi_y =
-                                        ((film.y - 0.5 + r).floor() as i64).min(wy1 as i64 - 1);
-                                    // Separable: the 1-D weights of the
-                                    // footprint's columns, once per sample.
-                                    for (i, px) in (lo_x..=hi_x).enumerate() {
-                                        wx[i] = weights.weight_1d(px as f32 + 0.5 - film.x);
+                                for py in lo_y..=hi_y {
+                                    let wy = weights.weight_1d(py as f32 + 0.5 - film.y);
+                                    if wy <= 0.0 {
+                                        continue;
                                     }
-                                    for py in lo_y..=hi_y {
-                                        let wy = weights.weight_1d(py as f32 + 0.5 - film.y);
-                                        if wy <= 0.0 {
+                                    let by = (py - t.y0 as i64 + border as i64) as usize;
+                                    for (i, px) in (lo_x..=hi_x).enumerate() {
+                                        let wgt = wy * wx[i];
+                                        if wgt <= 0.0 {
                                             continue;
                                         }
-                                        let by = (py - t.y0 as i64 + border as i64) as usize;
-                                        for (i, px) in (lo_x..=hi_x).enumerate() {
-                                            let wgt = wy * wx[i];
-                                            if wgt <= 0.0 {
-                                                continue;
-                                            }
-                                            let bx = (px - t.x0 as i64 + border as i64) as usize;
-                                            let b = &mut buf[by * bw + bx];
-                                            b[0] += li.x * wgt;
-                                            b[1] += li.y * wgt;
-                                            b[2] += li.z * wgt;
-                                            b[3] += wgt;
-                                        }
+                                        let bx = (px - t.x0 as i64 + border as i64) as usize;
+                                        let b = &mut buf[by * bw + bx];
+                                        b[0] += li.x * wgt;
+                                        b[1] += li.y * wgt;
+                                        b[2] += li.z * wgt;
+                                        b[3] += wgt;
                                     }
                                 }
                             }
-                        },
-                    );
+                        }
+                    }
                 }
             }
             let d = done.fetch_add(1, Ordering::Relaxed) + 1;
@@ -539,40 +733,45 @@ pub fn render(
 /// streams, summed in the same order. For re-rendering the part of an
 /// image a change can reach.
 pub fn render_pixels(scene: &RenderScene, opts: &RenderOptions, pixels: &[u32]) -> Vec<Vec3> {
-    let w = scene.camera.width;
     let spp = opts.spp.max(1);
     pixels
-        .par_iter()
-        .with_min_len(16)
-        .map(|&p| {
-            let (x, y) = (p as usize % w, p as usize / w);
-            let mut st = RenderStats::default();
-            let mut b = [0f32; 4];
-            for s in 0..spp {
-                let mut rng = Sampler::for_sample(opts.seed, p as u64, s, spp);
-                let (jx, jy) = rng.next_2d();
-                let film = Vec2::new(x as f32 + jx, y as f32 + jy);
-                let li = radiance(scene, opts, &mut rng, film, &mut st);
-                if !li.is_finite() {
-                    continue;
-                }
-                b[0] += li.x;
-                b[1] += li.y;
-                b[2] += li.z;
-                b[3] += 1.0;
-            }
-            if b[3] > 0.0 {
-                let n = b[3] as f64;
-                Vec3::new(
-                    (b[0] as f64 / n) as f32,
-                    (b[1] as f64 / n) as f32,
-                    (b[2] as f64 / n) as f32,
-                )
-                .clamp(Vec3::ZERO, Vec3::splat(f32::MAX))
-            } else {
-                Vec3::ZERO
-            }
-        })
+        .par_chunks(BATCH_PIXELS)
+        .with_min_len(4)
+        .map_init(
+            || (Wavefront::default(), Vec::new()),
+            |(wave, sinks), chunk| {
+                let mut st = RenderStats::default();
+                sinks.resize(chunk.len() * spp as usize, ());
+                wave.trace_pixels(scene, opts, chunk, spp, &mut st, sinks);
+                (0..chunk.len())
+                    .map(|k| {
+                        let mut b = [0f32; 4];
+                        for i in k * spp as usize..(k + 1) * spp as usize {
+                            let li = wave.result(i).1;
+                            if !li.is_finite() {
+                                continue;
+                            }
+                            b[0] += li.x;
+                            b[1] += li.y;
+                            b[2] += li.z;
+                            b[3] += 1.0;
+                        }
+                        if b[3] > 0.0 {
+                            let n = b[3] as f64;
+                            Vec3::new(
+                                (b[0] as f64 / n) as f32,
+                                (b[1] as f64 / n) as f32,
+                                (b[2] as f64 / n) as f32,
+                            )
+                            .clamp(Vec3::ZERO, Vec3::splat(f32::MAX))
+                        } else {
+                            Vec3::ZERO
+                        }
+                    })
+                    .collect::<Vec<_>>()
+            },
+        )
+        .flatten_iter()
         .collect()
 }
 
@@ -721,11 +920,20 @@ mod tests {
             let m = 200_000;
             let (mut s1, mut s2) = (0.0f64, 0.0f64);
             let mut st = RenderStats::default();
-            for k in 0..m {
-                let mut rng = Sampler::for_sample(9, 0, k, m);
-                let x = radiance(&scene, &opts, &mut rng, film, &mut st).element_sum() as f64;
-                s1 += x;
-                s2 += x * x;
+            let mut wave = Wavefront::default();
+            for k0 in (0..m).step_by(4096) {
+                let k1 = (k0 + 4096).min(m);
+                let samples = (k0..k1).map(|k| CameraSample {
+                    film,
+                    rng: Sampler::for_sample(9, 0, k, m),
+                });
+                let mut sinks = vec![(); (k1 - k0) as usize];
+                wave.trace(&scene, &opts, samples, 64, &mut st, &mut sinks);
+                for i in 0..wave.len() {
+                    let x = wave.result(i).1.element_sum() as f64;
+                    s1 += x;
+                    s2 += x * x;
+                }
             }
             let mean = s1 / m as f64;
             let se = ((s2 / m as f64 - mean * mean) / m as f64).sqrt();
