@@ -11,7 +11,7 @@
 
 use std::sync::atomic::{AtomicUsize, Ordering};
 
-use glam::{Vec2, Vec3};
+use glam::{Vec2, Vec3, Vec4};
 use matflow_scene::{Image, RgbImage};
 use rayon::prelude::*;
 
@@ -200,6 +200,36 @@ struct Path {
     next: Option<Continuation>,
 }
 
+impl Path {
+    /// A path leaving the camera through `film`.
+    #[inline]
+    fn new(scene: &RenderScene, film: Vec2, rng: Sampler) -> Path {
+        Path {
+            rng,
+            film,
+            l: Vec3::ZERO,
+            throughput: Vec3::ONE,
+            dir: scene.camera_ray(film),
+            p: Vec3::ZERO,
+            hit: Hit {
+                t: 0.0,
+                prim: 0,
+                u: 0.0,
+                v: 0.0,
+            },
+            q: 0,
+            n: Vec3::ZERO,
+            mat: bsdf::Material {
+                albedo: Vec3::ZERO,
+                roughness: 1.0,
+                metallic: 0.0,
+            },
+            light: None,
+            next: None,
+        }
+    }
+}
+
 /// The one path-tracing loop, run over a batch of paths in lock-step
 /// (a wavefront): every path's camera ray, then vertex by vertex each live
 /// path's envmap sample and BSDF sample, its shadow ray, its continuation
@@ -252,18 +282,19 @@ impl Wavefront {
     ) {
         let w = scene.camera.width;
         let spp = spp.max(1);
-        let samples = pixels.iter().flat_map(|&pix| {
-            let (x, y) = (pix as usize % w, pix as usize / w);
-            (0..spp).map(move |s| {
-                let mut rng = Sampler::for_sample(opts.seed, pix as u64, s, spp);
+        self.paths.clear();
+        for &pix in pixels {
+            let (x, y) = ((pix as usize % w) as f32, (pix as usize / w) as f32);
+            // The pixel's key is hashed once for its samples.
+            let pixel = Sampler::for_sample(opts.seed, pix as u64, 0, spp);
+            for s in 0..spp {
+                let mut rng = pixel.for_sample_index(s);
                 let (jx, jy) = rng.next_2d();
-                CameraSample {
-                    film: Vec2::new(x as f32 + jx, y as f32 + jy),
-                    rng,
-                }
-            })
-        });
-        self.trace(scene, opts, samples, spp as usize, st, sinks);
+                let film = Vec2::new(x + jx, y + jy);
+                self.paths.push(Path::new(scene, film, rng));
+            }
+        }
+        self.run(scene, opts, spp as usize, st, sinks);
     }
 
     /// Traces the camera samples `samples`; consecutive groups of `group`
@@ -279,29 +310,20 @@ impl Wavefront {
         sinks: &mut [S],
     ) {
         self.paths.clear();
-        self.paths.extend(samples.into_iter().map(|c| Path {
-            rng: c.rng,
-            film: c.film,
-            l: Vec3::ZERO,
-            throughput: Vec3::ONE,
-            dir: scene.camera_ray(c.film),
-            p: Vec3::ZERO,
-            hit: Hit {
-                t: 0.0,
-                prim: 0,
-                u: 0.0,
-                v: 0.0,
-            },
-            q: 0,
-            n: Vec3::ZERO,
-            mat: bsdf::Material {
-                albedo: Vec3::ZERO,
-                roughness: 1.0,
-                metallic: 0.0,
-            },
-            light: None,
-            next: None,
-        }));
+        self.paths
+            .extend(samples.into_iter().map(|c| Path::new(scene, c.film, c.rng)));
+        self.run(scene, opts, group, st, sinks);
+    }
+
+    /// Traces the paths set up in `self.paths`.
+    fn run<S: PathSink>(
+        &mut self,
+        scene: &RenderScene,
+        opts: &RenderOptions,
+        group: usize,
+        st: &mut RenderStats,
+        sinks: &mut [S],
+    ) {
         assert_eq!(sinks.len(), self.paths.len(), "one sink per path");
         self.active.clear();
         if opts.max_depth == 0 {
@@ -607,12 +629,12 @@ pub fn render(
     let spp = opts.spp.max(1);
     let weights = opts.filter.weights();
 
-    let results: Vec<(Vec<[f32; 4]>, RenderStats)> = tiles
+    let results: Vec<(Vec<Vec4>, RenderStats)> = tiles
         .par_iter()
         .map(|t| {
             let bw = t.x1 - t.x0 + 2 * border;
             let bh = t.y1 - t.y0 + 2 * border;
-            let mut buf = vec![[0f32; 4]; bw * bh];
+            let mut buf = vec![Vec4::ZERO; bw * bh];
             let mut st = RenderStats::default();
             // 1-D filter weights of a sample's footprint columns.
             let mut wx = vec![0f32; 2 * border + 2];
@@ -632,14 +654,12 @@ pub fn render(
                             continue;
                         }
                         let x = x0 + i / spp as usize;
+                        // (radiance, 1) · weight, lane by lane.
+                        let li1 = li.extend(1.0);
                         match opts.filter {
                             PixelFilter::Box => {
                                 let k = (y - t.y0 + border) * bw + (x - t.x0 + border);
-                                let b = &mut buf[k];
-                                b[0] += li.x;
-                                b[1] += li.y;
-                                b[2] += li.z;
-                                b[3] += 1.0;
+                                buf[k] += li1;
                             }
                             PixelFilter::Gaussian { .. } => {
                                 let lo_x = ((film.x - 0.5 - r).ceil() as i64).max(wx0 as i64);
@@ -663,11 +683,7 @@ pub fn render(
                                             continue;
                                         }
                                         let bx = (px - t.x0 as i64 + border as i64) as usize;
-                                        let b = &mut buf[by * bw + bx];
-                                        b[0] += li.x * wgt;
-                                        b[1] += li.y * wgt;
-                                        b[2] += li.z * wgt;
-                                        b[3] += wgt;
+                                        buf[by * bw + bx] += li1 * wgt;
                                     }
                                 }
                             }
@@ -698,7 +714,7 @@ pub fn render(
                 if px < wx0 as i64 || px >= wx1 as i64 {
                     continue;
                 }
-                let b = buf[by * bw + bx];
+                let b = buf[by * bw + bx].to_array();
                 let a = &mut acc[(py as usize - wy0) * ww + (px as usize - wx0)];
                 for c in 0..4 {
                     a[c] += b[c] as f64;

@@ -129,9 +129,8 @@ pub fn sobol_2d(i: u32) -> (u32, u32) {
     let mut v = 1u32 << 31;
     let mut k = i;
     while k != 0 {
-        if k & 1 != 0 {
-            y ^= v;
-        }
+        // Branch-free: the bit is unpredictable.
+        y ^= v & (k & 1).wrapping_neg();
         k >>= 1;
         v ^= v >> 1;
     }
@@ -166,6 +165,19 @@ impl Sampler {
             key: mix64(seed ^ mix64(pixel.wrapping_mul(0x2545_f491_4f6c_dd1d) ^ 0x5a3b)),
             sample,
             spp: spp.max(1),
+            dim: 0,
+        }
+    }
+
+    /// The sampler of sample `sample` of the same pixel (what
+    /// [`Sampler::for_sample`] gives for it, without hashing the pixel
+    /// again).
+    #[inline]
+    pub fn for_sample_index(&self, sample: u32) -> Sampler {
+        Sampler {
+            key: self.key,
+            sample,
+            spp: self.spp,
             dim: 0,
         }
     }
