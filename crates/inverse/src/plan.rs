@@ -68,9 +68,9 @@ impl SceneCost {
 /// stages (`routes/*.rs`).
 pub mod cost {
     /// Tracing and recording one ray of the frozen cache.
-    pub const TRACE_PER_RAY: f64 = 2.7e-7;
+    pub const TRACE_PER_RAY: f64 = 2.1e-7;
     /// One ray of the final re-render.
-    pub const RENDER_PER_RAY: f64 = 2.5e-7;
+    pub const RENDER_PER_RAY: f64 = 1.75e-7;
     /// Rays per sample assumed before the scout has counted them (indoor).
     pub const RAYS_PER_SAMPLE: f64 = 2.6;
     /// Building a pixel's table, per cached path.
