@@ -167,64 +167,51 @@ fn bench_render(a: BenchRenderArgs) -> Result<()> {
         println!("wrote {}", dir.display());
         return Ok(());
     }
-    let time_rays = |rays: &[(Vec3, Vec3)], occl: bool| -> f64 {
+    // Median Mrays/s of `count`, which answers a chunk of 1024 rays and
+    // counts its hits, over the chunks in parallel.
+    type Rays<'a> = &'a [(Vec3, Vec3)];
+    let time = |rays: Rays, count: &(dyn Fn(Rays) -> usize + Sync)| {
         median(
             (0..runs)
                 .map(|_| {
                     let t = Instant::now();
-                    let c: usize = rays
-                        .par_chunks(1024)
-                        .map(|ch| {
-                            ch.iter()
-                                .filter(|(o, d)| {
-                                    if occl {
-                                        scene.bvh.occluded(*o, *d, 0.0, f32::INFINITY)
-                                    } else {
-                                        scene.bvh.intersect(*o, *d, 0.0, f32::INFINITY).is_some()
-                                    }
-                                })
-                                .count()
-                        })
-                        .sum();
+                    let c: usize = rays.par_chunks(1024).map(count).sum();
                     std::hint::black_box(c);
                     rays.len() as f64 / t.elapsed().as_secs_f64() / 1e6
                 })
                 .collect(),
         )
     };
-    let time_stream = |rays: &[(Vec3, Vec3)], occl: bool| -> f64 {
-        median(
-            (0..runs)
-                .map(|_| {
-                    let t = Instant::now();
-                    let c: usize = rays
-                        .par_chunks(1024)
-                        .map(|ch| {
-                            if occl {
-                                let mut out = vec![false; ch.len()];
-                                scene.bvh.occluded_stream(ch, 0.0, f32::INFINITY, &mut out);
-                                out.iter().filter(|&&b| b).count()
-                            } else {
-                                let mut out = vec![None; ch.len()];
-                                scene.bvh.intersect_stream(ch, 0.0, f32::INFINITY, &mut out);
-                                out.iter().filter(|h| h.is_some()).count()
-                            }
-                        })
-                        .sum();
-                    std::hint::black_box(c);
-                    rays.len() as f64 / t.elapsed().as_secs_f64() / 1e6
-                })
-                .collect(),
-        )
+    let bvh = &scene.bvh;
+    let inf = f32::INFINITY;
+    let hits = |ch: &[(Vec3, Vec3)]| {
+        ch.iter()
+            .filter(|(o, d)| bvh.intersect(*o, *d, 0.0, inf).is_some())
+            .count()
+    };
+    let blocked = |ch: &[(Vec3, Vec3)]| {
+        ch.iter()
+            .filter(|(o, d)| bvh.occluded(*o, *d, 0.0, inf))
+            .count()
+    };
+    let stream_hits = |ch: &[(Vec3, Vec3)]| {
+        let mut out = vec![None; ch.len()];
+        bvh.intersect_stream(ch, 0.0, inf, &mut out);
+        out.iter().filter(|h| h.is_some()).count()
+    };
+    let stream_blocked = |ch: &[(Vec3, Vec3)]| {
+        let mut out = vec![false; ch.len()];
+        bvh.occluded_stream(ch, 0.0, inf, &mut out);
+        out.iter().filter(|&&b| b).count()
     };
     // One ray at a time, then as the renderer traces its shadow and
     // continuation rays: streams (here of 1024, as chunked).
     let ours = [
-        time_rays(&primary, false),
-        time_rays(&incoherent, false),
-        time_rays(&incoherent, true),
-        time_stream(&incoherent, false),
-        time_stream(&incoherent, true),
+        time(&primary, &hits),
+        time(&incoherent, &hits),
+        time(&incoherent, &blocked),
+        time(&incoherent, &stream_hits),
+        time(&incoherent, &stream_blocked),
     ];
     println!(
         "  primary closest-hit   {:8.2} Mrays/s ({} rays)",

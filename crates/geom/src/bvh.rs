@@ -6,7 +6,8 @@
 //! nodes hold their children's boxes as structure-of-arrays, so one ray is
 //! tested against four boxes per SIMD operation, and each leaf holds blocks
 //! of four triangles, tested at once (Embree's BVH8 + Triangle4 layout).
-//! While a node's entered children are pushed, their memory is prefetched.
+//! A traversal is a state stepped node by node (one ray alone, or many
+//! in turn as a stream), which prefetches the slot it visits next.
 //! Boxes are
 //! stored uncompressed in f32: `obvhs`' CWBVH, which quantises child boxes
 //! to 8 bits, misses hits on axis-aligned planar geometry (DEPENDENCIES.md),
@@ -516,35 +517,10 @@ impl Bvh {
         if self.root == EMPTY {
             return None;
         }
-        let ray = WideRay::new(origin, dir);
-        let mut hit = Closest::new(tmax);
-        let mut stack: [(u32, f32); STACK] = [(0, 0.0); STACK];
-        let mut spill: Vec<(u32, f32)> = Vec::new();
-        let mut sp = 0usize;
-        let mut slot = self.root;
-        let mut entry = tmin;
+        let mut w = Walk::new(self, origin, dir, tmin, tmax);
         loop {
-            if entry <= hit.limit {
-                if slot & LEAF == 0 {
-                    let node = &self.nodes[slot as usize];
-                    let (tn, bits) = ray.slabs(node, tmin, hit.limit);
-                    // Push entered children far to near so the nearest is
-                    // visited first.
-                    let (order, k) = far_to_near(self, node, bits, &tn, true);
-                    if k > 0 {
-                        for &e in &order[..k - 1] {
-                            push(&mut stack, &mut spill, &mut sp, e);
-                        }
-                        (slot, entry) = order[k - 1];
-                        continue;
-                    }
-                } else {
-                    hit.leaf(&ray.o, &ray.d, self.leaf_blocks(slot), tmin);
-                }
-            }
-            match pop(&stack, &mut spill, &mut sp) {
-                Some(e) => (slot, entry) = e,
-                None => return hit.best,
+            if let Some(hit) = w.step_closest(self) {
+                return hit;
             }
         }
     }
@@ -596,9 +572,7 @@ impl Bvh {
         let tmin4 = Vec4::splat(tmin);
         // No ray may hit beyond this: the largest of the rays' limits.
         let mut limit = tmax;
-        let mut stack: [(u32, f32); STACK] = [(0, 0.0); STACK];
-        let mut spill: Vec<(u32, f32)> = Vec::new();
-        let mut sp = 0usize;
+        let mut stack = Stack::new();
         let mut slot = self.root;
         let mut entry = tmin;
         loop {
@@ -637,7 +611,7 @@ impl Bvh {
                     let (order, k) = far_to_near(self, node, bits, &tn, true);
                     if k > 0 {
                         for &e in &order[..k - 1] {
-                            push(&mut stack, &mut spill, &mut sp, e);
+                            stack.push(e);
                         }
                         (slot, entry) = order[k - 1];
                         continue;
@@ -656,7 +630,7 @@ impl Bvh {
                     }
                 }
             }
-            match pop(&stack, &mut spill, &mut sp) {
+            match stack.pop() {
                 Some(e) => (slot, entry) = e,
                 None => break,
             }
@@ -681,38 +655,10 @@ impl Bvh {
         if self.root == EMPTY {
             return false;
         }
-        let ray = WideRay::new(origin, dir);
-        let tmax4 = Vec4::splat(tmax);
-        let mut stack: [(u32, f32); STACK] = [(0, 0.0); STACK];
-        let mut spill: Vec<(u32, f32)> = Vec::new();
-        let mut sp = 0usize;
-        let mut slot = self.root;
+        let mut w = Walk::new(self, origin, dir, tmin, tmax);
         loop {
-            if slot & LEAF == 0 {
-                let node = &self.nodes[slot as usize];
-                let (_, mut bits) = ray.slabs(node, tmin, tmax);
-                if bits != 0 {
-                    let lane = bits.trailing_zeros() as usize;
-                    bits &= bits - 1;
-                    while bits != 0 {
-                        let l = bits.trailing_zeros() as usize;
-                        bits &= bits - 1;
-                        prefetch(self, node.child[l]);
-                        push(&mut stack, &mut spill, &mut sp, (node.child[l], 0.0));
-                    }
-                    slot = node.child[lane];
-                    continue;
-                }
-            } else {
-                for tri in self.leaf_blocks(slot) {
-                    if triangles4(&ray.o, &ray.d, tri, tmin, tmax4).3.any() {
-                        return true;
-                    }
-                }
-            }
-            match pop(&stack, &mut spill, &mut sp) {
-                Some((s, _)) => slot = s,
-                None => return false,
+            if let Some(blocked) = w.step_occluded(self) {
+                return blocked;
             }
         }
     }
@@ -736,44 +682,12 @@ fn prefetch(bvh: &Bvh, slot: u32) {
     }
 }
 
-#[inline(always)]
-fn push(
-    stack: &mut [(u32, f32); STACK],
-    spill: &mut Vec<(u32, f32)>,
-    sp: &mut usize,
-    e: (u32, f32),
-) {
-    if *sp < STACK {
-        stack[*sp] = e;
-        *sp += 1;
-    } else {
-        spill.push(e);
-    }
-}
-
-#[inline(always)]
-fn pop(
-    stack: &[(u32, f32); STACK],
-    spill: &mut Vec<(u32, f32)>,
-    sp: &mut usize,
-) -> Option<(u32, f32)> {
-    if let Some(e) = spill.pop() {
-        return Some(e);
-    }
-    if *sp == 0 {
-        return None;
-    }
-    *sp -= 1;
-    Some(stack[*sp])
-}
-
 /// How many rays [`Bvh::intersect_stream`] and [`Bvh::occluded_stream`]
 /// keep in flight. Traversal of incoherent rays waits on memory (a node or
 /// a triangle block missed in cache); stepping several independent rays in
 /// turn, each one's next node prefetched while the others step, overlaps
 /// those waits (asynchronous memory-access chaining).
 pub const IN_FLIGHT: usize = 32;
-const PREFETCH_ALL: bool = false;
 
 /// A traversal stack: fixed depth on the stack, spilling to the heap.
 struct Stack {
@@ -856,30 +770,33 @@ impl Walk {
         self.entry = tmin;
     }
 
-    /// Closest hit: visits the current slot; false when the traversal is
-    /// over (the answer is in `hit`).
+    /// Closest hit: visits the current slot (when the ray may still hit
+    /// something in it); `Some(answer)` when the traversal is over.
     #[inline(always)]
-    fn step_closest(&mut self, bvh: &Bvh) -> bool {
-        if self.slot & LEAF == 0 {
-            let node = &bvh.nodes[self.slot as usize];
-            let (tn, bits) = self.ray.slabs(node, self.tmin, self.hit.limit);
-            // Entered children far to near, so the nearest is visited
-            // first (all are prefetched).
-            let (order, k) = far_to_near(bvh, node, bits, &tn, PREFETCH_ALL);
-            if k > 0 {
-                for &e in &order[..k - 1] {
-                    self.stack.push(e);
+    fn step_closest(&mut self, bvh: &Bvh) -> Option<Option<Hit>> {
+        if self.entry <= self.hit.limit {
+            if self.slot & LEAF == 0 {
+                let node = &bvh.nodes[self.slot as usize];
+                let (tn, bits) = self.ray.slabs(node, self.tmin, self.hit.limit);
+                // Entered children far to near, so the nearest is visited
+                // first (only it is prefetched: prefetching them all floods
+                // the fill buffers when many rays are in flight).
+                let (order, k) = far_to_near(bvh, node, bits, &tn, false);
+                if k > 0 {
+                    for &e in &order[..k - 1] {
+                        self.stack.push(e);
+                    }
+                    (self.slot, self.entry) = order[k - 1];
+                    return None;
                 }
-                (self.slot, self.entry) = order[k - 1];
-                return true;
+            } else {
+                self.hit.leaf(
+                    &self.ray.o,
+                    &self.ray.d,
+                    bvh.leaf_blocks(self.slot),
+                    self.tmin,
+                );
             }
-        } else {
-            self.hit.leaf(
-                &self.ray.o,
-                &self.ray.d,
-                bvh.leaf_blocks(self.slot),
-                self.tmin,
-            );
         }
         // Next: the nearest pushed slot the ray may still hit before its
         // best (skipping the others costs no memory).
@@ -887,10 +804,10 @@ impl Walk {
             if entry <= self.hit.limit {
                 (self.slot, self.entry) = (slot, entry);
                 prefetch(bvh, slot);
-                return true;
+                return None;
             }
         }
-        false
+        Some(self.hit.best)
     }
 
     /// Occlusion: visits the current slot; `Some(answer)` when known.
@@ -905,9 +822,6 @@ impl Walk {
                 while bits != 0 {
                     let l = bits.trailing_zeros() as usize;
                     bits &= bits - 1;
-                    if PREFETCH_ALL {
-                        prefetch(bvh, node.child[l]);
-                    }
                     self.stack.push((node.child[l], 0.0));
                 }
                 self.slot = node.child[lane];
@@ -948,47 +862,32 @@ impl Bvh {
         tmax: f32,
         out: &mut [Option<Hit>],
     ) {
-        assert_eq!(rays.len(), out.len(), "one result per ray");
-        if self.root == EMPTY {
-            out.fill(None);
-            return;
-        }
-        let mut lanes: Vec<(usize, Walk)> = Vec::with_capacity(IN_FLIGHT);
-        let mut next = 0;
-        while next < rays.len() && lanes.len() < IN_FLIGHT {
-            let (o, d) = rays[next];
-            lanes.push((next, Walk::new(self, o, d, tmin, tmax)));
-            next += 1;
-        }
-        while !lanes.is_empty() {
-            let mut i = 0;
-            while i < lanes.len() {
-                let (k, w) = &mut lanes[i];
-                if !(w.entry <= w.hit.limit) || !w.step_closest(self) {
-                    // (The first test only matters for the root.)
-                    out[*k] = w.hit.best;
-                    if next < rays.len() {
-                        let (o, d) = rays[next];
-                        *k = next;
-                        w.restart(self, o, d, tmin, tmax);
-                        next += 1;
-                    } else {
-                        lanes.swap_remove(i);
-                        continue;
-                    }
-                }
-                i += 1;
-            }
-        }
+        self.stream(rays, tmin, tmax, out, None, Walk::step_closest);
     }
 
     /// Occlusion of many rays: `out[i]` is [`Bvh::occluded`] of ray i,
     /// with [`IN_FLIGHT`] rays traversed in turn (as
     /// [`Bvh::intersect_stream`]).
     pub fn occluded_stream(&self, rays: &[(Vec3, Vec3)], tmin: f32, tmax: f32, out: &mut [bool]) {
+        self.stream(rays, tmin, tmax, out, false, Walk::step_occluded);
+    }
+
+    /// Steps [`IN_FLIGHT`] walks in turn, each with `step` until it has
+    /// its answer, then restarts it on the next ray; an empty hierarchy
+    /// answers `none` to every ray.
+    #[inline(always)]
+    fn stream<T: Copy>(
+        &self,
+        rays: &[(Vec3, Vec3)],
+        tmin: f32,
+        tmax: f32,
+        out: &mut [T],
+        none: T,
+        step: impl Fn(&mut Walk, &Bvh) -> Option<T>,
+    ) {
         assert_eq!(rays.len(), out.len(), "one result per ray");
         if self.root == EMPTY {
-            out.fill(false);
+            out.fill(none);
             return;
         }
         let mut lanes: Vec<(usize, Walk)> = Vec::with_capacity(IN_FLIGHT);
@@ -1002,8 +901,8 @@ impl Bvh {
             let mut i = 0;
             while i < lanes.len() {
                 let (k, w) = &mut lanes[i];
-                if let Some(a) = w.step_occluded(self) {
-                    out[*k] = a;
+                if let Some(answer) = step(w, self) {
+                    out[*k] = answer;
                     if next < rays.len() {
                         let (o, d) = rays[next];
                         *k = next;

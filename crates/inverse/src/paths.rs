@@ -598,8 +598,7 @@ fn trace_row(
             &mut st,
             &mut sinks[..n],
         );
-        for (k, paths) in sinks[..n].chunks(spp).enumerate() {
-            debug_assert!(k < pixels.len());
+        for paths in sinks[..n].chunks(spp) {
             push_start(&mut row)?;
             for r in paths {
                 row.vertices.extend_from_slice(&r.vertices);
