@@ -18,6 +18,7 @@ use glam::Vec3;
 use matflow_scene::color::luminance;
 use matflow_scene::{Image, RgbImage};
 
+use crate::fmath;
 use crate::RenderError;
 
 /// Values are clamped to this magnitude so no sum can overflow f32.
@@ -73,11 +74,11 @@ pub fn uv_to_dir(u: f32, v: f32) -> Vec3 {
 pub fn locate_cell(width: usize, height: usize, d: Vec3) -> (usize, usize, f32, f32) {
     let (u, v) = dir_to_uv(d);
     let x = u * width as f32 - 0.5;
-    let xf = x.floor();
+    let xf = fmath::floor(x);
     let fx = x - xf;
     let c = (xf as i64).rem_euclid(width as i64) as usize;
     let y = v * (height - 1) as f32;
-    let r = (y.floor() as i64).clamp(0, height as i64 - 2) as usize;
+    let r = (fmath::floor(y) as i64).clamp(0, height as i64 - 2) as usize;
     let fy = (y - r as f32).clamp(0.0, 1.0);
     (r, c, fx.clamp(0.0, 1.0), fy)
 }
@@ -246,7 +247,9 @@ impl EnvMap {
         // Uniform in solid angle inside the cell.
         let (c0, c1) = (self.row_cos[r], self.row_cos[r + 1]);
         let cos_t = (c0 + (c1 - c0) * uc as f32).clamp(-1.0, 1.0);
-        let u = ((c as f32 + 0.5 + ur as f32) / w as f32).rem_euclid(1.0);
+        // In [0, 2): wrapped by one subtraction (exact, as fmod is).
+        let u = (c as f32 + 0.5 + ur as f32) / w as f32;
+        let u = if u >= 1.0 { u - 1.0 } else { u };
         let sin_t = (1.0 - cos_t * cos_t).max(0.0).sqrt();
         let phi = 2.0 * PI * u;
         let (sp, cp) = phi.sin_cos();
@@ -267,17 +270,19 @@ impl EnvMap {
 #[inline]
 fn sample_cdf(cdf: &[f64], u: f64) -> (usize, f64) {
     let n = cdf.len() - 1;
-    // First index with cdf[i+1] > u.
-    let mut lo = 0usize;
-    let mut hi = n;
-    while lo < hi {
-        let mid = (lo + hi) / 2;
-        if cdf[mid + 1] <= u {
-            lo = mid + 1;
-        } else {
-            hi = mid;
-        }
+    // First index with cdf[i+1] > u (the count of bins whose end is
+    // ≤ u): a branch-free search over `ends`, whose comparisons compile to
+    // conditional moves (a sampled u makes every branch a coin toss).
+    let ends = &cdf[1..];
+    let mut base = 0usize;
+    let mut len = n;
+    while len > 1 {
+        let half = len / 2;
+        let mid = base + half;
+        base = if ends[mid] <= u { mid } else { base };
+        len -= half;
     }
+    let lo = base + usize::from(ends[base] <= u);
     let i = lo.min(n - 1);
     // Skip empty bins at the end.
     let (a, b) = (cdf[i], cdf[i + 1]);

@@ -19,7 +19,8 @@ use matflow_geom::{Hit, PACKET};
 
 use crate::bsdf;
 use crate::filter::PixelFilter;
-use crate::rng::Sampler;
+use crate::fmath;
+use crate::rng::{Keys1d, Keys2d, Sampler};
 use crate::scene::RenderScene;
 use crate::warp::Frame;
 
@@ -180,6 +181,32 @@ struct LightSample {
     ray: u32,
 }
 
+/// The keys of a vertex's draws — envmap sample (2-D), lobe (1-D),
+/// direction (2-D) — for a sampler standing at the vertex's first
+/// dimension.
+#[derive(Clone, Copy)]
+struct VertexKeys {
+    light: Keys2d,
+    lobe: Keys1d,
+    direction: Keys2d,
+}
+
+impl VertexKeys {
+    #[inline]
+    fn of(rng: &Sampler) -> VertexKeys {
+        let mut r = rng.clone();
+        let light = r.keys_2d();
+        r.skip(1);
+        let lobe = r.keys_1d();
+        r.skip(1);
+        VertexKeys {
+            light,
+            lobe,
+            direction: r.keys_2d(),
+        }
+    }
+}
+
 /// One path in flight: its sampler and radiance so far, and the vertex it
 /// stands at (point `p`, triangle `prim`, material of pixel `q`, the
 /// segment `dir` that reached it).
@@ -287,9 +314,10 @@ impl Wavefront {
             let (x, y) = ((pix as usize % w) as f32, (pix as usize / w) as f32);
             // The pixel's key is hashed once for its samples.
             let pixel = Sampler::for_sample(opts.seed, pix as u64, 0, spp);
+            let jitter = pixel.keys_2d();
             for s in 0..spp {
                 let mut rng = pixel.for_sample_index(s);
-                let (jx, jy) = rng.next_2d();
+                let (jx, jy) = rng.next_2d_with(jitter);
                 let film = Vec2::new(x + jx, y + jy);
                 self.paths.push(Path::new(scene, film, rng));
             }
@@ -423,8 +451,19 @@ impl Wavefront {
         sinks: &mut [S],
     ) {
         self.rays.clear();
+        // The samples of a pixel stand at the same dimension of its
+        // sampler: the keys of the vertex's draws are computed once.
+        let mut keys: Option<(Sampler, VertexKeys)> = None;
         for &i in &self.active {
             let path = &mut self.paths[i as usize];
+            let k = match &keys {
+                Some((at, k)) if at.same_dimension(&path.rng) => *k,
+                _ => {
+                    let k = VertexKeys::of(&path.rng);
+                    keys = Some((path.rng.clone(), k));
+                    k
+                }
+            };
             let n = scene.face_normals[path.hit.prim as usize];
             let v = -path.dir;
             let mat = scene.materials[path.q];
@@ -433,7 +472,7 @@ impl Wavefront {
             path.mat = mat;
 
             // Next-event estimation towards the environment map.
-            let (ue1, ue2) = path.rng.next_2d();
+            let (ue1, ue2) = path.rng.next_2d_with(k.light);
             path.light = None;
             if let Some((wl, le, pdf_e)) = scene.env.sample(ue1, ue2) {
                 if n.dot(wl) > 0.0 && pdf_e > 0.0 {
@@ -449,8 +488,8 @@ impl Wavefront {
             }
 
             // The BSDF sample the path continues with.
-            let u_lobe = path.rng.next_f32();
-            let (u1, u2) = path.rng.next_2d();
+            let u_lobe = path.rng.next_f32_with(k.lobe);
+            let (u1, u2) = path.rng.next_2d_with(k.direction);
             path.next = bsdf::sample(&mat, n, v, u_lobe, u1, u2)
                 .filter(|s| s.weight.max_element() > 0.0)
                 .map(|s| {
@@ -662,10 +701,12 @@ pub fn render(
                                 buf[k] += li1;
                             }
                             PixelFilter::Gaussian { .. } => {
-                                let lo_x = ((film.x - 0.5 - r).ceil() as i64).max(wx0 as i64);
-                                let hi_x = ((film.x - 0.5 + r).floor() as i64).min(wx1 as i64 - 1);
-                                let lo_y = ((film.y - 0.5 - r).ceil() as i64).max(wy0 as i64);
-                                let hi_y = ((film.y - 0.5 + r).floor() as i64).min(wy1 as i64 - 1);
+                                let lo_x = (fmath::ceil(film.x - 0.5 - r) as i64).max(wx0 as i64);
+                                let hi_x =
+                                    (fmath::floor(film.x - 0.5 + r) as i64).min(wx1 as i64 - 1);
+                                let lo_y = (fmath::ceil(film.y - 0.5 - r) as i64).max(wy0 as i64);
+                                let hi_y =
+                                    (fmath::floor(film.y - 0.5 + r) as i64).min(wy1 as i64 - 1);
                                 // Separable: the 1-D weights of the
                                 // footprint's columns, once per sample.
                                 for (i, px) in (lo_x..=hi_x).enumerate() {

@@ -8,6 +8,7 @@
 pub mod bsdf;
 pub mod envmap;
 pub mod filter;
+pub mod fmath;
 pub mod integrator;
 pub mod rng;
 pub mod scene;

@@ -120,6 +120,35 @@ pub fn owen_scramble(x: u32, seed: u32) -> u32 {
     v.reverse_bits()
 }
 
+/// [`owen_scramble`] of the fraction whose bit reversal is `v`
+/// (`owen_scramble(x, seed) == owen_scramble_reversed(x.reverse_bits(),
+/// seed)`), saving the reversal where the caller has `v` at hand.
+#[inline]
+pub fn owen_scramble_reversed(mut v: u32, seed: u32) -> u32 {
+    v ^= v.wrapping_mul(0x3d20_adea);
+    v = v.wrapping_add(seed);
+    v = v.wrapping_mul((seed >> 16) | 1);
+    v ^= v.wrapping_mul(0x0552_6c56);
+    v ^= v.wrapping_mul(0x53a2_2864);
+    v.reverse_bits()
+}
+
+/// [`sobol_2d`] with both coordinates bit-reversed: (i, the second
+/// dimension's generator columns applied in reversed bit order).
+#[inline]
+pub fn sobol_2d_reversed(i: u32) -> (u32, u32) {
+    let mut y = 0u32;
+    let mut v = 1u32;
+    let mut k = i;
+    while k != 0 {
+        // Branch-free: the bit is unpredictable.
+        y ^= v & (k & 1).wrapping_neg();
+        k >>= 1;
+        v ^= v << 1;
+    }
+    (i, y)
+}
+
 /// The first two dimensions of the Sobol sequence, as 32-bit fractions:
 /// (van der Corput, Sobol's second dimension); a (0, 2)-sequence.
 #[inline]
@@ -187,30 +216,139 @@ impl Sampler {
         mix64(self.key ^ ((self.dim as u64) << 8 | salt).wrapping_mul(0x9e37_79b9_7f4a_7c15))
     }
 
+    /// The keys of the next 2-D draw: a function of the pixel and the
+    /// dimension only, so every sample of a pixel standing at the same
+    /// dimension shares them (see [`Sampler::same_dimension`]).
+    #[inline]
+    pub fn keys_2d(&self) -> Keys2d {
+        let h = self.hash(2);
+        Keys2d {
+            permutation: h as u32,
+            scramble_x: (h >> 32) as u32,
+            scramble_y: mix64(h) as u32,
+        }
+    }
+
+    /// The keys of the next 1-D draw (as [`Sampler::keys_2d`]).
+    #[inline]
+    pub fn keys_1d(&self) -> Keys1d {
+        let h = self.hash(1);
+        Keys1d {
+            permutation: h as u32,
+            scramble: (h >> 32) as u32,
+        }
+    }
+
+    /// True when `other`'s next draws have the same keys as this one's:
+    /// another sample of the same pixel at the same dimension.
+    #[inline]
+    pub fn same_dimension(&self, other: &Sampler) -> bool {
+        self.key == other.key && self.dim == other.dim
+    }
+
+    /// Skips `n` draws (1-D or 2-D, each is one dimension).
+    #[inline]
+    pub fn skip(&mut self, n: u32) {
+        self.dim += n;
+    }
+
     #[inline]
     pub fn next_2d(&mut self) -> (f32, f32) {
-        let h = self.hash(2);
-        let i = permutation_element(self.sample, self.spp, h as u32);
-        let (x, y) = sobol_2d(i);
+        let k = self.keys_2d();
+        self.next_2d_with(k)
+    }
+
+    /// [`Sampler::next_2d`] with its keys already computed (they must be
+    /// this sampler's [`Sampler::keys_2d`]).
+    #[inline]
+    pub fn next_2d_with(&mut self, k: Keys2d) -> (f32, f32) {
+        debug_assert!(k == self.keys_2d());
+        let i = permutation_element(self.sample, self.spp, k.permutation);
         self.dim += 1;
+        // The Sobol point's coordinates bit-reversed: what the scramble
+        // works on (it reverses its input and output).
+        let (xr, yr) = sobol_2d_reversed(i);
         (
-            to_unit(owen_scramble(x, (h >> 32) as u32)),
-            to_unit(owen_scramble(y, mix64(h) as u32)),
+            to_unit(owen_scramble_reversed(xr, k.scramble_x)),
+            to_unit(owen_scramble_reversed(yr, k.scramble_y)),
         )
     }
 
     #[inline]
     pub fn next_f32(&mut self) -> f32 {
-        let h = self.hash(1);
-        let i = permutation_element(self.sample, self.spp, h as u32);
-        self.dim += 1;
-        to_unit(owen_scramble(i.reverse_bits(), (h >> 32) as u32))
+        let k = self.keys_1d();
+        self.next_f32_with(k)
     }
+
+    /// [`Sampler::next_f32`] with its keys already computed.
+    #[inline]
+    pub fn next_f32_with(&mut self, k: Keys1d) -> f32 {
+        debug_assert!(k == self.keys_1d());
+        let i = permutation_element(self.sample, self.spp, k.permutation);
+        self.dim += 1;
+        to_unit(owen_scramble_reversed(i, k.scramble))
+    }
+}
+
+/// The keys of one 2-D draw of a pixel's samples: which permutation of
+/// the samples, and the two coordinates' scrambles.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Keys2d {
+    permutation: u32,
+    scramble_x: u32,
+    scramble_y: u32,
+}
+
+/// The keys of one 1-D draw of a pixel's samples.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Keys1d {
+    permutation: u32,
+    scramble: u32,
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn reversed_forms_agree_with_the_plain_ones() {
+        let mut r = Pcg32::new(5, 9);
+        for _ in 0..10_000 {
+            let (i, seed) = (r.next_u32(), r.next_u32());
+            let (x, y) = sobol_2d(i);
+            let (xr, yr) = sobol_2d_reversed(i);
+            assert_eq!((x.reverse_bits(), y.reverse_bits()), (xr, yr));
+            assert_eq!(owen_scramble(x, seed), owen_scramble_reversed(xr, seed));
+        }
+        // Keyed draws are the draws as first defined: hash the pixel's key
+        // with the dimension, permute the sample, scramble the Sobol point.
+        let plain_2d = |s: &mut Sampler| {
+            let h = s.hash(2);
+            let i = permutation_element(s.sample, s.spp, h as u32);
+            let (x, y) = sobol_2d(i);
+            s.dim += 1;
+            (
+                to_unit(owen_scramble(x, (h >> 32) as u32)),
+                to_unit(owen_scramble(y, mix64(h) as u32)),
+            )
+        };
+        let plain_1d = |s: &mut Sampler| {
+            let h = s.hash(1);
+            let i = permutation_element(s.sample, s.spp, h as u32);
+            s.dim += 1;
+            to_unit(owen_scramble(i.reverse_bits(), (h >> 32) as u32))
+        };
+        let s = Sampler::for_sample(3, 77, 5, 64);
+        let (mut a, mut b, mut c) = (s.clone(), s.clone(), s.clone());
+        for _ in 0..6 {
+            assert!(a.same_dimension(&b) && a.same_dimension(&c));
+            let (k1, x) = (b.keys_1d(), plain_1d(&mut c));
+            assert_eq!((a.next_f32(), b.next_f32_with(k1)), (x, x));
+            let (k2, p) = (b.keys_2d(), plain_2d(&mut c));
+            assert_eq!((a.next_2d(), b.next_2d_with(k2)), (p, p));
+        }
+        assert!(!a.same_dimension(&s));
+    }
 
     #[test]
     fn permutation_is_a_bijection() {

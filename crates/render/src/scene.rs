@@ -7,6 +7,7 @@ use matflow_scene::{Camera, GrayImage, MaterialMaps};
 
 use crate::bsdf::Material;
 use crate::envmap::EnvMap;
+use crate::fmath;
 use crate::RenderError;
 
 /// Per-pixel materials of the maps (row-major), sanitised.
@@ -103,8 +104,8 @@ impl RenderScene {
         let w = self.camera.width;
         let h = self.camera.height;
         // NaN clamps to 0 through the saturating cast.
-        let x = (fx.floor().clamp(0.0, w as f32 - 1.0)) as usize;
-        let y = (fy.floor().clamp(0.0, h as f32 - 1.0)) as usize;
+        let x = (fmath::floor(fx).clamp(0.0, w as f32 - 1.0)) as usize;
+        let y = (fmath::floor(fy).clamp(0.0, h as f32 - 1.0)) as usize;
         Some(y * w + x)
     }
 
