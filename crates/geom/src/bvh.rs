@@ -329,43 +329,46 @@ impl Closest {
     }
 }
 
-/// The entered children of a node (bit mask `bits`, entry distances `tn`)
-/// ordered far to near, so that the last is visited first. With
-/// `prefetch_all` each one's memory is prefetched, else only the nearest
-/// one's. Returns them and their count.
+/// Visits the nearest entered child next: pushes the other entered
+/// children of `node` (bit mask `bits`, entry distances `tn`) as they
+/// come, prefetches the nearest one (with `prefetch_rest`, the pushed ones
+/// too) and returns it, or `None` when no child is entered. Finding the
+/// nearest costs one pass; sorting the rest pays little, as most
+/// incoherent rays end without a hit and visit every entered child.
 #[inline(always)]
-fn far_to_near(
+fn nearest_first(
     bvh: &Bvh,
     node: &Node,
     mut bits: u32,
     tn: &[Vec4; HALVES],
-    prefetch_all: bool,
-) -> ([(u32, f32); LANES], usize) {
+    stack: &mut Stack,
+    prefetch_rest: bool,
+) -> Option<(u32, f32)> {
+    if bits == 0 {
+        return None;
+    }
     let mut entry = [0f32; LANES];
     for h in 0..HALVES {
         tn[h].write_to_slice(&mut entry[4 * h..4 * h + 4]);
     }
-    let mut order = [(0u32, 0f32); LANES];
-    let mut k = 0;
+    let mut best = bits.trailing_zeros() as usize;
+    let mut rest = bits & (bits - 1);
+    while rest != 0 {
+        let l = rest.trailing_zeros() as usize;
+        rest &= rest - 1;
+        best = if entry[l] < entry[best] { l } else { best };
+    }
+    bits &= !(1 << best);
     while bits != 0 {
-        let lane = bits.trailing_zeros() as usize;
+        let l = bits.trailing_zeros() as usize;
         bits &= bits - 1;
-        let e = (node.child[lane], entry[lane]);
-        if prefetch_all {
-            prefetch(bvh, e.0);
+        if prefetch_rest {
+            prefetch(bvh, node.child[l]);
         }
-        let mut j = k;
-        while j > 0 && order[j - 1].1 < e.1 {
-            order[j] = order[j - 1];
-            j -= 1;
-        }
-        order[j] = e;
-        k += 1;
+        stack.push((node.child[l], entry[l]));
     }
-    if !prefetch_all && k > 0 {
-        prefetch(bvh, order[k - 1].0);
-    }
-    (order, k)
+    prefetch(bvh, node.child[best]);
+    Some((node.child[best], entry[best]))
 }
 
 impl Bvh {
@@ -608,12 +611,8 @@ impl Bvh {
                             bits &= !(1 << lane);
                         }
                     }
-                    let (order, k) = far_to_near(self, node, bits, &tn, true);
-                    if k > 0 {
-                        for &e in &order[..k - 1] {
-                            stack.push(e);
-                        }
-                        (slot, entry) = order[k - 1];
+                    if let Some(next) = nearest_first(self, node, bits, &tn, &mut stack, true) {
+                        (slot, entry) = next;
                         continue;
                     }
                 } else {
@@ -778,15 +777,11 @@ impl Walk {
             if self.slot & LEAF == 0 {
                 let node = &bvh.nodes[self.slot as usize];
                 let (tn, bits) = self.ray.slabs(node, self.tmin, self.hit.limit);
-                // Entered children far to near, so the nearest is visited
-                // first (only it is prefetched: prefetching them all floods
-                // the fill buffers when many rays are in flight).
-                let (order, k) = far_to_near(bvh, node, bits, &tn, false);
-                if k > 0 {
-                    for &e in &order[..k - 1] {
-                        self.stack.push(e);
-                    }
-                    (self.slot, self.entry) = order[k - 1];
+                // Only the child visited next is prefetched: prefetching
+                // them all floods the fill buffers when many rays are in
+                // flight.
+                if let Some(next) = nearest_first(bvh, node, bits, &tn, &mut self.stack, false) {
+                    (self.slot, self.entry) = next;
                     return None;
                 }
             } else {
