@@ -270,19 +270,25 @@ impl EnvMap {
 #[inline]
 fn sample_cdf(cdf: &[f64], u: f64) -> (usize, f64) {
     let n = cdf.len() - 1;
-    // First index with cdf[i+1] > u (the count of bins whose end is
-    // ≤ u): a branch-free search over `ends`, whose comparisons compile to
-    // conditional moves (a sampled u makes every branch a coin toss).
+    // First index with cdf[i+1] > u: the number of bin ends ≤ u (the
+    // ends are non-decreasing). A branch-free halving narrows the range
+    // to at most 32 ends, which are counted with a vectorised compare (a
+    // sampled u makes every branch of a binary search a coin toss, and
+    // its loads a chain).
     let ends = &cdf[1..];
     let mut base = 0usize;
     let mut len = n;
-    while len > 1 {
+    while len > 32 {
         let half = len / 2;
         let mid = base + half;
         base = if ends[mid] <= u { mid } else { base };
         len -= half;
     }
-    let lo = base + usize::from(ends[base] <= u);
+    let lo = base
+        + ends[base..base + len]
+            .iter()
+            .map(|&e| usize::from(e <= u))
+            .sum::<usize>();
     let i = lo.min(n - 1);
     // Skip empty bins at the end.
     let (a, b) = (cdf[i], cdf[i + 1]);
@@ -330,6 +336,40 @@ pub fn rotate_and_expose(env: &RgbImage, deg: f64, ev: f64) -> RgbImage {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn cdf_inversion_finds_the_bin_a_plain_search_finds() {
+        let mut r = crate::rng::Pcg32::new(11, 3);
+        for n in [1usize, 2, 3, 31, 32, 33, 64, 65, 100, 1024, 1025, 4099] {
+            // Random weights with runs of empty bins.
+            let w: Vec<f64> = (0..n)
+                .map(|_| {
+                    let x = r.next_f32() as f64;
+                    if x < 0.3 {
+                        0.0
+                    } else {
+                        x
+                    }
+                })
+                .collect();
+            let total: f64 = w.iter().sum();
+            let mut cdf = vec![0.0];
+            let mut acc = 0.0;
+            for x in &w {
+                acc += x;
+                cdf.push(if total > 0.0 { acc / total } else { 0.0 });
+            }
+            let mut us: Vec<f64> = (0..2000).map(|_| r.next_f32() as f64).collect();
+            us.extend(cdf.iter().copied().filter(|&c| c < 1.0)); // exactly on ends
+            us.push(0.0);
+            for u in us {
+                let want = cdf[1..].partition_point(|&e| e <= u).min(n - 1);
+                let (i, t) = sample_cdf(&cdf, u);
+                assert_eq!(i, want, "n {n} u {u}");
+                assert!((0.0..1.0).contains(&t));
+            }
+        }
+    }
 
     fn test_map() -> RgbImage {
         Image::from_fn(32, 16, |x, y| {
