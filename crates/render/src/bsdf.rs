@@ -78,7 +78,7 @@ pub fn pdf(m: &Material, n: Vec3, v: Vec3, l: Vec3) -> f32 {
 
 /// [`eval`] and [`pdf`] together, sharing the half vector and the GGX
 /// term (what a path tracer needs at every light sample and BSDF sample).
-#[inline]
+#[inline(always)]
 pub fn eval_pdf(m: &Material, n: Vec3, v: Vec3, l: Vec3) -> (Vec3, f32) {
     let nol = n.dot(l).max(0.0);
     let h = (l + v).normalize_or_zero();
