@@ -106,23 +106,12 @@ pub fn permutation_element(i: u32, n: u32, key: u32) -> u32 {
     (i.wrapping_add(p)) % n
 }
 
-/// Owen scrambling of a 32-bit binary fraction with a hash (Burley,
-/// "Practical Hash-based Owen Scrambling", 2020): flipping bit j depends
-/// on the bits above it, as a nested uniform scramble does.
-#[inline]
-pub fn owen_scramble(x: u32, seed: u32) -> u32 {
-    let mut v = x.reverse_bits();
-    v ^= v.wrapping_mul(0x3d20_adea);
-    v = v.wrapping_add(seed);
-    v = v.wrapping_mul((seed >> 16) | 1);
-    v ^= v.wrapping_mul(0x0552_6c56);
-    v ^= v.wrapping_mul(0x53a2_2864);
-    v.reverse_bits()
-}
-
-/// [`owen_scramble`] of the fraction whose bit reversal is `v`
-/// (`owen_scramble(x, seed) == owen_scramble_reversed(x.reverse_bits(),
-/// seed)`), saving the reversal where the caller has `v` at hand.
+/// Owen scrambling with a hash (Burley, "Practical Hash-based Owen
+/// Scrambling", 2020) of the 32-bit binary fraction whose bits, reversed,
+/// are `v`: flipping bit j depends on the bits above it, as a nested
+/// uniform scramble does. The hash works on the reversed bits, so the
+/// caller passes them (a Sobol index is already its first coordinate
+/// reversed); the result is the scrambled fraction.
 #[inline]
 pub fn owen_scramble_reversed(mut v: u32, seed: u32) -> u32 {
     v ^= v.wrapping_mul(0x3d20_adea);
@@ -133,8 +122,11 @@ pub fn owen_scramble_reversed(mut v: u32, seed: u32) -> u32 {
     v.reverse_bits()
 }
 
-/// [`sobol_2d`] with both coordinates bit-reversed: (i, the second
-/// dimension's generator columns applied in reversed bit order).
+/// Point `i` of the first two dimensions of the Sobol sequence (van der
+/// Corput, Sobol's second dimension; a (0, 2)-sequence) as 32-bit
+/// fractions with their bits reversed, as [`owen_scramble_reversed`]
+/// takes them: (i, the second dimension's generator columns applied in
+/// reversed bit order).
 #[inline]
 pub fn sobol_2d_reversed(i: u32) -> (u32, u32) {
     let mut y = 0u32;
@@ -147,23 +139,6 @@ pub fn sobol_2d_reversed(i: u32) -> (u32, u32) {
         v ^= v << 1;
     }
     (i, y)
-}
-
-/// The first two dimensions of the Sobol sequence, as 32-bit fractions:
-/// (van der Corput, Sobol's second dimension); a (0, 2)-sequence.
-#[inline]
-pub fn sobol_2d(i: u32) -> (u32, u32) {
-    let x = i.reverse_bits();
-    let mut y = 0u32;
-    let mut v = 1u32 << 31;
-    let mut k = i;
-    while k != 0 {
-        // Branch-free: the bit is unpredictable.
-        y ^= v & (k & 1).wrapping_neg();
-        k >>= 1;
-        v ^= v >> 1;
-    }
-    (x, y)
 }
 
 #[inline]
@@ -311,43 +286,95 @@ mod tests {
     use super::*;
 
     #[test]
-    fn reversed_forms_agree_with_the_plain_ones() {
-        let mut r = Pcg32::new(5, 9);
-        for _ in 0..10_000 {
-            let (i, seed) = (r.next_u32(), r.next_u32());
-            let (x, y) = sobol_2d(i);
+    fn sobol_points_are_the_first_two_sobol_dimensions() {
+        // Known answers, in eighths, for i = 0..8: van der Corput, and
+        // Sobol's second dimension (direction numbers 1/2, 3/4, 5/8, taken
+        // by the bits of i, not in Gray-code order).
+        let x = [0, 4, 2, 6, 1, 5, 3, 7];
+        let y = [0, 4, 6, 2, 5, 1, 3, 7];
+        for i in 0..8u32 {
             let (xr, yr) = sobol_2d_reversed(i);
-            assert_eq!((x.reverse_bits(), y.reverse_bits()), (xr, yr));
-            assert_eq!(owen_scramble(x, seed), owen_scramble_reversed(xr, seed));
+            assert_eq!(xr.reverse_bits() >> 29, x[i as usize], "x of {i}");
+            assert_eq!(yr.reverse_bits() >> 29, y[i as usize], "y of {i}");
+            assert_eq!(xr.reverse_bits() << 3, 0);
+            assert_eq!(yr.reverse_bits() << 3, 0);
         }
-        // Keyed draws are the draws as first defined: hash the pixel's key
-        // with the dimension, permute the sample, scramble the Sobol point.
-        let plain_2d = |s: &mut Sampler| {
-            let h = s.hash(2);
-            let i = permutation_element(s.sample, s.spp, h as u32);
-            let (x, y) = sobol_2d(i);
-            s.dim += 1;
+    }
+
+    /// A nested uniform scramble permutes the 2^k aligned intervals of
+    /// [0, 1): the 16 points j/16 land one in each sixteenth.
+    #[test]
+    fn owen_scrambling_keeps_points_stratified() {
+        let mut r = Pcg32::new(5, 9);
+        for _ in 0..1000 {
+            let seed = r.next_u32();
+            let mut seen = [false; 16];
+            for j in 0..16u32 {
+                let cell = (owen_scramble_reversed((j << 28).reverse_bits(), seed) >> 28) as usize;
+                assert!(!seen[cell], "seed {seed:#x}: sixteenth {cell} twice");
+                seen[cell] = true;
+            }
+        }
+    }
+
+    /// The draws are pinned (the bits the renderer has always drawn:
+    /// hashing, permutation, Sobol points and scrambling), and drawing
+    /// with keys computed once gives the same numbers.
+    #[test]
+    fn draws_are_pinned_and_keyed_draws_equal_them() {
+        let golden: [(u64, u64, u32, u32, [u32; 9]); 2] = [
             (
-                to_unit(owen_scramble(x, (h >> 32) as u32)),
-                to_unit(owen_scramble(y, mix64(h) as u32)),
-            )
-        };
-        let plain_1d = |s: &mut Sampler| {
-            let h = s.hash(1);
-            let i = permutation_element(s.sample, s.spp, h as u32);
-            s.dim += 1;
-            to_unit(owen_scramble(i.reverse_bits(), (h >> 32) as u32))
-        };
-        let s = Sampler::for_sample(3, 77, 5, 64);
-        let (mut a, mut b, mut c) = (s.clone(), s.clone(), s.clone());
-        for _ in 0..6 {
-            assert!(a.same_dimension(&b) && a.same_dimension(&c));
-            let (k1, x) = (b.keys_1d(), plain_1d(&mut c));
-            assert_eq!((a.next_f32(), b.next_f32_with(k1)), (x, x));
-            let (k2, p) = (b.keys_2d(), plain_2d(&mut c));
-            assert_eq!((a.next_2d(), b.next_2d_with(k2)), (p, p));
+                3,
+                77,
+                5,
+                64,
+                [
+                    0x3f44_2c08,
+                    0x3e97_3272,
+                    0x3f4b_73d2,
+                    0x3f22_c000,
+                    0x3e0a_6c4c,
+                    0x3f67_f316,
+                    0x3d27_64c0,
+                    0x3f23_3c1a,
+                    0x3dd0_3c38,
+                ],
+            ),
+            (
+                1,
+                12345,
+                17,
+                41,
+                [
+                    0x3db4_f280,
+                    0x3f57_87bf,
+                    0x3e81_0a26,
+                    0x3ecb_ebbc,
+                    0x3e38_3ce4,
+                    0x3e06_12e0,
+                    0x3f31_8939,
+                    0x3e56_286c,
+                    0x3f6e_d78d,
+                ],
+            ),
+        ];
+        for (seed, pixel, sample, spp, want) in golden {
+            let s = Sampler::for_sample(seed, pixel, sample, spp);
+            let (mut a, mut b) = (s.clone(), s.clone());
+            let mut got = Vec::new();
+            for _ in 0..3 {
+                assert!(a.same_dimension(&b));
+                let k1 = b.keys_1d();
+                let x = a.next_f32();
+                assert_eq!(x, b.next_f32_with(k1));
+                let k2 = b.keys_2d();
+                let (u, v) = a.next_2d();
+                assert_eq!((u, v), b.next_2d_with(k2));
+                got.extend([x.to_bits(), u.to_bits(), v.to_bits()]);
+            }
+            assert_eq!(got, want, "sampler ({seed}, {pixel}, {sample}, {spp})");
+            assert!(!a.same_dimension(&s));
         }
-        assert!(!a.same_dimension(&s));
     }
 
     #[test]
