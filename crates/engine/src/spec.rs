@@ -22,7 +22,7 @@ use std::fmt;
 use std::path::{Path, PathBuf};
 
 use crate::node::{resolve_path, ParamType, Params, Registry};
-use crate::value::{parse_override, parse_yaml, Loc, Value};
+use crate::value::{clip, parse_override, parse_yaml, Loc, Value};
 
 /// A problem in a pipeline, found before any work starts.
 #[derive(Debug, Clone)]
@@ -95,14 +95,14 @@ impl Override {
     pub fn parse(text: &str) -> Result<Override, String> {
         let (lhs, rhs) = text
             .split_once('=')
-            .ok_or_else(|| format!("--set {text}: expected stage.param=value"))?;
+            .ok_or_else(|| format!("--set {}: expected stage.param=value", clip(text)))?;
         let (stage, param) = lhs
             .split_once('.')
-            .ok_or_else(|| format!("--set {text}: expected stage.param=value"))?;
+            .ok_or_else(|| format!("--set {}: expected stage.param=value", clip(text)))?;
         if stage.is_empty() || param.is_empty() {
-            return Err(format!("--set {text}: expected stage.param=value"));
+            return Err(format!("--set {}: expected stage.param=value", clip(text)));
         }
-        let value = parse_override(rhs).map_err(|e| format!("--set {text}: {e}"))?;
+        let value = parse_override(rhs).map_err(|e| format!("--set {}: {e}", clip(text)))?;
         Ok(Override {
             stage: stage.to_string(),
             param: param.to_string(),
@@ -184,7 +184,8 @@ pub fn parse(
                 return Err(err(
                     Some(*kl),
                     format!(
-                        "unknown key `{k}` (a pipeline has pipeline, description, remote_cache, stages, outputs)"
+                        "unknown key `{}` (a pipeline has pipeline, description, remote_cache, stages, outputs)",
+                        clip(k)
                     ),
                 ))
             }
@@ -212,16 +213,22 @@ pub fn parse(
         if !valid_name(sname) {
             return Err(err(
                 Some(*sl),
-                format!("stage name `{sname}`: use letters, digits, `_` and `-`"),
+                format!(
+                    "stage name `{}`: use letters, digits, `_` and `-`",
+                    clip(sname)
+                ),
             ));
         }
         if !seen.insert(sname.clone()) {
-            return Err(err(Some(*sl), format!("stage `{sname}` is defined twice")));
+            return Err(err(
+                Some(*sl),
+                format!("stage `{}` is defined twice", clip(sname)),
+            ));
         }
         let Value::Map(fields) = sv else {
             return Err(err(
                 Some(*svl),
-                format!("stage `{sname}` must be a mapping with a `kind`"),
+                format!("stage `{}` must be a mapping with a `kind`", clip(sname)),
             ));
         };
         let mut kind = None;
@@ -234,7 +241,7 @@ pub fn parse(
                 }
             } else {
                 if params.contains_key(k) {
-                    return Err(err(Some(*kl), format!("`{k}` is given twice")));
+                    return Err(err(Some(*kl), format!("`{}` is given twice", clip(k))));
                 }
                 params.insert(k.clone(), (v.clone(), Some(*kl), Some(*vl)));
             }
@@ -252,7 +259,8 @@ pub fn parse(
             return Err(err(
                 Some(kind_loc),
                 format!(
-                    "stage `{sname}`: unknown kind `{kind}` (one of: {})",
+                    "stage `{sname}`: unknown kind `{}` (one of: {})",
+                    clip(&kind),
                     reg.kinds().join(", ")
                 ),
             ));
@@ -269,7 +277,11 @@ pub fn parse(
         let Some(r) = raws.iter_mut().find(|r| r.name == o.stage) else {
             return Err(err(
                 None,
-                format!("--set {}: there is no stage `{}`", o.text, o.stage),
+                format!(
+                    "--set {}: there is no stage `{}`",
+                    clip(&o.text),
+                    clip(&o.stage)
+                ),
             ));
         };
         let node = reg.get(&r.kind).expect("kind checked");
@@ -278,9 +290,9 @@ pub fn parse(
                 None,
                 format!(
                     "--set {}: a {} stage has no parameter `{}` (it has: {})",
-                    o.text,
+                    clip(&o.text),
                     r.kind,
-                    o.param,
+                    clip(&o.param),
                     names(node.params().iter().map(|p| p.name))
                 ),
             ));
@@ -299,8 +311,9 @@ pub fn parse(
                 return Err(err(
                     *kl,
                     format!(
-                        "stage `{}`: unknown parameter `{k}` for kind {} (it has: {})",
+                        "stage `{}`: unknown parameter `{}` for kind {} (it has: {})",
                         r.name,
+                        clip(k),
                         r.kind,
                         names(specs.iter().map(|p| p.name))
                     ),
@@ -348,7 +361,13 @@ pub fn parse(
                 params.0.insert(p.name.to_string(), Value::Null);
                 continue;
             }
-            let bad = |v: &Value| where_(format!("expected {}, got {v}", p.ty.describe()));
+            let bad = |v: &Value| {
+                where_(format!(
+                    "expected {}, got {}",
+                    p.ty.describe(),
+                    clip(&v.to_string())
+                ))
+            };
             let norm = match p.ty {
                 ParamType::Bool
                 | ParamType::Int { .. }
@@ -383,7 +402,7 @@ pub fn parse(
                         None => (s.clone(), None),
                     };
                     if !stage_names.contains(&up) {
-                        return Err(where_(format!("there is no stage `{up}`")));
+                        return Err(where_(format!("there is no stage `{}`", clip(&up))));
                     }
                     if up == r.name {
                         return Err(where_(format!(
@@ -464,7 +483,7 @@ pub fn parse(
         if !stage_names.contains(o) {
             return Err(err(
                 Some(outputs_loc),
-                format!("`outputs` names `{o}`, which is not a stage"),
+                format!("`outputs` names `{}`, which is not a stage", clip(o)),
             ));
         }
     }

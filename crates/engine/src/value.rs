@@ -93,83 +93,164 @@ pub struct ParseError {
     pub message: String,
 }
 
-/// Finds a key given twice in one mapping (YAML forbids it; the loader
-/// would keep the last silently, hiding a stage or a parameter).
-struct DuplicateKeys {
-    /// Per open container: for mappings, the keys seen and whether the
-    /// next node is a key.
-    stack: Vec<Option<(std::collections::BTreeSet<String>, bool)>>,
-    found: Option<ParseError>,
+/// Bounds on a pipeline document, checked on the parser's event stream
+/// before any value is built: nothing a few bytes of YAML ask for can
+/// make the loader expand, nest or allocate beyond them.
+pub mod limits {
+    /// Bytes in one document (a 10,000-stage pipeline is ~1 MB).
+    pub const MAX_BYTES: usize = 16 << 20;
+    /// Nested mappings and sequences (a pipeline needs 4).
+    pub const MAX_DEPTH: usize = 64;
+    /// Entries of one mapping or items of one sequence.
+    pub const MAX_ITEMS: usize = 1_000_000;
+    /// Nodes (scalars, mappings, sequences) in the whole document.
+    pub const MAX_NODES: usize = 4_000_000;
 }
 
-impl DuplicateKeys {
-    /// A node starts in the innermost container; returns true if it is a
-    /// mapping key.
-    fn node(&mut self) -> bool {
-        match self.stack.last_mut() {
-            Some(Some((_, expect_key))) => {
-                let k = *expect_key;
-                *expect_key = !k;
-                k
-            }
-            _ => false,
+/// Checks a document's event stream against [`limits`] and finds a key
+/// given twice in one mapping (YAML forbids it; the loader would keep the
+/// last silently, hiding a stage or a parameter). Aliases are refused
+/// where they appear, before the loader could expand them ("billion
+/// laughs"): pipelines do not use them. Syntax errors are left to the
+/// loader, which reports them with its own message.
+fn check_events(text: &str) -> Result<(), ParseError> {
+    use saphyr_parser::Event;
+    if text.len() > limits::MAX_BYTES {
+        // Where the limit falls, as a line and column.
+        let mut cut = limits::MAX_BYTES;
+        while !text.is_char_boundary(cut) {
+            cut -= 1;
         }
+        let head = &text[..cut];
+        let line = head.matches('\n').count() + 1;
+        let col = head.rsplit('\n').next().map_or(0, |l| l.chars().count()) + 1;
+        return Err(ParseError {
+            loc: Loc { line, col },
+            message: format!(
+                "the document is {} bytes; a pipeline may have at most {} (limit reached here)",
+                text.len(),
+                limits::MAX_BYTES
+            ),
+        });
     }
-}
-
-impl<'i> saphyr_parser::SpannedEventReceiver<'i> for DuplicateKeys {
-    fn on_event(&mut self, ev: saphyr_parser::Event<'i>, span: saphyr_parser::Span) {
-        use saphyr_parser::Event;
+    // Per open container: its item count, and for mappings the keys seen
+    // and whether the next node is a key.
+    struct Open {
+        items: usize,
+        keys: Option<(std::collections::HashSet<String>, bool)>,
+    }
+    let mut stack: Vec<Open> = Vec::new();
+    let mut nodes = 0usize;
+    for ev in saphyr_parser::Parser::new_from_str(text) {
+        let (ev, span) = match ev {
+            Ok(e) => e,
+            // The scanner stops flow collections at 255 levels, before
+            // their events reach this check: the same limit, said the
+            // same way.
+            Err(e) if e.info().contains("recursion limit") => {
+                return Err(ParseError {
+                    loc: Loc {
+                        line: e.marker().line(),
+                        col: e.marker().col() + 1,
+                    },
+                    message: format!(
+                        "mappings and sequences nested more than {} deep",
+                        limits::MAX_DEPTH
+                    ),
+                })
+            }
+            Err(_) => return Ok(()),
+        };
+        let loc = Loc {
+            line: span.start.line(),
+            col: span.start.col() + 1,
+        };
+        let fail = |message: String| Err(ParseError { loc, message });
+        let is_node = matches!(
+            ev,
+            Event::Scalar(..)
+                | Event::Alias(_)
+                | Event::SequenceStart(..)
+                | Event::MappingStart(..)
+        );
+        // The node's place in its container: a mapping key or an item.
+        let mut is_key = false;
+        if is_node {
+            nodes += 1;
+            if nodes > limits::MAX_NODES {
+                return fail(format!(
+                    "more than {} YAML nodes in one document",
+                    limits::MAX_NODES
+                ));
+            }
+            if let Some(open) = stack.last_mut() {
+                match &mut open.keys {
+                    Some((_, expect_key)) => {
+                        is_key = *expect_key;
+                        *expect_key = !is_key;
+                        if is_key {
+                            open.items += 1;
+                        }
+                    }
+                    None => open.items += 1,
+                }
+                if open.items > limits::MAX_ITEMS {
+                    return fail(format!(
+                        "more than {} entries in one mapping or sequence",
+                        limits::MAX_ITEMS
+                    ));
+                }
+            }
+        }
         match ev {
-            // The guard also advances the key/value alternation.
-            Event::Scalar(v, ..) if self.node() => {
-                if let Some(Some((keys, _))) = self.stack.last_mut() {
-                    if !keys.insert(v.to_string()) && self.found.is_none() {
-                        self.found = Some(ParseError {
-                            loc: Loc {
-                                line: span.start.line(),
-                                col: span.start.col() + 1,
-                            },
-                            message: format!("`{v}` is given twice in this mapping"),
-                        });
+            Event::Alias(_) => {
+                return fail(
+                    "YAML aliases (*name) are not supported in pipelines; write the value out"
+                        .into(),
+                )
+            }
+            Event::Scalar(v, ..) if is_key => {
+                if let Some(Some((keys, _))) = stack.last_mut().map(|o| o.keys.as_mut()) {
+                    if !keys.insert(v.to_string()) {
+                        return fail(format!("`{}` is given twice in this mapping", clip(&v)));
                     }
                 }
             }
-            Event::Alias(_) => {
-                self.node();
-            }
-            Event::SequenceStart(..) => {
-                self.node();
-                self.stack.push(None);
-            }
-            Event::MappingStart(..) => {
-                self.node();
-                self.stack.push(Some((Default::default(), true)));
+            Event::SequenceStart(..) | Event::MappingStart(..) => {
+                if stack.len() >= limits::MAX_DEPTH {
+                    return fail(format!(
+                        "mappings and sequences nested more than {} deep",
+                        limits::MAX_DEPTH
+                    ));
+                }
+                let keys =
+                    matches!(ev, Event::MappingStart(..)).then(|| (Default::default(), true));
+                stack.push(Open { items: 0, keys });
             }
             Event::SequenceEnd | Event::MappingEnd => {
-                self.stack.pop();
+                stack.pop();
             }
             _ => {}
         }
     }
+    Ok(())
 }
 
-/// Parses one YAML document into a located value tree. A key given twice
-/// in one mapping is an error.
-pub fn parse_yaml(text: &str) -> Result<(Value, Loc), ParseError> {
-    let mut dup = DuplicateKeys {
-        stack: Vec::new(),
-        found: None,
-    };
-    // Syntax errors are reported by the loader below, with its message.
-    if saphyr_parser::Parser::new_from_str(text)
-        .load(&mut dup, true)
-        .is_ok()
-    {
-        if let Some(e) = dup.found {
-            return Err(e);
-        }
+/// `s`, or its first characters and how long it was, for messages that
+/// must not echo huge values.
+pub fn clip(s: &str) -> String {
+    const KEEP: usize = 80;
+    match s.char_indices().nth(KEEP) {
+        None => s.to_string(),
+        Some((cut, _)) => format!("{}… ({} bytes)", &s[..cut], s.len()),
     }
+}
+
+/// Parses one YAML document into a located value tree, within
+/// [`limits`]. A key given twice in one mapping is an error, and so is an
+/// alias.
+pub fn parse_yaml(text: &str) -> Result<(Value, Loc), ParseError> {
+    check_events(text)?;
     let docs = MarkedYamlOwned::load_from_str(text).map_err(|e| ParseError {
         loc: Loc {
             line: e.marker().line(),
@@ -274,9 +355,12 @@ fn scalar(s: &ScalarOwned, loc: Loc) -> Result<Value, ParseError> {
 /// Parses a `--set` value: a YAML scalar or flow sequence.
 pub fn parse_override(text: &str) -> Result<Value, String> {
     match parse_yaml(text) {
-        Ok((Value::Map(_), _)) => Err(format!("'{text}' is a mapping; give a scalar or a list")),
+        Ok((Value::Map(_), _)) => Err(format!(
+            "'{}' is a mapping; give a scalar or a list",
+            clip(text)
+        )),
         Ok((v, _)) => Ok(v),
-        Err(e) => Err(format!("'{text}': {}", e.message)),
+        Err(e) => Err(format!("'{}': {}", clip(text), e.message)),
     }
 }
 
@@ -301,6 +385,89 @@ mod tests {
                 Value::Str("x".into())
             ])
         );
+    }
+
+    /// "Billion laughs": nine aliases of nine aliases of … of a list.
+    /// Expanded it would be 9^12 strings; refused at the first alias.
+    pub(crate) fn alias_bomb() -> String {
+        let mut t = String::from("a0: &a0 [lol, lol, lol, lol, lol, lol, lol, lol, lol]\n");
+        for i in 1..12 {
+            let refs = vec![format!("*a{}", i - 1); 9].join(", ");
+            t += &format!("a{i}: &a{i} [{refs}]\n");
+        }
+        t + "stages:\n  x: *a11\n"
+    }
+
+    #[test]
+    fn aliases_are_refused_where_they_are_not_expanded() {
+        let t = std::time::Instant::now();
+        let e = parse_yaml(&alias_bomb()).unwrap_err();
+        assert_eq!(e.loc, Loc { line: 2, col: 10 });
+        assert!(e.message.contains("aliases"), "{}", e.message);
+        assert!(t.elapsed().as_secs() < 5, "refused at once");
+        // A single alias is refused the same way (pipelines never use them).
+        let e = parse_yaml("a: &x 1\nb: *x\n").unwrap_err();
+        assert_eq!(e.loc, Loc { line: 2, col: 4 });
+    }
+
+    #[test]
+    fn nesting_is_bounded_in_every_syntax() {
+        let d = 8000;
+        // Flow, compact block sequences, indented block mappings.
+        let flow = format!("p: {}1{}\n", "[".repeat(d), "]".repeat(d));
+        let compact = format!("p:\n  {}x\n", "- ".repeat(d));
+        let block: String = (0..1000)
+            .map(|i| format!("{}k:\n", " ".repeat(i)))
+            .collect();
+        for (text, line) in [(flow, 1), (compact, 2), (block, limits::MAX_DEPTH + 1)] {
+            let e = parse_yaml(&text).unwrap_err();
+            assert!(e.message.contains("nested more than 64"), "{}", e.message);
+            assert_eq!(e.loc.line, line);
+        }
+        // Up to the limit is fine.
+        let ok = format!(
+            "p: {}1{}\n",
+            "[".repeat(limits::MAX_DEPTH - 1),
+            "]".repeat(limits::MAX_DEPTH - 1)
+        );
+        assert!(parse_yaml(&ok).is_ok());
+        // So is an override, whose errors do not echo the whole text.
+        let e = parse_override(&format!("{}1{}", "[".repeat(d), "]".repeat(d))).unwrap_err();
+        assert!(e.contains("nested more than 64"), "{e}");
+        assert!(e.len() < 300, "{e}");
+    }
+
+    #[test]
+    fn size_and_collections_are_bounded() {
+        let big = format!("a: \"{}\"\n", "x".repeat(limits::MAX_BYTES));
+        let e = parse_yaml(&big).unwrap_err();
+        assert!(e.message.contains("at most 16777216"), "{}", e.message);
+        assert_eq!(
+            e.loc,
+            Loc {
+                line: 1,
+                col: limits::MAX_BYTES + 1
+            }
+        );
+        let items = vec!["1"; limits::MAX_ITEMS + 1].join(",");
+        let e = parse_yaml(&format!("a: [{items}]\n")).unwrap_err();
+        assert!(
+            e.message.contains("more than 1000000 entries"),
+            "{}",
+            e.message
+        );
+        assert_eq!(e.loc.line, 1);
+        let items = vec!["1"; limits::MAX_ITEMS].join(",");
+        assert!(parse_yaml(&format!("a: [{items}]\n")).is_ok());
+    }
+
+    #[test]
+    fn clip_keeps_short_text_and_cuts_long_text_at_a_character() {
+        assert_eq!(clip("abc"), "abc");
+        let long = "é".repeat(1000);
+        let c = clip(&long);
+        assert!(c.starts_with(&"é".repeat(80)));
+        assert!(c.ends_with("… (2000 bytes)"), "{c}");
     }
 
     #[test]
