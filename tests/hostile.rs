@@ -85,7 +85,7 @@ fn yaml_bombs_end_in_a_located_error_at_once_and_in_bounded_memory() {
     refused(&dir, "flow.yaml", &flow, &[], "nested more than 64 deep");
 
     // The same through --set, whose message does not echo the value.
-    let ok = "stages:\n  x:\n    kind: synth\noutputs: [x]\n";
+    let ok = "stages:\n  x:\n    kind: synthetic_scene\noutputs: [x]\n";
     let set = format!("x.size={}1{}", "[".repeat(8000), "]".repeat(8000));
     let e = refused(
         &dir,
@@ -105,5 +105,138 @@ fn yaml_bombs_end_in_a_located_error_at_once_and_in_bounded_memory() {
     );
     let e = refused(&dir, "wide.yaml", &wide, &[], "more than 1000000 entries");
     assert!(e.contains("wide.yaml:4:"), "{e}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A pipeline that renders a small procedural scene to `output`.
+fn render_pipeline(output: &str, spp: u32) -> String {
+    format!(
+        "stages:\n  scene:\n    kind: synthetic_scene\n    size: 24\n    spp: 2\n  \
+         mesh:\n    kind: mesh\n    scene: scene\n  \
+         shot:\n    kind: render\n    mesh: mesh\n    materials: scene\n    \
+         envmap: scene.truth_envmap\n    spp: {spp}\n    output: {output}\n\
+         outputs: [shot]\n"
+    )
+}
+
+#[test]
+fn outputs_may_not_destroy_inputs_or_each_other() {
+    let dir = tmp("outputs");
+    let bundle = dir.join("bundle");
+    let (out, _) = matflow_capped(
+        4096,
+        &[
+            "synth",
+            "--out",
+            bundle.to_str().unwrap(),
+            "--size",
+            "16",
+            "--spp",
+            "1",
+        ],
+    );
+    assert!(out.status.success(), "{}", stderr(&out));
+    // The PNG written beside `p.exr` would be the pipeline file itself.
+    let e = refused(
+        &dir,
+        "p.png",
+        &render_pipeline("p.exr", 1),
+        &[],
+        "would overwrite the pipeline file",
+    );
+    assert!(e.contains("p.png:"), "{e}");
+    // … or an input image.
+    let photo = dir.join("photo.png");
+    std::fs::copy(bundle.join("gt_image.png"), &photo).unwrap();
+    let before = std::fs::read(&photo).unwrap();
+    let reads_photo = render_pipeline("photo.exr", 1).replace("outputs: [shot]\n", "")
+        + "  photo:\n    kind: image\n    path: photo.png\noutputs: [shot, photo]\n";
+    let e = refused(
+        &dir,
+        "photo.yaml",
+        &reads_photo,
+        &[],
+        "would overwrite stage `photo`'s `path`",
+    );
+    assert!(e.contains("photo.yaml:"), "{e}");
+    assert_eq!(std::fs::read(&photo).unwrap(), before);
+    // Two stages writing one file, spelt differently (`..`, a link).
+    std::fs::create_dir_all(dir.join("out")).unwrap();
+    std::os::unix::fs::symlink(dir.join("out"), dir.join("link")).unwrap();
+    let two = render_pipeline("out/a.exr", 1).replace("outputs: [shot]\n", "")
+        + "  again:\n    kind: render\n    mesh: mesh\n    materials: scene\n    \
+           envmap: scene.truth_envmap\n    output: link/../link/a.exr\n\
+           outputs: [shot, again]\n";
+    let e = refused(
+        &dir,
+        "two.yaml",
+        &two,
+        &[],
+        "is also written by stage `shot`",
+    );
+    assert!(e.contains("two.yaml:") && e.contains("`again`"), "{e}");
+    // An output inside a folder the pipeline reads (a bundle).
+    let into_bundle = "stages:\n  b:\n    kind: bundle\n    path: bundle\n  \
+        mesh:\n    kind: mesh\n    scene: b\n  \
+        shot:\n    kind: render\n    mesh: mesh\n    materials: b\n    envmap: b.envmap\n    \
+        output: bundle/gt_image.exr\noutputs: [shot]\n";
+    refused(
+        &dir,
+        "bundle.yaml",
+        into_bundle,
+        &[],
+        "a folder the pipeline reads",
+    );
+    // An EXR-producing stage asked for a .png.
+    refused(
+        &dir,
+        "png.yaml",
+        &render_pipeline("x.png", 1),
+        &[],
+        "must end in .exr",
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_cached_run_leaves_output_files_alone_and_a_change_rewrites_them() {
+    use std::os::unix::fs::MetadataExt;
+    let dir = tmp("rewrite");
+    let cache = dir.join("cache");
+    let run = |spp: u32| {
+        let file = dir.join("p.yaml");
+        std::fs::write(&file, render_pipeline("out/shot.exr", spp)).unwrap();
+        let (out, _) = matflow_capped(
+            4096,
+            &[
+                "run",
+                file.to_str().unwrap(),
+                "--quiet",
+                "--cache",
+                cache.to_str().unwrap(),
+            ],
+        );
+        assert!(out.status.success(), "{}", stderr(&out));
+        let exr = std::fs::metadata(dir.join("out/shot.exr")).unwrap();
+        let png = std::fs::metadata(dir.join("out/shot.png")).unwrap();
+        (
+            exr.ino(),
+            png.ino(),
+            std::fs::read(dir.join("out/shot.exr")).unwrap(),
+        )
+    };
+    let first = run(2);
+    // Cached: the same files (same inodes: nothing was renamed over them).
+    assert_eq!(run(2), first);
+    // Changed: new bytes, written through a fresh file.
+    let changed = run(3);
+    assert_ne!(changed.2, first.2);
+    assert_ne!(changed.0, first.0);
+    // No temporary file is left beside the outputs.
+    let names: Vec<String> = std::fs::read_dir(dir.join("out"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    assert_eq!(names.len(), 2, "{names:?}");
     let _ = std::fs::remove_dir_all(&dir);
 }

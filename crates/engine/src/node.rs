@@ -259,6 +259,17 @@ pub trait Node: Send + Sync {
     fn preflight(&self, _params: &Params) -> Result<(), String> {
         Ok(())
     }
+    /// Every file [`Node::materialize`] may write for these parameters,
+    /// for the loader to check that no two stages write one file and no
+    /// stage overwrites an input. By default the [`ParamType::OutPath`]
+    /// parameters' paths.
+    fn output_files(&self, params: &Params) -> Vec<PathBuf> {
+        self.params()
+            .iter()
+            .filter(|p| matches!(p.ty, ParamType::OutPath))
+            .filter_map(|p| params.path(p.name))
+            .collect()
+    }
     /// Computes the outputs (by output name). An output may be left out
     /// when the inputs do not have it (a bundle without results).
     fn run(&self, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError>;

@@ -303,9 +303,15 @@ pub fn parse(
     let cwd = PathBuf::from(".");
     let stage_names: BTreeSet<String> = raws.iter().map(|r| r.name.clone()).collect();
     let mut stages = Vec::new();
+    // Files the pipeline reads (the pipeline itself, every input path)
+    // and writes, by their real paths, to check before anything runs.
+    let mut reads: Vec<(PathBuf, String)> = vec![(real_path(path), "the pipeline file".into())];
+    let mut writes: Vec<Written> = Vec::new();
     for r in &raws {
         let node = reg.get(&r.kind).expect("kind checked");
         let specs = node.params();
+        // Where the stage's output path was given, for messages.
+        let mut out_at: Option<(&str, Option<Loc>)> = None;
         for (k, (_, kl, _)) in &r.params {
             if !specs.iter().any(|p| p.name == k) {
                 return Err(err(
@@ -388,6 +394,12 @@ pub fn parse(
                             if let Err(e) = std::fs::metadata(&full) {
                                 return Err(where_(format!("{}: {e}", full.display())));
                             }
+                            reads.push((
+                                real_path(&full),
+                                format!("stage `{}`'s `{}`", r.name, p.name),
+                            ));
+                        } else if out_at.is_none() {
+                            out_at = Some((p.name, loc));
                         }
                         Value::Str(full.to_string_lossy().into_owned())
                     }
@@ -442,6 +454,16 @@ pub fn parse(
             .map_err(|m| err(Some(r.loc), format!("stage `{}`: {m}", r.name)))?;
         node.preflight(&params)
             .map_err(|m| err(Some(r.loc), format!("stage `{}`: {m}", r.name)))?;
+        for f in node.output_files(&params) {
+            let (param, loc) = out_at.unwrap_or(("output", Some(r.loc)));
+            writes.push(Written {
+                real: real_path(&f),
+                file: f,
+                stage: r.name.clone(),
+                param,
+                loc,
+            });
+        }
         stages.push(Stage {
             name: r.name.clone(),
             kind: r.kind.clone(),
@@ -450,6 +472,13 @@ pub fn parse(
             refs,
         });
     }
+    check_writes(&reads, &writes).map_err(|(w, msg)| {
+        if w.loc.is_none() {
+            err(None, format!("--set {}.{}: {msg}", w.stage, w.param))
+        } else {
+            err(w.loc, format!("stage `{}`, `{}`: {msg}", w.stage, w.param))
+        }
+    })?;
     // Outputs.
     let Some((outputs_v, outputs_loc)) = outputs_node else {
         return Err(err(
@@ -499,6 +528,99 @@ pub fn parse(
         return Err(err(first, format!("cycle: {}", cycle.join(" -> "))));
     }
     Ok(p)
+}
+
+/// A file a stage writes: its path as given and as resolved, and where
+/// that was said.
+struct Written {
+    real: PathBuf,
+    file: PathBuf,
+    stage: String,
+    param: &'static str,
+    loc: Option<Loc>,
+}
+
+/// `p` with symbolic links and `..` resolved as far as it exists (the
+/// rest appended), so two spellings of one file compare equal.
+fn real_path(p: &Path) -> PathBuf {
+    let abs = if p.is_absolute() {
+        p.to_path_buf()
+    } else {
+        std::env::current_dir()
+            .unwrap_or_else(|_| PathBuf::from("/"))
+            .join(p)
+    };
+    let abs = resolve_path(Path::new("/"), &abs.to_string_lossy());
+    let mut head = abs.as_path();
+    let mut tail = Vec::new();
+    loop {
+        if let Ok(c) = std::fs::canonicalize(head) {
+            let mut out = c;
+            for t in tail.iter().rev() {
+                out.push(t);
+            }
+            return out;
+        }
+        match (head.parent(), head.file_name()) {
+            (Some(parent), Some(name)) => {
+                tail.push(name.to_os_string());
+                head = parent;
+            }
+            _ => return abs,
+        }
+    }
+}
+
+/// No stage may write a file the pipeline reads (or into a folder it
+/// reads), and no two stages, or two outputs of one, may write one file:
+/// the survivor of such a race would be arbitrary and an input could be
+/// destroyed. Returns the offending write and why.
+fn check_writes<'w>(
+    reads: &[(PathBuf, String)],
+    writes: &'w [Written],
+) -> Result<(), (&'w Written, String)> {
+    let read: std::collections::HashMap<&Path, &str> = reads
+        .iter()
+        .map(|(p, who)| (p.as_path(), who.as_str()))
+        .collect();
+    let mut written: std::collections::HashMap<&Path, &Written> = Default::default();
+    for w in writes {
+        for dir in w.real.ancestors() {
+            let Some(who) = read.get(dir) else {
+                continue;
+            };
+            let msg = if dir == w.real {
+                format!("would overwrite {who}")
+            } else if dir.is_dir() {
+                format!("is inside {who}, a folder the pipeline reads")
+            } else {
+                continue;
+            };
+            return Err((
+                w,
+                format!(
+                    "{} {msg} ({}); write somewhere else",
+                    w.file.display(),
+                    dir.display()
+                ),
+            ));
+        }
+        if w.real.is_dir() {
+            return Err((w, format!("{} is a folder", w.file.display())));
+        }
+        if let Some(o) = written.insert(&w.real, w) {
+            return Err((
+                w,
+                format!(
+                    "{} is also written by stage `{}` (`{}`); each file may have one writer",
+                    w.file.display(),
+                    o.stage,
+                    o.param
+                ),
+            ));
+        }
+    }
+    Ok(())
 }
 
 fn valid_name(s: &str) -> bool {

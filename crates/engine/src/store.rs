@@ -146,6 +146,26 @@ pub struct GcPolicy {
     pub max_bytes: Option<u64>,
 }
 
+/// This machine's name (for temporary files in a store that several
+/// hosts share), read once.
+fn host_name() -> &'static str {
+    static HOST: std::sync::OnceLock<String> = std::sync::OnceLock::new();
+    HOST.get_or_init(|| {
+        std::fs::read_to_string("/proc/sys/kernel/hostname")
+            .ok()
+            .or_else(|| std::env::var("HOSTNAME").ok())
+            .map(|h| {
+                h.trim()
+                    .chars()
+                    .filter(|c| c.is_ascii_alphanumeric() || *c == '-')
+                    .take(32)
+                    .collect::<String>()
+            })
+            .filter(|h| !h.is_empty())
+            .unwrap_or_else(|| "host".into())
+    })
+}
+
 impl Store {
     pub fn open(root: impl Into<PathBuf>) -> Result<Store, StoreError> {
         let root = root.into();
@@ -182,10 +202,11 @@ impl Store {
             .duration_since(SystemTime::UNIX_EPOCH)
             .map(|d| d.as_nanos())
             .unwrap_or(0);
-        let tmp = self
-            .root
-            .join("tmp")
-            .join(format!("{}-{n}-{nanos}", std::process::id()));
+        let tmp = self.root.join("tmp").join(format!(
+            "{}-{}-{n}-{nanos}",
+            host_name(),
+            std::process::id()
+        ));
         let res = (|| {
             let mut f = std::fs::File::create(&tmp)?;
             f.write_all(bytes)?;

@@ -17,6 +17,59 @@ use crate::image::{count_non_finite, GrayImage, Image, RgbImage};
 /// Largest image side matflow accepts; anything bigger is treated as corrupt.
 pub const MAX_SIDE: usize = 1 << 14;
 
+/// A temporary sibling name for writing `name`: hidden, and unique across
+/// hosts sharing a folder, processes and concurrent writers in one
+/// process (host name, process id and a random part), so two writers of
+/// one path never share a temporary file.
+pub fn temp_name(name: &str) -> String {
+    use std::hash::{BuildHasher, Hasher};
+    use std::sync::atomic::{AtomicU64, Ordering};
+    static COUNTER: AtomicU64 = AtomicU64::new(0);
+    let host = std::fs::read_to_string("/proc/sys/kernel/hostname")
+        .ok()
+        .or_else(|| std::env::var("HOSTNAME").ok())
+        .map(|h| {
+            h.trim()
+                .chars()
+                .filter(|c| c.is_ascii_alphanumeric() || *c == '-')
+                .take(32)
+                .collect::<String>()
+        })
+        .filter(|h| !h.is_empty())
+        .unwrap_or_else(|| "host".into());
+    // Randomly keyed per process by the standard library; the counter and
+    // clock separate writers within it.
+    let mut h = std::collections::hash_map::RandomState::new().build_hasher();
+    h.write_u64(COUNTER.fetch_add(1, Ordering::Relaxed));
+    h.write_u128(
+        std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos()),
+    );
+    format!(
+        ".{name}.tmp-{host}-{}-{:016x}",
+        std::process::id(),
+        h.finish()
+    )
+}
+
+/// Writes `bytes` to `path` unless the file already holds exactly these
+/// bytes (then it is left alone: not rewritten, its time stamps kept).
+/// Returns whether it wrote.
+pub fn write_if_changed(path: &Path, bytes: &[u8]) -> Result<bool> {
+    if let Ok(meta) = std::fs::metadata(path) {
+        if meta.is_file() && meta.len() == bytes.len() as u64 {
+            if let Ok(old) = std::fs::read(path) {
+                if old == bytes {
+                    return Ok(false);
+                }
+            }
+        }
+    }
+    write_atomic(path, bytes)?;
+    Ok(true)
+}
+
 /// Writes `bytes` to `path` atomically (temporary sibling + rename).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     let dir = path
@@ -28,7 +81,7 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
         .file_name()
         .map(|s| s.to_string_lossy().into_owned())
         .unwrap_or_else(|| "out".into());
-    let tmp: PathBuf = dir.join(format!(".{name}.tmp-{}", std::process::id()));
+    let tmp: PathBuf = dir.join(temp_name(&name));
     let res = (|| -> std::io::Result<()> {
         let mut f = std::fs::File::create(&tmp)?;
         f.write_all(bytes)?;
@@ -176,17 +229,21 @@ fn exr_to_bytes(
 
 /// Writes linear RGB as a 32-bit float, PIZ-compressed scanline EXR.
 pub fn write_exr_rgb(path: &Path, img: &RgbImage) -> Result<()> {
+    write_atomic(path, &encode_exr_rgb(path, img)?)
+}
+
+/// The bytes [`write_exr_rgb`] writes (`path` names the file in errors).
+pub fn encode_exr_rgb(path: &Path, img: &RgbImage) -> Result<Vec<u8>> {
     let w = img.width;
     let channels = x::SpecificChannels::rgb(|p: x::Vec2<usize>| {
         let v = img.data[p.1 * w + p.0];
         (v.x, v.y, v.z)
     });
     let image = x::Image::from_encoded_channels((img.width, img.height), exr_encoding(), channels);
-    let bytes = exr_to_bytes(path, |c| {
+    exr_to_bytes(path, |c| {
         use x::WritableImage;
         image.write().non_parallel().to_buffered(c)
-    })?;
-    write_atomic(path, &bytes)
+    })
 }
 
 /// Writes one float channel named `Y` (the reference's layout for depth).
@@ -294,6 +351,11 @@ pub fn read_mask(path: &Path) -> Result<Image<bool>> {
 /// Encodes linear RGB for display: clip to [0, 1], power 1/2.2, 8 bits (the
 /// reference's convention), and writes a PNG.
 pub fn write_png_gamma(path: &Path, img: &RgbImage) -> Result<()> {
+    write_atomic(path, &encode_png_gamma(path, img)?)
+}
+
+/// The bytes [`write_png_gamma`] writes (`path` names the file in errors).
+pub fn encode_png_gamma(path: &Path, img: &RgbImage) -> Result<Vec<u8>> {
     let mut out = image::RgbImage::new(img.width as u32, img.height as u32);
     for (o, v) in out.pixels_mut().zip(img.data.iter()) {
         let g = color::linear_to_gamma3(*v);
@@ -305,7 +367,7 @@ pub fn write_png_gamma(path: &Path, img: &RgbImage) -> Result<()> {
             path: path.into(),
             message: e.to_string(),
         })?;
-    write_atomic(path, buf.get_ref())
+    Ok(buf.into_inner())
 }
 
 /// Writes a map in [0, 1] (roughness, metallic) as an 8-bit PNG through the
@@ -411,6 +473,34 @@ pub fn resize_bilinear(img: &RgbImage, w: usize, h: usize) -> RgbImage {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn temporary_names_differ_per_writer_and_name_host_and_process() {
+        let a = temp_name("x.exr");
+        let b = temp_name("x.exr");
+        assert_ne!(a, b);
+        assert!(a.starts_with(".x.exr.tmp-"), "{a}");
+        assert!(a.contains(&format!("-{}-", std::process::id())), "{a}");
+    }
+
+    #[test]
+    fn write_if_changed_leaves_identical_files_alone() {
+        use std::os::unix::fs::MetadataExt;
+        let dir = std::env::temp_dir().join(format!("matflow-wic-{}", std::process::id()));
+        let f = dir.join("a.bin");
+        assert!(write_if_changed(&f, b"one").unwrap());
+        let ino = std::fs::metadata(&f).unwrap().ino();
+        assert!(!write_if_changed(&f, b"one").unwrap());
+        assert_eq!(std::fs::metadata(&f).unwrap().ino(), ino);
+        assert!(write_if_changed(&f, b"two").unwrap());
+        assert_eq!(std::fs::read(&f).unwrap(), b"two");
+        assert_eq!(
+            std::fs::read_dir(&dir).unwrap().count(),
+            1,
+            "no temporary left"
+        );
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 
     fn test_rgb(w: usize, h: usize) -> RgbImage {
         Image::from_fn(w, h, |x, y| {

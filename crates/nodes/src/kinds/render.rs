@@ -15,23 +15,21 @@ use crate::err;
 
 pub struct RenderNode;
 
+/// The files a render with `output` = `path` writes: the EXR and the PNG
+/// beside it.
+fn pair(path: &Path) -> [PathBuf; 2] {
+    [path.to_path_buf(), path.with_extension("png")]
+}
+
 /// Writes `img` to `path` (EXR, linear) and a γ-encoded PNG beside it,
-/// each through a temporary file renamed into place.
+/// each through a temporary file renamed into place; a file that already
+/// holds the same bytes is not rewritten (a cached run changes nothing on
+/// disk).
 fn write_pair(path: &Path, img: &matflow_scene::RgbImage) -> Result<Vec<PathBuf>, NodeError> {
-    if let Some(dir) = path.parent() {
-        if !dir.as_os_str().is_empty() {
-            std::fs::create_dir_all(dir).map_err(|e| err(format!("{}: {e}", dir.display())))?;
-        }
-    }
-    let png = path.with_extension("png");
-    let tmp_exr = path.with_extension(format!("tmp{}.exr", std::process::id()));
-    let tmp_png = path.with_extension(format!("tmp{}.png", std::process::id()));
-    io::write_exr_rgb(&tmp_exr, img).map_err(err)?;
-    io::write_png_gamma(&tmp_png, img).map_err(err)?;
-    for (t, f) in [(&tmp_exr, path), (&tmp_png, png.as_path())] {
-        std::fs::rename(t, f).map_err(|e| err(format!("{}: {e}", f.display())))?;
-    }
-    Ok(vec![path.to_path_buf(), png])
+    let [exr, png] = pair(path);
+    io::write_if_changed(&exr, &io::encode_exr_rgb(&exr, img).map_err(err)?).map_err(err)?;
+    io::write_if_changed(&png, &io::encode_png_gamma(&png, img).map_err(err)?).map_err(err)?;
+    Ok(vec![exr, png])
 }
 
 const RENDER_INFO: NodeInfo = NodeInfo {
@@ -138,6 +136,16 @@ impl Node for RenderNode {
         &RENDER_INFO
     }
     fn check(&self, p: &Params) -> Result<(), String> {
+        if let Some(out) = p.path("output") {
+            let ext = out.extension().map(|e| e.to_string_lossy().to_lowercase());
+            if ext.as_deref() != Some("exr") {
+                return Err(format!(
+                    "`output` {} must end in .exr: the stage writes linear EXR there and a \
+                     γ-encoded PNG beside it (same name, .png)",
+                    out.display()
+                ));
+            }
+        }
         match (p.is_set("paths"), p.is_set("mesh"), p.is_set("envmap")) {
             (_, false, _) => Err("give `mesh`".into()),
             (true, true, false) | (false, true, true) => Ok(()),
@@ -146,6 +154,11 @@ impl Node for RenderNode {
             }
             (false, true, false) => Err("give `envmap` (or `paths`, a `trace` stage)".into()),
         }
+    }
+    fn output_files(&self, p: &Params) -> Vec<PathBuf> {
+        p.path("output")
+            .map(|o| pair(&o).to_vec())
+            .unwrap_or_default()
     }
     fn run(&self, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
         let p = ctx.params;
