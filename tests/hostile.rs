@@ -240,3 +240,183 @@ fn a_cached_run_leaves_output_files_alone_and_a_change_rewrites_them() {
     assert_eq!(names.len(), 2, "{names:?}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// A small synthetic bundle in `dir/name`.
+fn synth_bundle(dir: &Path, name: &str) -> PathBuf {
+    let b = dir.join(name);
+    let (out, _) = matflow_capped(
+        4096,
+        &[
+            "synth",
+            "--out",
+            b.to_str().unwrap(),
+            "--size",
+            "16",
+            "--spp",
+            "1",
+        ],
+    );
+    assert!(out.status.success(), "{}", stderr(&out));
+    b
+}
+
+#[test]
+fn inputs_are_checked_before_any_stage_runs() {
+    use matflow_scene::{io, Image};
+    let dir = tmp("inputs");
+    let cache = dir.join("cache");
+    let edit = |mask: &str| {
+        format!(
+            "stages:\n  scene:\n    kind: synthetic_scene\n    size: 24\n    spp: 2\n  \
+             shiny:\n    kind: edit\n    materials: scene\n    {mask}\n    roughness: 0.2\n\
+             outputs: [shiny]\n"
+        )
+    };
+    // A corrupt mask file: refused at once, before the scene is made.
+    std::fs::write(dir.join("mask.png"), b"\x89PNG\r\n\x1a\n garbage").unwrap();
+    let e = refused(
+        &dir,
+        "corrupt.yaml",
+        &edit("mask_png: mask.png"),
+        &[],
+        "mask.png",
+    );
+    assert!(e.contains("corrupt.yaml:"), "{e}");
+    assert!(
+        !cache.join("ac").exists() || std::fs::read_dir(cache.join("ac")).unwrap().count() == 0
+    );
+    // Pixel positions outside the image, known from the scene's size.
+    refused(
+        &dir,
+        "rect.yaml",
+        &edit("mask_rect: [30, 0, 40, 10]"),
+        &[],
+        "outside the 24x24 image",
+    );
+    refused(
+        &dir,
+        "seed.yaml",
+        &edit("mask_flood: [5, 24]"),
+        &[],
+        "outside the 24x24 image",
+    );
+    refused(
+        &dir,
+        "empty.yaml",
+        &edit("mask_rect: [5, 5, 5, 9]"),
+        &[],
+        "is empty",
+    );
+    let e = refused(
+        &dir,
+        "set.yaml",
+        &edit("mask_flood: [5, 5]"),
+        &[
+            "--set",
+            "scene.size=16",
+            "--set",
+            "shiny.mask_flood=[20, 3]",
+        ],
+        "outside the 16x16 image",
+    );
+    assert!(e.contains("stage `shiny`"), "{e}");
+
+    // Depth maps no scene can be built from: all zeros, one huge or tiny
+    // constant, any constant.
+    let b = synth_bundle(&dir, "bundle");
+    let good = io::read_exr_gray(&b.join("depth.exr")).unwrap();
+    let pipeline =
+        "stages:\n  b:\n    kind: bundle\n    path: bundle\n  mesh:\n    kind: mesh\n    \
+                    scene: b\noutputs: [mesh]\n";
+    for (z, why) in [
+        (0.0, "no pixel has a positive depth"),
+        (1e30, "within"),
+        (1e-30, "within"),
+        (2.5, "no spread"),
+    ] {
+        io::write_exr_gray(&b.join("depth.exr"), &Image::from_fn(16, 16, |_, _| z)).unwrap();
+        let e = refused(&dir, "depth.yaml", pipeline, &[], why);
+        assert!(
+            e.contains("depth.exr") && e.contains("unusable depth"),
+            "{e}"
+        );
+        let (out, _) = matflow_capped(
+            4096,
+            &[
+                "render",
+                "--bundle",
+                b.to_str().unwrap(),
+                "--spp",
+                "1",
+                "--materials",
+                "ground_truth",
+                "--out",
+                dir.join("r.exr").to_str().unwrap(),
+            ],
+        );
+        assert_eq!(out.status.code(), Some(1), "depth {z}: {}", stderr(&out));
+        assert!(stderr(&out).contains("unusable depth"), "{}", stderr(&out));
+    }
+    io::write_exr_gray(&b.join("depth.exr"), &good).unwrap();
+
+    // Environment maps: 1×1, negative radiance; EXR accepted wherever HDR is.
+    let relight = |file: &str| {
+        format!(
+            "stages:\n  sky:\n    kind: relight\n    path: {file}\n    exposure: 1\noutputs: [sky]\n"
+        )
+    };
+    let write_env = |name: &str, w: usize, h: usize, v: f32| {
+        let img = Image::from_fn(w, h, |x, _| glam::Vec3::splat(if x == 1 { v } else { 1.0 }));
+        io::write_exr_rgb(&dir.join(name), &img).unwrap();
+    };
+    write_env("tiny.exr", 1, 1, 1.0);
+    refused(
+        &dir,
+        "tiny.yaml",
+        &relight("tiny.exr"),
+        &[],
+        "1x1 is out of range",
+    );
+    write_env("neg.exr", 8, 4, -1.0);
+    let e = refused(
+        &dir,
+        "neg.yaml",
+        &relight("neg.exr"),
+        &[],
+        "negative radiance",
+    );
+    assert!(e.contains("x=1, y=0"), "{e}");
+    write_env("sky.exr", 8, 4, 2.0);
+    for envmap in ["sky.exr", "neg.exr"] {
+        let (out, _) = matflow_capped(
+            4096,
+            &[
+                "render",
+                "--bundle",
+                b.to_str().unwrap(),
+                "--spp",
+                "1",
+                "--materials",
+                "ground_truth",
+                "--envmap",
+                dir.join(envmap).to_str().unwrap(),
+                "--out",
+                dir.join("r.exr").to_str().unwrap(),
+            ],
+        );
+        if envmap == "sky.exr" {
+            assert!(
+                out.status.success(),
+                "render --envmap takes EXR: {}",
+                stderr(&out)
+            );
+        } else {
+            assert!(
+                stderr(&out).contains("negative radiance"),
+                "{}",
+                stderr(&out)
+            );
+        }
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -20,7 +20,7 @@ pub struct RenderArgs {
     /// Material maps: best_results, pred or ground_truth.
     #[arg(long, default_value = "best_results")]
     pub materials: MaterialSource,
-    /// Environment map (.hdr); default: the bundle's best_results/envmap.hdr
+    /// Environment map (.hdr or .exr); default: the bundle's best_results/envmap.hdr
     /// (or ground_truth/envmap.hdr).
     #[arg(long)]
     pub envmap: Option<PathBuf>,
@@ -109,12 +109,12 @@ pub fn load_scene(
         Some(p) => p.to_path_buf(),
         None => bundle.envmap_path().with_context(|| {
             format!(
-                "{}: no best_results/envmap.hdr or ground_truth/envmap.hdr; pass --envmap FILE.hdr",
+                "{}: no best_results/envmap.hdr or ground_truth/envmap.hdr; pass --envmap FILE.hdr (or .exr)",
                 bundle_dir.display()
             )
         })?,
     };
-    let mut env_img = io::read_hdr(&env_path)?;
+    let mut env_img = io::read_envmap(&env_path)?;
     if reference_compat {
         env_img = matflow_render::envmap::merge_seam_columns(&env_img);
     }

@@ -259,6 +259,18 @@ pub trait Node: Send + Sync {
     fn preflight(&self, _params: &Params) -> Result<(), String> {
         Ok(())
     }
+    /// The size (width, height) of the images this stage makes when its
+    /// parameters alone say it (a scene generator's `size`, a bundle's
+    /// depth map); `None` for stages that take it from their inputs.
+    fn film_size(&self, _params: &Params) -> Option<(usize, usize)> {
+        None
+    }
+    /// Checks parameters against the image size the stage will work at
+    /// (known before anything runs: see [`Node::film_size`]), e.g. that
+    /// a pixel position lies inside the image.
+    fn check_film(&self, _params: &Params, _size: (usize, usize)) -> Result<(), String> {
+        Ok(())
+    }
     /// Every file [`Node::materialize`] may write for these parameters,
     /// for the loader to check that no two stages write one file and no
     /// stage overwrites an input. By default the [`ParamType::OutPath`]

@@ -527,6 +527,8 @@ pub fn parse(
         let first = p.stage(&cycle[0]).map(|s| s.loc);
         return Err(err(first, format!("cycle: {}", cycle.join(" -> "))));
     }
+    check_film_sizes(&p, reg)
+        .map_err(|(s, m)| err(Some(s.loc), format!("stage `{}`: {m}", s.name)))?;
     Ok(p)
 }
 
@@ -618,6 +620,61 @@ fn check_writes<'w>(
                     o.param
                 ),
             ));
+        }
+    }
+    Ok(())
+}
+
+/// Artifact types that have the film's size (an envmap or an image
+/// stage's file need not).
+const FILM_TYPES: [&str; 5] = ["scene", "materials", "mesh", "paths", "mask"];
+
+/// Works out, before anything runs, the image size each stage works at
+/// (from the stages that state it, along references to film-sized
+/// artifacts, in dependency order) and lets each node check its
+/// parameters against it.
+fn check_film_sizes<'p>(p: &'p Pipeline, reg: &Registry) -> Result<(), (&'p Stage, String)> {
+    let idx: std::collections::HashMap<&str, usize> = p
+        .stages
+        .iter()
+        .enumerate()
+        .map(|(i, s)| (s.name.as_str(), i))
+        .collect();
+    // Film-sized references: stage i reads stage j's film-sized output.
+    let mut film_ups: Vec<Vec<usize>> = vec![Vec::new(); p.stages.len()];
+    let mut downs: Vec<Vec<usize>> = vec![Vec::new(); p.stages.len()];
+    let mut pending = vec![0usize; p.stages.len()];
+    for (i, s) in p.stages.iter().enumerate() {
+        for (up, out) in s.refs.values() {
+            let j = idx[up.as_str()];
+            downs[j].push(i);
+            pending[i] += 1;
+            let ty = reg
+                .get(&p.stages[j].kind)
+                .and_then(|n| n.outputs().iter().find(|o| o.name == out))
+                .map(|o| o.ty);
+            if ty.is_some_and(|t| FILM_TYPES.contains(&t)) {
+                film_ups[i].push(j);
+            }
+        }
+    }
+    // Kahn's order: every stage after the stages it reads.
+    let mut size: Vec<Option<(usize, usize)>> = vec![None; p.stages.len()];
+    let mut ready: Vec<usize> = (0..p.stages.len()).filter(|&i| pending[i] == 0).collect();
+    while let Some(i) = ready.pop() {
+        let s = &p.stages[i];
+        let node = reg.get(&s.kind).expect("kind checked");
+        size[i] = node
+            .film_size(&s.params)
+            .or_else(|| film_ups[i].iter().find_map(|&j| size[j]));
+        if let Some(wh) = size[i] {
+            node.check_film(&s.params, wh).map_err(|m| (s, m))?;
+        }
+        for &d in &downs[i] {
+            pending[d] -= 1;
+            if pending[d] == 0 {
+                ready.push(d);
+            }
         }
     }
     Ok(())

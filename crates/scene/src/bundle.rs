@@ -163,6 +163,11 @@ impl Bundle {
     /// `mesh_mask.png` get z = 0.
     pub fn load_depth(&self) -> Result<GrayImage> {
         let direct = self.path("depth.exr");
+        let from = if exists(&direct) {
+            direct.clone()
+        } else {
+            self.path("depthPred.exr")
+        };
         let mut z = if exists(&direct) {
             let z = io::read_exr_gray(&direct)?;
             io::ensure_finite_gray(&direct, &z)?;
@@ -197,6 +202,7 @@ impl Bundle {
                 }
             }
         }
+        check_depth_range(&from, &z)?;
         Ok(z)
     }
 
@@ -353,6 +359,39 @@ impl Bundle {
     pub fn write_depth(&self, z: &GrayImage) -> Result<()> {
         io::write_exr_gray(&self.path("depth.exr"), z)
     }
+}
+
+/// Nearest and farthest depth a scene may have, in the depth map's units:
+/// outside them the geometry is degenerate in f32 (ray offsets swamp a
+/// scene of 1e-30; squared lengths overflow at 1e30).
+pub const DEPTH_RANGE: (f32, f32) = (1e-4, 1e7);
+
+/// A depth map is usable when its positive pixels (0 marks "no geometry")
+/// lie in [`DEPTH_RANGE`] and are not all equal: all zeros, or one
+/// constant however large or small, is what a broken depth predictor
+/// writes and would render as sky alone.
+pub fn check_depth_range(path: &Path, z: &GrayImage) -> Result<()> {
+    let (mut lo, mut hi, mut n) = (f32::INFINITY, 0f32, 0usize);
+    for &v in &z.data {
+        if v > 0.0 && v.is_finite() {
+            lo = lo.min(v);
+            hi = hi.max(v);
+            n += 1;
+        }
+    }
+    let why = if n == 0 {
+        "no pixel has a positive depth".to_string()
+    } else if lo < DEPTH_RANGE.0 || hi > DEPTH_RANGE.1 {
+        format!(
+            "depths run from {lo:e} to {hi:e}; matflow needs them within [{:e}, {:e}] (rescale the map)",
+            DEPTH_RANGE.0, DEPTH_RANGE.1
+        )
+    } else if hi <= lo {
+        format!("every pixel has the same depth {lo}: the map has no spread")
+    } else {
+        return Ok(());
+    };
+    Err(SceneError::invalid(path, format!("unusable depth: {why}")))
 }
 
 /// The reference's conversion of its stored disparity-like map to

@@ -387,6 +387,64 @@ pub fn write_png_srgb_map(path: &Path, img: &GrayImage) -> Result<()> {
     write_atomic(path, buf.get_ref())
 }
 
+/// Smallest and largest environment map accepted (width, height).
+pub const ENVMAP_MIN: (usize, usize) = (2, 2);
+pub const ENVMAP_MAX: (usize, usize) = (16384, 8192);
+
+/// Reads a lat-long environment map, Radiance HDR or linear EXR (the
+/// same formats wherever an envmap is given), and checks what a light
+/// source needs: a size in [`ENVMAP_MIN`]..=[`ENVMAP_MAX`], finite and
+/// non-negative radiance.
+pub fn read_envmap(path: &Path) -> Result<RgbImage> {
+    let ext = path
+        .extension()
+        .map(|e| e.to_string_lossy().to_lowercase())
+        .unwrap_or_default();
+    let img = match ext.as_str() {
+        "hdr" => read_hdr(path)?,
+        "exr" => read_exr_rgb(path)?,
+        _ => {
+            return Err(SceneError::invalid(
+                path,
+                "an environment map must be Radiance HDR (.hdr) or linear OpenEXR (.exr)",
+            ))
+        }
+    };
+    check_envmap(path, &img)?;
+    Ok(img)
+}
+
+/// The checks of [`read_envmap`] on an image already in memory (`path`
+/// names it in errors).
+pub fn check_envmap(path: &Path, img: &RgbImage) -> Result<()> {
+    if img.width < ENVMAP_MIN.0
+        || img.height < ENVMAP_MIN.1
+        || img.width > ENVMAP_MAX.0
+        || img.height > ENVMAP_MAX.1
+    {
+        return Err(SceneError::invalid(
+            path,
+            format!(
+                "an environment map of {}x{} is out of range ({}x{} to {}x{})",
+                img.width, img.height, ENVMAP_MIN.0, ENVMAP_MIN.1, ENVMAP_MAX.0, ENVMAP_MAX.1
+            ),
+        ));
+    }
+    ensure_finite_rgb(path, img)?;
+    if let Some(i) = img.data.iter().position(|v| v.min_element() < 0.0) {
+        return Err(SceneError::invalid(
+            path,
+            format!(
+                "negative radiance {:?} at x={}, y={} (an environment map emits light >= 0)",
+                img.data[i].to_array(),
+                i % img.width,
+                i / img.width
+            ),
+        ));
+    }
+    Ok(())
+}
+
 /// Rejects images holding NaN or Inf, naming the file and the pixel count.
 pub fn ensure_finite_rgb(path: &Path, img: &RgbImage) -> Result<()> {
     let (count, (x, y)) = count_non_finite(img, |v: Vec3| v.is_finite());

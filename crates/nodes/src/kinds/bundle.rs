@@ -105,8 +105,19 @@ impl Node for BundleNode {
     fn info(&self) -> &'static NodeInfo {
         &BUNDLE_INFO
     }
+    fn film_size(&self, p: &Params) -> Option<(usize, usize)> {
+        // The depth map's size (a bundle that cannot be read fails its
+        // preflight with the reason).
+        let b = Bundle::open(p.path("path")?).ok()?;
+        let z = b.load_depth().ok()?;
+        Some((z.width, z.height))
+    }
     fn preflight(&self, p: &Params) -> Result<(), String> {
-        self.load(p).map(|_| ()).map_err(|e| e.0)
+        let (_, b) = self.load(p).map_err(|e| e.0)?;
+        if let Some(env) = b.envmap_path() {
+            io::read_envmap(&env).map_err(|e| e.to_string())?;
+        }
+        Ok(())
     }
     fn run(&self, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
         let (mut scene, b) = self.load(ctx.params)?;
@@ -127,8 +138,7 @@ impl Node for BundleNode {
             out.insert("results".into(), encode_materials(&m));
         }
         if let Some(p) = b.envmap_path() {
-            let env = io::read_hdr(&p).map_err(err)?;
-            io::ensure_finite_rgb(&p, &env).map_err(err)?;
+            let env = io::read_envmap(&p).map_err(err)?;
             out.insert("envmap".into(), encode_image("envmap", "envmap", &env));
         }
         Ok(out)

@@ -223,7 +223,60 @@ impl Node for EditNode {
     fn info(&self) -> &'static NodeInfo {
         &EDIT_INFO
     }
+    fn check_film(&self, p: &Params, (w, h): (usize, usize)) -> Result<(), String> {
+        if let Some(r) = p.floats("mask_rect") {
+            if r[0] >= w as f64 || r[1] >= h as f64 || r[2] <= 0.0 || r[3] <= 0.0 {
+                return Err(format!(
+                    "mask_rect [{}, {}, {}, {}] lies outside the {w}x{h} image",
+                    r[0], r[1], r[2], r[3]
+                ));
+            }
+        }
+        if let Some(s) = p.floats("mask_flood") {
+            if s[0] >= w as f64 || s[1] >= h as f64 {
+                return Err(format!(
+                    "mask_flood: seed pixel ({}, {}) is outside the {w}x{h} image",
+                    s[0], s[1]
+                ));
+            }
+        }
+        if let Some(path) = p.path("mask_png") {
+            if let Ok(m) = io::read_mask(&path) {
+                if (m.width, m.height) != (w, h) {
+                    return Err(format!(
+                        "{}: the mask is {}x{} but the image is {w}x{h}",
+                        path.display(),
+                        m.width,
+                        m.height
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+    /// A mask file is decoded before any stage runs: a corrupt or empty
+    /// one must not cost the upstream stages first.
+    fn preflight(&self, p: &Params) -> Result<(), String> {
+        if let Some(path) = p.path("mask_png") {
+            let m = io::read_mask(&path).map_err(|e| e.to_string())?;
+            if !m.data.iter().any(|&b| b) {
+                return Err(format!(
+                    "{}: the mask selects no pixels (white, opaque pixels are edited)",
+                    path.display()
+                ));
+            }
+        }
+        Ok(())
+    }
     fn check(&self, p: &Params) -> Result<(), String> {
+        if let Some(r) = p.floats("mask_rect") {
+            if r[2] <= r[0] || r[3] <= r[1] {
+                return Err(format!(
+                    "mask_rect [{}, {}, {}, {}] is empty: give [x0, y0, x1, y1] with x1 > x0 and y1 > y0",
+                    r[0], r[1], r[2], r[3]
+                ));
+            }
+        }
         let masks: Vec<&str> = MASKS.iter().copied().filter(|m| p.is_set(m)).collect();
         if masks.len() != 1 {
             return Err(format!(

@@ -8,8 +8,9 @@ use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType
 use matflow_render::envmap::rotate_and_expose;
 
 use crate::artifact::Artifact;
-use crate::data::{encode_image, read_image};
+use crate::data::encode_image;
 use crate::err;
+use matflow_scene::io;
 
 pub struct RelightNode;
 
@@ -74,14 +75,16 @@ impl Node for RelightNode {
     }
     fn preflight(&self, p: &Params) -> Result<(), String> {
         match p.path("path") {
-            Some(path) => read_image(&path, 0).map(|_| ()).map_err(|e| e.0),
+            Some(path) => io::read_envmap(&path)
+                .map(|_| ())
+                .map_err(|e| e.to_string()),
             None => Ok(()),
         }
     }
     fn run(&self, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
         let p = ctx.params;
         let env = match p.path("path") {
-            Some(path) => read_image(&path, 0)?,
+            Some(path) => io::read_envmap(&path).map_err(err)?,
             None => {
                 let b = ctx.input("source")?;
                 match Artifact::decode(b, "envmap") {
@@ -90,12 +93,7 @@ impl Node for RelightNode {
                 }
             }
         };
-        if env.width < 2 || env.height < 2 || env.width > 16384 || env.height > 8192 {
-            return Err(err(format!(
-                "an envmap of {}x{} is out of range (2x2 to 16384x8192)",
-                env.width, env.height
-            )));
-        }
+        io::check_envmap(std::path::Path::new("the `source` stage's map"), &env).map_err(err)?;
         let out = rotate_and_expose(&env, p.f64("rotation"), p.f64("exposure"));
         if out
             .data

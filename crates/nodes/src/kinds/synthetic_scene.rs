@@ -3,6 +3,7 @@
 
 use std::collections::BTreeMap;
 
+use matflow_engine::node::Params;
 use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
 use matflow_render::{render, scene_from_depth, EnvMap, RenderOptions};
 
@@ -72,6 +73,10 @@ const SYNTHETIC_SCENE_INFO: NodeInfo = NodeInfo {
 impl Node for SyntheticSceneNode {
     fn info(&self) -> &'static NodeInfo {
         &SYNTHETIC_SCENE_INFO
+    }
+    fn film_size(&self, p: &Params) -> Option<(usize, usize)> {
+        let s = p.i64("size") as usize;
+        Some((s, s))
     }
     fn run(&self, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
         let p = ctx.params;
