@@ -420,3 +420,51 @@ fn inputs_are_checked_before_any_stage_runs() {
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn runs_estimated_above_an_hour_are_refused_with_the_estimate() {
+    let dir = tmp("cost");
+    // 4096² at 65,536 spp: days of tracing for the scene alone.
+    let e = refused(
+        &dir,
+        "big.yaml",
+        &render_pipeline("out/big.exr", 65536),
+        &["--set", "scene.size=4096"],
+        "--allow-expensive",
+    );
+    assert!(e.contains("estimated at") && e.contains("`shot`"), "{e}");
+    // The same pipeline at test size runs, with or without the flag.
+    for extra in [&[][..], &["--allow-expensive"][..]] {
+        let file = dir.join("small.yaml");
+        std::fs::write(&file, render_pipeline("out/small.exr", 2)).unwrap();
+        let mut args = vec!["run", file.to_str().unwrap(), "--quiet", "--cache"];
+        let cache = dir.join("cache");
+        args.push(cache.to_str().unwrap());
+        args.extend_from_slice(extra);
+        let (out, _) = matflow_capped(4096, &args);
+        assert!(out.status.success(), "{}", stderr(&out));
+    }
+    // `matflow render` checks the same way.
+    let b = synth_bundle(&dir, "bundle");
+    let (out, _) = matflow_capped(
+        4096,
+        &[
+            "render",
+            "--bundle",
+            b.to_str().unwrap(),
+            "--materials",
+            "ground_truth",
+            "--spp",
+            "100000000",
+            "--out",
+            dir.join("r.exr").to_str().unwrap(),
+        ],
+    );
+    assert_eq!(out.status.code(), Some(1), "{}", stderr(&out));
+    assert!(
+        stderr(&out).contains("--allow-expensive"),
+        "{}",
+        stderr(&out)
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}

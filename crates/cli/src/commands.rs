@@ -17,6 +17,10 @@ pub struct RenderArgs {
     /// Scene bundle folder (reference layout).
     #[arg(long)]
     pub bundle: PathBuf,
+    /// Render even when estimated to take more than an hour (on the
+    /// reference 2-core machine).
+    #[arg(long)]
+    pub allow_expensive: bool,
     /// Material maps: best_results, pred or ground_truth.
     #[arg(long, default_value = "best_results")]
     pub materials: MaterialSource,
@@ -182,6 +186,20 @@ pub fn render(a: RenderArgs) -> Result<()> {
         reference_compat: a.reference_compat,
         ..Default::default()
     };
+    let est = matflow_nodes::render_seconds(
+        Some((loaded.scene.camera.width, loaded.scene.camera.height)),
+        a.spp as i64,
+        a.depth as i64,
+    );
+    if !a.allow_expensive && est > matflow_engine::spec::EXPENSIVE_SECONDS {
+        bail!(
+            "{}: this render is estimated at {} on the reference 2-core machine; the limit \
+             without --allow-expensive is {}. Lower --spp, or pass --allow-expensive",
+            a.bundle.display(),
+            crate::run::duration(est),
+            crate::run::duration(matflow_engine::spec::EXPENSIVE_SECONDS)
+        );
+    }
     let (out, seconds) = render_with_progress(&loaded.scene, &opts, "render");
     let png = write_outputs(&a.out, &out.image)?;
     let s = out.stats;

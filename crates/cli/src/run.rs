@@ -33,6 +33,11 @@ pub struct RunArgs {
     /// No progress bars.
     #[arg(long)]
     pub quiet: bool,
+    /// Run even when the stages are estimated to take more than an hour
+    /// in all (on the reference 2-core machine; without this flag such a
+    /// run is refused before it starts, with the estimate).
+    #[arg(long)]
+    pub allow_expensive: bool,
     /// Split the pipeline's outputs into this many shards (one per job-array
     /// task): with --shard I, run only outputs I, I+N, I+2N, … (in the
     /// order `outputs:` lists them) and what they need. Shards sharing a
@@ -230,6 +235,44 @@ fn print_table(r: &Report) {
     }
 }
 
+/// Refuses a run estimated above [`spec::EXPENSIVE_SECONDS`], naming the
+/// estimate and the stages that make it up.
+fn refuse_if_expensive(pipeline: &std::path::Path, est: &[(String, f64)]) -> Result<()> {
+    let total: f64 = est.iter().map(|(_, s)| s).sum();
+    if total <= spec::EXPENSIVE_SECONDS {
+        return Ok(());
+    }
+    let mut top: Vec<&(String, f64)> = est.iter().filter(|(_, s)| *s > 0.0).collect();
+    top.sort_by(|a, b| b.1.total_cmp(&a.1));
+    let parts: Vec<String> = top
+        .iter()
+        .take(3)
+        .map(|(n, s)| format!("`{n}` {}", crate::run::duration(*s)))
+        .collect();
+    bail!(
+        "{}: this run is estimated at {} on the reference 2-core machine if nothing is cached \
+         (most: {}); the limit without --allow-expensive is {}. Lower spp or size, or pass \
+         --allow-expensive",
+        pipeline.display(),
+        duration(total),
+        parts.join(", "),
+        duration(spec::EXPENSIVE_SECONDS)
+    )
+}
+
+/// Seconds as a short human duration.
+pub fn duration(s: f64) -> String {
+    if s < 120.0 {
+        format!("{s:.0} s")
+    } else if s < 7200.0 {
+        format!("{:.0} min", s / 60.0)
+    } else if s < 172_800.0 {
+        format!("{:.1} h", s / 3600.0)
+    } else {
+        format!("{:.0} days", s / 86400.0)
+    }
+}
+
 pub fn run(a: RunArgs) -> Result<()> {
     let reg = matflow_nodes::registry();
     let overrides = a
@@ -248,6 +291,9 @@ pub fn run(a: RunArgs) -> Result<()> {
                 a.pipeline.display()
             );
         }
+    }
+    if !a.allow_expensive {
+        refuse_if_expensive(&a.pipeline, &spec::estimate_seconds(&p, &reg))?;
     }
     let dir = cache_dir(a.cache.as_deref());
     let reg = Arc::new(reg);

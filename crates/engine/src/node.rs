@@ -271,6 +271,13 @@ pub trait Node: Send + Sync {
     fn check_film(&self, _params: &Params, _size: (usize, usize)) -> Result<(), String> {
         Ok(())
     }
+    /// Roughly how long the stage takes on the reference 2-core machine
+    /// (seconds), from its parameters and image size, before anything
+    /// runs; for refusing runs that would take hours by mistake. Zero for
+    /// cheap stages.
+    fn estimate_seconds(&self, _params: &Params, _film: Option<(usize, usize)>) -> f64 {
+        0.0
+    }
     /// Every file [`Node::materialize`] may write for these parameters,
     /// for the loader to check that no two stages write one file and no
     /// stage overwrites an input. By default the [`ParamType::OutPath`]

@@ -629,11 +629,11 @@ fn check_writes<'w>(
 /// stage's file need not).
 const FILM_TYPES: [&str; 5] = ["scene", "materials", "mesh", "paths", "mask"];
 
-/// Works out, before anything runs, the image size each stage works at
-/// (from the stages that state it, along references to film-sized
-/// artifacts, in dependency order) and lets each node check its
-/// parameters against it.
-fn check_film_sizes<'p>(p: &'p Pipeline, reg: &Registry) -> Result<(), (&'p Stage, String)> {
+/// The image size each stage works at, worked out before anything runs:
+/// from the stages that state it ([`crate::Node::film_size`]), passed
+/// along references to film-sized artifacts in dependency order. `None`
+/// where nothing upstream states it. Indexed like `p.stages`.
+pub fn film_sizes(p: &Pipeline, reg: &Registry) -> Vec<Option<(usize, usize)>> {
     let idx: std::collections::HashMap<&str, usize> = p
         .stages
         .iter()
@@ -646,7 +646,9 @@ fn check_film_sizes<'p>(p: &'p Pipeline, reg: &Registry) -> Result<(), (&'p Stag
     let mut pending = vec![0usize; p.stages.len()];
     for (i, s) in p.stages.iter().enumerate() {
         for (up, out) in s.refs.values() {
-            let j = idx[up.as_str()];
+            let Some(&j) = idx.get(up.as_str()) else {
+                continue;
+            };
             downs[j].push(i);
             pending[i] += 1;
             let ty = reg
@@ -663,13 +665,10 @@ fn check_film_sizes<'p>(p: &'p Pipeline, reg: &Registry) -> Result<(), (&'p Stag
     let mut ready: Vec<usize> = (0..p.stages.len()).filter(|&i| pending[i] == 0).collect();
     while let Some(i) = ready.pop() {
         let s = &p.stages[i];
-        let node = reg.get(&s.kind).expect("kind checked");
-        size[i] = node
-            .film_size(&s.params)
+        size[i] = reg
+            .get(&s.kind)
+            .and_then(|n| n.film_size(&s.params))
             .or_else(|| film_ups[i].iter().find_map(|&j| size[j]));
-        if let Some(wh) = size[i] {
-            node.check_film(&s.params, wh).map_err(|m| (s, m))?;
-        }
         for &d in &downs[i] {
             pending[d] -= 1;
             if pending[d] == 0 {
@@ -677,7 +676,46 @@ fn check_film_sizes<'p>(p: &'p Pipeline, reg: &Registry) -> Result<(), (&'p Stag
             }
         }
     }
+    size
+}
+
+/// Lets each stage check its parameters against its image size.
+fn check_film_sizes<'p>(p: &'p Pipeline, reg: &Registry) -> Result<(), (&'p Stage, String)> {
+    for (s, size) in p.stages.iter().zip(film_sizes(p, reg)) {
+        if let (Some(node), Some(wh)) = (reg.get(&s.kind), size) {
+            node.check_film(&s.params, wh).map_err(|m| (s, m))?;
+        }
+    }
     Ok(())
+}
+
+/// A run whose stages are estimated to take longer than this in all (on
+/// the reference 2-core machine, by the cost model of
+/// [`crate::Node::estimate_seconds`]) is refused unless the user says it
+/// may be expensive (`matflow run --allow-expensive`).
+pub const EXPENSIVE_SECONDS: f64 = 3600.0;
+
+/// Estimated seconds of each stage the outputs need, in run order, if
+/// none were cached.
+pub fn estimate_seconds(p: &Pipeline, reg: &Registry) -> Vec<(String, f64)> {
+    let sizes = film_sizes(p, reg);
+    let idx: BTreeMap<&str, usize> = p
+        .stages
+        .iter()
+        .enumerate()
+        .map(|(i, s)| (s.name.as_str(), i))
+        .collect();
+    crate::plan::order(p)
+        .into_iter()
+        .map(|name| {
+            let i = idx[name.as_str()];
+            let s = &p.stages[i];
+            let secs = reg
+                .get(&s.kind)
+                .map_or(0.0, |n| n.estimate_seconds(&s.params, sizes[i]));
+            (name, secs)
+        })
+        .collect()
 }
 
 fn valid_name(s: &str) -> bool {

@@ -279,3 +279,38 @@ impl Kept {
         })
     }
 }
+
+/// Estimated seconds to path-trace a `film`-sized image at `spp` samples
+/// per pixel and `depth` segments on the reference 2-core machine: the
+/// inverse planner's cost per ray, with rays per sample scaled from its
+/// depth-4 count. An upper bound for re-renders that trace only part of
+/// the image. Zero when the size is unknown.
+pub fn render_seconds(film: Option<(usize, usize)>, spp: i64, depth: i64) -> f64 {
+    use matflow_inverse::plan::cost;
+    let Some((w, h)) = film else {
+        return 0.0;
+    };
+    let rays = 1.0 + (cost::RAYS_PER_SAMPLE - 1.0) * (depth.max(1) - 1) as f64 / 3.0;
+    cost::RENDER_PER_RAY * rays * (w * h) as f64 * spp.max(0) as f64
+}
+
+#[cfg(test)]
+mod cost_tests {
+    use super::render_seconds;
+    use matflow_inverse::plan::cost;
+
+    #[test]
+    fn render_estimate_is_the_cost_model_per_ray() {
+        // Depth 4: the planner's rays per sample.
+        let s = render_seconds(Some((512, 512)), 64, 4);
+        let want = cost::RENDER_PER_RAY * cost::RAYS_PER_SAMPLE * 512.0 * 512.0 * 64.0;
+        assert!((s - want).abs() < 1e-9 * want, "{s} vs {want}");
+        // Linear in pixels and samples; one segment is one ray.
+        assert!((render_seconds(Some((1024, 512)), 128, 4) - 4.0 * s).abs() < 1e-9 * s);
+        let one = render_seconds(Some((10, 10)), 1, 1);
+        assert!((one - cost::RENDER_PER_RAY * 100.0).abs() < 1e-15);
+        assert_eq!(render_seconds(None, 64, 4), 0.0);
+        // The example is days, not minutes.
+        assert!(render_seconds(Some((4096, 4096)), 65536, 4) > 86400.0);
+    }
+}

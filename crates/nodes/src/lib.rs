@@ -11,6 +11,7 @@
 
 pub mod artifact;
 mod data;
+pub use data::render_seconds;
 mod kinds;
 mod recovery;
 

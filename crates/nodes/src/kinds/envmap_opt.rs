@@ -52,6 +52,9 @@ impl Node for EnvmapOptNode {
             outputs: OUTPUTS,
         })
     }
+    fn estimate_seconds(&self, p: &Params, _film: Option<(usize, usize)>) -> f64 {
+        p.f64("budget_seconds")
+    }
     /// A bad route option fails validation, before anything runs.
     fn check(&self, p: &Params) -> Result<(), String> {
         env_route(p).map_err(|e| e.0)?;

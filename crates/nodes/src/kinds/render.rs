@@ -135,6 +135,9 @@ impl Node for RenderNode {
     fn info(&self) -> &'static NodeInfo {
         &RENDER_INFO
     }
+    fn estimate_seconds(&self, p: &Params, film: Option<(usize, usize)>) -> f64 {
+        crate::data::render_seconds(film, p.i64("spp"), p.i64("depth"))
+    }
     fn check(&self, p: &Params) -> Result<(), String> {
         if let Some(out) = p.path("output") {
             let ext = out.extension().map(|e| e.to_string_lossy().to_lowercase());

@@ -74,6 +74,9 @@ impl Node for SyntheticSceneNode {
     fn info(&self) -> &'static NodeInfo {
         &SYNTHETIC_SCENE_INFO
     }
+    fn estimate_seconds(&self, p: &Params, film: Option<(usize, usize)>) -> f64 {
+        crate::data::render_seconds(film, p.i64("spp"), 4)
+    }
     fn film_size(&self, p: &Params) -> Option<(usize, usize)> {
         let s = p.i64("size") as usize;
         Some((s, s))

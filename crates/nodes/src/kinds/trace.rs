@@ -92,6 +92,17 @@ impl Node for TraceNode {
     fn info(&self) -> &'static NodeInfo {
         &TRACE_INFO
     }
+    fn estimate_seconds(
+        &self,
+        p: &matflow_engine::node::Params,
+        film: Option<(usize, usize)>,
+    ) -> f64 {
+        use matflow_inverse::plan::cost;
+        crate::data::render_seconds(film, p.i64("spp"), p.i64("depth"))
+            * (1.0
+                + cost::TRACE_PER_RAY / cost::RENDER_PER_RAY * p.i64("path_spp") as f64
+                    / p.i64("spp").max(1) as f64)
+    }
     fn run(&self, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
         let p = ctx.params;
         let maps = materials_from(ctx.input("materials")?)?;
