@@ -468,3 +468,217 @@ fn runs_estimated_above_an_hour_are_refused_with_the_estimate() {
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Runs `render_pipeline` into `cache`; returns the action entries by
+/// stage name (path of each entry file).
+fn populate(dir: &Path, cache: &Path) -> std::collections::BTreeMap<String, PathBuf> {
+    let file = dir.join("p.yaml");
+    std::fs::write(&file, render_pipeline("out/p.exr", 2)).unwrap();
+    let (out, _) = matflow_capped(
+        4096,
+        &[
+            "run",
+            file.to_str().unwrap(),
+            "--quiet",
+            "--cache",
+            cache.to_str().unwrap(),
+        ],
+    );
+    assert!(out.status.success(), "{}", stderr(&out));
+    entries(cache)
+}
+
+fn entries(cache: &Path) -> std::collections::BTreeMap<String, PathBuf> {
+    let mut m = std::collections::BTreeMap::new();
+    for sub in std::fs::read_dir(cache.join("actions")).unwrap() {
+        for e in std::fs::read_dir(sub.unwrap().path()).unwrap() {
+            let p = e.unwrap().path();
+            if let Ok(v) =
+                serde_json::from_slice::<serde_json::Value>(&std::fs::read(&p).unwrap_or_default())
+            {
+                m.insert(v["stage"].as_str().unwrap().to_string(), p);
+            }
+        }
+    }
+    m
+}
+
+fn cache_cmd(args: &[&str]) -> Output {
+    matflow_capped(4096, args).0
+}
+
+#[test]
+fn gc_keep_never_deletes_intact_entries_below_a_damaged_one() {
+    let dir = tmp("gc");
+    let cache = dir.join("cache");
+    let e = populate(&dir, &cache);
+    assert_eq!(e.len(), 3, "{e:?}");
+    // Truncate the first stage's entry.
+    let scene = std::fs::read(&e["scene"]).unwrap();
+    std::fs::write(&e["scene"], &scene[..scene.len() / 2]).unwrap();
+    let p = dir.join("p.yaml");
+    let out = cache_cmd(&[
+        "cache",
+        "gc",
+        "--cache",
+        cache.to_str().unwrap(),
+        "--keep",
+        p.to_str().unwrap(),
+    ]);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{}{}", text, stderr(&out));
+    assert!(text.contains("removed 1 actions"), "{text}");
+    assert!(text.contains("kept 2 entries"), "{text}");
+    let left = entries(&cache);
+    assert!(
+        left.contains_key("mesh") && left.contains_key("shot"),
+        "{left:?}"
+    );
+    // The next run recomputes only the damaged stage.
+    let (out, _) = matflow_capped(
+        4096,
+        &[
+            "run",
+            p.to_str().unwrap(),
+            "--cache",
+            cache.to_str().unwrap(),
+            "--quiet",
+            "--report",
+            dir.join("r.json").to_str().unwrap(),
+        ],
+    );
+    assert!(out.status.success(), "{}", stderr(&out));
+    let r: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join("r.json")).unwrap()).unwrap();
+    let status: Vec<(String, String)> = r["stages"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| {
+            (
+                s["name"].as_str().unwrap().into(),
+                s["status"].as_str().unwrap().into(),
+            )
+        })
+        .collect();
+    assert_eq!(
+        status,
+        [
+            ("scene", "executed"),
+            ("mesh", "cached"),
+            ("shot", "cached")
+        ]
+        .map(|(a, b)| (a.to_string(), b.to_string()))
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn an_entry_pointing_at_a_blob_of_the_wrong_type_is_a_miss_and_verify_reports_it() {
+    let dir = tmp("wrongtype");
+    let cache = dir.join("cache");
+    let e = populate(&dir, &cache);
+    // The mesh entry now names the scene's (intact) blob as its mesh.
+    let scene: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&e["scene"]).unwrap()).unwrap();
+    let mut mesh: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&e["mesh"]).unwrap()).unwrap();
+    mesh["outputs"]["mesh"] = scene["outputs"]["scene"].clone();
+    std::fs::write(&e["mesh"], serde_json::to_vec(&mesh).unwrap()).unwrap();
+    let forged = std::fs::read(&e["mesh"]).unwrap();
+    // A run recovers: the mesh is recomputed, the render re-runs or hits.
+    let p = dir.join("p.yaml");
+    let run = || {
+        matflow_capped(
+            4096,
+            &[
+                "run",
+                p.to_str().unwrap(),
+                "--cache",
+                cache.to_str().unwrap(),
+                "--quiet",
+            ],
+        )
+        .0
+    };
+    let out = run();
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert_ne!(
+        std::fs::read(&e["mesh"]).unwrap(),
+        forged,
+        "the entry was rewritten"
+    );
+    assert!(run().status.success());
+    // verify finds a forged entry and removes it (and only it).
+    std::fs::write(&e["mesh"], &forged).unwrap();
+    let out = cache_cmd(&["cache", "verify", "--cache", cache.to_str().unwrap()]);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{text}{}", stderr(&out));
+    assert!(
+        text.contains("1 of the wrong type") && text.contains("removed 0 blobs and 1 actions"),
+        "{text}"
+    );
+    assert!(text.contains("not a mesh artifact"), "{text}");
+    let out = cache_cmd(&["cache", "verify", "--cache", cache.to_str().unwrap()]);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains("0 of the wrong type; removed 0 blobs and 0 actions"),
+        "{text}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn cache_tools_count_only_what_they_removed_and_fail_when_they_cannot() {
+    let dir = tmp("undeletable");
+    let cache = dir.join("cache");
+    let e = populate(&dir, &cache);
+    // An entry and a blob that cannot be removed, even by root: each is
+    // a non-empty directory where a file is expected.
+    std::fs::remove_file(&e["shot"]).unwrap();
+    std::fs::create_dir_all(e["shot"].join("x")).unwrap();
+    let blobs = cache.join("blobs/ff");
+    std::fs::create_dir_all(blobs.join(format!("{}/x", "f".repeat(62)))).unwrap();
+    let out = cache_cmd(&["cache", "verify", "--cache", cache.to_str().unwrap()]);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert_eq!(out.status.code(), Some(1), "{text}{}", stderr(&out));
+    assert!(text.contains("removed 0 blobs and 0 actions"), "{text}");
+    assert!(stderr(&out).contains("could not"), "{}", stderr(&out));
+    let out = cache_cmd(&[
+        "cache",
+        "gc",
+        "--cache",
+        cache.to_str().unwrap(),
+        "--older-than",
+        "0",
+    ]);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert_eq!(out.status.code(), Some(1), "{text}{}", stderr(&out));
+    // The two intact entries and their blobs went; the stuck ones did not count.
+    assert!(text.contains("removed 2 actions"), "{text}");
+    assert!(stderr(&out).contains("removals failed"), "{}", stderr(&out));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn listing_into_a_closed_pipe_ends_quietly() {
+    let dir = tmp("pipe");
+    let cache = dir.join("cache");
+    populate(&dir, &cache);
+    for args in [
+        &["cache", "ls", "--cache", cache.to_str().unwrap()][..],
+        &["kinds"][..],
+    ] {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_matflow"))
+            .args(args)
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        drop(child.stdout.take());
+        let out = child.wait_with_output().unwrap();
+        assert_eq!(out.status.code(), Some(0), "{args:?}: {}", stderr(&out));
+        assert!(out.stderr.is_empty(), "{args:?}: {}", stderr(&out));
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}

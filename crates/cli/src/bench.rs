@@ -92,7 +92,7 @@ fn bench_render(a: BenchRenderArgs) -> Result<()> {
     let loaded = load_scene(&a.bundle, a.materials, None, 6.0, a.reference_compat)?;
     let scene = &loaded.scene;
     let cam = scene.camera;
-    println!(
+    outln!(
         "bench render: {} ({}x{}, {} triangles), {} thread(s), {} run(s), medians",
         a.bundle.display(),
         cam.width,
@@ -123,8 +123,8 @@ fn bench_render(a: BenchRenderArgs) -> Result<()> {
             })
             .collect(),
     );
-    println!("  mesh from depth       {:8.1} ms", mesh_t * 1e3);
-    println!("  BVH build             {:8.1} ms", build_t * 1e3);
+    outln!("  mesh from depth       {:8.1} ms", mesh_t * 1e3);
+    outln!("  BVH build             {:8.1} ms", build_t * 1e3);
 
     // Ray sets: primary (one per pixel, jittered), incoherent (cosine
     // directions from the primary hits), occlusion (the same incoherent rays).
@@ -164,7 +164,7 @@ fn bench_render(a: BenchRenderArgs) -> Result<()> {
     };
     if let Some(dir) = &a.export {
         export(dir)?;
-        println!("wrote {}", dir.display());
+        outln!("wrote {}", dir.display());
         return Ok(());
     }
     // Median Mrays/s of `count`, which answers a chunk of 1024 rays and
@@ -213,7 +213,7 @@ fn bench_render(a: BenchRenderArgs) -> Result<()> {
         time(&incoherent, &stream_hits),
         time(&incoherent, &stream_blocked),
     ];
-    println!(
+    outln!(
         "  primary closest-hit   {:8.2} Mrays/s ({} rays)",
         ours[0],
         primary.len()
@@ -249,7 +249,7 @@ fn bench_render(a: BenchRenderArgs) -> Result<()> {
             })
             .collect(),
     );
-    println!(
+    outln!(
         "  camera packets        {:8.2} Mrays/s ({} per pixel, as the renderer traces them)",
         (w * h * spp) as f64 / packet_t / 1e6,
         spp
@@ -260,7 +260,7 @@ fn bench_render(a: BenchRenderArgs) -> Result<()> {
         ("  as streams", ours[3]),
         ("  occlusion as streams", ours[4]),
     ] {
-        println!("  {name:<22}{v:8.2} Mrays/s ({} rays)", incoherent.len());
+        outln!("  {name:<22}{v:8.2} Mrays/s ({} rays)", incoherent.len());
     }
 
     // Full renders.
@@ -287,7 +287,7 @@ fn bench_render(a: BenchRenderArgs) -> Result<()> {
     }
     let out = last.unwrap();
     let render_s = median(times);
-    println!(
+    outln!(
         "  render {} spp, depth {} {:8.2} s wall ({:.2} Mrays/s overall, {:.1} M rays)",
         a.spp,
         a.depth,
@@ -300,7 +300,7 @@ fn bench_render(a: BenchRenderArgs) -> Result<()> {
     {
         let reference = io::read_exr_rgb(&stored)?;
         if reference.same_size(&out.image) {
-            println!(
+            outln!(
                 "  PSNR vs stored rendered_img.exr (sRGB, gamma 2.2): {:.2} dB{}",
                 psnr_gamma(&out.image, &reference),
                 if a.reference_compat {
@@ -336,18 +336,18 @@ fn compare(
     let work = &a.work_dir;
     let scene_dir = work.join("scene");
     export(&scene_dir)?;
-    println!("side by side ({threads} threads, same rays, scene, spp and depth):");
+    outln!("side by side ({threads} threads, same rays, scene, spp and depth):");
     let embree = run_embree(&bench_dir, &scene_dir, work, threads, runs)?;
     match &embree {
-        None => println!("  Embree: not installed (apt-get install libembree-dev)"),
+        None => outln!("  Embree: not installed (apt-get install libembree-dev)"),
         Some(e) => {
-            println!(
+            outln!(
                 "  {:<26}{:>12}{:>16}",
                 "",
                 "matflow",
                 format!("Embree {}", e.embree)
             );
-            println!(
+            outln!(
                 "  {:<26}{:>12.1}{:>16.1}",
                 "BVH build (ms)",
                 build_t * 1e3,
@@ -368,7 +368,7 @@ fn compare(
                     e.incoherent_occl_stream_mrays,
                 ),
             ] {
-                println!(
+                outln!(
                     "  {:<26}{:>12.2}{:>16.2}   Mrays/s, matflow/Embree {:.2}",
                     name,
                     m,
@@ -379,17 +379,17 @@ fn compare(
         }
     }
     if !mitsuba_installed() {
-        println!("  Mitsuba 3: not installed (pip install mitsuba; apt-get install libllvm19)");
+        outln!("  Mitsuba 3: not installed (pip install mitsuba; apt-get install libllvm19)");
         return Ok(());
     }
     if a.reference_compat {
-        println!("  Mitsuba 3: skipped (--reference-compat renders a different estimator)");
+        outln!("  Mitsuba 3: skipped (--reference-compat renders a different estimator)");
         return Ok(());
     }
     let mi = run_mitsuba(
         &bench_dir, &scene_dir, a.spp, a.depth, runs, threads, 0, None, None,
     )?;
-    println!(
+    outln!(
         "  render {} spp, depth {}: matflow {:.2} s, {} {:.2} s (first run {:.2} s); matflow/Mitsuba {:.2}",
         a.spp, a.depth, render_s, mi.renderer, mi.median_s, mi.first_s, render_s / mi.median_s
     );
@@ -419,7 +419,7 @@ fn compare(
         }
     };
     let margin = 2;
-    println!(
+    outln!(
         "equal error: window {}x{} at ({}, {}), RMSE (linear) against each renderer's own {} spp render",
         crop.width, crop.height, crop.x, crop.y, a.reference_spp
     );
@@ -449,7 +449,7 @@ fn compare(
         Some(&ref_path),
     )?;
     let ref_mi = io::read_exr_rgb(&ref_path)?;
-    println!(
+    outln!(
         "  the two converged renders differ by RMSE {:.5} (mean {:.4})",
         rmse_interior(&ref_m, &ref_mi, margin),
         ref_m
@@ -459,9 +459,13 @@ fn compare(
             .sum::<f64>()
             / (3 * ref_m.data.len()) as f64
     );
-    println!(
+    outln!(
         "  {:>6} {:>12} {:>10} {:>12} {:>10}",
-        "spp", "matflow s", "RMSE", "Mitsuba s", "RMSE"
+        "spp",
+        "matflow s",
+        "RMSE",
+        "Mitsuba s",
+        "RMSE"
     );
     let (mut pts_m, mut pts_mi) = (Vec::new(), Vec::new());
     let img_path = work.join("mitsuba-window.exr");
@@ -487,9 +491,13 @@ fn compare(
             Some(&img_path),
         )?;
         let err_mi = rmse_interior(&io::read_exr_rgb(&img_path)?, &ref_mi, margin);
-        println!(
+        outln!(
             "  {:>6} {:>12.3} {:>10.5} {:>12.3} {:>10.5}",
-            spp, tm, err, mi.median_s, err_mi
+            spp,
+            tm,
+            err,
+            mi.median_s,
+            err_mi
         );
         pts_m.push((tm, err));
         pts_mi.push((mi.median_s, err_mi));
@@ -500,7 +508,7 @@ fn compare(
         time_to_error(&pts_m, target),
         time_to_error(&pts_mi, target),
     );
-    println!(
+    outln!(
         "  time to RMSE {target:.5} (Mitsuba's at 64 spp): matflow {tm:.3} s, Mitsuba {tmi:.3} s; matflow/Mitsuba {:.2}",
         tm / tmi
     );

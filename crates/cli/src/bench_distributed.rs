@@ -229,7 +229,7 @@ pub fn local_vs_workers(
         } else {
             format!("{workers} loopback workers")
         };
-        println!(
+        outln!(
             "  {size}² {label}: first run {first:.2} s ({n_first} stages), re-edit median {edit:.2} s ({n_edit} stages)"
         );
         rows.push(format!(
@@ -305,7 +305,7 @@ pub fn fanout(exe: &Path, work: &Path, n: usize, spp: u32, runs: usize) -> Resul
             times.push(t);
         }
         let t = median(times);
-        println!(
+        outln!(
             "  fan-out {n} renders ({spp} spp, 128²) on {w} worker(s) of 1 thread: {t:.2} s, {:.2} renders/s",
             n as f64 / t
         );

@@ -112,7 +112,7 @@ fn reference_psnr(bundle: &Path) -> Option<f64> {
 pub fn bench_invert(a: BenchInvertArgs) -> Result<()> {
     let exe = std::env::current_exe()?;
     std::fs::create_dir_all(&a.work)?;
-    println!(
+    outln!(
         "bench invert: {} thread(s); each row is one child `matflow invert` run; rerender = \
          independent render of the recovered scene vs the input (sRGB γ 2.2)",
         rayon::current_num_threads()
@@ -154,7 +154,7 @@ pub fn bench_invert(a: BenchInvertArgs) -> Result<()> {
             .map(|s| s.to_string_lossy().to_string())
             .unwrap_or_default();
         if let Some(p) = reference_psnr(bundle) {
-            println!("  {scene}: reference's stored result {p:.2} dB");
+            outln!("  {scene}: reference's stored result {p:.2} dB");
         }
         let mut configs: Vec<(f64, String, String, Vec<&str>)> = Vec::new();
         for &b in &a.budgets {
@@ -179,7 +179,7 @@ pub fn bench_invert(a: BenchInvertArgs) -> Result<()> {
         }
         if a.dry_run {
             for (b, route, variant, flags) in &configs {
-                println!(
+                outln!(
                     "  {scene:<8} budget {b:>5.0} s  material route {route:<8} {variant:<28} extra flags: {}",
                     flags.join(" ")
                 );
@@ -204,7 +204,7 @@ pub fn bench_invert(a: BenchInvertArgs) -> Result<()> {
                 fit_psnr: f("fit", "psnr"),
                 peak_mb: s["peak_memory_bytes"].as_f64().unwrap_or(f64::NAN) / 1e6,
             };
-            println!(
+            outln!(
                 "  {:<8} budget {:>5.0} s  {:<6} {:<28} {:>6.1} s  rerender {:>6.2} dB  SSIM {:.3}  fit {:>6.2} dB  peak {:>5.0} MB",
                 row.scene, row.budget, row.route, row.variant, row.seconds, row.psnr, row.ssim,
                 row.fit_psnr, row.peak_mb
@@ -212,13 +212,21 @@ pub fn bench_invert(a: BenchInvertArgs) -> Result<()> {
             rows.push(row);
         }
     }
-    println!();
-    println!("| scene | budget (s) | material route | variant | wall (s) | rerender PSNR (dB) | SSIM | fit PSNR (dB) | peak memory (MB) |");
-    println!("|---|---|---|---|---|---|---|---|---|");
+    outln!();
+    outln!("| scene | budget (s) | material route | variant | wall (s) | rerender PSNR (dB) | SSIM | fit PSNR (dB) | peak memory (MB) |");
+    outln!("|---|---|---|---|---|---|---|---|---|");
     for r in &rows {
-        println!(
+        outln!(
             "| {} | {:.0} | {} | {} | {:.1} | {:.2} | {:.3} | {:.2} | {:.0} |",
-            r.scene, r.budget, r.route, r.variant, r.seconds, r.psnr, r.ssim, r.fit_psnr, r.peak_mb
+            r.scene,
+            r.budget,
+            r.route,
+            r.variant,
+            r.seconds,
+            r.psnr,
+            r.ssim,
+            r.fit_psnr,
+            r.peak_mb
         );
     }
     Ok(())

@@ -97,7 +97,7 @@ pub fn bench_pipeline(a: BenchPipelineArgs) -> Result<()> {
         Ok((secs, summary))
     };
     let run = |extra: &[String]| run_file(&a.pipeline, extra);
-    println!(
+    outln!(
         "bench pipeline: {} at {}², {} spp, {} thread(s); each run is a child `matflow run`",
         a.pipeline.display(),
         a.size,
@@ -108,19 +108,19 @@ pub fn bench_pipeline(a: BenchPipelineArgs) -> Result<()> {
         return distributed(&a, &exe);
     }
     let (first, s) = run(&[])?;
-    println!("first run (empty cache): {first:.2} s   [{s}]");
+    outln!("first run (empty cache): {first:.2} s   [{s}]");
     let mut edits = Vec::new();
     let mut same = Vec::new();
     for k in 0..a.runs.max(1) {
         let r = format!("shiny.roughness={}", 0.3 + 0.1 * k as f64);
         let (t, s) = run(std::slice::from_ref(&r))?;
-        println!("re-edit {}: {t:.2} s   [{s}]", k + 1);
+        outln!("re-edit {}: {t:.2} s   [{s}]", k + 1);
         edits.push(t);
         let (t, s) = run(std::slice::from_ref(&r))?;
-        println!("no change {}: {t:.2} s   [{s}]", k + 1);
+        outln!("no change {}: {t:.2} s   [{s}]", k + 1);
         same.push(t);
     }
-    println!(
+    outln!(
         "| pipeline | size | spp | first run | re-edit (median of {n}) | no change (median of {n}) |\n|---|---|---|---|---|---|\n| {} | {}² | {} | {first:.2} s | {:.2} s | {:.2} s |",
         a.pipeline.display(),
         a.size,
@@ -168,7 +168,7 @@ pub fn bench_pipeline(a: BenchPipelineArgs) -> Result<()> {
         let load = |n: &str| matflow_scene::io::read_exr_rgb(&a.work.join(format!("{n}.exr")));
         let (e, f, r) = (load("edited")?, load("full")?, load("reference")?);
         use matflow_scene::metrics::psnr_gamma;
-        println!(
+        outln!(
             "edit render against a {} spp reference (sRGB PSNR): from kept paths {:.2} dB, \
              full path trace at {} spp {:.2} dB",
             a.reference_spp,
@@ -202,7 +202,7 @@ fn distributed(a: &BenchPipelineArgs, exe: &std::path::Path) -> Result<()> {
     let work = std::path::absolute(&a.work)?;
     std::fs::create_dir_all(&work)?;
     if a.workers > 0 {
-        println!(
+        outln!(
             "local vs {} loopback workers (each a `matflow worker`, all threads; store: buildbox-casd); re-edits: median of {}",
             a.workers,
             a.runs.max(1)
@@ -224,14 +224,14 @@ fn distributed(a: &BenchPipelineArgs, exe: &std::path::Path) -> Result<()> {
                 a.runs,
             )?);
         }
-        println!(
+        outln!(
             "| size | where | first run | re-edit | dispatch overhead per executed stage (first / re-edit) | bytes moved (first run) |\n|---|---|---|---|---|---|\n{}",
             rows.join("\n")
         );
     }
     if a.fanout > 0 {
         let row = d::fanout(exe, &work, a.fanout, a.fanout_spp, a.runs)?;
-        println!("{row}");
+        outln!("{row}");
     }
     if a.sim_stages > 0 {
         let dir = a.sim_dir.clone().unwrap_or_else(|| {
@@ -242,7 +242,7 @@ fn distributed(a: &BenchPipelineArgs, exe: &std::path::Path) -> Result<()> {
                 work.join("sim")
             }
         });
-        println!(
+        outln!(
             "scheduler simulation: no-op stages in 10 layers on {} simulated workers (1 slot each), the real event loop, queue, placement and stores (in {})",
             a.sim_workers,
             dir.display()
@@ -258,7 +258,7 @@ fn distributed(a: &BenchPipelineArgs, exe: &std::path::Path) -> Result<()> {
             }
             runs.sort_by(|x, y| x.0.total_cmp(&y.0));
             let (t, rate) = runs[runs.len() / 2];
-            println!(
+            outln!(
                 "  {n} stages: {t:.3} s, {rate:.0} dispatches/s, {:.1} µs per stage",
                 t / n as f64 * 1e6
             );
@@ -269,7 +269,7 @@ fn distributed(a: &BenchPipelineArgs, exe: &std::path::Path) -> Result<()> {
             ));
         }
         let _ = std::fs::remove_dir_all(&dir);
-        println!(
+        outln!(
             "| stages | simulated workers | time (median of {}) | dispatches/s | per stage |\n|---|---|---|---|---|\n{}",
             a.runs.max(1),
             rows.join("\n")

@@ -196,7 +196,7 @@ fn measure(
 }
 
 fn print_row(r: &Row) {
-    println!(
+    outln!(
         "| {} | {:.0} | {} | {:.1} | {:.2} / {:.3} | {:.2} | {:.3} / {:.2} / {:.3} / {:.2} | {:.2} / {:.3} / {:.3} | {:.0} |",
         r.seed,
         r.budget,
@@ -221,14 +221,14 @@ const HEADER: &str = "| seed | budget (s) | configuration | wall (s) | rerender 
 pub fn bench_synthetic(a: BenchSyntheticArgs) -> Result<()> {
     let exe = std::env::current_exe()?;
     std::fs::create_dir_all(&a.work)?;
-    println!(
+    outln!(
         "bench synthetic: {} thread(s), scenes {}², ground truth at {} spp; \
          predictions degraded from the truth; every row is one child `matflow invert --trust-rm`",
         rayon::current_num_threads(),
         a.size,
         a.gt_spp
     );
-    println!("{HEADER}");
+    outln!("{HEADER}");
     let mut rows: Vec<Row> = Vec::new();
     let max_budget = a.budgets.iter().cloned().fold(f64::NAN, f64::max);
     for &seed in &a.seeds {
@@ -287,9 +287,9 @@ pub fn bench_synthetic(a: BenchSyntheticArgs) -> Result<()> {
         }
     }
     // Means over seeds per (budget, configuration).
-    println!();
-    println!("Means over {} scene(s):", a.seeds.len());
-    println!("{}", HEADER.replacen("| seed ", "| scenes ", 1));
+    outln!();
+    outln!("Means over {} scene(s):", a.seeds.len());
+    outln!("{}", HEADER.replacen("| seed ", "| scenes ", 1));
     let mut keys: Vec<(f64, String)> = Vec::new();
     for r in &rows {
         if !keys.iter().any(|k| k.0 == r.budget && k.1 == r.config) {
@@ -322,7 +322,7 @@ pub fn bench_synthetic(a: BenchSyntheticArgs) -> Result<()> {
         };
         print_row(&mean);
     }
-    println!(
+    outln!(
         "\nPaper, Table 3 (envmap recovery with MatNet materials): envmap SSIM 0.703, PSNR 4.51, \
          MSE 6.73, SH error 3.05; rerender PSNR 18.98, SSIM 0.784."
     );

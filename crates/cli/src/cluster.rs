@@ -300,7 +300,7 @@ pub fn worker(a: WorkerArgs, cache_dir: PathBuf) -> Result<()> {
         if let Some(t) = server_tls {
             builder = builder.tls_config(t)?;
         }
-        println!(
+        outln!(
             "matflow worker {id} listening on {bound} ({} slots, token {}, {})",
             a.slots.max(1),
             if token.is_some() { "required" } else { "off" },

@@ -203,7 +203,7 @@ pub fn render(a: RenderArgs) -> Result<()> {
     let (out, seconds) = render_with_progress(&loaded.scene, &opts, "render");
     let png = write_outputs(&a.out, &out.image)?;
     let s = out.stats;
-    println!(
+    outln!(
         "rendered {}x{} at {} spp, depth {} in {:.2} s (mesh and BVH {:.2} s, total {:.2} s): {:.1} M rays, {:.2} Mrays/s -> {}, {}",
         loaded.scene.camera.width,
         loaded.scene.camera.height,
@@ -228,7 +228,7 @@ pub fn render(a: RenderArgs) -> Result<()> {
         if !reference.same_size(&out.image) {
             bail!("{}: size differs from the render", c.display());
         }
-        println!(
+        outln!(
             "PSNR (sRGB, gamma 2.2) against {}: {:.2} dB",
             c.display(),
             psnr_gamma(&out.image, &reference)
@@ -246,7 +246,7 @@ pub fn mesh(a: MeshArgs) -> Result<()> {
     let mut buf = Vec::new();
     m.mesh.write_ply(&mut buf, cam.width, cam.height)?;
     io::write_atomic(&a.out, &buf)?;
-    println!(
+    outln!(
         "mesh: {} vertices, {} triangles in {:.3} s ({} boundary pixels moved, {} copies, {} direct, {} after 1 copy, {} after 2, {} dropped) -> {}",
         m.mesh.vertex_count(),
         m.mesh.triangle_count(),
@@ -309,7 +309,7 @@ pub fn synth(a: SynthArgs) -> Result<()> {
         io::write_exr_rgb(&bundle.path("ground_truth/relit_image.exr"), &img.image)?;
         io::write_png_gamma(&bundle.path("ground_truth/relit_image.png"), &img.image)?;
     }
-    println!(
+    outln!(
         "synthetic scene {} ({}x{}): {} triangles, gt_image at {} spp in {:.2} s (total {:.2} s) -> {}",
         a.seed,
         a.size,

@@ -300,7 +300,7 @@ pub fn invert_cmd(a: InvertArgs) -> Result<()> {
         "peak_memory_bytes": peak_memory_bytes(),
     });
     write_bundle(&a.out, &res, depth, pred, target, &summary)?;
-    println!(
+    outln!(
         "inverted {} in {:.1} s: rerender PSNR {:.2} dB, SSIM {:.4}, MSE {:.5} (sRGB, gamma 2.2; frozen-path fit {:.2} dB); peak memory {:.0} MB -> {}",
         a.bundle.display(),
         t0.elapsed().as_secs_f64(),

@@ -1,5 +1,40 @@
 //! `matflow`: single-image inverse rendering and physically based editing.
 
+/// `println!` for the command's output: a closed pipe (`matflow cache ls
+/// | head`) ends the process quietly with status 0 instead of a panic.
+macro_rules! outln {
+    () => {
+        $crate::write_out(format_args!(""), true)
+    };
+    ($($t:tt)*) => {
+        $crate::write_out(format_args!($($t)*), true)
+    };
+}
+
+/// `print!` with the same handling of a closed pipe.
+macro_rules! out {
+    ($($t:tt)*) => {
+        $crate::write_out(format_args!($($t)*), false)
+    };
+}
+
+/// Writes to stdout; exits quietly when the reader has gone, with an
+/// error for any other write failure (a full disk behind a redirect).
+pub fn write_out(args: std::fmt::Arguments, newline: bool) {
+    use std::io::Write;
+    let mut o = std::io::stdout().lock();
+    let r = o
+        .write_fmt(args)
+        .and_then(|_| if newline { o.write_all(b"\n") } else { Ok(()) });
+    if let Err(e) = r {
+        if e.kind() == std::io::ErrorKind::BrokenPipe {
+            std::process::exit(0);
+        }
+        eprintln!("error: writing the output: {e}");
+        std::process::exit(1);
+    }
+}
+
 mod bench;
 mod bench_compare;
 mod bench_distributed;
@@ -71,7 +106,7 @@ fn main() {
         Cmd::Run(a) => run::run(a),
         Cmd::Cache(c) => run::cache(c),
         Cmd::Kinds => {
-            print!("{}", matflow_nodes::reference_markdown());
+            out!("{}", matflow_nodes::reference_markdown());
             Ok(())
         }
         Cmd::Bench(b) => bench::run(b),

@@ -180,9 +180,12 @@ impl Observer for Bars {
 }
 
 fn print_table(r: &Report) {
-    println!(
+    outln!(
         "{:<18} {:<16} {:<9} {:>8}  outputs",
-        "stage", "kind", "status", "seconds"
+        "stage",
+        "kind",
+        "status",
+        "seconds"
     );
     for s in &r.stages {
         let outs = s
@@ -191,7 +194,7 @@ fn print_table(r: &Report) {
             .map(|(k, d)| format!("{k}={}", &d[..12]))
             .collect::<Vec<_>>()
             .join(" ");
-        println!(
+        outln!(
             "{:<18} {:<16} {:<9} {:>8.2}  {}",
             s.name,
             s.kind,
@@ -200,7 +203,7 @@ fn print_table(r: &Report) {
             outs
         );
         if let Some(w) = s.worker.as_deref().filter(|w| *w != "local") {
-            println!(
+            outln!(
                 "{:<18} on {w}: {} attempt{}, {} B in, {} B out",
                 "",
                 s.attempts,
@@ -210,14 +213,14 @@ fn print_table(r: &Report) {
             );
         }
         for r in &s.retries {
-            println!("{:<18} retried: {r}", "");
+            outln!("{:<18} retried: {r}", "");
         }
         for f in &s.files {
-            println!("{:<18} wrote {f}", "");
+            outln!("{:<18} wrote {f}", "");
         }
     }
     let n = |st: Status| r.stages.iter().filter(|s| s.status == st).count();
-    println!(
+    outln!(
         "{}: {} executed, {} cached, {} skipped in {:.2} s (cache {}; {})",
         r.pipeline,
         n(Status::Executed),
@@ -228,9 +231,10 @@ fn print_table(r: &Report) {
         r.executor
     );
     if r.bytes_uploaded + r.bytes_downloaded > 0 {
-        println!(
+        outln!(
             "remote store: {} B uploaded, {} B downloaded",
-            r.bytes_uploaded, r.bytes_downloaded
+            r.bytes_uploaded,
+            r.bytes_downloaded
         );
     }
 }
@@ -286,7 +290,7 @@ pub fn run(a: RunArgs) -> Result<()> {
     if let (Some(n), Some(i)) = (a.shards, a.shard) {
         select_shard(&mut p, n, i)?;
         if p.outputs.is_empty() {
-            println!(
+            outln!(
                 "{}: shard {i} of {n} has no outputs (the pipeline lists fewer than {n})",
                 a.pipeline.display()
             );
@@ -344,9 +348,13 @@ pub fn cache(c: CacheCmd) -> Result<()> {
         CacheCmd::Ls(d) => {
             let store = Store::open(cache_dir(d.cache.as_deref()))?;
             let sizes: BTreeMap<_, _> = store.blobs().into_iter().collect();
-            println!(
+            outln!(
                 "{:<14} {:<16} {:<18} {:<12} {:>10}  last used",
-                "key", "kind", "stage", "pipeline", "bytes"
+                "key",
+                "kind",
+                "stage",
+                "pipeline",
+                "bytes"
             );
             for (k, a, t) in store.actions() {
                 let age = t.elapsed().map(|d| d.as_secs()).unwrap_or(0);
@@ -358,7 +366,7 @@ pub fn cache(c: CacheCmd) -> Result<()> {
                             .values()
                             .map(|d| sizes.get(d).copied().unwrap_or(0))
                             .sum();
-                        println!(
+                        outln!(
                             "{:<14} {:<16} {:<18} {:<12} {:>10}  {} s ago",
                             &k.hex()[..12],
                             a.kind,
@@ -368,14 +376,14 @@ pub fn cache(c: CacheCmd) -> Result<()> {
                             age
                         );
                     }
-                    None => println!("{:<14} (unreadable entry)", &k.hex()[..12]),
+                    None => outln!("{:<14} (unreadable entry)", &k.hex()[..12]),
                 }
             }
         }
         CacheCmd::Stats(d) => {
             let store = Store::open(cache_dir(d.cache.as_deref()))?;
             let s = store.stats();
-            println!(
+            outln!(
                 "{}: {} blobs, {} bytes ({:.1} MB), {} actions, {} temporary files",
                 store.root().display(),
                 s.blobs,
@@ -387,17 +395,52 @@ pub fn cache(c: CacheCmd) -> Result<()> {
         }
         CacheCmd::Verify(d) => {
             let store = Store::open(cache_dir(d.cache.as_deref()))?;
-            let r = store.verify();
-            println!(
-                "{} blobs intact, {} corrupt (removed); {} actions complete, {} unreadable, {} incomplete (removed)",
+            let reg = matflow_nodes::registry();
+            // Each output must decode as the type its node declares.
+            let r = store.verify_with(|a, name, bytes| {
+                let node = reg
+                    .get(&a.kind)
+                    .ok_or_else(|| format!("unknown node kind `{}`", a.kind))?;
+                let spec = node
+                    .outputs()
+                    .iter()
+                    .find(|o| o.name == name)
+                    .ok_or_else(|| format!("a {} stage has no output `{name}`", a.kind))?;
+                if reg.artifact_is(bytes, &[spec.ty]) {
+                    Ok(())
+                } else {
+                    Err(format!("not a {} artifact", spec.ty))
+                }
+            });
+            let bad = r.blobs_corrupt.len()
+                + r.actions_unreadable.len()
+                + r.actions_incomplete.len()
+                + r.actions_wrong_type.len();
+            outln!(
+                "{} blobs intact, {} corrupt; {} actions complete, {} unreadable, {} incomplete, {} of the wrong type; removed {} blobs and {} actions",
                 r.blobs_ok,
                 r.blobs_corrupt.len(),
                 r.actions_ok,
                 r.actions_unreadable.len(),
-                r.actions_incomplete.len()
+                r.actions_incomplete.len(),
+                r.actions_wrong_type.len(),
+                r.blobs_removed,
+                r.actions_removed
             );
             for b in &r.blobs_corrupt {
-                println!("corrupt blob {b}");
+                outln!("corrupt blob {b}");
+            }
+            for w in &r.actions_wrong_type {
+                outln!("wrong type {w}");
+            }
+            if !r.errors.is_empty() {
+                for e in &r.errors {
+                    eprintln!("could not read or remove: {e}");
+                }
+                bail!(
+                    "verify: {} files could not be read or removed ({bad} damaged entries found)",
+                    r.errors.len()
+                );
             }
         }
         CacheCmd::Gc(g) => {
@@ -405,6 +448,7 @@ pub fn cache(c: CacheCmd) -> Result<()> {
                 bail!("gc: say what to keep: --keep PIPELINE.yaml, --older-than DAYS and/or --max-size SIZE");
             }
             let store = Store::open(cache_dir(g.cache.as_deref()))?;
+            let mut keep_stages = std::collections::BTreeSet::new();
             let keep = if g.keep.is_empty() {
                 None
             } else {
@@ -412,7 +456,9 @@ pub fn cache(c: CacheCmd) -> Result<()> {
                 let mut keys = std::collections::BTreeSet::new();
                 for f in &g.keep {
                     let p = spec::load(f, &reg, &[]).map_err(anyhow::Error::msg)?;
-                    keys.extend(cached_keys(&p, &reg, &store));
+                    let c = cached_keys(&p, &reg, &store);
+                    keys.extend(c.keys);
+                    keep_stages.extend(c.unresolved);
                 }
                 Some(keys)
             };
@@ -426,11 +472,30 @@ pub fn cache(c: CacheCmd) -> Result<()> {
                 keep,
                 older_than,
                 max_bytes,
+                keep_stages,
             });
-            println!(
+            outln!(
                 "removed {} actions, {} blobs ({} bytes), {} stale temporary files",
-                r.actions_removed, r.blobs_removed, r.bytes_freed, r.temp_removed
+                r.actions_removed,
+                r.blobs_removed,
+                r.bytes_freed,
+                r.temp_removed
             );
+            if r.actions_kept_unresolved > 0 {
+                outln!(
+                    "kept {} entries of stages whose keys could not be worked out (an entry above them is missing or damaged; run the pipeline to repair it)",
+                    r.actions_kept_unresolved
+                );
+            }
+            if !r.errors.is_empty() {
+                for e in &r.errors {
+                    eprintln!("could not remove: {e}");
+                }
+                bail!(
+                    "gc: {} removals failed (nothing counted above was left behind)",
+                    r.errors.len()
+                );
+            }
         }
     }
     Ok(())

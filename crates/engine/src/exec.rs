@@ -263,7 +263,21 @@ pub fn execute_job(
     let mut missing = Vec::new();
     let mut bytes_in = 0;
     for (param, d) in &job.inputs {
+        // An input that is not the artifact type the parameter takes (a
+        // damaged or forged cache entry upstream) counts as missing: its
+        // producer is sent back to run uncached.
+        let accepts = node
+            .params()
+            .iter()
+            .find(|p| p.name == param)
+            .and_then(|p| match p.ty {
+                ParamType::Ref(a) => Some(a),
+                _ => None,
+            });
         match store.get(d).map_err(infra)? {
+            Some(b) if accepts.is_some_and(|a| !reg.artifact_is(&b, a)) => {
+                missing.push(param.clone())
+            }
             Some(b) => {
                 bytes_in += b.len() as u64;
                 in_bytes.insert(param.clone(), b);
@@ -793,9 +807,13 @@ fn materialize(
 /// The action keys a pipeline's needed stages currently resolve to, for
 /// `gc`: walks the plan with the cache alone (nothing executes) and stops
 /// where an entry is missing.
-pub fn cached_keys(p: &Pipeline, reg: &Registry, store: &Store) -> BTreeSet<Digest> {
+pub fn cached_keys(p: &Pipeline, reg: &Registry, store: &Store) -> CachedKeys {
     let mut done: BTreeMap<String, BTreeMap<String, Digest>> = BTreeMap::new();
     let mut keys = BTreeSet::new();
+    let mut unresolved = BTreeSet::new();
+    // Stages whose own entry is damaged (unreadable, or naming missing
+    // blobs), or below such a stage: what is under them cannot be known.
+    let mut damaged: BTreeSet<String> = BTreeSet::new();
     for n in plan::order(p) {
         let s = p.stage(&n).unwrap();
         let node = reg.get(&s.kind).expect("validated");
@@ -806,21 +824,52 @@ pub fn cached_keys(p: &Pipeline, reg: &Registry, store: &Store) -> BTreeSet<Dige
                 Some(d) => {
                     inputs.insert(param.clone(), *d);
                 }
-                None => ok = false,
+                None => {
+                    ok = false;
+                    if damaged.contains(up) {
+                        damaged.insert(n.clone());
+                    }
+                }
             }
         }
         if !ok {
+            if damaged.contains(&n) {
+                unresolved.insert((p.name.clone(), n.clone()));
+            }
             continue;
         }
         let Ok(key) = node_key(node, &s.params, &inputs) else {
             continue;
         };
-        if let Some(a) = store.get_action(&key) {
-            keys.insert(key);
-            done.insert(n.clone(), a.digests().unwrap_or_default());
+        match store.peek_action(&key) {
+            Some(a) => {
+                let ds = a.digests().unwrap_or_default();
+                if ds.values().all(|d| store.has_blob(d)) {
+                    keys.insert(key);
+                    done.insert(n.clone(), ds);
+                } else {
+                    damaged.insert(n.clone());
+                }
+            }
+            // An entry file that does not read is damaged; no file at all
+            // is a stage not cached (e.g. its parameters changed), whose
+            // old entries are stale.
+            None if store.action_path(&key).exists() => {
+                damaged.insert(n.clone());
+            }
+            None => {}
         }
     }
-    keys
+    CachedKeys { keys, unresolved }
+}
+
+/// What [`cached_keys`] found: the keys of a pipeline's cached stages,
+/// and the (pipeline, stage) pairs whose key it could not work out because
+/// an entry above them is damaged.
+#[derive(Debug, Default)]
+pub struct CachedKeys {
+    pub keys: BTreeSet<Digest>,
+    pub unresolved: BTreeSet<(String, String)>,
 }
 
 #[cfg(test)]

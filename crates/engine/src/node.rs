@@ -304,13 +304,33 @@ pub trait Node: Send + Sync {
     }
 }
 
+/// Reads the artifact type declared by an output's bytes (`None`: not an
+/// artifact).
+pub type ArtifactType = fn(&[u8]) -> Option<String>;
+
 /// The node kinds a pipeline may use.
 #[derive(Default)]
 pub struct Registry {
     nodes: BTreeMap<&'static str, Box<dyn Node>>,
+    /// Reads the artifact type an output's bytes declare (`None`: not an
+    /// artifact); set by the crate that defines the artifact format.
+    artifact_type: Option<ArtifactType>,
 }
 
 impl Registry {
+    /// Tells the registry how to read an artifact's type from its bytes,
+    /// so cached outputs can be checked against the types nodes declare.
+    pub fn set_artifact_type(&mut self, f: ArtifactType) {
+        self.artifact_type = Some(f);
+    }
+    /// Whether `bytes` are an artifact of one of the types `accepts`
+    /// (always, when no artifact format is known).
+    pub fn artifact_is(&self, bytes: &[u8], accepts: &[&str]) -> bool {
+        match self.artifact_type {
+            None => true,
+            Some(f) => f(bytes).is_some_and(|t| accepts.contains(&t.as_str())),
+        }
+    }
     pub fn new() -> Registry {
         Registry::default()
     }

@@ -115,7 +115,8 @@ pub struct Stats {
     pub temp_files: u64,
 }
 
-/// What `verify` found (and removed).
+/// What `verify` found, and what it removed: every count is of what
+/// happened; a removal that failed is listed in `errors`, not counted.
 #[derive(Clone, Debug, Default, serde::Serialize)]
 pub struct VerifyReport {
     pub blobs_ok: u64,
@@ -123,15 +124,27 @@ pub struct VerifyReport {
     pub actions_ok: u64,
     pub actions_unreadable: Vec<String>,
     pub actions_incomplete: Vec<String>,
+    /// Entries whose outputs do not decode as the types their node
+    /// declares (key: why).
+    pub actions_wrong_type: Vec<String>,
+    pub blobs_removed: u64,
+    pub actions_removed: u64,
+    /// What could not be read or removed (path: error).
+    pub errors: Vec<String>,
 }
 
-/// What `gc` removed.
+/// What `gc` removed (only what was removed), and what it could not.
 #[derive(Clone, Debug, Default, serde::Serialize)]
 pub struct GcReport {
     pub actions_removed: u64,
     pub blobs_removed: u64,
     pub bytes_freed: u64,
     pub temp_removed: u64,
+    /// Entries kept because they belong to a kept pipeline's stage whose
+    /// key could not be worked out (downstream of a missing entry).
+    pub actions_kept_unresolved: u64,
+    /// What could not be removed (path: error).
+    pub errors: Vec<String>,
 }
 
 /// Which action entries `gc` keeps.
@@ -144,6 +157,20 @@ pub struct GcPolicy {
     pub older_than: Option<Duration>,
     /// Remove least recently used entries until blobs total at most this.
     pub max_bytes: Option<u64>,
+    /// With `keep`: entries of these (pipeline, stage) pairs are kept too.
+    /// They are the stages whose keys could not be worked out because an
+    /// entry upstream is missing or damaged; without this, one damaged
+    /// entry would make `gc --keep` delete every intact one below it.
+    pub keep_stages: BTreeSet<(String, String)>,
+}
+
+/// Removes a file; `Ok(false)` if it was already gone.
+fn remove(path: &Path) -> Result<bool, StoreError> {
+    match std::fs::remove_file(path) {
+        Ok(()) => Ok(true),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(false),
+        Err(e) => Err(io_err(path)(e)),
+    }
 }
 
 /// This machine's name (for temporary files in a store that several
@@ -280,8 +307,19 @@ impl Store {
         }
     }
 
-    pub fn remove_action(&self, key: &Digest) {
-        let _ = std::fs::remove_file(self.action_path(key));
+    /// The action for `key` if its entry is readable and names valid
+    /// digests, changing nothing (no clean-up, no use mark): for tools
+    /// that plan before they act, like `gc --keep`.
+    pub fn peek_action(&self, key: &Digest) -> Option<Action> {
+        let bytes = std::fs::read(self.action_path(key)).ok()?;
+        serde_json::from_slice::<Action>(&bytes)
+            .ok()
+            .filter(|a| a.digests().is_some())
+    }
+
+    /// Removes an action entry; `Ok(false)` if there was none.
+    pub fn remove_action(&self, key: &Digest) -> Result<bool, StoreError> {
+        remove(&self.action_path(key))
     }
 
     /// Every action entry: key, entry (None if unreadable), last use.
@@ -331,23 +369,60 @@ impl Store {
     /// Re-hashes every blob and checks every action; removes what is
     /// corrupt, unreadable or incomplete.
     pub fn verify(&self) -> VerifyReport {
+        self.verify_with(|_, _, _| Ok(()))
+    }
+
+    /// [`Store::verify`], also checking each action's output bytes with
+    /// `check(action, output name, bytes)` (e.g. that they decode as the
+    /// type the node declares); an entry that fails it is removed (its
+    /// blobs stay: they are intact, and other entries may use them).
+    pub fn verify_with(
+        &self,
+        check: impl Fn(&Action, &str, &[u8]) -> Result<(), String>,
+    ) -> VerifyReport {
         let mut r = VerifyReport::default();
         for (d, _) in self.blobs() {
-            match self.get_blob(&d) {
-                Ok(Some(_)) => r.blobs_ok += 1,
-                _ => r.blobs_corrupt.push(d.hex()),
+            let p = self.blob_path(&d);
+            match std::fs::read(&p) {
+                Ok(b) if Digest::of(&b) == d => r.blobs_ok += 1,
+                Ok(_) => {
+                    r.blobs_corrupt.push(d.hex());
+                    match remove(&p) {
+                        Ok(removed) => r.blobs_removed += removed as u64,
+                        Err(e) => r.errors.push(e.to_string()),
+                    }
+                }
+                Err(e) => r.errors.push(io_err(&p)(e).to_string()),
             }
         }
         for (k, a, _) in self.actions() {
-            match a.as_ref().and_then(|a| a.digests()) {
-                None => {
-                    self.remove_action(&k);
-                    r.actions_unreadable.push(k.hex());
-                }
-                Some(ds) if ds.values().all(|d| self.has_blob(d)) => r.actions_ok += 1,
-                Some(_) => {
-                    self.remove_action(&k);
-                    r.actions_incomplete.push(k.hex());
+            // Which list a damaged entry goes in, and what to record.
+            let damage: Option<(&mut Vec<String>, String)> = match a.as_ref() {
+                Some(a) => match a.digests() {
+                    None => Some((&mut r.actions_unreadable, k.hex())),
+                    Some(ds) if !ds.values().all(|d| self.has_blob(d)) => {
+                        Some((&mut r.actions_incomplete, k.hex()))
+                    }
+                    Some(ds) => ds
+                        .iter()
+                        .find_map(|(name, d)| {
+                            let bytes = std::fs::read(self.blob_path(d)).unwrap_or_default();
+                            check(a, name, &bytes)
+                                .err()
+                                .map(|why| format!("{}: {name}: {why}", k.hex()))
+                        })
+                        .map(|w| (&mut r.actions_wrong_type, w)),
+                },
+                None => Some((&mut r.actions_unreadable, k.hex())),
+            };
+            match damage {
+                None => r.actions_ok += 1,
+                Some((list, what)) => {
+                    list.push(what);
+                    match self.remove_action(&k) {
+                        Ok(removed) => r.actions_removed += removed as u64,
+                        Err(e) => r.errors.push(e.to_string()),
+                    }
                 }
             }
         }
@@ -355,28 +430,44 @@ impl Store {
     }
 
     /// Removes action entries the policy does not keep, then every blob no
-    /// remaining entry references, and stale temporary files.
+    /// remaining entry references, and stale temporary files. Counts only
+    /// what was removed; an entry or blob that could not be removed is
+    /// reported in `errors` and still counts as present (its blobs stay).
     pub fn gc(&self, policy: &GcPolicy) -> GcReport {
         let mut r = GcReport::default();
         let now = SystemTime::now();
         let blob_sizes: BTreeMap<Digest, u64> = self.blobs().into_iter().collect();
         let mut live: Vec<(Digest, Action, SystemTime)> = Vec::new();
+        // Entries that stay whatever happens (a failed removal).
+        let mut stuck: Vec<Action> = Vec::new();
+        let mut drop = |k: &Digest, a: Option<Action>, r: &mut GcReport| match self.remove_action(k)
+        {
+            Ok(removed) => r.actions_removed += removed as u64,
+            Err(e) => {
+                r.errors.push(e.to_string());
+                stuck.extend(a);
+            }
+        };
         for (k, a, t) in self.actions() {
-            let keep = match &a {
-                None => false,
-                Some(_) => {
-                    policy.keep.as_ref().is_none_or(|s| s.contains(&k))
-                        && policy
-                            .older_than
-                            .is_none_or(|age| now.duration_since(t).unwrap_or_default() <= age)
-                }
+            let Some(a) = a else {
+                drop(&k, None, &mut r);
+                continue;
             };
-            match (keep, a) {
-                (true, Some(a)) => live.push((k, a, t)),
-                _ => {
-                    self.remove_action(&k);
-                    r.actions_removed += 1;
+            let unresolved = policy
+                .keep_stages
+                .contains(&(a.pipeline.clone(), a.stage.clone()));
+            let kept_by_set = policy.keep.as_ref().is_none_or(|s| s.contains(&k));
+            let keep = (kept_by_set || unresolved)
+                && policy
+                    .older_than
+                    .is_none_or(|age| now.duration_since(t).unwrap_or_default() <= age);
+            if keep {
+                if !kept_by_set {
+                    r.actions_kept_unresolved += 1;
                 }
+                live.push((k, a, t));
+            } else {
+                drop(&k, Some(a), &mut r);
             }
         }
         if let Some(max) = policy.max_bytes {
@@ -397,20 +488,28 @@ impl Store {
                     counted.extend(ds.values().copied());
                     kept.push((k, a, t));
                 } else {
-                    self.remove_action(&k);
-                    r.actions_removed += 1;
+                    drop(&k, Some(a), &mut r);
                 }
             }
             live = kept;
         }
         let referenced: BTreeSet<Digest> = live
             .iter()
-            .flat_map(|(_, a, _)| a.digests().unwrap_or_default().into_values())
+            .map(|(_, a, _)| a)
+            .chain(stuck.iter())
+            .flat_map(|a| a.digests().unwrap_or_default().into_values())
             .collect();
         for (d, size) in blob_sizes {
-            if !referenced.contains(&d) && std::fs::remove_file(self.blob_path(&d)).is_ok() {
-                r.blobs_removed += 1;
-                r.bytes_freed += size;
+            if referenced.contains(&d) {
+                continue;
+            }
+            match remove(&self.blob_path(&d)) {
+                Ok(true) => {
+                    r.blobs_removed += 1;
+                    r.bytes_freed += size;
+                }
+                Ok(false) => {}
+                Err(e) => r.errors.push(e.to_string()),
             }
         }
         // Temporary files older than an hour belong to dead processes.
@@ -421,8 +520,11 @@ impl Store {
                     .and_then(|m| m.modified())
                     .map(|t| now.duration_since(t).unwrap_or_default() > Duration::from_secs(3600))
                     .unwrap_or(false);
-                if old && std::fs::remove_file(e.path()).is_ok() {
-                    r.temp_removed += 1;
+                if old {
+                    match remove(&e.path()) {
+                        Ok(removed) => r.temp_removed += removed as u64,
+                        Err(e) => r.errors.push(e.to_string()),
+                    }
                 }
             }
         }

@@ -73,6 +73,18 @@ impl Artifact {
         out
     }
 
+    /// The type the bytes declare, read from the header alone; `None`
+    /// when they are not an artifact.
+    pub fn type_of(bytes: &[u8]) -> Option<String> {
+        let mut r = Reader { b: bytes, at: 0 };
+        if r.take(4)? != MAGIC || u32::from_le_bytes(r.take(4)?.try_into().ok()?) != FORMAT {
+            return None;
+        }
+        let n = u64::from_le_bytes(r.take(8)?.try_into().ok()?);
+        let s = r.take(usize::try_from(n).ok()?)?;
+        String::from_utf8(s.to_vec()).ok()
+    }
+
     /// Decodes and checks the type.
     pub fn decode(bytes: &[u8], want: &str) -> Result<Artifact, NodeError> {
         let mut r = Reader { b: bytes, at: 0 };

@@ -35,6 +35,7 @@ pub fn registry() -> Registry {
     for n in nodes {
         r.add(n);
     }
+    r.set_artifact_type(artifact::Artifact::type_of);
     r
 }
 
