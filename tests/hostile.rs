@@ -682,3 +682,54 @@ fn listing_into_a_closed_pipe_ends_quietly() {
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn a_write_error_mid_run_fails_cleanly_and_the_next_run_completes() {
+    let dir = tmp("efbig");
+    let cache = dir.join("cache");
+    let file = dir.join("p.yaml");
+    std::fs::write(&file, render_pipeline("out/p.exr", 2)).unwrap();
+    // A real I/O fault: files may not grow past 4 KiB (RLIMIT_FSIZE, the
+    // signal ignored so writes fail with EFBIG), as on a full disk. The
+    // scene's blob is larger, so the first stage's store write fails.
+    let out = Command::new("sh")
+        .arg("-c")
+        .arg("trap '' XFSZ; ulimit -f 8; exec \"$0\" \"$@\"")
+        .arg(env!("CARGO_BIN_EXE_matflow"))
+        .args([
+            "run",
+            file.to_str().unwrap(),
+            "--quiet",
+            "--cache",
+            cache.to_str().unwrap(),
+        ])
+        .output()
+        .unwrap();
+    let err = stderr(&out);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(err.contains("cache") && err.contains("too large"), "{err}");
+    // The cache is consistent: nothing damaged, no temporary left.
+    let v = cache_cmd(&["cache", "verify", "--cache", cache.to_str().unwrap()]);
+    let text = String::from_utf8_lossy(&v.stdout);
+    assert!(v.status.success(), "{text}");
+    assert!(
+        text.contains(" 0 corrupt; 0 actions complete, 0 unreadable, 0 incomplete"),
+        "{text}"
+    );
+    assert_eq!(std::fs::read_dir(cache.join("tmp")).unwrap().count(), 0);
+    assert!(!dir.join("out/p.exr").exists());
+    // Without the fault the same run completes.
+    let (out, _) = matflow_capped(
+        4096,
+        &[
+            "run",
+            file.to_str().unwrap(),
+            "--quiet",
+            "--cache",
+            cache.to_str().unwrap(),
+        ],
+    );
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert!(dir.join("out/p.exr").is_file());
+    let _ = std::fs::remove_dir_all(&dir);
+}
