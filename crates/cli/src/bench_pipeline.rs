@@ -57,6 +57,82 @@ pub struct BenchPipelineArgs {
     /// no-change runs).
     #[arg(long)]
     pub skip_incremental: bool,
+    /// Stages of the large-pipeline benchmark: real `matflow run`s of a
+    /// chain and of a fan of this many cheap `relight` stages, timed
+    /// fully cached (load, validation, planning, scheduling); 0 skips it.
+    #[arg(long, default_value_t = 10000)]
+    pub big_stages: usize,
+}
+
+/// A pipeline of `n` relight stages: each reads the one before (`chain`)
+/// or all read the first (a fan), under 360 different rotations.
+fn big_pipeline(n: usize, chain: bool) -> String {
+    let mut t =
+        String::from("pipeline: big\nstages:\n  r0:\n    kind: relight\n    path: sky.hdr\n");
+    for i in 1..n {
+        let src = if chain { i - 1 } else { 0 };
+        t += &format!(
+            "  r{i}:\n    kind: relight\n    source: r{src}\n    rotation: {}\n",
+            i % 360
+        );
+    }
+    let outs: Vec<String> = if chain {
+        vec![format!("r{}", n - 1)]
+    } else {
+        (0..n).map(|i| format!("r{i}")).collect()
+    };
+    t + &format!("outputs: [{}]\n", outs.join(", "))
+}
+
+/// Median wall time of `runs` fully cached `matflow run`s of a chain and
+/// a fan of `n` stages (after one run that fills the cache).
+fn big_pipelines(
+    exe: &std::path::Path,
+    work: &std::path::Path,
+    n: usize,
+    runs: usize,
+) -> Result<()> {
+    let dir = work.join("big");
+    std::fs::create_dir_all(&dir)?;
+    let sky =
+        matflow_scene::Image::from_fn(32, 16, |x, y| glam::Vec3::splat(1.0 + (x + y) as f32 / 8.0));
+    matflow_scene::io::write_hdr(&dir.join("sky.hdr"), &sky)?;
+    let mut rows = Vec::new();
+    for (name, chain) in [("chain", true), ("fan", false)] {
+        let file = dir.join(format!("{name}.yaml"));
+        std::fs::write(&file, big_pipeline(n, chain))?;
+        let once = || -> Result<f64> {
+            let t = Instant::now();
+            let out = Command::new(exe)
+                .arg("run")
+                .arg(&file)
+                .args(["--quiet", "--cache"])
+                .arg(dir.join("cache"))
+                .output()?;
+            if !out.status.success() {
+                bail!(
+                    "matflow run {}:\n{}",
+                    file.display(),
+                    String::from_utf8_lossy(&out.stderr)
+                );
+            }
+            Ok(t.elapsed().as_secs_f64())
+        };
+        let first = once()?;
+        let cached = median(
+            (0..runs.max(1))
+                .map(|_| once())
+                .collect::<Result<Vec<_>>>()?,
+        );
+        outln!("  {n} stages, {name}: first run {first:.2} s, fully cached {cached:.3} s");
+        rows.push(format!("| {n} | {name} | {first:.2} s | {cached:.3} s |"));
+    }
+    outln!(
+        "| stages | shape | first run | fully cached (median of {}, whole process) |\n|---|---|---|---|\n{}",
+        runs.max(1),
+        rows.join("\n")
+    );
+    Ok(())
 }
 
 pub(crate) fn median(mut v: Vec<f64>) -> f64 {
@@ -104,6 +180,10 @@ pub fn bench_pipeline(a: BenchPipelineArgs) -> Result<()> {
         a.spp,
         rayon::current_num_threads()
     );
+    if a.big_stages > 0 {
+        outln!("large pipelines: `relight` stages reading a 32x16 sky, real `matflow run`s");
+        big_pipelines(&exe, &a.work, a.big_stages, a.runs)?;
+    }
     if a.skip_incremental {
         return distributed(&a, &exe);
     }

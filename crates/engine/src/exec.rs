@@ -224,6 +224,14 @@ pub trait Executor: Send + Sync {
     fn submit(&self, job: Job, sink: Sink);
     /// Named in reports: `local`, or the workers.
     fn describe(&self) -> String;
+    /// Whether the scheduler may serve cache hits itself, from the store
+    /// it shares with this executor, instead of submitting them: a hit
+    /// then costs no thread hand-off (a chain of 10,000 cached stages is
+    /// otherwise 20,000 wake-ups). Executors whose workers report where
+    /// a hit was served keep it false.
+    fn serves_cache_inline(&self) -> bool {
+        false
+    }
 }
 
 /// Whether a stage reads files on the submitter's disk (an input path is
@@ -433,6 +441,9 @@ impl Executor for LocalExecutor {
     fn describe(&self) -> String {
         format!("local ({} threads)", self.n)
     }
+    fn serves_cache_inline(&self) -> bool {
+        true
+    }
 }
 
 /// How often one stage may be recomputed because a blob it produced
@@ -551,6 +562,30 @@ pub fn run_pipeline(
                     slot.key = Some(key);
                     slot.state = State::Running;
                     in_flight += 1;
+                    // A hit served here goes through the same events as
+                    // one the executor serves.
+                    let hit = if exec.serves_cache_inline() && !slot_skip && !store.has_remote() {
+                        store.lookup(&key).ok().flatten()
+                    } else {
+                        None
+                    };
+                    if let Some(ds) = hit {
+                        sink(Event::Started {
+                            stage: n.clone(),
+                            worker: "local".into(),
+                        });
+                        sink(Event::Finished {
+                            stage: n.clone(),
+                            result: Ok(Done {
+                                status: Status::Cached,
+                                outputs: ds,
+                                worker: "local".into(),
+                                bytes_in: 0,
+                                bytes_out: 0,
+                            }),
+                        });
+                        continue;
+                    }
                     exec.submit(
                         Job {
                             stage: n.clone(),
@@ -814,8 +849,10 @@ pub fn cached_keys(p: &Pipeline, reg: &Registry, store: &Store) -> CachedKeys {
     // Stages whose own entry is damaged (unreadable, or naming missing
     // blobs), or below such a stage: what is under them cannot be known.
     let mut damaged: BTreeSet<String> = BTreeSet::new();
+    let by_name: HashMap<&str, &crate::spec::Stage> =
+        p.stages.iter().map(|s| (s.name.as_str(), s)).collect();
     for n in plan::order(p) {
-        let s = p.stage(&n).unwrap();
+        let s = by_name[n.as_str()];
         let node = reg.get(&s.kind).expect("validated");
         let mut inputs = BTreeMap::new();
         let mut ok = true;

@@ -302,6 +302,10 @@ pub fn parse(
     }
     let cwd = PathBuf::from(".");
     let stage_names: BTreeSet<String> = raws.iter().map(|r| r.name.clone()).collect();
+    let kind_of: std::collections::HashMap<&str, &str> = raws
+        .iter()
+        .map(|r| (r.name.as_str(), r.kind.as_str()))
+        .collect();
     let mut stages = Vec::new();
     // Files the pipeline reads (the pipeline itself, every input path)
     // and writes, by their real paths, to check before anything runs.
@@ -421,7 +425,7 @@ pub fn parse(
                             "stage `{up}` refers to itself (cycle: {up} -> {up})"
                         )));
                     }
-                    let up_kind = &raws.iter().find(|x| x.name == up).unwrap().kind;
+                    let up_kind = kind_of[up.as_str()];
                     let up_node = reg.get(up_kind).expect("kind checked");
                     let chosen = match &out {
                         Some(o) => up_node.outputs().iter().find(|x| x.name == o),

@@ -133,6 +133,12 @@ impl Tiered {
         }
     }
 
+    /// Whether a remote tier is configured (lookups may cross the
+    /// network).
+    pub fn has_remote(&self) -> bool {
+        self.remote.is_some()
+    }
+
     /// A cache hit for `key`: its outputs, when the entry exists and every
     /// blob is there. Local blobs are re-hashed now (a corrupt one makes
     /// this a miss); blobs only the remote tier holds are checked for
