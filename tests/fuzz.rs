@@ -1,0 +1,353 @@
+//! Mutation fuzzing of everything matflow reads from outside: pipeline
+//! files, EXR / PNG / Radiance HDR images, bundles, and cache entries
+//! (artifacts and action records). Each target starts from a corpus of
+//! real files — the repository's pipelines, and images, bundles and cache
+//! entries matflow writes — and applies random byte-level mutations (bit
+//! flips, overwrites, boundary values in what may be length fields,
+//! insertions, deletions, truncations, duplicated chunks). Every reader
+//! must answer `Ok` or `Err`: never panic, hang or exhaust memory.
+//!
+//! A fixed number of cases per target keeps CI's time bounded:
+//! `MATFLOW_FUZZ_CASES` (default 1000). Longer runs:
+//! `MATFLOW_FUZZ_CASES=20000 cargo test --release --test fuzz -- --nocapture`.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use proptest::prelude::*;
+use proptest::test_runner::{Config, TestCaseError, TestRunner};
+
+use matflow_scene::{io, Bundle, Image, MaterialSource};
+
+fn cases() -> u32 {
+    std::env::var("MATFLOW_FUZZ_CASES")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(1000)
+}
+
+fn repo() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("matflow-fuzz-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+#[derive(Clone, Debug)]
+enum Mutation {
+    Flip(usize, u8),
+    Set(usize, u8),
+    /// A boundary value written as a little-endian u32 (length fields).
+    Boundary(usize, u32),
+    Insert(usize, Vec<u8>),
+    Delete(usize, usize),
+    Truncate(usize),
+    /// Copies `len` bytes from `from` to `to`.
+    Duplicate {
+        from: usize,
+        to: usize,
+        len: usize,
+    },
+}
+
+fn mutation() -> impl Strategy<Value = Mutation> {
+    let pos = any::<usize>();
+    prop_oneof![
+        (pos.clone(), 0u8..8).prop_map(|(p, b)| Mutation::Flip(p, b)),
+        (pos.clone(), any::<u8>()).prop_map(|(p, v)| Mutation::Set(p, v)),
+        (
+            pos.clone(),
+            prop::sample::select(vec![
+                0u32,
+                1,
+                0x7f,
+                0x80,
+                0xff,
+                0xffff,
+                0x7fff_ffff,
+                0x8000_0000,
+                u32::MAX
+            ])
+        )
+            .prop_map(|(p, v)| Mutation::Boundary(p, v)),
+        (pos.clone(), prop::collection::vec(any::<u8>(), 1..16))
+            .prop_map(|(p, v)| Mutation::Insert(p, v)),
+        (pos.clone(), 1usize..64).prop_map(|(p, n)| Mutation::Delete(p, n)),
+        pos.clone().prop_map(Mutation::Truncate),
+        (pos.clone(), pos, 1usize..256).prop_map(|(from, to, len)| Mutation::Duplicate {
+            from,
+            to,
+            len
+        }),
+    ]
+}
+
+fn apply(seed: &[u8], ms: &[Mutation]) -> Vec<u8> {
+    let mut b = seed.to_vec();
+    for m in ms {
+        let n = b.len().max(1);
+        match m {
+            Mutation::Flip(p, bit) if !b.is_empty() => b[p % n] ^= 1 << bit,
+            Mutation::Set(p, v) if !b.is_empty() => b[p % n] = *v,
+            Mutation::Boundary(p, v) => {
+                let at = p % n;
+                for (i, x) in v.to_le_bytes().iter().enumerate() {
+                    if at + i < b.len() {
+                        b[at + i] = *x;
+                    }
+                }
+            }
+            Mutation::Insert(p, v) => {
+                let at = p % (b.len() + 1);
+                b.splice(at..at, v.iter().copied());
+            }
+            Mutation::Delete(p, k) if !b.is_empty() => {
+                let at = p % n;
+                b.drain(at..(at + k).min(b.len()));
+            }
+            Mutation::Truncate(p) => b.truncate(p % (b.len() + 1)),
+            Mutation::Duplicate { from, to, len } if !b.is_empty() => {
+                let f = from % n;
+                let chunk: Vec<u8> = b[f..(f + len).min(b.len())].to_vec();
+                let t = to % (b.len() + 1);
+                b.splice(t..t, chunk);
+            }
+            _ => {}
+        }
+    }
+    b
+}
+
+/// Runs `check(corpus index, mutant)` on `cases()` mutants of the corpus; a panic inside it
+/// is a failure (proptest shrinks it to a small mutation list).
+fn fuzz(name: &str, corpus: &[Vec<u8>], check: impl Fn(usize, &[u8])) {
+    assert!(!corpus.is_empty());
+    let t = Instant::now();
+    let mut runner = TestRunner::new(Config {
+        cases: cases(),
+        failure_persistence: None,
+        ..Config::default()
+    });
+    let strategy = (0..corpus.len(), prop::collection::vec(mutation(), 1..6));
+    let result = runner.run(&strategy, |(i, ms)| {
+        let bytes = apply(&corpus[i], &ms);
+        std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| check(i, &bytes))).map_err(|_| {
+            TestCaseError::fail(format!("{name}: panicked on a mutant of corpus file {i}"))
+        })
+    });
+    println!(
+        "fuzz {name}: {} cases from {} corpus files in {:.2} s: {}",
+        cases(),
+        corpus.len(),
+        t.elapsed().as_secs_f64(),
+        if result.is_ok() {
+            "no failure"
+        } else {
+            "FAILED"
+        }
+    );
+    if let Err(e) = result {
+        panic!("{e}");
+    }
+}
+
+fn image(w: usize, h: usize) -> matflow_scene::RgbImage {
+    Image::from_fn(w, h, |x, y| {
+        glam::Vec3::new(x as f32 * 0.3, y as f32 * 0.1, 0.5)
+    })
+}
+
+#[test]
+fn pipeline_files() {
+    let reg = matflow_nodes::registry();
+    let mut corpus: Vec<Vec<u8>> = std::fs::read_dir(repo().join("pipelines"))
+        .unwrap()
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|x| x == "yaml"))
+        .map(|p| std::fs::read(p).unwrap())
+        .collect();
+    corpus.push(b"a: &x [1, 2]\nb: *x\nstages: {}\noutputs: []\n".to_vec());
+    corpus.push(b"stages:\n  s:\n    kind: render\n    spp: [[[[1]]]]\noutputs: [s]\n".to_vec());
+    let at = repo().join("pipelines/fuzzed.yaml");
+    fuzz("pipeline", &corpus, |_, b| {
+        let _ = matflow_engine::spec::parse(&String::from_utf8_lossy(b), &at, &reg, &[]);
+    });
+}
+
+#[test]
+fn image_readers() {
+    let dir = tmp("images");
+    let mut exr = Vec::new();
+    for (w, h) in [(4, 3), (17, 5)] {
+        let p = dir.join("seed.exr");
+        io::write_exr_rgb(&p, &image(w, h)).unwrap();
+        exr.push(std::fs::read(&p).unwrap());
+        io::write_exr_gray(&p, &Image::from_fn(w, h, |x, _| x as f32)).unwrap();
+        exr.push(std::fs::read(&p).unwrap());
+    }
+    let f = dir.join("x.exr");
+    fuzz("exr", &exr, |_, b| {
+        std::fs::write(&f, b).unwrap();
+        let _ = io::read_exr_rgb(&f);
+        let _ = io::read_exr_gray(&f);
+        let _ = io::read_envmap(&f);
+    });
+    let mut png = Vec::new();
+    for (w, h) in [(4, 3), (9, 9)] {
+        let p = dir.join("seed.png");
+        io::write_png_gamma(&p, &image(w, h)).unwrap();
+        png.push(std::fs::read(&p).unwrap());
+        io::write_png_srgb_map(&p, &Image::from_fn(w, h, |x, _| x as f32 / 9.0)).unwrap();
+        png.push(std::fs::read(&p).unwrap());
+    }
+    let f = dir.join("x.png");
+    fuzz("png", &png, |_, b| {
+        std::fs::write(&f, b).unwrap();
+        let _ = io::read_ldr_raw(&f);
+        let _ = io::read_mask(&f);
+        let _ = io::load_photo(&f, 8);
+    });
+    let p = dir.join("seed.hdr");
+    io::write_hdr(&p, &image(8, 4)).unwrap();
+    let hdr = vec![std::fs::read(&p).unwrap()];
+    let f = dir.join("x.hdr");
+    fuzz("hdr", &hdr, |_, b| {
+        std::fs::write(&f, b).unwrap();
+        let _ = io::read_hdr(&f);
+        let _ = io::read_envmap(&f);
+    });
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn bundles() {
+    let dir = tmp("bundle");
+    let seed = dir.join("seed");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_matflow"))
+        .args(["synth", "--size", "8", "--spp", "1", "--degrade", "--out"])
+        .arg(&seed)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let files: Vec<PathBuf> = walk(&seed);
+    let corpus: Vec<Vec<u8>> = files.iter().map(|p| std::fs::read(p).unwrap()).collect();
+    let work = dir.join("b");
+    // Each case damages one file of the bundle (chosen by the corpus
+    // index) and loads everything a pipeline would.
+    fuzz("bundle", &corpus, |i, b| {
+        let _ = std::fs::remove_dir_all(&work);
+        copy_dir(&seed, &work);
+        let rel = files[i].strip_prefix(&seed).unwrap();
+        std::fs::write(work.join(rel), b).unwrap();
+        if let Ok(bundle) = Bundle::open(&work) {
+            let _ = bundle.load_depth();
+            let _ = bundle.load_gt_image();
+            for src in [MaterialSource::Pred, MaterialSource::GroundTruth] {
+                let _ = bundle.load_materials(src);
+            }
+            if let Some(env) = bundle.envmap_path() {
+                let _ = io::read_envmap(&env);
+            }
+        }
+    });
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn cache_entries() {
+    use matflow_engine::store::{Digest, Store};
+    use matflow_nodes::artifact::Artifact;
+    let dir = tmp("cache");
+    let file = dir.join("p.yaml");
+    std::fs::write(
+        &file,
+        "stages:\n  scene:\n    kind: synthetic_scene\n    size: 16\n    spp: 1\n  \
+         mesh:\n    kind: mesh\n    scene: scene\n  \
+         shot:\n    kind: render\n    mesh: mesh\n    materials: scene\n    \
+         envmap: scene.truth_envmap\n    spp: 1\noutputs: [shot]\n",
+    )
+    .unwrap();
+    let cache = dir.join("cache");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_matflow"))
+        .args([
+            "run",
+            file.to_str().unwrap(),
+            "--quiet",
+            "--cache",
+            cache.to_str().unwrap(),
+        ])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let blobs: Vec<Vec<u8>> = walk(&cache.join("blobs"))
+        .iter()
+        .map(|p| std::fs::read(p).unwrap())
+        .collect();
+    let actions: Vec<Vec<u8>> = walk(&cache.join("actions"))
+        .iter()
+        .map(|p| std::fs::read(p).unwrap())
+        .collect();
+    let types = [
+        "scene",
+        "materials",
+        "envmap",
+        "mesh",
+        "image",
+        "paths",
+        "mask",
+    ];
+    fuzz("artifact", &blobs, |_, b| {
+        let _ = Artifact::type_of(b);
+        for ty in types {
+            let _ = Artifact::decode(b, ty);
+        }
+    });
+    let store_dir = dir.join("fuzzed");
+    let store = Store::open(&store_dir).unwrap();
+    let key = Digest::of(b"key");
+    fuzz("action", &actions, |_, b| {
+        let p = store.action_path(&key);
+        std::fs::create_dir_all(p.parent().unwrap()).unwrap();
+        std::fs::write(&p, b).unwrap();
+        let _ = store.get_action(&key);
+        let _ = store.verify();
+    });
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+fn walk(dir: &Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    let mut todo = vec![dir.to_path_buf()];
+    while let Some(d) = todo.pop() {
+        for e in std::fs::read_dir(&d).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                todo.push(p);
+            } else {
+                out.push(p);
+            }
+        }
+    }
+    out.sort();
+    out
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    for f in walk(from) {
+        let t = to.join(f.strip_prefix(from).unwrap());
+        std::fs::create_dir_all(t.parent().unwrap()).unwrap();
+        std::fs::copy(&f, &t).unwrap();
+    }
+}
