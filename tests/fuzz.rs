@@ -57,8 +57,8 @@ enum Mutation {
 fn mutation() -> impl Strategy<Value = Mutation> {
     let pos = any::<usize>();
     prop_oneof![
-        (pos.clone(), 0u8..8).prop_map(|(p, b)| Mutation::Flip(p, b)),
-        (pos.clone(), any::<u8>()).prop_map(|(p, v)| Mutation::Set(p, v)),
+        (pos, 0u8..8).prop_map(|(p, b)| Mutation::Flip(p, b)),
+        (pos, any::<u8>()).prop_map(|(p, v)| Mutation::Set(p, v)),
         (
             pos.clone(),
             prop::sample::select(vec![
@@ -74,15 +74,10 @@ fn mutation() -> impl Strategy<Value = Mutation> {
             ])
         )
             .prop_map(|(p, v)| Mutation::Boundary(p, v)),
-        (pos.clone(), prop::collection::vec(any::<u8>(), 1..16))
-            .prop_map(|(p, v)| Mutation::Insert(p, v)),
-        (pos.clone(), 1usize..64).prop_map(|(p, n)| Mutation::Delete(p, n)),
-        pos.clone().prop_map(Mutation::Truncate),
-        (pos.clone(), pos, 1usize..256).prop_map(|(from, to, len)| Mutation::Duplicate {
-            from,
-            to,
-            len
-        }),
+        (pos, prop::collection::vec(any::<u8>(), 1..16)).prop_map(|(p, v)| Mutation::Insert(p, v)),
+        (pos, 1usize..64).prop_map(|(p, n)| Mutation::Delete(p, n)),
+        pos.prop_map(Mutation::Truncate),
+        (pos, pos, 1usize..256).prop_map(|(from, to, len)| Mutation::Duplicate { from, to, len }),
     ]
 }
 
