@@ -60,7 +60,7 @@ fn mutation() -> impl Strategy<Value = Mutation> {
         (pos, 0u8..8).prop_map(|(p, b)| Mutation::Flip(p, b)),
         (pos, any::<u8>()).prop_map(|(p, v)| Mutation::Set(p, v)),
         (
-            pos.clone(),
+            pos,
             prop::sample::select(vec![
                 0u32,
                 1,
