@@ -27,7 +27,8 @@ pub struct TraceNode;
 
 const TRACE_INFO: NodeInfo = NodeInfo {
     kind: "trace",
-    version: 1,
+    // 2: the kept paths are stored packed (same paths, other bytes).
+    version: 2,
     doc: "A full render of the unedited scene (box pixel filter) that also keeps a set of its \
          light paths: a `render` given these `paths` re-traces only the pixels whose own \
          material changed or whose kept paths meet a changed material, with the base \
