@@ -145,66 +145,95 @@ pub fn denoise_tables(
                 }
             })
             .collect();
-        let out: Vec<(PixelTable, f32)> = (0..w * h)
-            .into_par_iter()
-            .with_min_len(256)
-            .map(|i| {
-                let Some((xp, np, foot)) = guide.hits[i].filter(|_| valid[i]) else {
-                    return (tables[i], var[i]);
-                };
-                let (x, y) = ((i % w) as isize, (i / w) as isize);
-                let lp = lums[i];
-                let inv_l = 1.0 / (SIGMA_L * sigma[i] + 1e-6 * lp.abs() + 1e-12);
-                let mut acc = PixelTable::default();
-                let (mut wsum, mut vsum) = (0f32, 0f32);
-                for (j, hy) in B3.iter().enumerate() {
-                    let qy = y + (j as isize - 2) * step;
-                    if qy < 0 || qy >= h as isize {
+        // One output pixel of this pass, from the pass's input.
+        let filtered = |tables: &[PixelTable], var: &[f32], i: usize| -> (PixelTable, f32) {
+            let Some((xp, np, foot)) = guide.hits[i].filter(|_| valid[i]) else {
+                return (tables[i], var[i]);
+            };
+            let (x, y) = ((i % w) as isize, (i / w) as isize);
+            let lp = lums[i];
+            let inv_l = 1.0 / (SIGMA_L * sigma[i] + 1e-6 * lp.abs() + 1e-12);
+            let mut acc = PixelTable::default();
+            let (mut wsum, mut vsum) = (0f32, 0f32);
+            for (j, hy) in B3.iter().enumerate() {
+                let qy = y + (j as isize - 2) * step;
+                if qy < 0 || qy >= h as isize {
+                    continue;
+                }
+                for (k, hx) in B3.iter().enumerate() {
+                    let qx = x + (k as isize - 2) * step;
+                    if qx < 0 || qx >= w as isize {
                         continue;
                     }
-                    for (k, hx) in B3.iter().enumerate() {
-                        let qx = x + (k as isize - 2) * step;
-                        if qx < 0 || qx >= w as isize {
-                            continue;
-                        }
-                        let q = qy as usize * w + qx as usize;
-                        if !valid[q] {
-                            continue;
-                        }
-                        let Some((xq, nq, _)) = guide.hits[q] else {
-                            continue;
-                        };
-                        let wn = np.dot(nq).max(0.0).powi(SIGMA_N);
-                        let off = ((j as f32 - 2.0).powi(2) + (k as f32 - 2.0).powi(2)).sqrt()
-                            * step as f32;
-                        let wz = if q == i {
-                            1.0
-                        } else {
-                            (-((xq - xp).dot(np)).abs() / (2.0 * foot * off)).exp()
-                        };
-                        let wl = (-(lums[q] - lp).abs() * inv_l).exp();
-                        let wt = hx * hy * wn * wz * wl;
-                        if !(wt > 0.0) || !wt.is_finite() {
-                            continue;
-                        }
-                        scale_add(&mut acc, &tables[q], wt);
-                        wsum += wt;
-                        vsum += wt * wt * var[q];
+                    let q = qy as usize * w + qx as usize;
+                    if !valid[q] {
+                        continue;
                     }
+                    let Some((xq, nq, _)) = guide.hits[q] else {
+                        continue;
+                    };
+                    let wn = np.dot(nq).max(0.0).powi(SIGMA_N);
+                    let off =
+                        ((j as f32 - 2.0).powi(2) + (k as f32 - 2.0).powi(2)).sqrt() * step as f32;
+                    let wz = if q == i {
+                        1.0
+                    } else {
+                        (-((xq - xp).dot(np)).abs() / (2.0 * foot * off)).exp()
+                    };
+                    let wl = (-(lums[q] - lp).abs() * inv_l).exp();
+                    let wt = hx * hy * wn * wz * wl;
+                    if !(wt > 0.0) || !wt.is_finite() {
+                        continue;
+                    }
+                    scale_add(&mut acc, &tables[q], wt);
+                    wsum += wt;
+                    vsum += wt * wt * var[q];
                 }
-                if wsum > 0.0 {
-                    (scaled(&acc, 1.0 / wsum), vsum / (wsum * wsum))
-                } else {
-                    (tables[i], var[i])
+            }
+            if wsum > 0.0 {
+                (scaled(&acc, 1.0 / wsum), vsum / (wsum * wsum))
+            } else {
+                (tables[i], var[i])
+            }
+        };
+        // Bands of rows are filtered in turn (each in parallel) and
+        // written back once no later band reads them (`reach` rows below
+        // a band's first row): the pass holds a few bands of output, not
+        // a second copy of every table (214 MB at 512²). Each output is
+        // the same gather as before, so the result does not change.
+        let reach = 2 * step as usize;
+        let mut pending: std::collections::VecDeque<(usize, Vec<(PixelTable, f32)>)> =
+            Default::default();
+        let mut y0 = 0;
+        while y0 < h {
+            let y1 = (y0 + BAND).min(h);
+            let out: Vec<(PixelTable, f32)> = (y0 * w..y1 * w)
+                .into_par_iter()
+                .with_min_len(256)
+                .map(|i| filtered(tables, &var, i))
+                .collect();
+            pending.push_back((y0, out));
+            // The next band reads rows from y1 - reach on.
+            while let Some((a, out)) = pending.front() {
+                let b = a + out.len() / w;
+                if y1 < h && b + reach > y1 {
+                    break;
                 }
-            })
-            .collect();
-        for (i, (t, v)) in out.into_iter().enumerate() {
-            tables[i] = t;
-            var[i] = v;
+                let start = a * w;
+                for (k, (t, v)) in out.iter().enumerate() {
+                    tables[start + k] = *t;
+                    var[start + k] = *v;
+                }
+                pending.pop_front();
+            }
+            y0 = y1;
         }
+        debug_assert!(pending.is_empty());
     }
 }
+
+/// Rows filtered at once by [`denoise_tables`].
+const BAND: usize = 16;
 
 #[cfg(test)]
 mod tests {

@@ -134,89 +134,89 @@ pub fn build_tables_with_variance(
     let spp = cache.spp.max(1) as f32;
     let inv = 1.0 / spp;
     let lum = |v: Vec3| 0.2126 * v.x + 0.7152 * v.y + 0.0722 * v.z;
-    let rows: Vec<Vec<(PixelTable, f32, bool)>> = (0..cache.height)
-        .into_par_iter()
-        .map(|y| {
+    // Filled in place, row by row in parallel: no second copy of the
+    // tables (214 MB at 512²) while they are assembled.
+    let n = w * cache.height;
+    let mut tables = vec![PixelTable::default(); n];
+    let mut var = vec![0f32; n];
+    let mut valid = vec![false; n];
+    tables
+        .par_chunks_mut(w.max(1))
+        .zip(var.par_chunks_mut(w.max(1)))
+        .zip(valid.par_chunks_mut(w.max(1)))
+        .enumerate()
+        .for_each(|(y, ((t_row, v_row), o_row))| {
             let mut l = [Vec3::ZERO; MAX_DEPTH as usize];
             let mut rst = [0usize; MAX_DEPTH as usize];
             let mut ks_nodes = [(0f32, 0f32); NODES];
-            (0..w)
-                .map(|x| {
-                    let p = (y * w + x) as u32;
-                    let (verts, recs) = cache.pixel(x, y);
-                    let mut t = PixelTable::default();
-                    let mut own = false;
-                    // Per-path contributions to lum(c0): first and second
-                    // moments (paths on other pixels contribute 0).
-                    let (mut m1, mut m2) = (0f64, 0f64);
-                    for_each_path(verts, |first, end, r0| {
-                        let n = path_radiance(
-                            verts, recs, first, end, r0, mats, env, ew, &mut l, &mut rst,
-                        );
-                        let v = verts[first];
-                        if v.q != p || v.q == NO_MATERIAL {
-                            t.base += l[0];
+            let mut pixel = |x: usize| {
+                let p = (y * w + x) as u32;
+                let (verts, recs) = cache.pixel(x, y);
+                let mut t = PixelTable::default();
+                let mut own = false;
+                // Per-path contributions to lum(c0): first and second
+                // moments (paths on other pixels contribute 0).
+                let (mut m1, mut m2) = (0f64, 0f64);
+                for_each_path(verts, |first, end, r0| {
+                    let n =
+                        path_radiance(verts, recs, first, end, r0, mats, env, ew, &mut l, &mut rst);
+                    let v = verts[first];
+                    if v.q != p || v.q == NO_MATERIAL {
+                        t.base += l[0];
+                        return;
+                    }
+                    own = true;
+                    let before = lum(t.c[0]);
+                    let rs = &recs[rst[0]..rst[0] + v.n_records()];
+                    let mut add = |geo: &crate::brdf::Geo, lin: Vec3| {
+                        let g = geo.decode();
+                        if g.nol <= 0.0 || lin == Vec3::ZERO {
                             return;
                         }
-                        own = true;
-                        let before = lum(t.c[0]);
-                        let rs = &recs[rst[0]..rst[0] + v.n_records()];
-                        let mut add = |geo: &crate::brdf::Geo, lin: Vec3| {
-                            let g = geo.decode();
-                            if g.nol <= 0.0 || lin == Vec3::ZERO {
-                                return;
-                            }
-                            let (k0, k1, k2) = kd_poly(&g);
-                            t.c[0] += lin * k0;
-                            t.c[1] += lin * k1;
-                            t.c[2] += lin * k2;
-                            for (i, kn) in ks_nodes.iter_mut().enumerate() {
-                                *kn = ks(&g, node(i));
-                            }
-                            for (i, &(k, dk)) in ks_nodes.iter().enumerate() {
-                                let e = &mut t.spec[i];
-                                e[0] += lin * (k * (1.0 - g.s));
-                                e[1] += lin * (dk * (1.0 - g.s));
-                                e[2] += lin * (k * g.s);
-                                e[3] += lin * (dk * g.s);
-                            }
-                        };
-                        for rec in &rs[..v.n_env as usize] {
-                            add(&rec.geo, sky(rec, env, ew) * rec.w);
+                        let (k0, k1, k2) = kd_poly(&g);
+                        t.c[0] += lin * k0;
+                        t.c[1] += lin * k1;
+                        t.c[2] += lin * k2;
+                        for (i, kn) in ks_nodes.iter_mut().enumerate() {
+                            *kn = ks(&g, node(i));
                         }
-                        if v.has_cont() && n > 1 {
-                            let rec = &rs[v.n_env as usize];
-                            add(&rec.geo, l[1] * rec.w);
+                        for (i, &(k, dk)) in ks_nodes.iter().enumerate() {
+                            let e = &mut t.spec[i];
+                            e[0] += lin * (k * (1.0 - g.s));
+                            e[1] += lin * (dk * (1.0 - g.s));
+                            e[2] += lin * (k * g.s);
+                            e[3] += lin * (dk * g.s);
                         }
-                        let d = (lum(t.c[0]) - before) as f64;
-                        m1 += d;
-                        m2 += d * d;
-                    });
-                    t.base *= inv;
-                    for c in &mut t.c {
-                        *c *= inv;
+                    };
+                    for rec in &rs[..v.n_env as usize] {
+                        add(&rec.geo, sky(rec, env, ew) * rec.w);
                     }
-                    for e in &mut t.spec {
-                        for v in e.iter_mut() {
-                            *v *= inv;
-                        }
+                    if v.has_cont() && n > 1 {
+                        let rec = &rs[v.n_env as usize];
+                        add(&rec.geo, l[1] * rec.w);
                     }
-                    let n = spp as f64;
-                    let mean = m1 / n;
-                    let var = ((m2 / n - mean * mean).max(0.0) / n) as f32;
-                    (t, var, own)
-                })
-                .collect()
-        })
-        .collect();
-    let mut tables = Vec::with_capacity(w * cache.height);
-    let mut var = Vec::with_capacity(w * cache.height);
-    let mut valid = Vec::with_capacity(w * cache.height);
-    for (t, v, o) in rows.into_iter().flatten() {
-        tables.push(t);
-        var.push(v);
-        valid.push(o);
-    }
+                    let d = (lum(t.c[0]) - before) as f64;
+                    m1 += d;
+                    m2 += d * d;
+                });
+                t.base *= inv;
+                for c in &mut t.c {
+                    *c *= inv;
+                }
+                for e in &mut t.spec {
+                    for v in e.iter_mut() {
+                        *v *= inv;
+                    }
+                }
+                let n = spp as f64;
+                let mean = m1 / n;
+                let var = ((m2 / n - mean * mean).max(0.0) / n) as f32;
+                (t, var, own)
+            };
+            for x in 0..w {
+                (t_row[x], v_row[x], o_row[x]) = pixel(x);
+            }
+        });
     (tables, var, valid)
 }
 
