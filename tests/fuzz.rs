@@ -19,6 +19,24 @@ use proptest::test_runner::{Config, TestCaseError, TestRunner};
 
 use matflow_scene::{io, Bundle, Image, MaterialSource};
 
+/// The fuzzer's seed: fixed by default, so CI runs the same cases every
+/// time (a failure is reproducible); `MATFLOW_FUZZ_SEED` picks others
+/// (`random` for a fresh one each run, printed).
+fn seed() -> proptest::test_runner::RngSeed {
+    use proptest::test_runner::RngSeed;
+    match std::env::var("MATFLOW_FUZZ_SEED").ok().as_deref() {
+        None => RngSeed::Fixed(0x006d_6174_666c_6f77),
+        Some("random") => {
+            let s = std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(1, |d| d.as_nanos() as u64);
+            println!("fuzz seed {s}");
+            RngSeed::Fixed(s)
+        }
+        Some(v) => RngSeed::Fixed(v.parse().expect("MATFLOW_FUZZ_SEED: a number or `random`")),
+    }
+}
+
 fn cases() -> u32 {
     std::env::var("MATFLOW_FUZZ_CASES")
         .ok()
@@ -125,11 +143,16 @@ fn fuzz(name: &str, corpus: &[Vec<u8>], check: impl Fn(usize, &[u8])) {
     let mut runner = TestRunner::new(Config {
         cases: cases(),
         failure_persistence: None,
+        rng_seed: seed(),
         ..Config::default()
     });
     let strategy = (0..corpus.len(), prop::collection::vec(mutation(), 1..6));
     let result = runner.run(&strategy, |(i, ms)| {
         let bytes = apply(&corpus[i], &ms);
+        // For a crash that is not a panic (an abort): the last input.
+        if let Ok(dump) = std::env::var("MATFLOW_FUZZ_DUMP") {
+            std::fs::write(format!("{dump}.{name}"), &bytes).unwrap();
+        }
         std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| check(i, &bytes))).map_err(|_| {
             TestCaseError::fail(format!("{name}: panicked on a mutant of corpus file {i}"))
         })

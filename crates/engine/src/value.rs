@@ -133,6 +133,30 @@ fn check_events(text: &str) -> Result<(), ParseError> {
             ),
         });
     }
+    // Directives (`%YAML`, `%TAG`) are refused before the scanner sees
+    // them: pipelines need none, and saphyr-parser 0.0.12 loops without
+    // bound, allocating, on a directive name that runs to the end of the
+    // input through multi-byte characters (found by tests/fuzz.rs). A
+    // line can only start with `%` as a directive or inside a quoted or
+    // block scalar; the latter is refused too, with this message.
+    for (i, line) in text.split('\n').enumerate() {
+        let line = if i == 0 {
+            line.trim_start_matches('\u{feff}')
+        } else {
+            line
+        };
+        if line.starts_with('%') {
+            return Err(ParseError {
+                loc: Loc {
+                    line: i + 1,
+                    col: 1,
+                },
+                message: "a line starting with `%` (a YAML directive) is not supported in \
+                          pipelines; indent or quote it"
+                    .into(),
+            });
+        }
+    }
     // Per open container: its item count, and for mappings the keys seen
     // and whether the next node is a key.
     struct Open {
@@ -459,6 +483,20 @@ mod tests {
         assert_eq!(e.loc.line, 1);
         let items = vec!["1"; limits::MAX_ITEMS].join(",");
         assert!(parse_yaml(&format!("a: [{items}]\n")).is_ok());
+    }
+
+    #[test]
+    fn directives_are_refused_before_the_scanner_sees_them() {
+        // This input makes saphyr-parser 0.0.12 allocate without bound.
+        let bomb = "%\u{fffd}\u{fffd}&\u{fffd}`\u{fffd}s";
+        let e = parse_yaml(bomb).unwrap_err();
+        assert_eq!(e.loc, Loc { line: 1, col: 1 });
+        assert!(e.message.contains("directive"), "{}", e.message);
+        let e = parse_yaml("a: 1\n%YAML 1.2\n").unwrap_err();
+        assert_eq!(e.loc, Loc { line: 2, col: 1 });
+        assert!(parse_override(bomb).is_err());
+        // `%` elsewhere is ordinary text.
+        assert!(parse_yaml("a: \"50%\"\nb: x%y\n").is_ok());
     }
 
     #[test]

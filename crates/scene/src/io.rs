@@ -126,8 +126,54 @@ impl ExrChannels {
     }
 }
 
+/// Checks an EXR's headers before any pixel is decoded: every layer at
+/// most [`MAX_SIDE`] a side, at most 16 channels, and no more pixel bytes
+/// than its file could hold compressed (2,048 : 1, beyond any codec's
+/// ratio on real images, plus 16 MiB). The decoder allocates a layer's
+/// whole buffer from its header, so a few hundred forged bytes could
+/// otherwise ask for gigabytes (found by tests/fuzz.rs).
+fn check_exr_header(path: &Path, bytes: &[u8]) -> Result<()> {
+    let meta = exr::meta::MetaData::read_from_buffered(Cursor::new(bytes), false).map_err(|e| {
+        SceneError::Decode {
+            path: path.into(),
+            message: e.to_string(),
+        }
+    })?;
+    let budget = (bytes.len() as u64).saturating_mul(2048) + (16 << 20);
+    for h in meta.headers.iter() {
+        let (w, ht) = (h.layer_size.0, h.layer_size.1);
+        if w > MAX_SIDE || ht > MAX_SIDE {
+            return Err(SceneError::invalid(
+                path,
+                format!("implausible image size {w}x{ht} (each side must be 1..={MAX_SIDE})"),
+            ));
+        }
+        if h.channels.list.len() > 16 {
+            return Err(SceneError::invalid(
+                path,
+                format!(
+                    "{} channels (matflow reads at most 16)",
+                    h.channels.list.len()
+                ),
+            ));
+        }
+        let raw = (w as u64) * (ht as u64) * (h.channels.bytes_per_pixel as u64);
+        if raw > budget {
+            return Err(SceneError::invalid(
+                path,
+                format!(
+                    "the header declares {w}x{ht} pixels ({raw} bytes), more than a {}-byte file can hold",
+                    bytes.len()
+                ),
+            ));
+        }
+    }
+    Ok(())
+}
+
 pub fn read_exr_channels(path: &Path) -> Result<ExrChannels> {
     let bytes = read_bytes(path)?;
+    check_exr_header(path, &bytes)?;
     let img = x::read()
         .no_deep_data()
         .largest_resolution_level()
@@ -531,6 +577,31 @@ pub fn resize_bilinear(img: &RgbImage, w: usize, h: usize) -> RgbImage {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_exr_header_claiming_more_pixels_than_its_file_holds_is_refused_unread() {
+        let dir = std::env::temp_dir().join(format!("matflow-exrhdr-{}", std::process::id()));
+        let f = dir.join("a.exr");
+        let img = Image::from_fn(4, 3, |x, y| Vec3::new(x as f32, y as f32, 1.0));
+        write_exr_rgb(&f, &img).unwrap();
+        let mut bytes = std::fs::read(&f).unwrap();
+        // dataWindow (box2i: xMin, yMin, xMax, yMax) -> 16000 x 16000.
+        let at = bytes
+            .windows(b"dataWindow\0box2i\0".len())
+            .position(|w| w == b"dataWindow\0box2i\0")
+            .unwrap()
+            + b"dataWindow\0box2i\0".len()
+            + 4;
+        bytes[at + 8..at + 12].copy_from_slice(&15999i32.to_le_bytes());
+        bytes[at + 12..at + 16].copy_from_slice(&15999i32.to_le_bytes());
+        std::fs::write(&f, &bytes).unwrap();
+        let e = read_exr_rgb(&f).unwrap_err().to_string();
+        assert!(
+            e.contains("16000x16000") && e.contains("file can hold"),
+            "{e}"
+        );
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 
     #[test]
     fn temporary_names_differ_per_writer_and_name_host_and_process() {
