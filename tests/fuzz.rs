@@ -55,6 +55,24 @@ fn tmp(name: &str) -> PathBuf {
     d
 }
 
+/// Runs `matflow args…` and expects it to succeed (building a corpus).
+fn matflow_ok(args: &[&str]) {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_matflow"))
+        .args(args)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// The bytes of each file.
+fn read_all(files: &[PathBuf]) -> Vec<Vec<u8>> {
+    files.iter().map(|p| std::fs::read(p).unwrap()).collect()
+}
+
 #[derive(Clone, Debug)]
 enum Mutation {
     Flip(usize, u8),
@@ -245,18 +263,18 @@ fn image_readers() {
 fn bundles() {
     let dir = tmp("bundle");
     let seed = dir.join("seed");
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_matflow"))
-        .args(["synth", "--size", "8", "--spp", "1", "--degrade", "--out"])
-        .arg(&seed)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    matflow_ok(&[
+        "synth",
+        "--size",
+        "8",
+        "--spp",
+        "1",
+        "--degrade",
+        "--out",
+        seed.to_str().unwrap(),
+    ]);
     let files: Vec<PathBuf> = walk(&seed);
-    let corpus: Vec<Vec<u8>> = files.iter().map(|p| std::fs::read(p).unwrap()).collect();
+    let corpus = read_all(&files);
     let work = dir.join("b");
     // Each case damages one file of the bundle (chosen by the corpus
     // index) and loads everything a pipeline would.
@@ -294,29 +312,15 @@ fn cache_entries() {
     )
     .unwrap();
     let cache = dir.join("cache");
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_matflow"))
-        .args([
-            "run",
-            file.to_str().unwrap(),
-            "--quiet",
-            "--cache",
-            cache.to_str().unwrap(),
-        ])
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let blobs: Vec<Vec<u8>> = walk(&cache.join("blobs"))
-        .iter()
-        .map(|p| std::fs::read(p).unwrap())
-        .collect();
-    let actions: Vec<Vec<u8>> = walk(&cache.join("actions"))
-        .iter()
-        .map(|p| std::fs::read(p).unwrap())
-        .collect();
+    matflow_ok(&[
+        "run",
+        file.to_str().unwrap(),
+        "--quiet",
+        "--cache",
+        cache.to_str().unwrap(),
+    ]);
+    let blobs = read_all(&walk(&cache.join("blobs")));
+    let actions = read_all(&walk(&cache.join("actions")));
     let types = [
         "scene",
         "materials",

@@ -14,14 +14,13 @@ fn tmp(name: &str) -> PathBuf {
     d
 }
 
-/// `matflow args…` with its address space capped at `mem_mib` (so a
-/// blow-up fails inside the cap instead of taking the machine), and how
-/// long it took.
-fn matflow_capped(mem_mib: u64, args: &[&str]) -> (Output, Duration) {
+/// `matflow args…` under the shell resource limits `limits` (e.g.
+/// `ulimit -v N`), and how long it took.
+fn matflow_limited(limits: &str, args: &[&str]) -> (Output, Duration) {
     let t = Instant::now();
     let out = Command::new("sh")
         .arg("-c")
-        .arg(format!("ulimit -v {}; exec \"$0\" \"$@\"", mem_mib * 1024))
+        .arg(format!("{limits}; exec \"$0\" \"$@\""))
         .arg(env!("CARGO_BIN_EXE_matflow"))
         .args(args)
         .env_remove("MATFLOW_CACHE")
@@ -30,8 +29,42 @@ fn matflow_capped(mem_mib: u64, args: &[&str]) -> (Output, Duration) {
     (out, t.elapsed())
 }
 
+/// `matflow args…` with its address space capped at `mem_mib` (so a
+/// blow-up fails inside the cap instead of taking the machine).
+fn matflow_capped(mem_mib: u64, args: &[&str]) -> (Output, Duration) {
+    matflow_limited(&format!("ulimit -v {}", mem_mib * 1024), args)
+}
+
 fn stderr(o: &Output) -> String {
     String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+/// `matflow args…` capped at 4 GiB.
+fn matflow(args: &[&str]) -> Output {
+    matflow_capped(4096, args).0
+}
+
+/// The arguments of `matflow run FILE --quiet --cache CACHE extra…`.
+fn run_args<'a>(file: &'a Path, cache: &'a Path, extra: &[&'a str]) -> Vec<&'a str> {
+    let mut args = vec!["run", file.to_str().unwrap(), "--quiet", "--cache"];
+    args.push(cache.to_str().unwrap());
+    args.extend_from_slice(extra);
+    args
+}
+
+/// `matflow run FILE --quiet --cache CACHE extra…`.
+fn run(file: &Path, cache: &Path, extra: &[&str]) -> Output {
+    matflow(&run_args(file, cache, extra))
+}
+
+/// `matflow render` of bundle `b` with its true materials at `spp`,
+/// plus `extra`, to `out`.
+fn render_bundle(b: &Path, spp: &str, extra: &[&str], out: &Path) -> Output {
+    let mut args = vec!["render", "--bundle", b.to_str().unwrap(), "--spp", spp];
+    args.extend_from_slice(&["--materials", "ground_truth"]);
+    args.extend_from_slice(extra);
+    args.extend_from_slice(&["--out", out.to_str().unwrap()]);
+    matflow(&args)
 }
 
 /// Runs `pipeline` (written to a file) capped at 1 GiB and expects a
@@ -40,10 +73,7 @@ fn refused(dir: &Path, name: &str, pipeline: &str, extra: &[&str], expect: &str)
     let file = dir.join(name);
     std::fs::write(&file, pipeline).unwrap();
     let cache = dir.join("cache");
-    let mut args = vec!["run", file.to_str().unwrap(), "--quiet", "--cache"];
-    args.push(cache.to_str().unwrap());
-    args.extend_from_slice(extra);
-    let (out, took) = matflow_capped(1024, &args);
+    let (out, took) = matflow_capped(1024, &run_args(&file, &cache, extra));
     let err = stderr(&out);
     assert_eq!(out.status.code(), Some(1), "{name}: {err}");
     assert!(err.contains(expect), "{name}: {err}");
@@ -122,20 +152,7 @@ fn render_pipeline(output: &str, spp: u32) -> String {
 #[test]
 fn outputs_may_not_destroy_inputs_or_each_other() {
     let dir = tmp("outputs");
-    let bundle = dir.join("bundle");
-    let (out, _) = matflow_capped(
-        4096,
-        &[
-            "synth",
-            "--out",
-            bundle.to_str().unwrap(),
-            "--size",
-            "16",
-            "--spp",
-            "1",
-        ],
-    );
-    assert!(out.status.success(), "{}", stderr(&out));
+    let bundle = synth_bundle(&dir, "bundle");
     // The PNG written beside `p.exr` would be the pipeline file itself.
     let e = refused(
         &dir,
@@ -206,16 +223,7 @@ fn a_cached_run_leaves_output_files_alone_and_a_change_rewrites_them() {
     let run = |spp: u32| {
         let file = dir.join("p.yaml");
         std::fs::write(&file, render_pipeline("out/shot.exr", spp)).unwrap();
-        let (out, _) = matflow_capped(
-            4096,
-            &[
-                "run",
-                file.to_str().unwrap(),
-                "--quiet",
-                "--cache",
-                cache.to_str().unwrap(),
-            ],
-        );
+        let out = run(&file, &cache, &[]);
         assert!(out.status.success(), "{}", stderr(&out));
         let exr = std::fs::metadata(dir.join("out/shot.exr")).unwrap();
         let png = std::fs::metadata(dir.join("out/shot.png")).unwrap();
@@ -244,18 +252,15 @@ fn a_cached_run_leaves_output_files_alone_and_a_change_rewrites_them() {
 /// A small synthetic bundle in `dir/name`.
 fn synth_bundle(dir: &Path, name: &str) -> PathBuf {
     let b = dir.join(name);
-    let (out, _) = matflow_capped(
-        4096,
-        &[
-            "synth",
-            "--out",
-            b.to_str().unwrap(),
-            "--size",
-            "16",
-            "--spp",
-            "1",
-        ],
-    );
+    let out = matflow(&[
+        "synth",
+        "--out",
+        b.to_str().unwrap(),
+        "--size",
+        "16",
+        "--spp",
+        "1",
+    ]);
     assert!(out.status.success(), "{}", stderr(&out));
     b
 }
@@ -340,20 +345,7 @@ fn inputs_are_checked_before_any_stage_runs() {
             e.contains("depth.exr") && e.contains("unusable depth"),
             "{e}"
         );
-        let (out, _) = matflow_capped(
-            4096,
-            &[
-                "render",
-                "--bundle",
-                b.to_str().unwrap(),
-                "--spp",
-                "1",
-                "--materials",
-                "ground_truth",
-                "--out",
-                dir.join("r.exr").to_str().unwrap(),
-            ],
-        );
+        let out = render_bundle(&b, "1", &[], &dir.join("r.exr"));
         assert_eq!(out.status.code(), Some(1), "depth {z}: {}", stderr(&out));
         assert!(stderr(&out).contains("unusable depth"), "{}", stderr(&out));
     }
@@ -388,21 +380,12 @@ fn inputs_are_checked_before_any_stage_runs() {
     assert!(e.contains("x=1, y=0"), "{e}");
     write_env("sky.exr", 8, 4, 2.0);
     for envmap in ["sky.exr", "neg.exr"] {
-        let (out, _) = matflow_capped(
-            4096,
-            &[
-                "render",
-                "--bundle",
-                b.to_str().unwrap(),
-                "--spp",
-                "1",
-                "--materials",
-                "ground_truth",
-                "--envmap",
-                dir.join(envmap).to_str().unwrap(),
-                "--out",
-                dir.join("r.exr").to_str().unwrap(),
-            ],
+        let env = dir.join(envmap);
+        let out = render_bundle(
+            &b,
+            "1",
+            &["--envmap", env.to_str().unwrap()],
+            &dir.join("r.exr"),
         );
         if envmap == "sky.exr" {
             assert!(
@@ -437,29 +420,12 @@ fn runs_estimated_above_an_hour_are_refused_with_the_estimate() {
     for extra in [&[][..], &["--allow-expensive"][..]] {
         let file = dir.join("small.yaml");
         std::fs::write(&file, render_pipeline("out/small.exr", 2)).unwrap();
-        let mut args = vec!["run", file.to_str().unwrap(), "--quiet", "--cache"];
-        let cache = dir.join("cache");
-        args.push(cache.to_str().unwrap());
-        args.extend_from_slice(extra);
-        let (out, _) = matflow_capped(4096, &args);
+        let out = run(&file, &dir.join("cache"), extra);
         assert!(out.status.success(), "{}", stderr(&out));
     }
     // `matflow render` checks the same way.
     let b = synth_bundle(&dir, "bundle");
-    let (out, _) = matflow_capped(
-        4096,
-        &[
-            "render",
-            "--bundle",
-            b.to_str().unwrap(),
-            "--materials",
-            "ground_truth",
-            "--spp",
-            "100000000",
-            "--out",
-            dir.join("r.exr").to_str().unwrap(),
-        ],
-    );
+    let out = render_bundle(&b, "100000000", &[], &dir.join("r.exr"));
     assert_eq!(out.status.code(), Some(1), "{}", stderr(&out));
     assert!(
         stderr(&out).contains("--allow-expensive"),
@@ -474,16 +440,7 @@ fn runs_estimated_above_an_hour_are_refused_with_the_estimate() {
 fn populate(dir: &Path, cache: &Path) -> std::collections::BTreeMap<String, PathBuf> {
     let file = dir.join("p.yaml");
     std::fs::write(&file, render_pipeline("out/p.exr", 2)).unwrap();
-    let (out, _) = matflow_capped(
-        4096,
-        &[
-            "run",
-            file.to_str().unwrap(),
-            "--quiet",
-            "--cache",
-            cache.to_str().unwrap(),
-        ],
-    );
+    let out = run(&file, cache, &[]);
     assert!(out.status.success(), "{}", stderr(&out));
     entries(cache)
 }
@@ -503,10 +460,6 @@ fn entries(cache: &Path) -> std::collections::BTreeMap<String, PathBuf> {
     m
 }
 
-fn cache_cmd(args: &[&str]) -> Output {
-    matflow_capped(4096, args).0
-}
-
 #[test]
 fn gc_keep_never_deletes_intact_entries_below_a_damaged_one() {
     let dir = tmp("gc");
@@ -517,7 +470,7 @@ fn gc_keep_never_deletes_intact_entries_below_a_damaged_one() {
     let scene = std::fs::read(&e["scene"]).unwrap();
     std::fs::write(&e["scene"], &scene[..scene.len() / 2]).unwrap();
     let p = dir.join("p.yaml");
-    let out = cache_cmd(&[
+    let out = matflow(&[
         "cache",
         "gc",
         "--cache",
@@ -535,18 +488,8 @@ fn gc_keep_never_deletes_intact_entries_below_a_damaged_one() {
         "{left:?}"
     );
     // The next run recomputes only the damaged stage.
-    let (out, _) = matflow_capped(
-        4096,
-        &[
-            "run",
-            p.to_str().unwrap(),
-            "--cache",
-            cache.to_str().unwrap(),
-            "--quiet",
-            "--report",
-            dir.join("r.json").to_str().unwrap(),
-        ],
-    );
+    let report = dir.join("r.json");
+    let out = run(&p, &cache, &["--report", report.to_str().unwrap()]);
     assert!(out.status.success(), "{}", stderr(&out));
     let r: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.join("r.json")).unwrap()).unwrap();
@@ -588,30 +531,17 @@ fn an_entry_pointing_at_a_blob_of_the_wrong_type_is_a_miss_and_verify_reports_it
     let forged = std::fs::read(&e["mesh"]).unwrap();
     // A run recovers: the mesh is recomputed, the render re-runs or hits.
     let p = dir.join("p.yaml");
-    let run = || {
-        matflow_capped(
-            4096,
-            &[
-                "run",
-                p.to_str().unwrap(),
-                "--cache",
-                cache.to_str().unwrap(),
-                "--quiet",
-            ],
-        )
-        .0
-    };
-    let out = run();
+    let out = run(&p, &cache, &[]);
     assert!(out.status.success(), "{}", stderr(&out));
     assert_ne!(
         std::fs::read(&e["mesh"]).unwrap(),
         forged,
         "the entry was rewritten"
     );
-    assert!(run().status.success());
+    assert!(run(&p, &cache, &[]).status.success());
     // verify finds a forged entry and removes it (and only it).
     std::fs::write(&e["mesh"], &forged).unwrap();
-    let out = cache_cmd(&["cache", "verify", "--cache", cache.to_str().unwrap()]);
+    let out = matflow(&["cache", "verify", "--cache", cache.to_str().unwrap()]);
     let text = String::from_utf8_lossy(&out.stdout);
     assert!(out.status.success(), "{text}{}", stderr(&out));
     assert!(
@@ -619,7 +549,7 @@ fn an_entry_pointing_at_a_blob_of_the_wrong_type_is_a_miss_and_verify_reports_it
         "{text}"
     );
     assert!(text.contains("not a mesh artifact"), "{text}");
-    let out = cache_cmd(&["cache", "verify", "--cache", cache.to_str().unwrap()]);
+    let out = matflow(&["cache", "verify", "--cache", cache.to_str().unwrap()]);
     let text = String::from_utf8_lossy(&out.stdout);
     assert!(
         text.contains("0 of the wrong type; removed 0 blobs and 0 actions"),
@@ -639,12 +569,12 @@ fn cache_tools_count_only_what_they_removed_and_fail_when_they_cannot() {
     std::fs::create_dir_all(e["shot"].join("x")).unwrap();
     let blobs = cache.join("blobs/ff");
     std::fs::create_dir_all(blobs.join(format!("{}/x", "f".repeat(62)))).unwrap();
-    let out = cache_cmd(&["cache", "verify", "--cache", cache.to_str().unwrap()]);
+    let out = matflow(&["cache", "verify", "--cache", cache.to_str().unwrap()]);
     let text = String::from_utf8_lossy(&out.stdout);
     assert_eq!(out.status.code(), Some(1), "{text}{}", stderr(&out));
     assert!(text.contains("removed 0 blobs and 0 actions"), "{text}");
     assert!(stderr(&out).contains("could not"), "{}", stderr(&out));
-    let out = cache_cmd(&[
+    let out = matflow(&[
         "cache",
         "gc",
         "--cache",
@@ -692,24 +622,12 @@ fn a_write_error_mid_run_fails_cleanly_and_the_next_run_completes() {
     // A real I/O fault: files may not grow past 4 KiB (RLIMIT_FSIZE, the
     // signal ignored so writes fail with EFBIG), as on a full disk. The
     // scene's blob is larger, so the first stage's store write fails.
-    let out = Command::new("sh")
-        .arg("-c")
-        .arg("trap '' XFSZ; ulimit -f 8; exec \"$0\" \"$@\"")
-        .arg(env!("CARGO_BIN_EXE_matflow"))
-        .args([
-            "run",
-            file.to_str().unwrap(),
-            "--quiet",
-            "--cache",
-            cache.to_str().unwrap(),
-        ])
-        .output()
-        .unwrap();
+    let (out, _) = matflow_limited("trap '' XFSZ; ulimit -f 8", &run_args(&file, &cache, &[]));
     let err = stderr(&out);
     assert_eq!(out.status.code(), Some(1), "{err}");
     assert!(err.contains("cache") && err.contains("too large"), "{err}");
     // The cache is consistent: nothing damaged, no temporary left.
-    let v = cache_cmd(&["cache", "verify", "--cache", cache.to_str().unwrap()]);
+    let v = matflow(&["cache", "verify", "--cache", cache.to_str().unwrap()]);
     let text = String::from_utf8_lossy(&v.stdout);
     assert!(v.status.success(), "{text}");
     assert!(
@@ -719,16 +637,7 @@ fn a_write_error_mid_run_fails_cleanly_and_the_next_run_completes() {
     assert_eq!(std::fs::read_dir(cache.join("tmp")).unwrap().count(), 0);
     assert!(!dir.join("out/p.exr").exists());
     // Without the fault the same run completes.
-    let (out, _) = matflow_capped(
-        4096,
-        &[
-            "run",
-            file.to_str().unwrap(),
-            "--quiet",
-            "--cache",
-            cache.to_str().unwrap(),
-        ],
-    );
+    let out = run(&file, &cache, &[]);
     assert!(out.status.success(), "{}", stderr(&out));
     assert!(dir.join("out/p.exr").is_file());
     let _ = std::fs::remove_dir_all(&dir);

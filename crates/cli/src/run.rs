@@ -251,7 +251,7 @@ fn refuse_if_expensive(pipeline: &std::path::Path, est: &[(String, f64)]) -> Res
     let parts: Vec<String> = top
         .iter()
         .take(3)
-        .map(|(n, s)| format!("`{n}` {}", crate::run::duration(*s)))
+        .map(|(n, s)| format!("`{n}` {}", duration(*s)))
         .collect();
     bail!(
         "{}: this run is estimated at {} on the reference 2-core machine if nothing is cached \
@@ -341,6 +341,18 @@ fn parse_size(s: &str) -> Result<u64> {
         bail!("--max-size {s}: not a size");
     }
     Ok((x * mult as f64) as u64)
+}
+
+/// Lists on stderr what a cache tool could not do, and fails with
+/// `summary` when there is anything.
+fn fail_on(errors: &[String], what: &str, summary: String) -> Result<()> {
+    if errors.is_empty() {
+        return Ok(());
+    }
+    for e in errors {
+        eprintln!("{what}: {e}");
+    }
+    bail!(summary)
 }
 
 pub fn cache(c: CacheCmd) -> Result<()> {
@@ -433,15 +445,14 @@ pub fn cache(c: CacheCmd) -> Result<()> {
             for w in &r.actions_wrong_type {
                 outln!("wrong type {w}");
             }
-            if !r.errors.is_empty() {
-                for e in &r.errors {
-                    eprintln!("could not read or remove: {e}");
-                }
-                bail!(
+            fail_on(
+                &r.errors,
+                "could not read or remove",
+                format!(
                     "verify: {} files could not be read or removed ({bad} damaged entries found)",
                     r.errors.len()
-                );
-            }
+                ),
+            )?;
         }
         CacheCmd::Gc(g) => {
             if g.keep.is_empty() && g.older_than.is_none() && g.max_size.is_none() {
@@ -487,15 +498,14 @@ pub fn cache(c: CacheCmd) -> Result<()> {
                     r.actions_kept_unresolved
                 );
             }
-            if !r.errors.is_empty() {
-                for e in &r.errors {
-                    eprintln!("could not remove: {e}");
-                }
-                bail!(
+            fail_on(
+                &r.errors,
+                "could not remove",
+                format!(
                     "gc: {} removals failed (nothing counted above was left behind)",
                     r.errors.len()
-                );
-            }
+                ),
+            )?;
         }
     }
     Ok(())

@@ -152,7 +152,8 @@ pub struct Job {
     pub key: Digest,
     /// Reference parameter → digest of the upstream output.
     pub inputs: BTreeMap<String, Digest>,
-    /// Do not serve it from the cache (its entry turned out unreadable).
+    /// Do not serve it from the cache (its entry turned out unreadable,
+    /// or the scheduler has just looked it up and found none).
     pub skip_cache: bool,
     /// It reads files on the submitter's disk: it runs there.
     pub local_only: bool,
@@ -564,7 +565,8 @@ pub fn run_pipeline(
                     in_flight += 1;
                     // A hit served here goes through the same events as
                     // one the executor serves.
-                    let hit = if exec.serves_cache_inline() && !slot_skip && !store.has_remote() {
+                    let inline = exec.serves_cache_inline() && !slot_skip && !store.has_remote();
+                    let hit = if inline {
                         store.lookup(&key).ok().flatten()
                     } else {
                         None
@@ -594,7 +596,8 @@ pub fn run_pipeline(
                             params: stage.params.clone(),
                             key,
                             inputs,
-                            skip_cache: slot_skip,
+                            // A miss found here is not looked up again.
+                            skip_cache: slot_skip || inline,
                             local_only: reads_local_files(node, &stage.params),
                         },
                         sink.clone(),

@@ -86,12 +86,7 @@ pub fn needed(p: &Pipeline) -> BTreeSet<String> {
 /// acyclic (checked at load).
 pub fn order(p: &Pipeline) -> Vec<String> {
     let need = needed(p);
-    let idx: BTreeMap<&str, usize> = p
-        .stages
-        .iter()
-        .enumerate()
-        .map(|(i, s)| (s.name.as_str(), i))
-        .collect();
+    let idx = p.positions();
     let n = p.stages.len();
     let mut ups: Vec<Vec<usize>> = vec![Vec::new(); n];
     let mut downs: Vec<Vec<usize>> = vec![Vec::new(); n];

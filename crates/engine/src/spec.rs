@@ -80,6 +80,14 @@ impl Pipeline {
     pub fn stage(&self, name: &str) -> Option<&Stage> {
         self.stages.iter().find(|s| s.name == name)
     }
+    /// Each stage's position in `stages`, by name.
+    pub fn positions(&self) -> std::collections::HashMap<&str, usize> {
+        self.stages
+            .iter()
+            .enumerate()
+            .map(|(i, s)| (s.name.as_str(), i))
+            .collect()
+    }
 }
 
 /// A `--set stage.param=value` override.
@@ -638,12 +646,7 @@ const FILM_TYPES: [&str; 5] = ["scene", "materials", "mesh", "paths", "mask"];
 /// along references to film-sized artifacts in dependency order. `None`
 /// where nothing upstream states it. Indexed like `p.stages`.
 pub fn film_sizes(p: &Pipeline, reg: &Registry) -> Vec<Option<(usize, usize)>> {
-    let idx: std::collections::HashMap<&str, usize> = p
-        .stages
-        .iter()
-        .enumerate()
-        .map(|(i, s)| (s.name.as_str(), i))
-        .collect();
+    let idx = p.positions();
     // Film-sized references: stage i reads stage j's film-sized output.
     let mut film_ups: Vec<Vec<usize>> = vec![Vec::new(); p.stages.len()];
     let mut downs: Vec<Vec<usize>> = vec![Vec::new(); p.stages.len()];
@@ -703,12 +706,7 @@ pub const EXPENSIVE_SECONDS: f64 = 3600.0;
 /// none were cached.
 pub fn estimate_seconds(p: &Pipeline, reg: &Registry) -> Vec<(String, f64)> {
     let sizes = film_sizes(p, reg);
-    let idx: BTreeMap<&str, usize> = p
-        .stages
-        .iter()
-        .enumerate()
-        .map(|(i, s)| (s.name.as_str(), i))
-        .collect();
+    let idx = p.positions();
     crate::plan::order(p)
         .into_iter()
         .map(|name| {

@@ -164,6 +164,19 @@ pub struct GcPolicy {
     pub keep_stages: BTreeSet<(String, String)>,
 }
 
+/// Bytes of each output blob [`Store::verify_with`] passes to its check.
+pub const CHECK_HEAD: u64 = 64 << 10;
+
+/// The first `n` bytes of a file (fewer if it is shorter or unreadable).
+fn head(path: &Path, n: u64) -> Vec<u8> {
+    use std::io::Read;
+    let mut out = Vec::new();
+    if let Ok(f) = std::fs::File::open(path) {
+        let _ = f.take(n).read_to_end(&mut out);
+    }
+    out
+}
+
 /// Removes a file; `Ok(false)` if it was already gone.
 fn remove(path: &Path) -> Result<bool, StoreError> {
     match std::fs::remove_file(path) {
@@ -372,9 +385,11 @@ impl Store {
         self.verify_with(|_, _, _| Ok(()))
     }
 
-    /// [`Store::verify`], also checking each action's output bytes with
-    /// `check(action, output name, bytes)` (e.g. that they decode as the
-    /// type the node declares); an entry that fails it is removed (its
+    /// [`Store::verify`], also checking each action's outputs with
+    /// `check(action, output name, head)`, `head` being the blob's first
+    /// [`CHECK_HEAD`] bytes (enough for a header: every blob was already
+    /// read whole and re-hashed once), e.g. that they are the artifact
+    /// type the node declares; an entry that fails it is removed (its
     /// blobs stay: they are intact, and other entries may use them).
     pub fn verify_with(
         &self,
@@ -406,8 +421,7 @@ impl Store {
                     Some(ds) => ds
                         .iter()
                         .find_map(|(name, d)| {
-                            let bytes = std::fs::read(self.blob_path(d)).unwrap_or_default();
-                            check(a, name, &bytes)
+                            check(a, name, &head(&self.blob_path(d), CHECK_HEAD))
                                 .err()
                                 .map(|why| format!("{}: {name}: {why}", k.hex()))
                         })

@@ -161,6 +161,20 @@ impl Bundle {
     /// `depth.exr` (z directly) wins; otherwise `depthPred.exr` is converted
     /// as the reference does, z = 2·max(d) − d. Pixels set in
     /// `mesh_mask.png` get z = 0.
+    /// The size of the depth map [`Bundle::load_depth`] reads, from its
+    /// header alone.
+    pub fn depth_size(&self) -> Result<(usize, usize)> {
+        let direct = self.path("depth.exr");
+        if exists(&direct) {
+            return io::exr_size(&direct);
+        }
+        let pred = self.path("depthPred.exr");
+        if !exists(&pred) {
+            return Err(self.missing("depth", "depth.exr, depthPred.exr"));
+        }
+        io::exr_size(&pred)
+    }
+
     pub fn load_depth(&self) -> Result<GrayImage> {
         let direct = self.path("depth.exr");
         let from = if exists(&direct) {

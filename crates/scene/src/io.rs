@@ -126,6 +126,26 @@ impl ExrChannels {
     }
 }
 
+/// Size (width, height) of an EXR's first layer, from its header alone.
+pub fn exr_size(path: &Path) -> Result<(usize, usize)> {
+    let bytes = read_bytes(path)?;
+    let meta = exr_meta(path, &bytes)?;
+    let h = meta
+        .headers
+        .first()
+        .ok_or_else(|| SceneError::invalid(path, "no image layer"))?;
+    Ok((h.layer_size.0, h.layer_size.1))
+}
+
+fn exr_meta(path: &Path, bytes: &[u8]) -> Result<exr::meta::MetaData> {
+    exr::meta::MetaData::read_from_buffered(Cursor::new(bytes), false).map_err(|e| {
+        SceneError::Decode {
+            path: path.into(),
+            message: e.to_string(),
+        }
+    })
+}
+
 /// Checks an EXR's headers before any pixel is decoded: every layer at
 /// most [`MAX_SIDE`] a side, at most 16 channels, and no more pixel bytes
 /// than its file could hold compressed (2,048 : 1, beyond any codec's
@@ -133,12 +153,7 @@ impl ExrChannels {
 /// whole buffer from its header, so a few hundred forged bytes could
 /// otherwise ask for gigabytes (found by tests/fuzz.rs).
 fn check_exr_header(path: &Path, bytes: &[u8]) -> Result<()> {
-    let meta = exr::meta::MetaData::read_from_buffered(Cursor::new(bytes), false).map_err(|e| {
-        SceneError::Decode {
-            path: path.into(),
-            message: e.to_string(),
-        }
-    })?;
+    let meta = exr_meta(path, bytes)?;
     let budget = (bytes.len() as u64).saturating_mul(2048) + (16 << 20);
     for h in meta.headers.iter() {
         let (w, ht) = (h.layer_size.0, h.layer_size.1);

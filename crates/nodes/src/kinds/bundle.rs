@@ -106,11 +106,9 @@ impl Node for BundleNode {
         &BUNDLE_INFO
     }
     fn film_size(&self, p: &Params) -> Option<(usize, usize)> {
-        // The depth map's size (a bundle that cannot be read fails its
-        // preflight with the reason).
-        let b = Bundle::open(p.path("path")?).ok()?;
-        let z = b.load_depth().ok()?;
-        Some((z.width, z.height))
+        // The depth map's size, from its header (a bundle that cannot be
+        // read fails its preflight with the reason).
+        Bundle::open(p.path("path")?).ok()?.depth_size().ok()
     }
     fn preflight(&self, p: &Params) -> Result<(), String> {
         let (_, b) = self.load(p).map_err(|e| e.0)?;
