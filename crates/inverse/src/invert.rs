@@ -506,6 +506,7 @@ pub fn invert(
         &RenderOptions {
             spp: plan.final_spp,
             max_depth: opts.max_depth,
+            glass_depth: matflow_render::integrator::DEFAULT_GLASS_DEPTH,
             seed: opts.seed ^ 0xf1_4a1,
             filter: PixelFilter::Box,
             reference_compat: false,

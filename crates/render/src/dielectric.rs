@@ -317,7 +317,11 @@ mod tests {
     use crate::rng::Pcg32;
 
     fn dir(theta: f32, phi: f32) -> Vec3 {
-        Vec3::new(theta.sin() * phi.cos(), theta.sin() * phi.sin(), theta.cos())
+        Vec3::new(
+            theta.sin() * phi.cos(),
+            theta.sin() * phi.sin(),
+            theta.cos(),
+        )
     }
 
     #[test]
@@ -362,7 +366,7 @@ mod tests {
             let eta = 1.0 + 1.5 * rng.next_f32();
             let theta = 1.5 * rng.next_f32();
             let inside = rng.next_f32() < 0.5;
-            let mut wi = dir(theta, 6.28 * rng.next_f32());
+            let mut wi = dir(theta, std::f32::consts::TAU * rng.next_f32());
             if inside {
                 wi.z = -wi.z;
             }
@@ -494,7 +498,7 @@ mod tests {
         let mut rng = Pcg32::new(9, 9);
         for g in materials() {
             for _ in 0..2000 {
-                let mut wi = dir(1.5 * rng.next_f32(), 6.28 * rng.next_f32());
+                let mut wi = dir(1.5 * rng.next_f32(), std::f32::consts::TAU * rng.next_f32());
                 if rng.next_f32() < 0.5 {
                     wi.z = -wi.z;
                 }
@@ -517,12 +521,15 @@ mod tests {
         let mut rng = Pcg32::new(5, 2);
         for g in materials() {
             for _ in 0..2000 {
-                let a = dir(1.5 * rng.next_f32(), 6.28 * rng.next_f32());
-                let b = dir(1.5 * rng.next_f32(), 6.28 * rng.next_f32());
+                let a = dir(1.5 * rng.next_f32(), std::f32::consts::TAU * rng.next_f32());
+                let b = dir(1.5 * rng.next_f32(), std::f32::consts::TAU * rng.next_f32());
                 // f = value/|cos θo| is symmetric for reflection.
                 let fab = eval_pdf(&g, a, b).0.x / b.z.abs();
                 let fba = eval_pdf(&g, b, a).0.x / a.z.abs();
-                assert!((fab - fba).abs() <= 5e-3 * fab.max(fba) + 1e-5, "{g:?} {a} {b} {fab} {fba}");
+                assert!(
+                    (fab - fba).abs() <= 5e-3 * fab.max(fba) + 1e-5,
+                    "{g:?} {a} {b} {fab} {fba}"
+                );
                 // Transmission: the physical BTDF obeys f(a→b)/η_b² =
                 // f(b→a)/η_a² (Veach's generalised reciprocity); with the
                 // radiance scaling (η_a/η_b)² folded into f(a→b), that is
@@ -530,7 +537,10 @@ mod tests {
                 let bt = Vec3::new(b.x, b.y, -b.z);
                 let fab = eval_pdf(&g, a, bt).0.x / bt.z.abs() * g.eta * g.eta;
                 let fba = eval_pdf(&g, bt, a).0.x / a.z.abs();
-                assert!((fab - fba).abs() <= 5e-3 * fab.max(fba) + 1e-5, "{g:?} {a} {b} {fab} {fba}");
+                assert!(
+                    (fab - fba).abs() <= 5e-3 * fab.max(fba) + 1e-5,
+                    "{g:?} {a} {b} {fab} {fba}"
+                );
             }
         }
     }
@@ -636,7 +646,7 @@ mod tests {
                         assert!(s.wo.is_finite() && s.weight.is_finite() && s.pdf.is_finite());
                         assert!(s.weight.min_element() >= 0.0);
                     }
-                    let wo = dir(3.1 * a, 6.28 * b);
+                    let wo = dir(3.1 * a, std::f32::consts::TAU * b);
                     let (f, p) = eval_pdf(&g, wi, wo);
                     assert!(f.is_finite() && p.is_finite() && f.min_element() >= 0.0);
                 }

@@ -18,17 +18,28 @@ use rayon::prelude::*;
 use matflow_geom::{Hit, PACKET};
 
 use crate::bsdf;
+use crate::dielectric;
 use crate::filter::PixelFilter;
 use crate::fmath;
 use crate::rng::{Keys1d, Keys2d, Sampler};
-use crate::scene::RenderScene;
-use crate::warp::Frame;
+use crate::scene::{RenderScene, Surface};
+use crate::warp::{square_to_cosine_hemisphere, Frame};
+
+/// Default [`RenderOptions::glass_depth`]: enough for a glass ball, torus
+/// or jug to converge (their images change by less than the noise of a
+/// 1024-spp render beyond it).
+pub const DEFAULT_GLASS_DEPTH: u32 = 16;
 
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct RenderOptions {
     pub spp: u32,
-    /// Maximum number of ray segments per path (Mitsuba's `max_depth`).
+    /// Maximum number of ray segments per path (Mitsuba's `max_depth`),
+    /// not counting segments that leave glass.
     pub max_depth: u32,
+    /// Glass surfaces a path may pass or reflect off, on top of
+    /// `max_depth`: a path through a glass object needs two or more
+    /// segments inside it, which `max_depth` = 4 could not afford.
+    pub glass_depth: u32,
     pub seed: u64,
     pub filter: PixelFilter,
     /// Reproduce the reference's sampling-frame defect: its BSDF returns the
@@ -59,6 +70,7 @@ impl Default for RenderOptions {
         RenderOptions {
             spp: 64,
             max_depth: 4,
+            glass_depth: DEFAULT_GLASS_DEPTH,
             seed: 0,
             filter: PixelFilter::default(),
             reference_compat: false,
@@ -169,6 +181,9 @@ struct Continuation {
     dir: Vec3,
     weight: Vec3,
     pdf: f32,
+    /// Sampled from a delta lobe (smooth glass): the sky it reaches is
+    /// not weighted against envmap sampling, which cannot produce it.
+    delta: bool,
 }
 
 /// An envmap sample towards which a shadow ray is traced: direction,
@@ -220,9 +235,18 @@ struct Path {
     p: Vec3,
     hit: Hit,
     q: usize,
-    // What the vertex being shaded has drawn.
+    /// Counted ray segments so far (the camera ray is 1; segments leaving
+    /// glass are not counted) and glass vertices shaded.
+    seg: u32,
+    glass: u32,
+    /// Vertices shaded so far.
+    vertices: u32,
+    // What the vertex being shaded has drawn: its shading normal, the
+    // geometric normal rays leave by, its material (`obj` for objects).
     n: Vec3,
+    ng: Vec3,
     mat: bsdf::Material,
+    obj: Option<Surface>,
     light: Option<LightSample>,
     next: Option<Continuation>,
 }
@@ -245,7 +269,12 @@ impl Path {
                 v: 0.0,
             },
             q: 0,
+            seg: 1,
+            glass: 0,
+            vertices: 0,
             n: Vec3::ZERO,
+            ng: Vec3::ZERO,
+            obj: None,
             mat: bsdf::Material {
                 albedo: Vec3::ZERO,
                 roughness: 1.0,
@@ -358,17 +387,16 @@ impl Wavefront {
             return;
         }
         self.camera(scene, opts, group.max(1), st, sinks);
-        // Vertex `depth` is the end of ray segment `depth + 1`; segment
-        // `depth + 2` leaves it, so it may continue while depth + 2 <
-        // max_depth.
-        for depth in 0..opts.max_depth - 1 {
-            if self.active.is_empty() {
-                break;
-            }
-            self.shade(scene, opts, depth, st, sinks);
+        // A vertex is shaded only if a segment may leave it: the counted
+        // segments that reached it are fewer than max_depth (any number
+        // for glass, within glass_depth). Every step shades one vertex of
+        // each active path, so the loop ends within max_depth − 1 +
+        // glass_depth steps.
+        while !self.active.is_empty() {
+            self.shade(scene, opts, st, sinks);
             self.shadows(scene);
             self.continuations(scene, st, sinks);
-            self.vertices(scene, opts, depth, sinks);
+            self.vertices(scene, opts, sinks);
         }
     }
 
@@ -425,13 +453,13 @@ impl Wavefront {
                 path.l += scene.env.eval(path.dir);
                 continue;
             };
-            if opts.max_depth < 2 {
-                continue;
-            }
             path.p = Vec3::ZERO + path.dir * hit.t;
-            let Some(q) = scene.material_index(path.p) else {
+            let Some(q) = scene.vertex_material(hit.prim, path.p) else {
                 continue;
             };
+            if !may_shade(scene, opts, path, q) {
+                continue;
+            }
             path.hit = hit;
             path.q = q;
             prefetch(&scene.face_normals, hit.prim as usize);
@@ -446,7 +474,6 @@ impl Wavefront {
         &mut self,
         scene: &RenderScene,
         opts: &RenderOptions,
-        depth: u32,
         st: &mut RenderStats,
         sinks: &mut [S],
     ) {
@@ -464,12 +491,19 @@ impl Wavefront {
                     k
                 }
             };
+            sinks[i as usize].vertex(path.q, path.vertices == 0);
+            path.vertices += 1;
+            if let Some(&surface) = scene.object_surface(path.q) {
+                shade_object(scene, path, surface, k, st, &mut self.rays);
+                continue;
+            }
             let n = scene.face_normals[path.hit.prim as usize];
             let v = -path.dir;
             let mat = scene.materials[path.q];
-            sinks[i as usize].vertex(path.q, depth == 0);
             path.n = n;
+            path.ng = n;
             path.mat = mat;
+            path.obj = None;
 
             // Next-event estimation towards the environment map.
             let (ue1, ue2) = path.rng.next_2d_with(k.light);
@@ -507,6 +541,7 @@ impl Wavefront {
                         dir,
                         weight: s.weight,
                         pdf: s.pdf,
+                        delta: false,
                     }
                 });
         }
@@ -537,7 +572,10 @@ impl Wavefront {
             let (n, v) = (path.n, -path.dir);
             if let Some(ls) = path.light {
                 if !self.blocked[ls.ray as usize] {
-                    let (f, pdf_b) = bsdf::eval_pdf(&path.mat, n, v, ls.dir);
+                    let (f, pdf_b) = match &path.obj {
+                        None => bsdf::eval_pdf(&path.mat, n, v, ls.dir),
+                        Some(s) => surface_eval_pdf(s, n, v, ls.dir),
+                    };
                     let w = mis_power(ls.pdf, pdf_b) / ls.pdf;
                     sink.emitter(n, v, ls.dir, w);
                     path.l += path.throughput * f * ls.le * w;
@@ -551,8 +589,13 @@ impl Wavefront {
                 continue;
             }
             path.throughput *= c.weight;
-            path.p = offset_origin(path.p, n, c.dir);
+            path.p = offset_origin(path.p, path.ng, c.dir);
             path.dir = c.dir;
+            if path.obj.is_some_and(|s| s.is_glass()) {
+                path.glass += 1;
+            } else {
+                path.seg += 1;
+            }
             st.bounce_rays += 1;
             self.rays.push((path.p, c.dir));
             self.ray_path.push(i);
@@ -570,7 +613,6 @@ impl Wavefront {
         &mut self,
         scene: &RenderScene,
         opts: &RenderOptions,
-        depth: u32,
         sinks: &mut [S],
     ) {
         self.next_active.clear();
@@ -582,20 +624,24 @@ impl Wavefront {
             };
             let Some(h) = *hit else {
                 let (le, pdf_e) = scene.env.eval_pdf(path.dir);
-                let w = mis_power(c.pdf, pdf_e);
+                let w = if c.delta {
+                    1.0
+                } else {
+                    mis_power(c.pdf, pdf_e)
+                };
                 sink.bsdf_sky(path.dir, w / c.pdf);
                 path.l += path.throughput * le * w;
                 continue;
             };
-            // The next vertex contributes only if a segment may still
-            // leave it, and only if it has a material.
-            if depth + 3 > opts.max_depth {
-                continue;
-            }
+            // The next vertex contributes only if it has a material and a
+            // segment may still leave it.
             path.p += path.dir * h.t;
-            let Some(q) = scene.material_index(path.p) else {
+            let Some(q) = scene.vertex_material(h.prim, path.p) else {
                 continue;
             };
+            if !may_shade(scene, opts, path, q) {
+                continue;
+            }
             if !sink.bounce(1.0 / c.pdf) {
                 continue;
             }
@@ -607,6 +653,117 @@ impl Wavefront {
         }
         std::mem::swap(&mut self.active, &mut self.next_active);
     }
+}
+
+/// Whether a path that reached a vertex with material `q` shades it: a
+/// segment must be allowed to leave it (glass has its own allowance).
+#[inline]
+fn may_shade(scene: &RenderScene, opts: &RenderOptions, path: &Path, q: usize) -> bool {
+    if scene.is_glass(q) {
+        path.glass < opts.glass_depth
+    } else {
+        path.seg < opts.max_depth
+    }
+}
+
+/// f·cos and pdf of an object's surface for the outgoing direction `l`
+/// (`n` the shading normal the vertex was shaded with).
+#[inline]
+fn surface_eval_pdf(s: &Surface, n: Vec3, v: Vec3, l: Vec3) -> (Vec3, f32) {
+    match s {
+        Surface::Principled(m) => bsdf::eval_pdf(m, n, v, l),
+        Surface::Diffuse(a) => {
+            let c = n.dot(l).max(0.0);
+            (*a * (c / std::f32::consts::PI), c / std::f32::consts::PI)
+        }
+        Surface::Glass(g) => {
+            let f = Frame::from_normal(n);
+            dielectric::eval_pdf(g, f.to_local(v), f.to_local(l))
+        }
+    }
+}
+
+/// Shades a vertex on an object: its envmap sample (queued as a shadow
+/// ray in `rays`) and BSDF sample, drawing the same dimensions in the same
+/// order as a depth-mesh vertex.
+#[inline(never)]
+fn shade_object(
+    scene: &RenderScene,
+    path: &mut Path,
+    surface: Surface,
+    k: VertexKeys,
+    st: &mut RenderStats,
+    rays: &mut Vec<(Vec3, Vec3)>,
+) {
+    let v = -path.dir;
+    let mut ng = scene.face_normals[path.hit.prim as usize];
+    let mut n = scene.shading_normal(path.hit.prim, path.hit.u, path.hit.v);
+    let glass = match surface {
+        Surface::Glass(g) => Some(g),
+        _ => None,
+    };
+    if glass.is_none() {
+        // Opaque objects are two-sided.
+        if ng.dot(v) < 0.0 {
+            ng = -ng;
+            n = -n;
+        }
+        if !(n.dot(v) > 0.0) {
+            n = ng;
+        }
+    }
+    path.n = n;
+    path.ng = ng;
+    path.obj = Some(surface);
+    // Next-event estimation (not for smooth glass: its lobes are deltas).
+    let (ue1, ue2) = path.rng.next_2d_with(k.light);
+    path.light = None;
+    let smooth = glass.is_some_and(|g| g.is_smooth());
+    if !smooth {
+        if let Some((wl, le, pdf_e)) = scene.env.sample(ue1, ue2) {
+            let facing = glass.is_some() || (ng.dot(wl) > 0.0 && n.dot(wl) > 0.0);
+            if facing && pdf_e > 0.0 {
+                st.shadow_rays += 1;
+                path.light = Some(LightSample {
+                    dir: wl,
+                    le,
+                    pdf: pdf_e,
+                    ray: rays.len() as u32,
+                });
+                rays.push((offset_origin(path.p, ng, wl), wl));
+            }
+        }
+    }
+    let u_lobe = path.rng.next_f32_with(k.lobe);
+    let (u1, u2) = path.rng.next_2d_with(k.direction);
+    path.next = match surface {
+        Surface::Principled(m) => bsdf::sample(&m, n, v, u_lobe, u1, u2).map(|s| Continuation {
+            dir: s.dir,
+            weight: s.weight,
+            pdf: s.pdf,
+            delta: false,
+        }),
+        Surface::Diffuse(a) => {
+            let dir = Frame::from_normal(n).to_world(square_to_cosine_hemisphere(u1, u2));
+            let pdf = n.dot(dir).max(0.0) / std::f32::consts::PI;
+            (pdf > 1e-6).then_some(Continuation {
+                dir,
+                weight: a,
+                pdf,
+                delta: false,
+            })
+        }
+        Surface::Glass(g) => {
+            let f = Frame::from_normal(n);
+            dielectric::sample(&g, f.to_local(v), u_lobe, u1, u2).map(|s| Continuation {
+                dir: f.to_world(s.wo).normalize_or(s.wo),
+                weight: s.weight,
+                pdf: s.pdf,
+                delta: s.delta,
+            })
+        }
+    }
+    .filter(|c| c.weight.max_element() > 0.0 && c.weight.is_finite());
 }
 
 /// Asks for the cache line of `v[i]` ahead of its use.

@@ -16,10 +16,11 @@ pub mod scene;
 pub mod warp;
 
 pub use bsdf::Material;
+pub use dielectric::Dielectric;
 pub use envmap::EnvMap;
 pub use filter::PixelFilter;
 pub use integrator::{render, Crop, RenderOptions, RenderOutput, RenderStats};
-pub use scene::{scene_from_depth, RenderScene};
+pub use scene::{scene_from_depth, RenderScene, SceneObject, Surface};
 
 #[derive(Debug, thiserror::Error)]
 pub enum RenderError {

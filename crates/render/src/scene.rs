@@ -6,6 +6,7 @@ use matflow_geom::{mesh_for_view, vertex_normals, Bvh, DepthMesh, MeshStats, Tri
 use matflow_scene::{Camera, GrayImage, MaterialMaps};
 
 use crate::bsdf::Material;
+use crate::dielectric::Dielectric;
 use crate::envmap::EnvMap;
 use crate::fmath;
 use crate::RenderError;
@@ -40,16 +41,74 @@ pub fn scene_from_depth(
     Ok((RenderScene::new(cam, mesh, maps, env)?, stats))
 }
 
+/// The material of an inserted object's surface. Unlike the screen-space
+/// materials of the depth mesh, opaque object surfaces are two-sided (the
+/// normal is turned towards the viewer), since meshes from files are not
+/// always closed or consistently wound; glass uses the outward normal to
+/// tell inside from outside.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Surface {
+    /// matflow's BRDF (the paper's eqs. 5–11), as the depth mesh uses.
+    Principled(Material),
+    /// Lambertian: albedo/π.
+    Diffuse(Vec3),
+    /// A dielectric interface ([`crate::dielectric`]).
+    Glass(Dielectric),
+}
+
+impl Surface {
+    /// Clamps parameters into their valid ranges.
+    pub fn sanitized(self) -> Surface {
+        match self {
+            Surface::Principled(m) => Surface::Principled(m.sanitized()),
+            Surface::Diffuse(a) => {
+                let fin = |x: f32| {
+                    if x.is_finite() {
+                        x.clamp(0.0, 1.0)
+                    } else {
+                        0.0
+                    }
+                };
+                Surface::Diffuse(Vec3::new(fin(a.x), fin(a.y), fin(a.z)))
+            }
+            Surface::Glass(g) => Surface::Glass(g.sanitized()),
+        }
+    }
+
+    #[inline]
+    pub fn is_glass(&self) -> bool {
+        matches!(self, Surface::Glass(_))
+    }
+}
+
+/// An object placed in the scene: a triangle mesh in camera space, its
+/// per-vertex shading normals (empty: smooth normals computed from the
+/// mesh) and its surface.
+#[derive(Clone, Debug)]
+pub struct SceneObject {
+    pub mesh: TriMesh,
+    pub normals: Vec<Vec3>,
+    pub surface: Surface,
+}
+
 pub struct RenderScene {
     pub camera: Camera,
+    /// The depth mesh's triangles first, then each object's.
     pub mesh: TriMesh,
     pub bvh: Bvh,
     pub face_normals: Vec<Vec3>,
-    /// Angle-weighted vertex normals (used only by the reference-compatible
-    /// sampling frame).
+    /// Angle-weighted vertex normals (on the depth mesh used only by the
+    /// reference-compatible sampling frame; the shading normals of objects).
     pub vertex_normals: Vec<Vec3>,
     /// Screen-space materials, row-major, sanitised.
     pub materials: Vec<Material>,
+    /// Triangles of the depth mesh (screen-space materials); triangle
+    /// `screen_prims + k` belongs to object `prim_object[k]`.
+    pub screen_prims: usize,
+    pub prim_object: Vec<u32>,
+    /// Surfaces of the objects, sanitised. A vertex on object `k` uses
+    /// material index `width·height + k`.
+    pub objects: Vec<Surface>,
     pub env: EnvMap,
     focal: f32,
     principal: Vec2,
@@ -62,6 +121,17 @@ impl RenderScene {
         maps: &MaterialMaps,
         env: EnvMap,
     ) -> Result<RenderScene, RenderError> {
+        RenderScene::with_objects(camera, mesh, maps, env, &[])
+    }
+
+    /// The scene with objects added to the depth mesh.
+    pub fn with_objects(
+        camera: Camera,
+        mut mesh: TriMesh,
+        maps: &MaterialMaps,
+        env: EnvMap,
+        objects: &[SceneObject],
+    ) -> Result<RenderScene, RenderError> {
         if maps.width() != camera.width || maps.height() != camera.height {
             return Err(RenderError::MaterialSize {
                 maps_width: maps.width(),
@@ -70,13 +140,39 @@ impl RenderScene {
                 height: camera.height,
             });
         }
+        let screen_prims = mesh.triangle_count();
+        let screen_vertices = mesh.vertex_count();
+        let mut prim_object = Vec::new();
+        for (k, o) in objects.iter().enumerate() {
+            let base = mesh.positions.len() as u32;
+            mesh.positions.extend_from_slice(&o.mesh.positions);
+            mesh.indices
+                .extend(o.mesh.indices.iter().map(|t| t.map(|i| base + i)));
+            prim_object.extend(std::iter::repeat_n(k as u32, o.mesh.indices.len()));
+        }
+        if !mesh.film.is_empty() {
+            mesh.film.resize(mesh.positions.len(), Vec2::ZERO);
+        }
         let bvh = Bvh::build(&mesh);
         let face_normals = (0..mesh.triangle_count())
             .map(|i| mesh.face_normal(i))
             .collect();
-        let vertex_normals = vertex_normals(&mesh);
+        let mut vertex_normals = vertex_normals(&mesh);
+        let mut at = screen_vertices;
+        for o in objects {
+            let n = o.mesh.vertex_count();
+            if o.normals.len() == n {
+                for (d, s) in vertex_normals[at..at + n].iter_mut().zip(&o.normals) {
+                    *d = s.normalize_or(*d);
+                }
+            }
+            at += n;
+        }
         let materials = materials_from_maps(maps);
         Ok(RenderScene {
+            screen_prims,
+            prim_object,
+            objects: objects.iter().map(|o| o.surface.sanitized()).collect(),
             focal: camera.focal(),
             principal: camera.principal_point(),
             camera,
@@ -107,6 +203,32 @@ impl RenderScene {
         let x = (fmath::floor(fx).clamp(0.0, w as f32 - 1.0)) as usize;
         let y = (fmath::floor(fy).clamp(0.0, h as f32 - 1.0)) as usize;
         Some(y * w + x)
+    }
+
+    /// The material index of a vertex at `p` on triangle `prim`: the pixel
+    /// `p` projects into for the depth mesh ([`Self::material_index`]),
+    /// `width·height + k` on object `k`.
+    #[inline]
+    pub fn vertex_material(&self, prim: u32, p: Vec3) -> Option<usize> {
+        let prim = prim as usize;
+        if prim < self.screen_prims {
+            self.material_index(p)
+        } else {
+            let k = self.prim_object[prim - self.screen_prims] as usize;
+            Some(self.camera.width * self.camera.height + k)
+        }
+    }
+
+    /// The object surface of material index `q`, `None` for pixels.
+    #[inline]
+    pub fn object_surface(&self, q: usize) -> Option<&Surface> {
+        self.objects.get(q.wrapping_sub(self.materials.len()))
+    }
+
+    /// Whether material index `q` is glass.
+    #[inline]
+    pub fn is_glass(&self, q: usize) -> bool {
+        self.object_surface(q).is_some_and(Surface::is_glass)
     }
 
     /// Interpolated vertex normal at a hit.

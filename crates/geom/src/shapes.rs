@@ -1,0 +1,300 @@
+//! Procedural closed meshes for inserted objects and tests: sphere, torus,
+//! surfaces of revolution (a jug) and boxes. Triangles are counter-clockwise
+//! seen from outside, so face normals point outwards; each shape also
+//! returns its exact per-vertex normals.
+
+use std::f32::consts::PI;
+
+use glam::{Vec2, Vec3};
+
+use crate::mesh::TriMesh;
+
+/// A mesh with per-vertex shading normals.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Shape {
+    pub mesh: TriMesh,
+    pub normals: Vec<Vec3>,
+}
+
+impl Shape {
+    fn push(&mut self, p: Vec3, n: Vec3) -> u32 {
+        self.mesh.positions.push(p);
+        self.normals.push(n.normalize_or(Vec3::Y));
+        (self.mesh.positions.len() - 1) as u32
+    }
+
+    /// Adds the quad (a, b, c, d), counter-clockwise from outside, as two
+    /// triangles; degenerate halves (at poles) are skipped.
+    fn quad(&mut self, a: u32, b: u32, c: u32, d: u32) {
+        for t in [[a, b, c], [a, c, d]] {
+            let [p, q, r] = t.map(|i| self.mesh.positions[i as usize]);
+            if (q - p).cross(r - p).length_squared() > 0.0 {
+                self.mesh.indices.push(t);
+            }
+        }
+    }
+
+    /// The shape moved by `offset` and scaled by `scale` about the origin.
+    pub fn transformed(mut self, scale: f32, offset: Vec3) -> Shape {
+        for p in &mut self.mesh.positions {
+            *p = *p * scale + offset;
+        }
+        self
+    }
+}
+
+/// A sphere of radius `r` about the origin: `rings` bands of latitude,
+/// `segments` of longitude.
+pub fn sphere(r: f32, rings: usize, segments: usize) -> Shape {
+    let profile: Vec<Vec2> = (0..=rings.max(2))
+        .map(|i| {
+            let t = PI * i as f32 / rings.max(2) as f32;
+            // Exactly on the axis at the poles.
+            let x = if i == 0 || i == rings.max(2) {
+                0.0
+            } else {
+                r * t.sin()
+            };
+            Vec2::new(x, -r * t.cos())
+        })
+        .collect();
+    let normals: Vec<Vec2> = profile.iter().map(|p| p.normalize_or(Vec2::Y)).collect();
+    revolve(&profile, Some(&normals), segments)
+}
+
+/// A torus about the y axis: ring radius `big`, tube radius `small`.
+pub fn torus(big: f32, small: f32, rings: usize, segments: usize) -> Shape {
+    let (rings, segments) = (rings.max(3), segments.max(3));
+    let mut s = Shape::default();
+    for i in 0..segments {
+        let phi = 2.0 * PI * i as f32 / segments as f32;
+        let radial = Vec3::new(phi.cos(), 0.0, -phi.sin());
+        for j in 0..rings {
+            let th = 2.0 * PI * j as f32 / rings as f32;
+            let n = radial * th.cos() + Vec3::Y * th.sin();
+            s.push(radial * big + n * small, n);
+        }
+    }
+    let idx = |i: usize, j: usize| ((i % segments) * rings + j % rings) as u32;
+    for i in 0..segments {
+        for j in 0..rings {
+            s.quad(idx(i, j), idx(i + 1, j), idx(i + 1, j + 1), idx(i, j + 1));
+        }
+    }
+    s
+}
+
+/// The surface of revolution about the y axis of `profile`, points (radius,
+/// height) from the bottom to the top; an end with non-zero radius is
+/// closed by a flat cap. `normals` are the profile's outward normals in
+/// the (radius, height) plane (computed from the profile when `None`).
+pub fn revolve(profile: &[Vec2], normals: Option<&[Vec2]>, segments: usize) -> Shape {
+    let segments = segments.max(3);
+    let m = profile.len();
+    let computed: Vec<Vec2>;
+    let normals = match normals {
+        Some(n) if n.len() == m => n,
+        _ => {
+            computed = (0..m)
+                .map(|k| {
+                    let a = profile[k.saturating_sub(1)];
+                    let b = profile[(k + 1).min(m - 1)];
+                    let t = b - a;
+                    Vec2::new(t.y, -t.x).normalize_or(Vec2::X)
+                })
+                .collect();
+            &computed
+        }
+    };
+    let mut s = Shape::default();
+    let dir = |phi: f32| Vec3::new(phi.cos(), 0.0, -phi.sin());
+    for i in 0..segments {
+        let d = dir(2.0 * PI * i as f32 / segments as f32);
+        for k in 0..m {
+            let (p, n) = (profile[k], normals[k]);
+            s.push(d * p.x + Vec3::Y * p.y, d * n.x + Vec3::Y * n.y);
+        }
+    }
+    let idx = |i: usize, k: usize| ((i % segments) * m + k) as u32;
+    for i in 0..segments {
+        for k in 0..m.saturating_sub(1) {
+            s.quad(idx(i, k), idx(i + 1, k), idx(i + 1, k + 1), idx(i, k + 1));
+        }
+    }
+    // Flat caps where the profile does not end on the axis.
+    for (k, down) in [(0usize, true), (m - 1, false)] {
+        if m == 0 || profile[k].x <= 0.0 {
+            continue;
+        }
+        let n = if down { -Vec3::Y } else { Vec3::Y };
+        let c = s.push(Vec3::Y * profile[k].y, n);
+        let ring: Vec<u32> = (0..segments)
+            .map(|i| {
+                let d = dir(2.0 * PI * i as f32 / segments as f32);
+                s.push(d * profile[k].x + Vec3::Y * profile[k].y, n)
+            })
+            .collect();
+        for i in 0..segments {
+            let (a, b) = (ring[i], ring[(i + 1) % segments]);
+            s.mesh
+                .indices
+                .push(if down { [c, b, a] } else { [c, a, b] });
+        }
+    }
+    s
+}
+
+/// A jug: a closed surface of revolution with a round belly, a neck and a
+/// flared lip (height 1, base on y = 0, widest radius about 0.4).
+pub fn jug(segments: usize) -> Shape {
+    let pts = 48;
+    let profile: Vec<Vec2> = (0..=pts)
+        .map(|k| {
+            let y = k as f32 / pts as f32;
+            // Belly (a sine bump), a narrowing neck and a flared lip.
+            let belly = 0.18 + 0.22 * (PI * (y / 0.75).min(1.0)).sin().max(0.0);
+            let lip = 0.06 * ((y - 0.8) / 0.2).clamp(0.0, 1.0).powi(2);
+            let base = 0.25 * (1.0 - (y / 0.05).min(1.0));
+            Vec2::new((belly + lip).max(base), y)
+        })
+        .collect();
+    revolve(&profile, None, segments)
+}
+
+/// An axis-aligned box with flat normals.
+pub fn cuboid(lo: Vec3, hi: Vec3) -> Shape {
+    let mut s = Shape::default();
+    let faces: [(Vec3, [Vec3; 4]); 6] = [
+        (
+            -Vec3::X,
+            [
+                Vec3::new(0., 0., 0.),
+                Vec3::new(0., 0., 1.),
+                Vec3::new(0., 1., 1.),
+                Vec3::new(0., 1., 0.),
+            ],
+        ),
+        (
+            Vec3::X,
+            [
+                Vec3::new(1., 0., 0.),
+                Vec3::new(1., 1., 0.),
+                Vec3::new(1., 1., 1.),
+                Vec3::new(1., 0., 1.),
+            ],
+        ),
+        (
+            -Vec3::Y,
+            [
+                Vec3::new(0., 0., 0.),
+                Vec3::new(1., 0., 0.),
+                Vec3::new(1., 0., 1.),
+                Vec3::new(0., 0., 1.),
+            ],
+        ),
+        (
+            Vec3::Y,
+            [
+                Vec3::new(0., 1., 0.),
+                Vec3::new(0., 1., 1.),
+                Vec3::new(1., 1., 1.),
+                Vec3::new(1., 1., 0.),
+            ],
+        ),
+        (
+            -Vec3::Z,
+            [
+                Vec3::new(0., 0., 0.),
+                Vec3::new(0., 1., 0.),
+                Vec3::new(1., 1., 0.),
+                Vec3::new(1., 0., 0.),
+            ],
+        ),
+        (
+            Vec3::Z,
+            [
+                Vec3::new(0., 0., 1.),
+                Vec3::new(1., 0., 1.),
+                Vec3::new(1., 1., 1.),
+                Vec3::new(0., 1., 1.),
+            ],
+        ),
+    ];
+    for (n, corners) in faces {
+        let ids = corners.map(|c| s.push(lo + (hi - lo) * c, n));
+        s.quad(ids[0], ids[1], ids[2], ids[3]);
+    }
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Signed volume by the divergence theorem: positive when every face
+    /// is wound counter-clockwise from outside.
+    fn volume(m: &TriMesh) -> f64 {
+        m.indices
+            .iter()
+            .map(|t| {
+                let [a, b, c] = t.map(|i| m.positions[i as usize].as_dvec3());
+                a.dot(b.cross(c)) / 6.0
+            })
+            .sum()
+    }
+
+    /// Every edge is shared by exactly two triangles, once in each
+    /// direction: the surface is closed and consistently oriented.
+    fn closed(m: &TriMesh) -> bool {
+        let mut edges = std::collections::HashMap::new();
+        for t in &m.indices {
+            for k in 0..3 {
+                let key = (t[k], t[(k + 1) % 3]);
+                *edges.entry(key).or_insert(0) += 1;
+            }
+        }
+        // Poles and seams repeat positions; compare by position.
+        let pos = |i: u32| {
+            m.positions[i as usize]
+                .to_array()
+                .map(|x| (x + 0.0).to_bits())
+        };
+        let mut by_pos = std::collections::HashMap::new();
+        for (&(a, b), &n) in &edges {
+            *by_pos.entry((pos(a), pos(b))).or_insert(0) += n;
+        }
+        by_pos
+            .iter()
+            .all(|(&(a, b), &n)| n == 1 && by_pos.get(&(b, a)) == Some(&1))
+    }
+
+    #[test]
+    fn shapes_are_closed_outward_and_of_the_right_volume() {
+        let s = sphere(2.0, 48, 96);
+        let v = volume(&s.mesh);
+        assert!(
+            (v / (4.0 / 3.0 * std::f64::consts::PI * 8.0) - 1.0).abs() < 0.01,
+            "{v}"
+        );
+        assert!(closed(&s.mesh));
+        let t = torus(1.0, 0.25, 32, 64);
+        let v = volume(&t.mesh);
+        let want = 2.0 * std::f64::consts::PI.powi(2) * 1.0 * 0.0625;
+        assert!((v / want - 1.0).abs() < 0.02, "{v} {want}");
+        assert!(closed(&t.mesh));
+        let j = jug(48);
+        assert!(volume(&j.mesh) > 0.1 && closed(&j.mesh));
+        let b = cuboid(Vec3::ZERO, Vec3::new(1.0, 2.0, 3.0));
+        assert!((volume(&b.mesh) - 6.0).abs() < 1e-5 && closed(&b.mesh));
+        // Vertex normals agree with the faces around them.
+        for s in [&s, &t, &j, &b] {
+            for tri in &s.mesh.indices {
+                let [a, b2, c] = tri.map(|i| s.mesh.positions[i as usize]);
+                let f = (b2 - a).cross(c - a).normalize();
+                for &i in tri {
+                    assert!(s.normals[i as usize].dot(f) > 0.0);
+                }
+            }
+        }
+    }
+}
