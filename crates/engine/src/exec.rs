@@ -240,7 +240,7 @@ pub trait Executor: Send + Sync {
 pub fn reads_local_files(node: &dyn Node, params: &Params) -> bool {
     node.params()
         .iter()
-        .any(|sp| matches!(sp.ty, ParamType::InPath) && params.is_set(sp.name))
+        .any(|sp| sp.ty.reads_files(params.get(sp.name)))
 }
 
 /// Runs one job against a store: a cache hit when the entry and its blobs

@@ -113,21 +113,42 @@ fn params_part(e: &mut Enc, node: &dyn Node, params: &Params) -> std::io::Result
             ParamType::OutPath => continue,
             // References enter through the input digests.
             ParamType::Ref(_) => continue,
-            ParamType::InPath => {
-                e.bytes(p.name.as_bytes());
-                match v {
-                    Value::Str(s) => {
-                        e.tag(7);
-                        e.bytes(&path_digest(Path::new(s))?.0);
-                    }
-                    _ => e.value(v),
-                }
-            }
             _ => {
                 e.bytes(p.name.as_bytes());
-                e.value(v);
+                param_value(e, &p.ty, v)?;
             }
         }
+    }
+    Ok(())
+}
+
+/// A parameter's value in the key: input files by their contents, here
+/// and in records' fields; everything else as written.
+fn param_value(e: &mut Enc, ty: &ParamType, v: &Value) -> std::io::Result<()> {
+    match (ty, v) {
+        (ParamType::InPath, Value::Str(s)) => {
+            e.tag(7);
+            e.bytes(&path_digest(Path::new(s))?.0);
+        }
+        (ParamType::Records { fields, .. }, Value::List(items)) => {
+            e.tag(5);
+            e.0.update(&(items.len() as u64).to_le_bytes());
+            for item in items {
+                param_value(e, &ParamType::Record(fields), item)?;
+            }
+        }
+        (ParamType::Record(fields), Value::Map(m)) => {
+            e.tag(6);
+            e.0.update(&(m.len() as u64).to_le_bytes());
+            for (k, _, fv, _) in m {
+                e.bytes(k.as_bytes());
+                match fields.iter().find(|f| f.name == k) {
+                    Some(f) => param_value(e, &f.ty, fv)?,
+                    None => e.value(fv),
+                }
+            }
+        }
+        _ => e.value(v),
     }
     Ok(())
 }

@@ -41,6 +41,22 @@ pub enum ParamType {
     /// A reference to an upstream stage (`name` or `name.output`) whose
     /// output has one of these artifact types.
     Ref(&'static [&'static str]),
+    /// One number (for every component) or a list of `len` numbers, each
+    /// in [min, max]; always held as the list.
+    FloatOrFloats {
+        len: usize,
+        min: f64,
+        max: f64,
+    },
+    /// A list of at most `max` mappings with these fields (nested types
+    /// other than `Ref` and `OutPath`; input paths resolve like the
+    /// stage's own and their contents enter the key).
+    Records {
+        fields: &'static [ParamSpec],
+        max: usize,
+    },
+    /// One mapping with these fields.
+    Record(&'static [ParamSpec]),
 }
 
 impl ParamType {
@@ -65,6 +81,20 @@ impl ParamType {
                 })
                 .collect::<Option<Vec<_>>>()
                 .map(Value::List),
+            (ParamType::FloatOrFloats { len, min, max }, _) => match v {
+                Value::List(_) => ParamType::Floats {
+                    len: *len,
+                    min: *min,
+                    max: *max,
+                }
+                .normalize(v),
+                _ => match v.as_f64() {
+                    Some(f) if f >= *min && f <= *max => {
+                        Some(Value::List(vec![Value::Float(f); *len]))
+                    }
+                    _ => None,
+                },
+            },
             (ParamType::InPath | ParamType::OutPath | ParamType::Ref(_), Value::Str(_)) => {
                 Some(v.clone())
             }
@@ -84,6 +114,45 @@ impl ParamType {
                 format!("a list of {len} numbers in [{min}, {max}]")
             }
             ParamType::Ref(t) => format!("the name of a stage producing {}", t.join(" or ")),
+            ParamType::FloatOrFloats { len, min, max } => {
+                format!("a number or a list of {len} numbers, in [{min}, {max}]")
+            }
+            ParamType::Records { fields, max } => format!(
+                "a list of at most {max} mappings with fields {}",
+                fields
+                    .iter()
+                    .map(|f| if f.default.is_none() {
+                        format!("`{}` (required)", f.name)
+                    } else {
+                        format!("`{}`", f.name)
+                    })
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ),
+            ParamType::Record(fields) => format!(
+                "a mapping with fields {}",
+                fields
+                    .iter()
+                    .map(|f| format!("`{}`", f.name))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ),
+        }
+    }
+
+    /// Whether `v`, a normalised value of this type, names an input file
+    /// (an `InPath`, here or in a record's fields).
+    pub fn reads_files(&self, v: &Value) -> bool {
+        match (self, v) {
+            (_, Value::Null) => false,
+            (ParamType::InPath, _) => true,
+            (ParamType::Records { fields, .. }, Value::List(items)) => items
+                .iter()
+                .any(|i| ParamType::Record(fields).reads_files(i)),
+            (ParamType::Record(fields), Value::Map(m)) => m
+                .iter()
+                .any(|(k, _, fv, _)| fields.iter().any(|f| f.name == k && f.ty.reads_files(fv))),
+            _ => false,
         }
     }
 }

@@ -395,6 +395,28 @@ pub fn parse(
                     Some(n) => n,
                     None => return Err(bad(&v)),
                 },
+                ParamType::FloatOrFloats { .. } => match p.ty.normalize(&v) {
+                    Some(n) => n,
+                    None => return Err(bad(&v)),
+                },
+                ParamType::Records { .. } | ParamType::Record(_) => {
+                    let dir = if from_file || loc == Some(Loc::default()) {
+                        &base
+                    } else {
+                        &cwd
+                    };
+                    let what = format!("stage `{}`'s `{}`", r.name, p.name);
+                    match normalize_fields(&p.ty, &v, loc, dir, &what, &mut reads) {
+                        Ok(n) => n,
+                        Err((at, msg)) => {
+                            return Err(if loc.is_none() {
+                                err(None, format!("--set {}.{}{msg}", r.name, p.name))
+                            } else {
+                                err(at.or(loc), format!("stage `{}`, `{}`{msg}", r.name, p.name))
+                            })
+                        }
+                    }
+                }
                 ParamType::InPath | ParamType::OutPath => match &v {
                     Value::Str(s) => {
                         let full = if from_file || loc == Some(Loc::default()) {
@@ -556,6 +578,138 @@ struct Written {
 
 /// `p` with symbolic links and `..` resolved as far as it exists (the
 /// rest appended), so two spellings of one file compare equal.
+/// A `Records` or `Record` value checked against its fields: each field's
+/// type, no unknown fields, required fields present, defaults filled in
+/// (absent optional fields are null), mappings in the fields' order; input
+/// paths resolved against `base` and listed in `reads` (as read by
+/// `what`). Errors carry the location of the offending field (or the
+/// value's own) and a message that continues the parameter's name
+/// ("[1].material: field `ior`: expected …").
+pub fn normalize_fields(
+    ty: &ParamType,
+    v: &Value,
+    loc: Option<Loc>,
+    base: &Path,
+    what: &str,
+    reads: &mut Vec<(PathBuf, String)>,
+) -> Result<Value, (Option<Loc>, String)> {
+    let got = |v: &Value| clip(&v.to_string());
+    match ty {
+        ParamType::Records { fields, max } => {
+            let Value::List(items) = v else {
+                return Err((loc, format!(": expected {}, got {}", ty.describe(), got(v))));
+            };
+            if items.len() > *max {
+                return Err((
+                    loc,
+                    format!(": {} entries, at most {max} are allowed", items.len()),
+                ));
+            }
+            let mut out = Vec::with_capacity(items.len());
+            for (i, item) in items.iter().enumerate() {
+                // List items carry no location; a mapping's first key does.
+                let at = match item {
+                    Value::Map(m) if !m.is_empty() => Some(m[0].1),
+                    _ => loc,
+                };
+                let n = normalize_fields(&ParamType::Record(fields), item, at, base, what, reads)
+                    .map_err(|(l, m)| (l, format!("[{i}]{m}")))?;
+                out.push(n);
+            }
+            Ok(Value::List(out))
+        }
+        ParamType::Record(fields) => {
+            let Value::Map(entries) = v else {
+                return Err((loc, format!(": expected {}, got {}", ty.describe(), got(v))));
+            };
+            for (k, kl, _, _) in entries {
+                if !fields.iter().any(|f| f.name == k) {
+                    return Err((
+                        Some(*kl).filter(|l| l.line > 0).or(loc),
+                        format!(
+                            ": unknown field `{}` (the fields are: {})",
+                            clip(k),
+                            names(fields.iter().map(|f| f.name))
+                        ),
+                    ));
+                }
+            }
+            let mut out = Vec::with_capacity(fields.len());
+            for f in *fields {
+                let found = entries.iter().find(|(k, ..)| k == f.name);
+                let (fv, kl, vl) = match found {
+                    Some((_, kl, fv, vl)) => (fv.clone(), *kl, *vl),
+                    None => match f.default {
+                        None => {
+                            return Err((
+                                loc,
+                                format!(": missing field `{}` ({})", f.name, f.ty.describe()),
+                            ))
+                        }
+                        Some(d) => (
+                            parse_override(d).expect("defaults are valid YAML"),
+                            Loc::default(),
+                            Loc::default(),
+                        ),
+                    },
+                };
+                let at = Some(vl).filter(|l| l.line > 0).or(loc);
+                let bad = |fv: &Value| {
+                    (
+                        at,
+                        format!(
+                            ": field `{}`: expected {}, got {}",
+                            f.name,
+                            f.ty.describe(),
+                            got(fv)
+                        ),
+                    )
+                };
+                let n = if matches!(fv, Value::Null) {
+                    if f.default.is_none() {
+                        return Err(bad(&fv));
+                    }
+                    Value::Null
+                } else {
+                    match f.ty {
+                        ParamType::InPath => {
+                            let Value::Str(s) = &fv else {
+                                return Err(bad(&fv));
+                            };
+                            let full = resolve_path(base, s);
+                            if let Err(e) = std::fs::metadata(&full) {
+                                return Err((
+                                    at,
+                                    format!(": field `{}`: {}: {e}", f.name, full.display()),
+                                ));
+                            }
+                            reads.push((real_path(&full), format!("{what} (`{}`)", f.name)));
+                            Value::Str(full.to_string_lossy().into_owned())
+                        }
+                        ParamType::Records { .. } | ParamType::Record(_) => {
+                            normalize_fields(&f.ty, &fv, at, base, what, reads)
+                                .map_err(|(l, m)| (l, format!(".{}{m}", f.name)))?
+                        }
+                        ParamType::OutPath | ParamType::Ref(_) => {
+                            return Err((
+                                at,
+                                format!(": field `{}` cannot be given inside a list", f.name),
+                            ))
+                        }
+                        _ => match f.ty.normalize(&fv) {
+                            Some(n) => n,
+                            None => return Err(bad(&fv)),
+                        },
+                    }
+                };
+                out.push((f.name.to_string(), kl, n, vl));
+            }
+            Ok(Value::Map(out))
+        }
+        _ => Err((loc, ": not a record type".into())),
+    }
+}
+
 fn real_path(p: &Path) -> PathBuf {
     let abs = if p.is_absolute() {
         p.to_path_buf()
@@ -730,4 +884,214 @@ fn names<S: AsRef<str>>(it: impl Iterator<Item = S>) -> String {
     it.map(|s| s.as_ref().to_string())
         .collect::<Vec<_>>()
         .join(", ")
+}
+
+#[cfg(test)]
+mod record_tests {
+    use super::*;
+    use crate::node::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, RunContext};
+
+    const MATERIAL: &[ParamSpec] = &[
+        ParamSpec {
+            name: "type",
+            ty: ParamType::Choice(&["diffuse", "glass"]),
+            default: None,
+            unit: "",
+            doc: "",
+        },
+        ParamSpec {
+            name: "ior",
+            ty: ParamType::Float { min: 1.0, max: 4.0 },
+            default: Some("1.5"),
+            unit: "",
+            doc: "",
+        },
+    ];
+    const OBJECT: &[ParamSpec] = &[
+        ParamSpec {
+            name: "mesh",
+            ty: ParamType::InPath,
+            default: None,
+            unit: "",
+            doc: "",
+        },
+        ParamSpec {
+            name: "scale",
+            ty: ParamType::FloatOrFloats {
+                len: 3,
+                min: 1e-4,
+                max: 1e4,
+            },
+            default: Some("1"),
+            unit: "",
+            doc: "",
+        },
+        ParamSpec {
+            name: "material",
+            ty: ParamType::Record(MATERIAL),
+            default: Some("~"),
+            unit: "",
+            doc: "",
+        },
+    ];
+    static PLACER: NodeInfo = NodeInfo {
+        kind: "placer",
+        version: 1,
+        doc: "",
+        params: &[
+            ParamSpec {
+                name: "objects",
+                ty: ParamType::Records {
+                    fields: OBJECT,
+                    max: 3,
+                },
+                default: None,
+                unit: "",
+                doc: "",
+            },
+            ParamSpec {
+                name: "output",
+                ty: ParamType::OutPath,
+                default: Some("~"),
+                unit: "",
+                doc: "",
+            },
+        ],
+        outputs: &[OutputSpec {
+            name: "out",
+            ty: "thing",
+            doc: "",
+        }],
+    };
+    struct Placer;
+    impl Node for Placer {
+        fn info(&self) -> &'static NodeInfo {
+            &PLACER
+        }
+        fn run(&self, _: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
+            Ok(BTreeMap::new())
+        }
+        fn output_files(&self, p: &Params) -> Vec<PathBuf> {
+            p.path("output").into_iter().collect()
+        }
+    }
+
+    fn setup(name: &str) -> (PathBuf, Registry) {
+        let dir =
+            std::env::temp_dir().join(format!("matflow-records-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(dir.join("m")).unwrap();
+        std::fs::write(dir.join("m/a.obj"), "v 0 0 0\n").unwrap();
+        let mut reg = Registry::default();
+        reg.add(Box::new(Placer));
+        (dir, reg)
+    }
+
+    fn load_text(dir: &Path, reg: &Registry, body: &str) -> Result<Pipeline, SpecError> {
+        let text = format!("pipeline: t\noutputs: [s]\nstages:\n  s:\n    kind: placer\n{body}");
+        let file = dir.join("p.yaml");
+        std::fs::write(&file, &text).unwrap();
+        load(&file, reg, &[])
+    }
+
+    #[test]
+    fn records_are_normalised_with_defaults_and_resolved_paths() {
+        let (dir, reg) = setup("ok");
+        let p = load_text(
+            &dir,
+            &reg,
+            "    objects:\n      - mesh: m/a.obj\n        scale: 2\n      - {mesh: m/a.obj, scale: [1, 2, 3], material: {type: glass}}\n",
+        )
+        .unwrap();
+        let Value::List(items) = p.stages[0].params.get("objects") else {
+            panic!("not a list")
+        };
+        let Value::Map(first) = &items[0] else {
+            panic!()
+        };
+        let names: Vec<&str> = first.iter().map(|(k, ..)| k.as_str()).collect();
+        assert_eq!(names, ["mesh", "scale", "material"], "fields in spec order");
+        assert_eq!(
+            first[0].2,
+            Value::Str(dir.join("m/a.obj").to_string_lossy().into_owned())
+        );
+        assert_eq!(
+            first[1].2,
+            Value::List(vec![Value::Float(2.0); 3]),
+            "broadcast"
+        );
+        assert_eq!(first[2].2, Value::Null, "absent optional field");
+        let Value::Map(second) = &items[1] else {
+            panic!()
+        };
+        let Value::Map(mat) = &second[2].2 else {
+            panic!("material not a mapping")
+        };
+        assert_eq!(mat[1].2, Value::Float(1.5), "nested default");
+        // Records naming files run where the files are, and their content
+        // is in the key.
+        let node = reg.get("placer").unwrap();
+        assert!(crate::exec::reads_local_files(node, &p.stages[0].params));
+        let k1 = crate::key::node_key(node, &p.stages[0].params, &BTreeMap::new()).unwrap();
+        std::fs::write(dir.join("m/a.obj"), "v 1 0 0\n").unwrap();
+        let k2 = crate::key::node_key(node, &p.stages[0].params, &BTreeMap::new()).unwrap();
+        assert_ne!(k1, k2, "a referenced file's content enters the key");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn bad_records_are_located_errors() {
+        let (dir, reg) = setup("bad");
+        let cases = [
+            (
+                "    objects:\n      - mesh: m/a.obj\n        colour: red\n",
+                "p.yaml:8:9:",
+                "[0]: unknown field `colour`",
+            ),
+            ("    objects:\n      - scale: 2\n", "", "[0]: missing field `mesh`"),
+            (
+                "    objects:\n      - mesh: m/a.obj\n        scale: [1, 2]\n",
+                "p.yaml:8:16:",
+                "field `scale`: expected a number or a list of 3 numbers",
+            ),
+            (
+                "    objects:\n      - mesh: m/a.obj\n      - mesh: m/a.obj\n        material: {type: glass, ior: 9}\n",
+                "",
+                "[1].material: field `ior`: expected a number in [1, 4], got 9",
+            ),
+            (
+                "    objects:\n      - mesh: m/missing.obj\n",
+                "p.yaml:7:15:",
+                "field `mesh`: ",
+            ),
+            ("    objects: {mesh: m/a.obj}\n", "", "expected a list of at most 3 mappings"),
+            (
+                "    objects: [{mesh: m/a.obj}, {mesh: m/a.obj}, {mesh: m/a.obj}, {mesh: m/a.obj}]\n",
+                "",
+                "4 entries, at most 3",
+            ),
+            (
+                "    objects:\n      - mesh: m/a.obj\n    output: m/a.obj\n",
+                "",
+                "s",
+            ),
+        ];
+        for (body, at, want) in cases {
+            let e = load_text(&dir, &reg, body).err().expect(body).to_string();
+            assert!(e.contains(want), "{body}: {e}");
+            assert!(e.contains(at), "{body}: {e} (want {at})");
+            assert!(e.contains("stage `s`"), "{e}");
+        }
+        // The output may not overwrite a file a record reads.
+        let e = load_text(
+            &dir,
+            &reg,
+            "    objects:\n      - mesh: m/a.obj\n    output: m/a.obj\n",
+        )
+        .err()
+        .unwrap()
+        .to_string();
+        assert!(e.contains("`objects`") && e.contains("mesh"), "{e}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }

@@ -80,6 +80,15 @@ fn param_type(t: &ParamType) -> (pb::ParamType, f64, f64, u32, Vec<String>) {
             (pb::ParamType::Floats, *min, *max, *len as u32, vec![])
         }
         ParamType::Ref(t) => (pb::ParamType::Ref, 0.0, 0.0, 0, strs(t)),
+        ParamType::FloatOrFloats { len, min, max } => (
+            pb::ParamType::FloatOrFloats,
+            *min,
+            *max,
+            *len as u32,
+            vec![],
+        ),
+        ParamType::Records { max, .. } => (pb::ParamType::Records, 0.0, 0.0, *max as u32, vec![]),
+        ParamType::Record(_) => (pb::ParamType::Record, 0.0, 0.0, 0, vec![]),
     }
 }
 
