@@ -1077,7 +1077,10 @@ mod record_tests {
             ),
         ];
         for (body, at, want) in cases {
-            let e = load_text(&dir, &reg, body).err().expect(body).to_string();
+            let e = match load_text(&dir, &reg, body) {
+                Ok(_) => panic!("accepted: {body}"),
+                Err(e) => e.to_string(),
+            };
             assert!(e.contains(want), "{body}: {e}");
             assert!(e.contains(at), "{body}: {e} (want {at})");
             assert!(e.contains("stage `s`"), "{e}");
