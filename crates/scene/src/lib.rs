@@ -14,6 +14,7 @@ pub mod edit;
 pub mod error;
 pub mod image;
 pub mod io;
+pub mod meshfile;
 pub mod metrics;
 pub mod synthetic;
 
