@@ -67,6 +67,9 @@ enum Cmd {
     Render(commands::RenderArgs),
     /// Build the mesh from a bundle's depth and write it as binary PLY.
     Mesh(commands::MeshArgs),
+    /// Write matflow's procedural meshes for insertion (jug, torus,
+    /// sphere, cube) as OBJ files.
+    Shapes(commands::ShapesArgs),
     /// Generate a procedural scene bundle (room, objects, known materials)
     /// and render its input image.
     Synth(commands::SynthArgs),
@@ -101,6 +104,7 @@ fn main() {
     let res: Result<()> = match cli.cmd {
         Cmd::Render(a) => commands::render(a),
         Cmd::Mesh(a) => commands::mesh(a),
+        Cmd::Shapes(a) => commands::shapes(a),
         Cmd::Synth(a) => commands::synth(a),
         Cmd::Invert(a) => invert::invert_cmd(a),
         Cmd::Run(a) => run::run(a),

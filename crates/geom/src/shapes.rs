@@ -227,6 +227,28 @@ pub fn cuboid(lo: Vec3, hi: Vec3) -> Shape {
     s
 }
 
+/// The shapes matflow ships for inserting (`pipelines/meshes/`), each
+/// standing on y = 0 with its base centred on the origin (so `anchor`
+/// stands it on a surface): a jug 1 high, a torus lying flat (outer
+/// radius 0.55, tube 0.15), a sphere of radius 0.5 and a unit cube.
+pub fn shipped() -> Vec<(&'static str, Shape)> {
+    vec![
+        ("jug", jug(64)),
+        (
+            "torus",
+            torus(0.4, 0.15, 32, 64).transformed(1.0, Vec3::new(0.0, 0.15, 0.0)),
+        ),
+        (
+            "sphere",
+            sphere(0.5, 32, 64).transformed(1.0, Vec3::new(0.0, 0.5, 0.0)),
+        ),
+        (
+            "cube",
+            cuboid(Vec3::new(-0.5, 0.0, -0.5), Vec3::new(0.5, 1.0, 0.5)),
+        ),
+    ]
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

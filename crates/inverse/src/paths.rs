@@ -519,6 +519,14 @@ impl PathSink for Recorder {
         self.geo.lit()
     }
 
+    fn object_dir(&mut self) -> bool {
+        // Kept for reachability only: no BRDF geometry (the frozen-path
+        // estimators work on screen-space materials; inverse rendering
+        // has no objects).
+        self.geo = Geo::default();
+        true
+    }
+
     fn bsdf_sky(&mut self, l: Vec3, weight: f32) {
         self.sky(self.geo, weight, l);
     }

@@ -219,6 +219,11 @@ pub struct Kept {
     pub materials: MaterialMaps,
     pub envmap: RgbImage,
     pub image: RgbImage,
+    /// Objects in the traced scene (placed, with their surfaces).
+    pub objects: Vec<matflow_render::SceneObject>,
+    /// With objects: the same render without them (same sample streams),
+    /// for differential compositing.
+    pub background: Option<RgbImage>,
 }
 
 impl Kept {
@@ -264,6 +269,12 @@ impl Kept {
         a.put_materials("base_", &self.materials);
         a.put_rgb("envmap", &self.envmap);
         a.put_rgb("image", &self.image);
+        if !self.objects.is_empty() {
+            crate::objects::put_objects(&mut a, "obj_", &self.objects);
+        }
+        if let Some(bg) = &self.background {
+            a.put_rgb("background", bg);
+        }
         a.encode()
     }
 
@@ -315,6 +326,12 @@ impl Kept {
             materials: a.materials("base_")?,
             envmap: a.rgb("envmap")?,
             image: a.rgb("image")?,
+            objects: crate::objects::get_objects(&a, "obj_")?,
+            background: if a.has("background") {
+                Some(a.rgb("background")?)
+            } else {
+                None
+            },
         })
     }
 }

@@ -12,7 +12,9 @@
 pub mod artifact;
 mod data;
 pub use data::render_seconds;
+pub use kinds::insert::composite_differential;
 mod kinds;
+pub mod objects;
 mod recovery;
 
 use matflow_engine::{Node, NodeError, Registry};
@@ -31,6 +33,7 @@ pub fn registry() -> Registry {
         Box::new(kinds::relight::RelightNode),
         Box::new(kinds::render::RenderNode),
         Box::new(kinds::trace::TraceNode),
+        Box::new(kinds::insert::InsertNode),
     ];
     for n in nodes {
         r.add(n);

@@ -152,6 +152,14 @@ pub trait PathSink {
     fn bsdf_dir(&mut self, _n: Vec3, _v: Vec3, _l: Vec3) -> bool {
         true
     }
+    /// An object's surface (not a screen-space material) sampled a
+    /// direction, about to be traced; false ends the path here. Such
+    /// vertices carry no BRDF geometry for a recorder: it keeps them for
+    /// what they show (which materials a pixel's light meets).
+    #[inline(always)]
+    fn object_dir(&mut self) -> bool {
+        true
+    }
     /// The BSDF sample escaped to the sky, estimator weight MIS/pdf.
     #[inline(always)]
     fn bsdf_sky(&mut self, _l: Vec3, _weight: f32) {}
@@ -584,7 +592,12 @@ impl Wavefront {
             let Some(c) = path.next else {
                 continue;
             };
-            if !sink.bsdf_dir(n, v, c.dir) {
+            let go_on = if path.obj.is_some() {
+                sink.object_dir()
+            } else {
+                sink.bsdf_dir(n, v, c.dir)
+            };
+            if !go_on {
                 path.next = None;
                 continue;
             }

@@ -231,6 +231,36 @@ impl RenderScene {
         self.object_surface(q).is_some_and(Surface::is_glass)
     }
 
+    /// Per pixel (row-major), the fraction of an `n`×`n` grid of camera
+    /// rays through the pixel whose first hit is an object: where an
+    /// inserted object covers the image (the compositing matte).
+    pub fn object_coverage(&self, n: usize) -> Vec<f32> {
+        use rayon::prelude::*;
+        let (w, h) = (self.camera.width, self.camera.height);
+        let n = n.max(1);
+        (0..w * h)
+            .into_par_iter()
+            .with_min_len(256)
+            .map(|k| {
+                let (x, y) = ((k % w) as f32, (k / w) as f32);
+                let mut hits = 0u32;
+                for j in 0..n {
+                    for i in 0..n {
+                        let film = Vec2::new(
+                            x + (i as f32 + 0.5) / n as f32,
+                            y + (j as f32 + 0.5) / n as f32,
+                        );
+                        let d = self.camera_ray(film);
+                        if let Some(hit) = self.bvh.intersect(Vec3::ZERO, d, 0.0, f32::INFINITY) {
+                            hits += (hit.prim as usize >= self.screen_prims) as u32;
+                        }
+                    }
+                }
+                hits as f32 / (n * n) as f32
+            })
+            .collect()
+    }
+
     /// Interpolated vertex normal at a hit.
     #[inline]
     pub fn shading_normal(&self, prim: u32, u: f32, v: f32) -> Vec3 {

@@ -4,6 +4,7 @@ pub mod bundle;
 pub mod edit;
 pub mod envmap_opt;
 pub mod image;
+pub mod insert;
 pub mod material_opt;
 pub mod mesh;
 pub mod relight;

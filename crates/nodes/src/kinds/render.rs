@@ -17,7 +17,7 @@ pub struct RenderNode;
 
 /// The files a render with `output` = `path` writes: the EXR and the PNG
 /// beside it.
-fn pair(path: &Path) -> [PathBuf; 2] {
+pub(crate) fn pair(path: &Path) -> [PathBuf; 2] {
     [path.to_path_buf(), path.with_extension("png")]
 }
 
@@ -25,7 +25,10 @@ fn pair(path: &Path) -> [PathBuf; 2] {
 /// each through a temporary file renamed into place; a file that already
 /// holds the same bytes is not rewritten (a cached run changes nothing on
 /// disk).
-fn write_pair(path: &Path, img: &matflow_scene::RgbImage) -> Result<Vec<PathBuf>, NodeError> {
+pub(crate) fn write_pair(
+    path: &Path,
+    img: &matflow_scene::RgbImage,
+) -> Result<Vec<PathBuf>, NodeError> {
     let [exr, png] = pair(path);
     io::write_if_changed(&exr, &io::encode_exr_rgb(&exr, img).map_err(err)?).map_err(err)?;
     io::write_if_changed(&png, &io::encode_png_gamma(&png, img).map_err(err)?).map_err(err)?;
@@ -108,13 +111,59 @@ const RENDER_INFO: NodeInfo = NodeInfo {
     }],
 };
 
+/// An `output` parameter must name an EXR (a PNG is written beside it).
+pub(crate) fn check_exr_output(p: &Params) -> Result<(), String> {
+    if let Some(out) = p.path("output") {
+        let ext = out.extension().map(|e| e.to_string_lossy().to_lowercase());
+        if ext.as_deref() != Some("exr") {
+            return Err(format!(
+                "`output` {} must end in .exr: the stage writes linear EXR there and a \
+                 γ-encoded PNG beside it (same name, .png)",
+                out.display()
+            ));
+        }
+    }
+    Ok(())
+}
+
 /// The image of a `trace` stage's scene with its materials edited to
 /// `edited`: the base render, re-traced where the kept paths say the edit
-/// reaches ([`matflow_inverse::paths::PathCache::rerender_changed`]).
+/// reaches ([`matflow_inverse::paths::PathCache::rerender_changed`]). The
+/// trace's objects stay in the scene as they were.
 pub(crate) fn edited_image(
     k: &Kept,
     mesh: &[u8],
     edited: &MaterialMaps,
+) -> Result<RgbImage, NodeError> {
+    let (cam, tri) = crate::data::decode_mesh(mesh)?;
+    if edited.width() != cam.width || edited.height() != cam.height {
+        return Err(err(format!(
+            "materials are {}x{} but the mesh's camera is {}x{}",
+            edited.width(),
+            edited.height(),
+            cam.width,
+            cam.height
+        )));
+    }
+    let scene = matflow_render::RenderScene::with_objects(
+        cam,
+        tri,
+        edited,
+        matflow_render::EnvMap::new(&k.envmap).map_err(err)?,
+        &k.objects,
+    )
+    .map_err(crate::failed)?;
+    rerender_kept(k, &scene, edited, &k.objects)
+}
+
+/// The base render of `k` re-traced in `scene` (the trace's geometry with
+/// materials `edited` and objects `objs`, placed as the trace's) where the
+/// kept paths meet a changed pixel material or object surface.
+pub(crate) fn rerender_kept(
+    k: &Kept,
+    scene: &matflow_render::RenderScene,
+    edited: &MaterialMaps,
+    objs: &[matflow_render::SceneObject],
 ) -> Result<RgbImage, NodeError> {
     if edited.width() != k.cache.width || edited.height() != k.cache.height {
         return Err(err(format!(
@@ -125,10 +174,15 @@ pub(crate) fn edited_image(
             k.cache.height
         )));
     }
-    let scene = render_scene(mesh, edited, &k.envmap)?;
-    let changed = k.materials.changed_texels(edited);
+    let mut changed = k.materials.changed_texels(edited);
+    changed.extend(
+        k.objects
+            .iter()
+            .zip(objs)
+            .map(|(a, b)| a.surface != b.surface),
+    );
     Ok(k.cache
-        .rerender_changed(&k.image, &scene, &k.render_options(), &changed))
+        .rerender_changed(&k.image, scene, &k.render_options(), &changed))
 }
 
 impl Node for RenderNode {
@@ -139,16 +193,7 @@ impl Node for RenderNode {
         crate::data::render_seconds(film, p.i64("spp"), p.i64("depth"))
     }
     fn check(&self, p: &Params) -> Result<(), String> {
-        if let Some(out) = p.path("output") {
-            let ext = out.extension().map(|e| e.to_string_lossy().to_lowercase());
-            if ext.as_deref() != Some("exr") {
-                return Err(format!(
-                    "`output` {} must end in .exr: the stage writes linear EXR there and a \
-                     γ-encoded PNG beside it (same name, .png)",
-                    out.display()
-                ));
-            }
-        }
+        check_exr_output(p)?;
         match (p.is_set("paths"), p.is_set("mesh"), p.is_set("envmap")) {
             (_, false, _) => Err("give `mesh`".into()),
             (true, true, false) | (false, true, true) => Ok(()),

@@ -28,7 +28,8 @@ pub struct TraceNode;
 const TRACE_INFO: NodeInfo = NodeInfo {
     kind: "trace",
     // 2: the kept paths are stored packed (same paths, other bytes).
-    version: 2,
+    // 3: objects.
+    version: 3,
     doc: "A full render of the unedited scene (box pixel filter) that also keeps a set of its \
          light paths: a `render` given these `paths` re-traces only the pixels whose own \
          material changed or whose kept paths meet a changed material, with the base \
@@ -74,6 +75,14 @@ const TRACE_INFO: NodeInfo = NodeInfo {
                 unit: "segments",
                 doc: "maximum path length (Mitsuba's max_depth)",
             },
+            ParamSpec {
+                name: "objects",
+                ty: crate::objects::OBJECTS,
+                default: Some("~"),
+                unit: "",
+                doc: "objects inserted into the traced scene (as `insert` takes them): an `insert` \
+                      given these paths re-traces only what changes to their materials reach",
+            },
         ],
     outputs: &[
             OutputSpec {
@@ -104,25 +113,73 @@ impl Node for TraceNode {
                 + cost::TRACE_PER_RAY / cost::RENDER_PER_RAY * p.i64("path_spp") as f64
                     / p.i64("spp").max(1) as f64)
     }
+    fn check(&self, p: &matflow_engine::node::Params) -> Result<(), String> {
+        let specs = crate::objects::specs(p.get("objects")).map_err(|e| e.to_string())?;
+        crate::objects::check_specs(&specs)
+    }
+    fn preflight(&self, p: &matflow_engine::node::Params) -> Result<(), String> {
+        let specs = crate::objects::specs(p.get("objects")).map_err(|e| e.to_string())?;
+        crate::objects::read_all(&specs).map(|_| ())
+    }
+    fn check_film(
+        &self,
+        p: &matflow_engine::node::Params,
+        size: (usize, usize),
+    ) -> Result<(), String> {
+        let specs = crate::objects::specs(p.get("objects")).map_err(|e| e.to_string())?;
+        crate::objects::check_anchors(&specs, size)
+    }
     fn run(&self, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
         let p = ctx.params;
         let maps = materials_from(ctx.input("materials")?)?;
         let env = envmap_from(ctx.input("envmap")?)?;
+        let specs = crate::objects::specs(p.get("objects"))?;
+        let objects = if specs.is_empty() {
+            Vec::new()
+        } else {
+            let (cam, tri) = crate::data::decode_mesh(ctx.input("mesh")?)?;
+            crate::objects::place(&specs, &cam, &tri)?
+        };
         let scene = render_scene(ctx.input("mesh")?, &maps, &env)?;
+        let scene = if objects.is_empty() {
+            scene
+        } else {
+            let (cam, tri) = crate::data::decode_mesh(ctx.input("mesh")?)?;
+            matflow_render::RenderScene::with_objects(
+                cam,
+                tri,
+                &maps,
+                matflow_render::EnvMap::new(&env).map_err(crate::err)?,
+                &objects,
+            )
+            .map_err(failed)?
+        };
         let depth = p.i64("depth") as u32;
         let spp = p.i64("spp") as u32;
-        let image = render(
-            &scene,
-            &RenderOptions {
-                spp,
-                max_depth: depth,
-                seed: ctx.seed,
-                filter: PixelFilter::Box,
-                ..Default::default()
-            },
-            &|d, t| (ctx.progress)(d as u64, 2 * t as u64),
-        )
+        let parts = if objects.is_empty() { 2 } else { 3 };
+        let opts = RenderOptions {
+            spp,
+            max_depth: depth,
+            seed: ctx.seed,
+            filter: PixelFilter::Box,
+            ..Default::default()
+        };
+        let image = render(&scene, &opts, &|d, t| {
+            (ctx.progress)(d as u64, parts * t as u64)
+        })
         .image;
+        // With objects, the same render without them, for compositing.
+        let background = if objects.is_empty() {
+            None
+        } else {
+            let plain = render_scene(ctx.input("mesh")?, &maps, &env)?;
+            Some(
+                render(&plain, &opts, &|d, t| {
+                    (ctx.progress)((2 * t + d) as u64, parts * t as u64)
+                })
+                .image,
+            )
+        };
         let cache = PathCache::build(
             &scene,
             &CacheOptions {
@@ -132,7 +189,7 @@ impl Node for TraceNode {
                 env_width: env.width,
                 env_height: env.height,
             },
-            &|d, t| (ctx.progress)((t + d) as u64, 2 * t as u64),
+            &|d, t| (ctx.progress)((t + d) as u64, parts * t as u64),
         )
         .map_err(failed)?;
         let kept = Kept {
@@ -142,6 +199,8 @@ impl Node for TraceNode {
             materials: maps,
             envmap: env,
             image,
+            objects,
+            background,
         };
         let img = encode_image("image", "image", &kept.image);
         Ok([
@@ -200,6 +259,8 @@ mod tests {
             materials: s.maps.clone(),
             envmap: s.envmap.clone(),
             image,
+            objects: Vec::new(),
+            background: None,
         };
         let kept = Kept::decode(&kept.encode()).unwrap();
         let mut edited = s.maps.clone();

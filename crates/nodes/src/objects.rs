@@ -1,0 +1,634 @@
+//! Objects inserted into a scene: the entry format shared by the `insert`
+//! and `trace` kinds and `matflow render --insert`, reading their mesh
+//! files, placing them in the camera frame, and their artifact form.
+//!
+//! One entry: `mesh` (an OBJ or PLY file), `translate: [x, y, z]` or
+//! `anchor: [column, row]`, `rotate: [rx, ry, rz]` (degrees, about the
+//! object's own origin, x then y then z), `scale` (one number or three)
+//! and `material` (`type: diffuse | principled | glass` with `albedo`,
+//! `roughness`, `metallic`, `ior`, `transmission`, `tint`). The transform
+//! is translate · Rz·Ry·Rx · scale; with `anchor` the object's origin sits
+//! on the depth mesh's surface seen through that pixel's centre and its +y
+//! axis along that surface's normal (turned towards the camera). Without
+//! `material`, each part of the file takes its MTL material (OBJ), else a
+//! grey diffuse one.
+
+use std::path::Path;
+
+use glam::{Mat3, Quat, Vec2, Vec3};
+use matflow_engine::{ParamSpec, ParamType, Value};
+use matflow_geom::{Bvh, TriMesh};
+use matflow_render::{Dielectric, Material, SceneObject, Surface};
+use matflow_scene::meshfile::{read_mesh, FileMaterial, MeshPart};
+use matflow_scene::Camera;
+
+use crate::artifact::Artifact;
+use crate::{err, NodeError};
+
+/// Fields of an object's `material`.
+pub const MATERIAL_FIELDS: &[ParamSpec] = &[
+    ParamSpec {
+        name: "type",
+        ty: ParamType::Choice(&["diffuse", "principled", "glass"]),
+        default: None,
+        unit: "",
+        doc: "Lambertian (albedo/π), matflow's BRDF, or a dielectric",
+    },
+    ParamSpec {
+        name: "albedo",
+        ty: ParamType::Floats {
+            len: 3,
+            min: 0.0,
+            max: 1.0,
+        },
+        default: Some("[0.8, 0.8, 0.8]"),
+        unit: "linear RGB",
+        doc: "diffuse / base colour",
+    },
+    ParamSpec {
+        name: "roughness",
+        ty: ParamType::Float { min: 0.0, max: 1.0 },
+        default: Some("~"),
+        unit: "",
+        doc: "GGX α = roughness² (default 0.5, glass 0: smooth)",
+    },
+    ParamSpec {
+        name: "metallic",
+        ty: ParamType::Float { min: 0.0, max: 1.0 },
+        default: Some("0"),
+        unit: "",
+        doc: "principled only",
+    },
+    ParamSpec {
+        name: "ior",
+        ty: ParamType::Float { min: 1.0, max: 4.0 },
+        default: Some("1.5"),
+        unit: "",
+        doc: "glass: index of refraction",
+    },
+    ParamSpec {
+        name: "transmission",
+        ty: ParamType::Float { min: 0.0, max: 1.0 },
+        default: Some("1"),
+        unit: "",
+        doc: "glass: specular transmission T (light through the object carries T·tint)",
+    },
+    ParamSpec {
+        name: "tint",
+        ty: ParamType::Floats {
+            len: 3,
+            min: 0.0,
+            max: 1.0,
+        },
+        default: Some("[1, 1, 1]"),
+        unit: "linear RGB",
+        doc: "glass: colour of transmitted light",
+    },
+];
+
+/// Fields of one object entry.
+pub const OBJECT_FIELDS: &[ParamSpec] = &[
+    ParamSpec {
+        name: "mesh",
+        ty: ParamType::InPath,
+        default: None,
+        unit: "",
+        doc: "OBJ (with its MTL) or PLY file",
+    },
+    ParamSpec {
+        name: "translate",
+        ty: ParamType::Floats {
+            len: 3,
+            min: -1e6,
+            max: 1e6,
+        },
+        default: Some("~"),
+        unit: "scene units",
+        doc: "position of the object's origin in the camera frame (camera at 0 looking down −z, +y up)",
+    },
+    ParamSpec {
+        name: "anchor",
+        ty: ParamType::Floats {
+            len: 2,
+            min: -1e6,
+            max: 1e6,
+        },
+        default: Some("~"),
+        unit: "px",
+        doc: "[column, row]: stand the object on the surface seen at this pixel's centre (instead of `translate`)",
+    },
+    ParamSpec {
+        name: "rotate",
+        ty: ParamType::Floats {
+            len: 3,
+            min: -3600.0,
+            max: 3600.0,
+        },
+        default: Some("[0, 0, 0]"),
+        unit: "degrees",
+        doc: "about the object's own x, then y, then z axis",
+    },
+    ParamSpec {
+        name: "scale",
+        ty: ParamType::FloatOrFloats {
+            len: 3,
+            min: 1e-4,
+            max: 1e4,
+        },
+        default: Some("1"),
+        unit: "",
+        doc: "one factor or three (x, y, z)",
+    },
+    ParamSpec {
+        name: "material",
+        ty: ParamType::Record(MATERIAL_FIELDS),
+        default: Some("~"),
+        unit: "",
+        doc: "the surface (absent: the file's MTL materials, else grey diffuse)",
+    },
+];
+
+/// The `objects` parameter: up to 64 entries.
+pub const OBJECTS: ParamType = ParamType::Records {
+    fields: OBJECT_FIELDS,
+    max: 64,
+};
+
+/// One object entry, read from a normalised record.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ObjectSpec {
+    pub mesh: std::path::PathBuf,
+    pub translate: Option<Vec3>,
+    pub anchor: Option<Vec2>,
+    pub rotate_deg: Vec3,
+    pub scale: Vec3,
+    pub material: Option<Surface>,
+}
+
+fn field<'a>(
+    m: &'a [(String, matflow_engine::Loc, Value, matflow_engine::Loc)],
+    k: &str,
+) -> &'a Value {
+    m.iter()
+        .find(|(n, ..)| n == k)
+        .map(|(_, _, v, _)| v)
+        .unwrap_or(&Value::Null)
+}
+
+fn vec3(v: &Value) -> Option<Vec3> {
+    match v {
+        Value::List(xs) if xs.len() == 3 => Some(Vec3::new(
+            xs[0].as_f64()? as f32,
+            xs[1].as_f64()? as f32,
+            xs[2].as_f64()? as f32,
+        )),
+        _ => None,
+    }
+}
+
+fn surface_of(m: &[(String, matflow_engine::Loc, Value, matflow_engine::Loc)]) -> Surface {
+    let num = |k: &str| field(m, k).as_f64().map(|x| x as f32);
+    let albedo = vec3(field(m, "albedo")).unwrap_or(Vec3::splat(0.8));
+    match field(m, "type") {
+        Value::Str(t) if t == "glass" => Surface::Glass(Dielectric {
+            eta: num("ior").unwrap_or(1.5),
+            transmission: num("transmission").unwrap_or(1.0),
+            tint: vec3(field(m, "tint")).unwrap_or(Vec3::ONE),
+            roughness: num("roughness").unwrap_or(0.0),
+        }),
+        Value::Str(t) if t == "principled" => Surface::Principled(Material {
+            albedo,
+            roughness: num("roughness").unwrap_or(0.5),
+            metallic: num("metallic").unwrap_or(0.0),
+        }),
+        _ => Surface::Diffuse(albedo),
+    }
+    .sanitized()
+}
+
+/// The entries of a normalised `objects` value (see [`OBJECTS`]).
+pub fn specs(v: &Value) -> Result<Vec<ObjectSpec>, NodeError> {
+    let Value::List(items) = v else {
+        return Ok(Vec::new());
+    };
+    items
+        .iter()
+        .enumerate()
+        .map(|(i, item)| {
+            let Value::Map(m) = item else {
+                return Err(err(format!("objects[{i}] is not a mapping")));
+            };
+            let Value::Str(mesh) = field(m, "mesh") else {
+                return Err(err(format!("objects[{i}] has no mesh")));
+            };
+            let scale = vec3(field(m, "scale")).unwrap_or(Vec3::ONE);
+            let anchor = match field(m, "anchor") {
+                Value::List(xs) if xs.len() == 2 => Some(Vec2::new(
+                    xs[0].as_f64().unwrap_or(0.0) as f32,
+                    xs[1].as_f64().unwrap_or(0.0) as f32,
+                )),
+                _ => None,
+            };
+            Ok(ObjectSpec {
+                mesh: mesh.into(),
+                translate: vec3(field(m, "translate")),
+                anchor,
+                rotate_deg: vec3(field(m, "rotate")).unwrap_or(Vec3::ZERO),
+                scale,
+                material: match field(m, "material") {
+                    Value::Map(mm) => Some(surface_of(mm)),
+                    _ => None,
+                },
+            })
+        })
+        .collect()
+}
+
+/// Checks across an entry's fields (the engine has checked each field).
+pub fn check_specs(specs: &[ObjectSpec]) -> Result<(), String> {
+    for (i, s) in specs.iter().enumerate() {
+        match (s.translate.is_some(), s.anchor.is_some()) {
+            (true, true) => {
+                return Err(format!(
+                    "objects[{i}]: give `translate` or `anchor`, not both"
+                ))
+            }
+            (false, false) => {
+                return Err(format!(
+                    "objects[{i}]: give `translate: [x, y, z]` (camera frame) or `anchor: [column, row]` (a pixel to stand it on)"
+                ))
+            }
+            _ => {}
+        }
+    }
+    Ok(())
+}
+
+/// Checks anchors against the image size.
+pub fn check_anchors(specs: &[ObjectSpec], (w, h): (usize, usize)) -> Result<(), String> {
+    for (i, s) in specs.iter().enumerate() {
+        if let Some(a) = s.anchor {
+            if !(a.x >= 0.0 && a.y >= 0.0 && a.x < w as f32 && a.y < h as f32) {
+                return Err(format!(
+                    "objects[{i}]: anchor [{}, {}] is outside the {w}x{h} image",
+                    a.x, a.y
+                ));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Reads every entry's mesh file (for checking before anything runs).
+pub fn read_all(specs: &[ObjectSpec]) -> Result<Vec<Vec<MeshPart>>, String> {
+    specs
+        .iter()
+        .enumerate()
+        .map(|(i, s)| read_entry(i, s))
+        .collect()
+}
+
+fn read_entry(i: usize, s: &ObjectSpec) -> Result<Vec<MeshPart>, String> {
+    let parts = read_mesh(&s.mesh).map_err(|e| format!("objects[{i}]: {e}"))?;
+    let tris: usize = parts.iter().map(|p| p.indices.len()).sum();
+    if tris == 0 {
+        return Err(format!(
+            "objects[{i}]: {}: the mesh has no triangles",
+            s.mesh.display()
+        ));
+    }
+    Ok(parts)
+}
+
+/// An MTL material as a matflow surface: glass for transparent models
+/// (`illum` 4, 6, 7 or 9, or `d` < 1: T = 1 − d, η = `Ni`, tint `Tf`),
+/// principled where the file gives `Pr`/`Pm` or a specular colour (α from
+/// the Phong exponent, α = √(2/(Ns + 2))), else Lambertian `Kd`.
+pub fn surface_of_file(m: &FileMaterial) -> Surface {
+    let kd = m.diffuse.unwrap_or(Vec3::splat(0.8));
+    let phong_roughness = m
+        .shininess
+        .map(|ns| (2.0 / (ns.max(0.0) + 2.0)).sqrt().sqrt());
+    let roughness = m.roughness.or(phong_roughness);
+    let transparent = matches!(m.illum, Some(4 | 6 | 7 | 9)) || m.dissolve.is_some_and(|d| d < 1.0);
+    let s = if transparent {
+        let t = match m.dissolve {
+            Some(d) if d < 1.0 => 1.0 - d,
+            _ => 1.0,
+        };
+        Surface::Glass(Dielectric {
+            eta: m.ior.filter(|&n| n >= 1.0).unwrap_or(1.5),
+            transmission: t,
+            tint: m.transmission_filter.unwrap_or(Vec3::ONE),
+            roughness: m.roughness.unwrap_or(0.0),
+        })
+    } else if m.roughness.is_some()
+        || m.metallic.is_some()
+        || m.specular.is_some_and(|s| s.max_element() > 0.0)
+    {
+        Surface::Principled(Material {
+            albedo: kd,
+            roughness: roughness.unwrap_or(0.5),
+            metallic: m.metallic.unwrap_or(0.0),
+        })
+    } else {
+        Surface::Diffuse(kd)
+    };
+    s.sanitized()
+}
+
+/// The surface point and normal (towards the camera) of `mesh` seen
+/// through film position `film` (pixel centre: column + ½, row + ½).
+pub fn surface_at(camera: &Camera, mesh: &TriMesh, bvh: &Bvh, film: Vec2) -> Option<(Vec3, Vec3)> {
+    let f = camera.focal();
+    let pp = camera.principal_point();
+    let dir = Vec3::new((film.x - 0.5 - pp.x) / f, -(film.y - 0.5 - pp.y) / f, -1.0).normalize();
+    let hit = bvh.intersect(Vec3::ZERO, dir, 0.0, f32::INFINITY)?;
+    let n = mesh.face_normal(hit.prim as usize);
+    let n = if n.dot(dir) > 0.0 { -n } else { n };
+    (n != Vec3::ZERO).then_some((dir * hit.t, n))
+}
+
+/// The placed objects of `specs` (one per part of each file), in the
+/// camera frame of `camera`, anchors found on `depth_mesh`. Errors name
+/// the entry and its file: an empty or degenerate mesh, one entirely
+/// behind the camera, an anchor on the sky, an object absurdly large or
+/// small for the scene (its size outside 10⁻⁵..10³ times the scene's depth).
+pub fn place(
+    specs: &[ObjectSpec],
+    camera: &Camera,
+    depth_mesh: &TriMesh,
+) -> Result<Vec<SceneObject>, NodeError> {
+    check_specs(specs).map_err(err)?;
+    check_anchors(specs, (camera.width, camera.height)).map_err(err)?;
+    let need_bvh = specs.iter().any(|s| s.anchor.is_some());
+    let bvh = need_bvh.then(|| Bvh::build(depth_mesh));
+    let scene_depth = depth_mesh
+        .positions
+        .iter()
+        .map(|p| -p.z)
+        .fold(0.0f32, f32::max)
+        .max(1e-3);
+    let mut out = Vec::new();
+    for (i, s) in specs.iter().enumerate() {
+        let name = s.mesh.display();
+        let parts = read_entry(i, s).map_err(err)?;
+        let rot = Mat3::from_rotation_z(s.rotate_deg.z.to_radians())
+            * Mat3::from_rotation_y(s.rotate_deg.y.to_radians())
+            * Mat3::from_rotation_x(s.rotate_deg.x.to_radians());
+        let (origin, align) = match (s.translate, s.anchor) {
+            (Some(t), _) => (t, Mat3::IDENTITY),
+            (None, Some(a)) => {
+                let film = a + Vec2::splat(0.5);
+                let (p, n) = bvh
+                    .as_ref()
+                    .and_then(|b| surface_at(camera, depth_mesh, b, film))
+                    .ok_or_else(|| {
+                        err(format!(
+                            "objects[{i}] ({name}): anchor [{}, {}] sees no surface (sky)",
+                            a.x, a.y
+                        ))
+                    })?;
+                (p, Mat3::from_quat(Quat::from_rotation_arc(Vec3::Y, n)))
+            }
+            (None, None) => unreachable!("checked"),
+        };
+        let linear = align * rot * Mat3::from_diagonal(s.scale);
+        let normal_m = linear.inverse().transpose();
+        let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
+        let mut in_front = false;
+        let first = out.len();
+        for part in parts {
+            let positions: Vec<Vec3> = part
+                .positions
+                .iter()
+                .map(|p| origin + linear * *p)
+                .collect();
+            let indices: Vec<[u32; 3]> = part
+                .indices
+                .iter()
+                .copied()
+                .filter(|t| {
+                    let [a, b, c] = t.map(|k| positions[k as usize]);
+                    (b - a).cross(c - a).length_squared() > 0.0
+                })
+                .collect();
+            for t in &indices {
+                for &k in t {
+                    let p = positions[k as usize];
+                    lo = lo.min(p);
+                    hi = hi.max(p);
+                    in_front |= p.z < 0.0;
+                }
+            }
+            if indices.is_empty() {
+                continue;
+            }
+            let normals = if part.normals.len() == part.positions.len() {
+                part.normals
+                    .iter()
+                    .map(|n| (normal_m * *n).normalize_or_zero())
+                    .collect()
+            } else {
+                Vec::new()
+            };
+            let surface = s
+                .material
+                .or_else(|| part.material.as_ref().map(surface_of_file))
+                .unwrap_or(Surface::Diffuse(Vec3::splat(0.8)));
+            out.push(SceneObject {
+                mesh: TriMesh {
+                    positions,
+                    indices,
+                    film: Vec::new(),
+                },
+                normals,
+                surface,
+            });
+        }
+        if out.len() == first {
+            return Err(err(format!(
+                "objects[{i}] ({name}): every triangle is degenerate (zero area) after scaling"
+            )));
+        }
+        if !lo.is_finite() || !hi.is_finite() {
+            return Err(err(format!(
+                "objects[{i}] ({name}): non-finite placed vertices"
+            )));
+        }
+        if !in_front {
+            return Err(err(format!(
+                "objects[{i}] ({name}): the object is entirely behind the camera (every vertex has z ≥ 0; the camera looks down −z)"
+            )));
+        }
+        let size = (hi - lo).length();
+        if !(size >= 1e-5 * scene_depth && size <= 1e3 * scene_depth) {
+            return Err(err(format!(
+                "objects[{i}] ({name}): placed size {size:.3e} is absurd for a scene {scene_depth:.3} deep (check `scale` and the file's units)"
+            )));
+        }
+    }
+    Ok(out)
+}
+
+/// Writes placed objects into an artifact (under `prefix`).
+pub fn put_objects(a: &mut Artifact, prefix: &str, objects: &[SceneObject]) {
+    let mut meta = Vec::new();
+    let (mut pos, mut idx, mut nrm) = (Vec::new(), Vec::new(), Vec::new());
+    let mut surf = Vec::new();
+    for o in objects {
+        meta.extend([
+            o.mesh.positions.len() as u32,
+            o.mesh.indices.len() as u32,
+            o.normals.len() as u32,
+        ]);
+        pos.extend(o.mesh.positions.iter().flat_map(|p| p.to_array()));
+        idx.extend(o.mesh.indices.iter().flatten().copied());
+        nrm.extend(o.normals.iter().flat_map(|p| p.to_array()));
+        surf.extend(surface_words(&o.surface));
+    }
+    let n = |v: &[f32], k: usize| (v.len() / k) as u32;
+    a.put_u32(&format!("{prefix}meta"), objects.len() as u32, 3, meta);
+    a.put_f32(&format!("{prefix}positions"), n(&pos, 3), 3, pos.clone());
+    a.put_u32(&format!("{prefix}indices"), (idx.len() / 3) as u32, 3, idx);
+    a.put_f32(&format!("{prefix}normals"), n(&nrm, 3), 3, nrm.clone());
+    a.put_f32(&format!("{prefix}surfaces"), objects.len() as u32, 9, surf);
+}
+
+/// A surface as 9 numbers: kind, then its parameters.
+fn surface_words(s: &Surface) -> [f32; 9] {
+    match *s {
+        Surface::Diffuse(a) => [0.0, a.x, a.y, a.z, 0.0, 0.0, 0.0, 0.0, 0.0],
+        Surface::Principled(m) => [
+            1.0,
+            m.albedo.x,
+            m.albedo.y,
+            m.albedo.z,
+            m.roughness,
+            m.metallic,
+            0.0,
+            0.0,
+            0.0,
+        ],
+        Surface::Glass(g) => [
+            2.0,
+            g.tint.x,
+            g.tint.y,
+            g.tint.z,
+            g.roughness,
+            g.eta,
+            g.transmission,
+            0.0,
+            0.0,
+        ],
+    }
+}
+
+fn surface_from_words(w: &[f32]) -> Result<Surface, NodeError> {
+    let v = Vec3::new(w[1], w[2], w[3]);
+    Ok(match w[0] as u32 {
+        0 => Surface::Diffuse(v),
+        1 => Surface::Principled(Material {
+            albedo: v,
+            roughness: w[4],
+            metallic: w[5],
+        }),
+        2 => Surface::Glass(Dielectric {
+            tint: v,
+            roughness: w[4],
+            eta: w[5],
+            transmission: w[6],
+        }),
+        k => return Err(err(format!("objects artifact: unknown surface kind {k}"))),
+    }
+    .sanitized())
+}
+
+/// Reads objects written by [`put_objects`]; none when absent.
+pub fn get_objects(a: &Artifact, prefix: &str) -> Result<Vec<SceneObject>, NodeError> {
+    let key = format!("{prefix}meta");
+    if !a.has(&key) {
+        return Ok(Vec::new());
+    }
+    let meta = a.u32_list(&key, 3)?;
+    let pos = a.f32_list(&format!("{prefix}positions"), 3)?;
+    let idx = a.u32_list(&format!("{prefix}indices"), 3)?;
+    let nrm = a.f32_list(&format!("{prefix}normals"), 3)?;
+    let surf = a.f32_list(&format!("{prefix}surfaces"), 9)?;
+    let bad = || err("objects artifact: sections do not match");
+    if surf.len() != meta.len() / 3 * 9 {
+        return Err(bad());
+    }
+    let (mut p0, mut i0, mut n0) = (0usize, 0usize, 0usize);
+    let mut out = Vec::new();
+    for (k, m) in meta.chunks_exact(3).enumerate() {
+        let (np, ni, nn) = (m[0] as usize, m[1] as usize, m[2] as usize);
+        let positions: Vec<Vec3> = pos
+            .get(3 * p0..3 * (p0 + np))
+            .ok_or_else(bad)?
+            .chunks_exact(3)
+            .map(|c| Vec3::new(c[0], c[1], c[2]))
+            .collect();
+        let indices: Vec<[u32; 3]> = idx
+            .get(3 * i0..3 * (i0 + ni))
+            .ok_or_else(bad)?
+            .chunks_exact(3)
+            .map(|c| [c[0], c[1], c[2]])
+            .collect();
+        if indices.iter().flatten().any(|&i| i as usize >= np) {
+            return Err(bad());
+        }
+        let normals: Vec<Vec3> = nrm
+            .get(3 * n0..3 * (n0 + nn))
+            .ok_or_else(bad)?
+            .chunks_exact(3)
+            .map(|c| Vec3::new(c[0], c[1], c[2]))
+            .collect();
+        (p0, i0, n0) = (p0 + np, i0 + ni, n0 + nn);
+        out.push(SceneObject {
+            mesh: TriMesh {
+                positions,
+                indices,
+                film: Vec::new(),
+            },
+            normals,
+            surface: surface_from_words(&surf[9 * k..9 * k + 9])?,
+        });
+    }
+    Ok(out)
+}
+
+/// Whether two object lists have the same geometry (positions, triangles
+/// and normals, bit for bit), whatever their surfaces.
+pub fn same_geometry(a: &[SceneObject], b: &[SceneObject]) -> bool {
+    a.len() == b.len()
+        && a.iter()
+            .zip(b)
+            .all(|(x, y)| x.mesh == y.mesh && x.normals == y.normals)
+}
+
+/// Reads an objects file (`matflow render --insert`): a YAML list of
+/// entries, each as the `objects` parameter takes them, mesh paths
+/// relative to the file. Errors give the file, line and column.
+pub fn read_objects_file(path: &Path) -> Result<Vec<ObjectSpec>, String> {
+    let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let (v, loc) = matflow_engine::value::parse_yaml(&text)
+        .map_err(|e| format!("{}:{}: {}", path.display(), e.loc, e.message))?;
+    let base = path.parent().unwrap_or(Path::new("."));
+    let mut reads = Vec::new();
+    let norm = matflow_engine::spec::normalize_fields(
+        &OBJECTS,
+        &v,
+        Some(loc),
+        base,
+        "the objects file",
+        &mut reads,
+    )
+    .map_err(|(at, m)| match at {
+        Some(l) => format!("{}:{l}: objects{m}", path.display()),
+        None => format!("{}: objects{m}", path.display()),
+    })?;
+    let specs = specs(&norm).map_err(|e| format!("{}: {e}", path.display()))?;
+    check_specs(&specs).map_err(|e| format!("{}: {e}", path.display()))?;
+    Ok(specs)
+}
