@@ -280,8 +280,41 @@ pub fn parse(
             params,
         });
     }
+    // `--set STAGE.kind=KIND` replaces the stage: the file's parameters
+    // for it are dropped, its other overrides and the kind's defaults
+    // make the new stage (how one pipeline runs on a generated scene or
+    // on a photo's bundle).
+    for o in overrides.iter().filter(|o| o.param == "kind") {
+        let Some(r) = raws.iter_mut().find(|r| r.name == o.stage) else {
+            return Err(err(
+                None,
+                format!(
+                    "--set {}: there is no stage `{}`",
+                    clip(&o.text),
+                    clip(&o.stage)
+                ),
+            ));
+        };
+        match &o.value {
+            Value::Str(k) if reg.get(k).is_some() => {
+                r.kind = k.clone();
+                r.params.clear();
+            }
+            v => {
+                return Err(err(
+                    None,
+                    format!(
+                        "--set {}: `{}` is not a node kind (one of: {})",
+                        clip(&o.text),
+                        clip(&v.to_string()),
+                        reg.kinds().join(", ")
+                    ),
+                ))
+            }
+        }
+    }
     // Overrides replace or add parameters; they carry no location.
-    for o in overrides {
+    for o in overrides.iter().filter(|o| o.param != "kind") {
         let Some(r) = raws.iter_mut().find(|r| r.name == o.stage) else {
             return Err(err(
                 None,

@@ -68,10 +68,10 @@ const INSERT_INFO: NodeInfo = NodeInfo {
         ParamSpec {
             name: "objects",
             ty: objects::OBJECTS,
-            default: None,
+            default: Some("~"),
             unit: "",
             doc: "the objects: `mesh`, `translate` or `anchor`, `rotate`, `scale`, `material` \
-                  (see *Inserted objects*)",
+                  (see *Inserted objects*); with `paths`, absent: the trace's objects as they are",
         },
         ParamSpec {
             name: "photo",
@@ -254,6 +254,9 @@ impl Node for InsertNode {
                     .into(),
             );
         }
+        if !p.is_set("objects") && !p.is_set("paths") {
+            return Err("give `objects` (or `paths`, a `trace` stage with objects)".into());
+        }
         match (p.is_set("paths"), p.is_set("envmap")) {
             (true, true) => Err("`paths` brings its envmap: drop `envmap`".into()),
             (false, false) => Err("give `envmap` (or `paths`, a `trace` stage)".into()),
@@ -278,14 +281,22 @@ impl Node for InsertNode {
         let maps = materials_from(ctx.input("materials")?)?;
         let (cam, tri) = decode_mesh(ctx.input("mesh")?)?;
         let specs = objects::specs(p.get("objects"))?;
-        let objs = objects::place(&specs, &cam, &tri)?;
+        let kept = ctx.opt_input("paths").map(Kept::decode).transpose()?;
+        let objs = match &kept {
+            Some(k) if specs.is_empty() => {
+                if k.objects.is_empty() {
+                    return Err(err("the `paths` stage has no objects: give `objects`"));
+                }
+                k.objects.clone()
+            }
+            _ => objects::place(&specs, &cam, &tri)?,
+        };
         let differential = p.str("composite") == "differential";
         let progress = |d: usize, t: usize, part: usize, parts: usize| {
             (ctx.progress)((part * t + d) as u64, (parts * t) as u64)
         };
         let parts = if differential { 2 } else { 1 };
-        let (with, without, w_scene) = if let Some(b) = ctx.opt_input("paths") {
-            let kept = Kept::decode(b)?;
+        let (with, without, w_scene) = if let Some(kept) = kept {
             if !objects::same_geometry(&kept.objects, &objs) {
                 return Err(err(
                     "the objects are not placed as in the `paths` stage (another mesh, \
