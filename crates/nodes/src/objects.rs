@@ -353,7 +353,8 @@ pub fn surface_at(camera: &Camera, mesh: &TriMesh, bvh: &Bvh, film: Vec2) -> Opt
 /// camera frame of `camera`, anchors found on `depth_mesh`. Errors name
 /// the entry and its file: an empty or degenerate mesh, one entirely
 /// behind the camera, an anchor on the sky, an object absurdly large or
-/// small for the scene (its size outside 10⁻⁵..10³ times the scene's depth).
+/// small for the scene (its size outside 10⁻⁴..10³ times the scene's depth:
+/// sub-pixel, or swallowing the scene).
 pub fn place(
     specs: &[ObjectSpec],
     camera: &Camera,
@@ -462,7 +463,7 @@ pub fn place(
             )));
         }
         let size = (hi - lo).length();
-        if !(size >= 1e-5 * scene_depth && size <= 1e3 * scene_depth) {
+        if !(size >= 1e-4 * scene_depth && size <= 1e3 * scene_depth) {
             return Err(err(format!(
                 "objects[{i}] ({name}): placed size {size:.3e} is absurd for a scene {scene_depth:.3} deep (check `scale` and the file's units)"
             )));
@@ -631,4 +632,291 @@ pub fn read_objects_file(path: &Path) -> Result<Vec<ObjectSpec>, String> {
     let specs = specs(&norm).map_err(|e| format!("{}: {e}", path.display()))?;
     check_specs(&specs).map_err(|e| format!("{}: {e}", path.display()))?;
     Ok(specs)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::data::{encode_mesh, Kept};
+    use crate::kinds::insert::composite_differential;
+    use crate::kinds::render::rerender_kept;
+    use matflow_geom::shapes;
+    use matflow_inverse::paths::{CacheOptions, PathCache};
+    use matflow_render::{render, EnvMap, PixelFilter, RenderOptions, RenderScene};
+    use matflow_scene::meshfile::obj_text;
+    use matflow_scene::GrayImage;
+
+    fn dir(name: &str) -> std::path::PathBuf {
+        let d = std::env::temp_dir().join(format!("matflow-objects-{}-{name}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        std::fs::create_dir_all(&d).unwrap();
+        d
+    }
+
+    fn write_shape(d: &Path, name: &str, s: &shapes::Shape) -> std::path::PathBuf {
+        let f = d.join(format!("{name}.obj"));
+        let part = MeshPart {
+            positions: s.mesh.positions.clone(),
+            indices: s.mesh.indices.clone(),
+            normals: s.normals.clone(),
+            ..Default::default()
+        };
+        std::fs::write(&f, obj_text(&part, name)).unwrap();
+        f
+    }
+
+    fn spec(mesh: &Path) -> ObjectSpec {
+        ObjectSpec {
+            mesh: mesh.to_path_buf(),
+            translate: Some(Vec3::new(0.0, 0.0, -4.0)),
+            anchor: None,
+            rotate_deg: Vec3::ZERO,
+            scale: Vec3::ONE,
+            material: Some(Surface::Diffuse(Vec3::splat(0.5))),
+        }
+    }
+
+    /// A wall facing the camera at depth 5.
+    fn wall(n: usize) -> (Camera, TriMesh) {
+        let cam = Camera::new(n, n);
+        let tri =
+            matflow_geom::mesh_from_depth(&GrayImage::new(n, n, 5.0), &cam, &Default::default())
+                .unwrap()
+                .mesh;
+        (cam, tri)
+    }
+
+    #[test]
+    fn placement_is_translate_rotate_zyx_scale_and_anchors_stand_on_the_surface() {
+        let d = dir("place");
+        // One triangle with vertices on the axes.
+        let tri = MeshPart {
+            positions: vec![Vec3::X, Vec3::Y, Vec3::Z],
+            indices: vec![[0, 1, 2]],
+            ..Default::default()
+        };
+        let f = d.join("t.obj");
+        std::fs::write(&f, obj_text(&tri, "t")).unwrap();
+        let (cam, wall_mesh) = wall(16);
+        let mut s = spec(&f);
+        s.translate = Some(Vec3::new(1.0, 2.0, -6.0));
+        s.rotate_deg = Vec3::new(90.0, 0.0, 90.0);
+        s.scale = Vec3::new(2.0, 3.0, 4.0);
+        let o = &place(&[s], &cam, &wall_mesh).unwrap()[0];
+        // x̂ → scale (2,0,0) → Rx keeps → Rz(90°) turns to (0,2,0).
+        // ŷ → (0,3,0) → Rx(90°) to (0,0,3) → Rz keeps.
+        // ẑ → (0,0,4) → Rx(90°) to (0,−4,0) → Rz(90°) to (4,0,0).
+        let want = [
+            Vec3::new(1.0, 4.0, -6.0),
+            Vec3::new(1.0, 2.0, -3.0),
+            Vec3::new(5.0, 2.0, -6.0),
+        ];
+        let got: Vec<Vec3> = o.mesh.indices[0]
+            .map(|k| o.mesh.positions[k as usize])
+            .to_vec();
+        for w in want {
+            assert!(
+                got.iter().any(|g| (*g - w).length() < 1e-5),
+                "{got:?} lacks {w}"
+            );
+        }
+        // Anchored at the centre pixel of a wall facing the camera: the
+        // origin lands on the wall, +y along its normal (towards the camera).
+        let mut s = spec(&f);
+        s.translate = None;
+        s.anchor = Some(Vec2::new(7.5, 7.5));
+        let o = &place(&[s], &cam, &wall_mesh).unwrap()[0];
+        let (surf, n) = surface_at(
+            &cam,
+            &wall_mesh,
+            &Bvh::build(&wall_mesh),
+            Vec2::new(8.0, 8.0),
+        )
+        .unwrap();
+        assert!((n - Vec3::Z).length() < 1e-4, "{n}");
+        let ys: Vec<Vec3> = o.mesh.positions.clone();
+        // The file's ŷ vertex sits one unit from the surface along +z.
+        assert!(
+            ys.iter().any(|v| (*v - (surf + Vec3::Z)).length() < 1e-4),
+            "{ys:?} {surf}"
+        );
+        let _ = std::fs::remove_dir_all(&d);
+    }
+
+    #[test]
+    fn bad_objects_are_errors_naming_the_entry_and_file() {
+        let d = dir("bad");
+        let ball = write_shape(&d, "ball", &shapes::sphere(0.5, 8, 16));
+        let (cam, wall_mesh) = wall(16);
+        let flat = d.join("flat.obj");
+        std::fs::write(&flat, "v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n").unwrap();
+        let empty = d.join("empty.obj");
+        std::fs::write(&empty, "v 0 0 0\n").unwrap();
+        let nan = d.join("nan.obj");
+        std::fs::write(&nan, "v 0 0 nan\nv 1 0 0\nv 0 1 0\nf 1 2 3\n").unwrap();
+        let mut behind = spec(&ball);
+        behind.translate = Some(Vec3::new(0.0, 0.0, 3.0));
+        let mut huge = spec(&ball);
+        huge.scale = Vec3::splat(1e4);
+        let mut tiny = spec(&ball);
+        tiny.scale = Vec3::splat(1e-4);
+        let mut both = spec(&ball);
+        both.anchor = Some(Vec2::new(1.0, 1.0));
+        let mut outside = spec(&ball);
+        outside.translate = None;
+        outside.anchor = Some(Vec2::new(16.0, 3.0));
+        let cases = [
+            (spec(&d.join("missing.obj")), "missing.obj"),
+            (spec(&flat), "degenerate"),
+            (spec(&empty), "no triangles"),
+            (spec(&nan), "non-finite"),
+            (behind, "behind the camera"),
+            (huge, "absurd"),
+            (tiny, "absurd"),
+            (both, "not both"),
+            (outside, "outside the 16x16 image"),
+        ];
+        for (s, want) in cases {
+            let e = match place(&[spec(&ball), s], &cam, &wall_mesh) {
+                Ok(_) => panic!("accepted: {want}"),
+                Err(e) => e.to_string(),
+            };
+            assert!(e.contains("objects[1]") && e.contains(want), "{want}: {e}");
+        }
+        // An anchor that sees the sky.
+        let sky_cam = Camera::new(16, 16);
+        let mut depth = GrayImage::new(16, 16, 5.0);
+        for x in 0..16 {
+            depth.set(x, 0, 0.0);
+            depth.set(x, 1, 0.0);
+        }
+        let m = matflow_geom::mesh_from_depth(&depth, &sky_cam, &Default::default())
+            .unwrap()
+            .mesh;
+        let mut s = spec(&ball);
+        s.translate = None;
+        s.anchor = Some(Vec2::new(5.0, 0.0));
+        let e = match place(&[s], &sky_cam, &m) {
+            Ok(_) => panic!("an anchor on the sky was accepted"),
+            Err(e) => e.to_string(),
+        };
+        assert!(e.contains("objects[0]") && e.contains("sky"), "{e}");
+        let _ = std::fs::remove_dir_all(&d);
+    }
+
+    #[test]
+    fn object_surfaces_round_trip_and_re_edits_retrace_bit_identically() {
+        let d = dir("reedit");
+        let n = 24;
+        let s = matflow_scene::synthetic::generate(3, n, n);
+        let cam = Camera::new(n, n);
+        let tri = matflow_geom::mesh_from_depth(&s.depth, &cam, &Default::default())
+            .unwrap()
+            .mesh;
+        let ball = write_shape(&d, "ball", &shapes::sphere(0.5, 12, 24));
+        let jug = write_shape(&d, "jug", &shapes::jug(16));
+        let specs = vec![
+            ObjectSpec {
+                anchor: Some(Vec2::new(6.0, 20.0)),
+                translate: None,
+                ..spec(&ball)
+            },
+            ObjectSpec {
+                anchor: Some(Vec2::new(17.0, 21.0)),
+                translate: None,
+                material: Some(Surface::Glass(Dielectric::default())),
+                ..spec(&jug)
+            },
+        ];
+        let objs = place(&specs, &cam, &tri).unwrap();
+        // The artifact form keeps geometry and surfaces bit for bit.
+        let mut a = Artifact::new("paths");
+        put_objects(&mut a, "obj_", &objs);
+        let back = get_objects(&Artifact::decode(&a.encode(), "paths").unwrap(), "obj_").unwrap();
+        assert!(same_geometry(&objs, &back));
+        assert_eq!(
+            objs.iter().map(|o| o.surface).collect::<Vec<_>>(),
+            back.iter().map(|o| o.surface).collect::<Vec<_>>()
+        );
+        let env = EnvMap::new(&s.envmap).unwrap();
+        let scene = |objs: &[SceneObject]| {
+            RenderScene::with_objects(cam, tri.clone(), &s.maps, env.clone(), objs).unwrap()
+        };
+        let opts = RenderOptions {
+            spp: 6,
+            max_depth: 4,
+            seed: 11,
+            filter: PixelFilter::Box,
+            ..Default::default()
+        };
+        let base = scene(&objs);
+        let image = render(&base, &opts, &|_, _| {}).image;
+        let plain = render(&scene(&[]), &opts, &|_, _| {}).image;
+        let cache = PathCache::build(
+            &base,
+            &CacheOptions {
+                spp: 4,
+                max_depth: 4,
+                seed: 5,
+                env_width: 32,
+                env_height: 16,
+            },
+            &|_, _| {},
+        )
+        .unwrap();
+        let kept = Kept {
+            cache,
+            spp: 6,
+            seed: 11,
+            materials: s.maps.clone(),
+            envmap: s.envmap.clone(),
+            image: image.clone(),
+            objects: objs.clone(),
+            background: Some(plain.clone()),
+        };
+        let kept = Kept::decode(&kept.encode()).unwrap();
+        assert!(same_geometry(&kept.objects, &objs));
+        // Differential compositing changes the photo only where a path
+        // met an object: elsewhere with and without are bit-identical.
+        let alpha = base.object_coverage(4);
+        let photo = &s.maps.albedo; // any image of the right size
+        let comp = composite_differential(photo, &image, &plain, &alpha);
+        let mut same = 0;
+        for k in 0..n * n {
+            if image.data[k] == plain.data[k] {
+                assert_eq!(alpha[k], 0.0);
+                assert_eq!(comp.data[k], photo.data[k]);
+                same += 1;
+            }
+        }
+        assert!(same > n * n / 4 && same < n * n, "{same}");
+        // Re-editing the glass jug's material re-traces what its kept
+        // paths reach, bit-identical to a full render there.
+        let mut edited = objs.clone();
+        edited[1].surface = Surface::Glass(Dielectric {
+            eta: 1.33,
+            tint: Vec3::new(1.0, 0.5, 0.2),
+            ..Default::default()
+        });
+        let escene = scene(&edited);
+        let got = rerender_kept(&kept, &escene, &s.maps, &edited).unwrap();
+        let full = render(&escene, &opts, &|_, _| {}).image;
+        let mut changed = vec![false; n * n];
+        changed.extend([false, true]);
+        let hit: std::collections::BTreeSet<u32> =
+            kept.cache.pixels_reaching(&changed).into_iter().collect();
+        assert!(!hit.is_empty() && hit.len() < n * n, "{}", hit.len());
+        let mut missed = 0;
+        for p in 0..n * n {
+            if hit.contains(&(p as u32)) {
+                assert_eq!(got.data[p], full.data[p], "re-traced pixel {p}");
+            } else {
+                assert_eq!(got.data[p], image.data[p], "kept pixel {p}");
+                missed += (full.data[p] != image.data[p]) as usize;
+            }
+        }
+        assert!(missed * 10 < n * n, "{missed} pixels missed");
+        let _ = encode_mesh;
+        let _ = std::fs::remove_dir_all(&d);
+    }
 }

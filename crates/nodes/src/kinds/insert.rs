@@ -180,7 +180,8 @@ pub fn composite_differential(
         (0..photo.data.len())
             .map(|k| {
                 let a = alpha[k];
-                let outside = photo.data[k] + with.data[k] - without.data[k];
+                // The difference first: where it is zero the photo is kept exactly.
+                let outside = photo.data[k] + (with.data[k] - without.data[k]);
                 (with.data[k] * a + outside * (1.0 - a)).max(glam::Vec3::ZERO)
             })
             .collect(),

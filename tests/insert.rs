@@ -1,0 +1,279 @@
+//! Object insertion over the binary: `pipelines/insert.yaml` at test size
+//! (composited and full renders, an incremental re-edit of an inserted
+//! object's material), `render --insert`, the shipped meshes, and clear
+//! errors for bad objects files.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use matflow_scene::io;
+use serde_json::Value;
+
+fn repo() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("matflow-insert-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn matflow(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_matflow"))
+        .args(args)
+        .env_remove("MATFLOW_CACHE")
+        .output()
+        .expect("run matflow")
+}
+
+fn text(o: &Output) -> String {
+    format!(
+        "{}\n{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    )
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+/// The insert pipeline's objects at 64², meshes by absolute path.
+fn objects(jug: &str) -> String {
+    let m = repo().join("pipelines/meshes");
+    format!(
+        "[{{mesh: {}, anchor: [50, 59], scale: 0.9, rotate: [0, 20, 0], material: {jug}}}, \
+         {{mesh: {}, anchor: [10, 59], scale: 0.7, material: {{type: diffuse, albedo: [0.2, 0.4, 0.8]}}}}]",
+        s(&m.join("jug.obj")),
+        s(&m.join("torus.obj"))
+    )
+}
+
+/// Runs pipelines/insert.yaml at 64²; returns the report's stage statuses.
+fn run_insert(cache: &Path, work: &Path, extra: &[String]) -> (Output, BTreeMap<String, String>) {
+    let report = work.join("report.json");
+    let mut args: Vec<String> = vec![
+        "run".into(),
+        s(&repo().join("pipelines/insert.yaml")).into(),
+        "--quiet".into(),
+        "--cache".into(),
+        s(cache).into(),
+        "--report".into(),
+        s(&report).into(),
+    ];
+    for set in [
+        "scene.size=64".to_string(),
+        "scene.spp=8".into(),
+        "lighting.budget_seconds=1".into(),
+        "recovered.budget_seconds=2".into(),
+        "base.spp=8".into(),
+        "base.path_spp=4".into(),
+        format!("base.objects={}", objects("{type: glass, ior: 1.5}")),
+        format!("inserted.output={}", s(&work.join("inserted.exr"))),
+        format!("full.output={}", s(&work.join("full.exr"))),
+    ] {
+        args.push("--set".into());
+        args.push(set);
+    }
+    args.extend(extra.iter().cloned());
+    let argv: Vec<&str> = args.iter().map(|a| a.as_str()).collect();
+    let out = matflow(&argv);
+    if !out.status.success() {
+        return (out, BTreeMap::new());
+    }
+    let r: Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    let st = r["stages"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| {
+            (
+                s["name"].as_str().unwrap().to_string(),
+                s["status"].as_str().unwrap().to_string(),
+            )
+        })
+        .collect();
+    (out, st)
+}
+
+#[test]
+fn the_insert_pipeline_composites_and_re_edits_an_object_from_kept_paths() {
+    let work = tmp("pipeline");
+    let cache = work.join("cache");
+    let (out, st) = run_insert(&cache, &work, &[]);
+    assert!(out.status.success(), "{}", text(&out));
+    assert!(st.values().all(|s| s == "executed"), "{st:?}");
+    let inserted = io::read_exr_rgb(&work.join("inserted.exr")).unwrap();
+    let full = io::read_exr_rgb(&work.join("full.exr")).unwrap();
+    assert!(work.join("inserted.png").is_file() && work.join("full.png").is_file());
+    assert_eq!((inserted.width, inserted.height), (64, 64));
+    // Composited and full differ (the photo's own detail is kept outside
+    // the objects), and both are finite.
+    assert!(inserted
+        .data
+        .iter()
+        .chain(&full.data)
+        .all(|v| v.is_finite()));
+    let differ = inserted
+        .data
+        .iter()
+        .zip(&full.data)
+        .filter(|(a, b)| a != b)
+        .count();
+    assert!(differ > 64 * 64 / 2, "{differ}");
+
+    // Tinting the jug re-runs only the composited stage, from kept paths.
+    let tinted = format!(
+        "inserted.objects={}",
+        objects("{type: glass, ior: 1.5, tint: [1, 0.5, 0.2]}")
+    );
+    let (out, st) = run_insert(&cache, &work, &["--set".into(), tinted]);
+    assert!(out.status.success(), "{}", text(&out));
+    let executed: Vec<&String> = st
+        .iter()
+        .filter(|(_, v)| *v == "executed")
+        .map(|(k, _)| k)
+        .collect();
+    assert_eq!(executed, ["inserted"], "{st:?}");
+    let again = io::read_exr_rgb(&work.join("inserted.exr")).unwrap();
+    let changed = again
+        .data
+        .iter()
+        .zip(&inserted.data)
+        .filter(|(a, b)| a != b)
+        .count();
+    assert!(
+        changed > 0 && changed < 64 * 64 / 2,
+        "{changed} pixels changed"
+    );
+
+    // Moving an object cannot be served from the kept paths.
+    let moved = format!(
+        "inserted.objects={}",
+        objects("{type: glass, ior: 1.5}").replace("[50, 59]", "[40, 59]")
+    );
+    let (out, _) = run_insert(&cache, &work, &["--set".into(), moved]);
+    assert!(!out.status.success());
+    assert!(
+        text(&out).contains("not placed as in the `paths` stage"),
+        "{}",
+        text(&out)
+    );
+    let _ = std::fs::remove_dir_all(&work);
+}
+
+#[test]
+fn render_insert_reads_an_objects_file_and_reports_its_mistakes() {
+    let work = tmp("cli");
+    let bundle = work.join("room");
+    let o = matflow(&["synth", "--size", "48", "--spp", "8", "--out", s(&bundle)]);
+    assert!(o.status.success(), "{}", text(&o));
+    std::fs::create_dir_all(work.join("meshes")).unwrap();
+    let o = matflow(&["shapes", "--out", s(&work.join("meshes"))]);
+    assert!(o.status.success(), "{}", text(&o));
+    let file = work.join("objects.yaml");
+    std::fs::write(
+        &file,
+        "- mesh: meshes/sphere.obj\n  anchor: [24, 44]\n  scale: 0.5\n  material: {type: glass, roughness: 0.2}\n",
+    )
+    .unwrap();
+    for composite in ["differential", "full"] {
+        let out = work.join(format!("{composite}.exr"));
+        let o = matflow(&[
+            "render",
+            "--bundle",
+            s(&bundle),
+            "--materials",
+            "ground_truth",
+            "--spp",
+            "4",
+            "--insert",
+            s(&file),
+            "--composite",
+            composite,
+            "--out",
+            s(&out),
+        ]);
+        assert!(o.status.success(), "{}", text(&o));
+        assert!(text(&o).contains("inserted 1 object(s)"), "{}", text(&o));
+        assert!(out.is_file());
+    }
+    // Mistakes, each located in the objects file or naming the mesh.
+    let cases = [
+        (
+            "- mesh: meshes/sphere.obj\n  anchor: [24, 44]\n  colour: red\n",
+            "objects.yaml:3:3",
+            "unknown field `colour`",
+        ),
+        (
+            "- mesh: meshes/none.obj\n  anchor: [24, 44]\n",
+            "objects.yaml:1:9",
+            "none.obj",
+        ),
+        (
+            "- mesh: meshes/sphere.obj\n",
+            "objects.yaml",
+            "give `translate",
+        ),
+        (
+            "- mesh: meshes/sphere.obj\n  anchor: [24, 44]\n  scale: 0\n",
+            "objects.yaml:3:10",
+            "field `scale`",
+        ),
+        (
+            "- mesh: meshes/sphere.obj\n  translate: [0, 0, 5]\n",
+            "objects.yaml",
+            "behind the camera",
+        ),
+        (
+            "- mesh: meshes/sphere.obj\n  anchor: [24, 44]\n  material: {type: glass, ior: 0.5}\n",
+            "objects.yaml:3:32",
+            "field `ior`",
+        ),
+        (
+            "- mesh: meshes/sphere.obj\n  anchor: [99, 44]\n",
+            "objects.yaml",
+            "outside the 48x48 image",
+        ),
+    ];
+    for (yaml, at, want) in cases {
+        std::fs::write(&file, yaml).unwrap();
+        let o = matflow(&[
+            "render",
+            "--bundle",
+            s(&bundle),
+            "--materials",
+            "ground_truth",
+            "--spp",
+            "1",
+            "--insert",
+            s(&file),
+            "--out",
+            s(&work.join("bad.exr")),
+        ]);
+        let t = text(&o);
+        assert!(!o.status.success(), "accepted:\n{yaml}");
+        assert!(t.contains(at) && t.contains(want), "{yaml}\n{t}");
+        assert!(!t.contains("panicked"), "{t}");
+    }
+    let _ = std::fs::remove_dir_all(&work);
+}
+
+#[test]
+fn the_shipped_meshes_are_what_matflow_shapes_writes() {
+    let work = tmp("shapes");
+    let o = matflow(&["shapes", "--out", s(&work)]);
+    assert!(o.status.success(), "{}", text(&o));
+    for name in ["jug", "torus", "sphere", "cube"] {
+        let shipped = std::fs::read(repo().join(format!("pipelines/meshes/{name}.obj"))).unwrap();
+        let made = std::fs::read(work.join(format!("{name}.obj"))).unwrap();
+        assert!(
+            shipped == made,
+            "pipelines/meshes/{name}.obj differs from `matflow shapes`"
+        );
+    }
+    let _ = std::fs::remove_dir_all(&work);
+}
