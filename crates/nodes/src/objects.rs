@@ -882,9 +882,9 @@ mod tests {
         let photo = &s.maps.albedo; // any image of the right size
         let comp = composite_differential(photo, &image, &plain, &alpha);
         let mut same = 0;
-        for k in 0..n * n {
+        for (k, a) in alpha.iter().enumerate() {
             if image.data[k] == plain.data[k] {
-                assert_eq!(alpha[k], 0.0);
+                assert_eq!(*a, 0.0);
                 assert_eq!(comp.data[k], photo.data[k]);
                 same += 1;
             }
