@@ -30,6 +30,8 @@ pub enum BenchCmd {
     /// The pipeline engine: first run, re-edit of one material and a
     /// no-change re-run, over the binary.
     Pipeline(crate::bench_pipeline::BenchPipelineArgs),
+    /// Glass against Mitsuba 3's dielectric and roughdielectric.
+    Glass(crate::bench_glass::BenchGlassArgs),
 }
 
 #[derive(Args)]
@@ -83,6 +85,7 @@ pub fn run(b: BenchCmd) -> Result<()> {
         BenchCmd::Invert(a) => crate::bench_invert::bench_invert(a),
         BenchCmd::Synthetic(a) => crate::bench_synthetic::bench_synthetic(a),
         BenchCmd::Pipeline(a) => crate::bench_pipeline::bench_pipeline(a),
+        BenchCmd::Glass(a) => crate::bench_glass::bench_glass(a),
     }
 }
 

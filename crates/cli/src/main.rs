@@ -38,6 +38,7 @@ pub fn write_out(args: std::fmt::Arguments, newline: bool) {
 mod bench;
 mod bench_compare;
 mod bench_distributed;
+mod bench_glass;
 mod bench_invert;
 mod bench_pipeline;
 mod bench_synthetic;
