@@ -32,6 +32,9 @@ pub enum BenchCmd {
     Pipeline(crate::bench_pipeline::BenchPipelineArgs),
     /// Glass against Mitsuba 3's dielectric and roughdielectric.
     Glass(crate::bench_glass::BenchGlassArgs),
+    /// Object insertion: render time with and without objects, re-edits
+    /// of an inserted object's material, their error.
+    Insert(crate::bench_insert::BenchInsertArgs),
 }
 
 #[derive(Args)]
@@ -86,6 +89,7 @@ pub fn run(b: BenchCmd) -> Result<()> {
         BenchCmd::Synthetic(a) => crate::bench_synthetic::bench_synthetic(a),
         BenchCmd::Pipeline(a) => crate::bench_pipeline::bench_pipeline(a),
         BenchCmd::Glass(a) => crate::bench_glass::bench_glass(a),
+        BenchCmd::Insert(a) => crate::bench_insert::bench_insert(a),
     }
 }
 

@@ -39,6 +39,7 @@ mod bench;
 mod bench_compare;
 mod bench_distributed;
 mod bench_glass;
+mod bench_insert;
 mod bench_invert;
 mod bench_pipeline;
 mod bench_synthetic;
