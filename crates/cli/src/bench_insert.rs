@@ -121,7 +121,7 @@ pub fn bench_insert(a: BenchInsertArgs) -> Result<()> {
 
     // 2. The pipeline over the binary: first run, then re-edits.
     let cache = a.work.join("cache");
-    let base_sets = vec![
+    let base_sets = [
         format!("scene.size={n}"),
         format!("base.spp={}", a.spp),
         format!("base.objects={}", objects_yaml(n, &meshes, GLASS)),
