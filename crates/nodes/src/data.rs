@@ -224,6 +224,9 @@ pub struct Kept {
     /// With objects: the same render without them (same sample streams),
     /// for differential compositing.
     pub background: Option<RgbImage>,
+    /// With objects: their pixel coverage (it depends on geometry only, so
+    /// material re-edits reuse it).
+    pub coverage: Option<Vec<f32>>,
 }
 
 impl Kept {
@@ -274,6 +277,9 @@ impl Kept {
         }
         if let Some(bg) = &self.background {
             a.put_rgb("background", bg);
+        }
+        if let Some(c) = &self.coverage {
+            a.put_f32("coverage", c.len() as u32, 1, c.clone());
         }
         a.encode()
     }
@@ -329,6 +335,15 @@ impl Kept {
             objects: crate::objects::get_objects(&a, "obj_")?,
             background: if a.has("background") {
                 Some(a.rgb("background")?)
+            } else {
+                None
+            },
+            coverage: if a.has("coverage") {
+                let c = a.f32_list("coverage", 1)?;
+                if c.len() != (w as usize) * (h as usize) {
+                    return Err(err("paths artifact: coverage does not match the image"));
+                }
+                Some(c.to_vec())
             } else {
                 None
             },

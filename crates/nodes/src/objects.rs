@@ -873,6 +873,7 @@ mod tests {
             image: image.clone(),
             objects: objs.clone(),
             background: Some(plain.clone()),
+            coverage: Some(base.object_coverage(4)),
         };
         let kept = Kept::decode(&kept.encode()).unwrap();
         assert!(same_geometry(&kept.objects, &objs));

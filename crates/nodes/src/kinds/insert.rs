@@ -155,7 +155,7 @@ const INSERT_INFO: NodeInfo = NodeInfo {
 };
 
 /// Subsamples per pixel side of the coverage matte.
-const COVERAGE_GRID: usize = 4;
+pub(crate) const COVERAGE_GRID: usize = 4;
 
 /// The photo of an `image` or `scene` artifact.
 fn photo_from(b: &[u8]) -> Result<RgbImage, NodeError> {
@@ -297,6 +297,7 @@ impl Node for InsertNode {
             (ctx.progress)((part * t + d) as u64, (parts * t) as u64)
         };
         let parts = if differential { 2 } else { 1 };
+        let kept_coverage = kept.as_ref().and_then(|k| k.coverage.clone());
         let (with, without, w_scene) = if let Some(kept) = kept {
             if !objects::same_geometry(&kept.objects, &objs) {
                 return Err(err(
@@ -332,7 +333,7 @@ impl Node for InsertNode {
             };
             (with, without, w_scene)
         };
-        let alpha = w_scene.object_coverage(COVERAGE_GRID);
+        let alpha = kept_coverage.unwrap_or_else(|| w_scene.object_coverage(COVERAGE_GRID));
         let image = match (differential, without) {
             (true, Some(without)) => {
                 let photo = photo_from(ctx.input("photo")?)?;

@@ -22,6 +22,7 @@ use matflow_render::{render, PixelFilter, RenderOptions};
 
 use crate::data::{encode_image, envmap_from, materials_from, render_scene, Kept, MESH};
 use crate::failed;
+use crate::kinds::insert::COVERAGE_GRID;
 
 pub struct TraceNode;
 
@@ -199,6 +200,7 @@ impl Node for TraceNode {
             materials: maps,
             envmap: env,
             image,
+            coverage: (!objects.is_empty()).then(|| scene.object_coverage(COVERAGE_GRID)),
             objects,
             background,
         };
@@ -261,6 +263,7 @@ mod tests {
             image,
             objects: Vec::new(),
             background: None,
+            coverage: None,
         };
         let kept = Kept::decode(&kept.encode()).unwrap();
         let mut edited = s.maps.clone();
