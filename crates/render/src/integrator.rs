@@ -250,11 +250,14 @@ struct Path {
     /// Vertices shaded so far.
     vertices: u32,
     // What the vertex being shaded has drawn: its shading normal, the
-    // geometric normal rays leave by, its material (`obj` for objects).
+    // geometric normal rays leave by, its material (`obj`: the object's
+    // index for objects, [`NO_OBJECT`] for the depth mesh; `glass_vertex`
+    // whether it is glass).
     n: Vec3,
     ng: Vec3,
     mat: bsdf::Material,
-    obj: Option<Surface>,
+    obj: u32,
+    glass_vertex: bool,
     light: Option<LightSample>,
     next: Option<Continuation>,
 }
@@ -282,7 +285,8 @@ impl Path {
             vertices: 0,
             n: Vec3::ZERO,
             ng: Vec3::ZERO,
-            obj: None,
+            obj: NO_OBJECT,
+            glass_vertex: false,
             mat: bsdf::Material {
                 albedo: Vec3::ZERO,
                 roughness: 1.0,
@@ -502,6 +506,7 @@ impl Wavefront {
             sinks[i as usize].vertex(path.q, path.vertices == 0);
             path.vertices += 1;
             if let Some(&surface) = scene.object_surface(path.q) {
+                path.obj = (path.q - scene.materials.len()) as u32;
                 shade_object(scene, path, surface, k, st, &mut self.rays);
                 continue;
             }
@@ -511,7 +516,8 @@ impl Wavefront {
             path.n = n;
             path.ng = n;
             path.mat = mat;
-            path.obj = None;
+            path.obj = NO_OBJECT;
+            path.glass_vertex = false;
 
             // Next-event estimation towards the environment map.
             let (ue1, ue2) = path.rng.next_2d_with(k.light);
@@ -580,9 +586,10 @@ impl Wavefront {
             let (n, v) = (path.n, -path.dir);
             if let Some(ls) = path.light {
                 if !self.blocked[ls.ray as usize] {
-                    let (f, pdf_b) = match &path.obj {
-                        None => bsdf::eval_pdf(&path.mat, n, v, ls.dir),
-                        Some(s) => surface_eval_pdf(s, n, v, ls.dir),
+                    let (f, pdf_b) = if path.obj == NO_OBJECT {
+                        bsdf::eval_pdf(&path.mat, n, v, ls.dir)
+                    } else {
+                        surface_eval_pdf(&scene.objects[path.obj as usize], n, v, ls.dir)
                     };
                     let w = mis_power(ls.pdf, pdf_b) / ls.pdf;
                     sink.emitter(n, v, ls.dir, w);
@@ -592,7 +599,7 @@ impl Wavefront {
             let Some(c) = path.next else {
                 continue;
             };
-            let go_on = if path.obj.is_some() {
+            let go_on = if path.obj != NO_OBJECT {
                 sink.object_dir()
             } else {
                 sink.bsdf_dir(n, v, c.dir)
@@ -604,7 +611,7 @@ impl Wavefront {
             path.throughput *= c.weight;
             path.p = offset_origin(path.p, path.ng, c.dir);
             path.dir = c.dir;
-            if path.obj.is_some_and(|s| s.is_glass()) {
+            if path.glass_vertex {
                 path.glass += 1;
             } else {
                 path.seg += 1;
@@ -679,6 +686,9 @@ fn may_shade(scene: &RenderScene, opts: &RenderOptions, path: &Path, q: usize) -
     }
 }
 
+/// [`Path::obj`] of a vertex on the depth mesh.
+const NO_OBJECT: u32 = u32::MAX;
+
 /// f·cos and pdf of an object's surface for the outgoing direction `l`
 /// (`n` the shading normal the vertex was shaded with).
 #[inline]
@@ -727,7 +737,7 @@ fn shade_object(
     }
     path.n = n;
     path.ng = ng;
-    path.obj = Some(surface);
+    path.glass_vertex = glass.is_some();
     // Next-event estimation (not for smooth glass: its lobes are deltas).
     let (ue1, ue2) = path.rng.next_2d_with(k.light);
     path.light = None;
