@@ -220,6 +220,7 @@ pub fn materials_to_maps(w: usize, h: usize, mats: &[Material]) -> MaterialMaps 
         roughness: Image::from_vec(w, h, mats.iter().map(|m| m.roughness).collect()),
         metallic: Image::from_vec(w, h, mats.iter().map(|m| m.metallic).collect()),
         normal: None,
+        transparency: None,
     }
 }
 

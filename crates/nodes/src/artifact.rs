@@ -243,6 +243,17 @@ impl Artifact {
         self.put_rgb(&format!("{prefix}albedo"), &m.albedo);
         self.put_gray(&format!("{prefix}roughness"), &m.roughness);
         self.put_gray(&format!("{prefix}metallic"), &m.metallic);
+        if let Some(t) = &m.transparency {
+            self.put_gray(&format!("{prefix}glass_ior"), &t.ior);
+            self.put_gray(&format!("{prefix}glass_transmission"), &t.transmission);
+            self.put_gray(&format!("{prefix}glass_roughness"), &t.roughness);
+            self.put_rgb(&format!("{prefix}glass_tint"), &t.tint);
+            self.put_gray(&format!("{prefix}glass_d1"), &t.d1);
+            self.put_gray(&format!("{prefix}glass_d2"), &t.d2);
+            self.put_rgb(&format!("{prefix}bg_albedo"), &t.bg_albedo);
+            self.put_gray(&format!("{prefix}bg_roughness"), &t.bg_roughness);
+            self.put_gray(&format!("{prefix}bg_metallic"), &t.bg_metallic);
+        }
     }
 
     pub fn materials(&self, prefix: &str) -> Result<MaterialMaps, NodeError> {
@@ -251,9 +262,29 @@ impl Artifact {
             roughness: self.gray(&format!("{prefix}roughness"))?,
             metallic: self.gray(&format!("{prefix}metallic"))?,
             normal: None,
+            transparency: if self.has(&format!("{prefix}glass_ior")) {
+                Some(matflow_scene::transparency::Transparency {
+                    ior: self.gray(&format!("{prefix}glass_ior"))?,
+                    transmission: self.gray(&format!("{prefix}glass_transmission"))?,
+                    roughness: self.gray(&format!("{prefix}glass_roughness"))?,
+                    tint: self.rgb(&format!("{prefix}glass_tint"))?,
+                    d1: self.gray(&format!("{prefix}glass_d1"))?,
+                    d2: self.gray(&format!("{prefix}glass_d2"))?,
+                    bg_albedo: self.rgb(&format!("{prefix}bg_albedo"))?,
+                    bg_roughness: self.gray(&format!("{prefix}bg_roughness"))?,
+                    bg_metallic: self.gray(&format!("{prefix}bg_metallic"))?,
+                })
+            } else {
+                None
+            },
         };
         if !m.albedo.same_size(&m.roughness) || !m.albedo.same_size(&m.metallic) {
             return Err(bad(&self.ty, "material maps differ in size"));
+        }
+        if let Some(t) = &m.transparency {
+            if !t.has_size(m.albedo.width, m.albedo.height) {
+                return Err(bad(&self.ty, "transparency maps differ in size"));
+            }
         }
         Ok(m)
     }

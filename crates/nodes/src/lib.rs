@@ -30,6 +30,7 @@ pub fn registry() -> Registry {
         Box::new(kinds::envmap_opt::EnvmapOptNode),
         Box::new(kinds::material_opt::MaterialOptNode),
         Box::new(kinds::edit::EditNode),
+        Box::new(kinds::transparency::TransparencyNode),
         Box::new(kinds::relight::RelightNode),
         Box::new(kinds::render::RenderNode),
         Box::new(kinds::trace::TraceNode),

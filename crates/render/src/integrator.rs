@@ -192,6 +192,9 @@ struct Continuation {
     /// Sampled from a delta lobe (smooth glass): the sky it reaches is
     /// not weighted against envmap sampling, which cannot produce it.
     delta: bool,
+    /// Refracted through a transparent region: the path goes on at the
+    /// background seen through this pixel, with no ray traced.
+    teleport: Option<u32>,
 }
 
 /// An envmap sample towards which a shadow ray is traced: direction,
@@ -327,6 +330,9 @@ pub struct Wavefront {
     blocked: Vec<bool>,
     hits: Vec<Option<Hit>>,
     dirs: Vec<Vec3>,
+    /// Paths whose continuation went through a transparent region to a
+    /// background vertex (no ray traced).
+    teleported: Vec<u32>,
 }
 
 /// Pixels per batch of the renderer's [`Wavefront`]: enough paths that
@@ -407,7 +413,7 @@ impl Wavefront {
         while !self.active.is_empty() {
             self.shade(scene, opts, st, sinks);
             self.shadows(scene);
-            self.continuations(scene, st, sinks);
+            self.continuations(scene, opts, st, sinks);
             self.vertices(scene, opts, sinks);
         }
     }
@@ -510,9 +516,13 @@ impl Wavefront {
                 shade_object(scene, path, surface, k, st, &mut self.rays);
                 continue;
             }
+            if let Some(g) = scene.glass_pixel(path.q) {
+                shade_screen_glass(scene, path, *g, k, st, &mut self.rays);
+                continue;
+            }
             let n = scene.face_normals[path.hit.prim as usize];
             let v = -path.dir;
-            let mat = scene.materials[path.q];
+            let mat = scene.screen_material(path.q);
             path.n = n;
             path.ng = n;
             path.mat = mat;
@@ -556,6 +566,7 @@ impl Wavefront {
                         weight: s.weight,
                         pdf: s.pdf,
                         delta: false,
+                        teleport: None,
                     }
                 });
         }
@@ -575,18 +586,27 @@ impl Wavefront {
     fn continuations<S: PathSink>(
         &mut self,
         scene: &RenderScene,
+        opts: &RenderOptions,
         st: &mut RenderStats,
         sinks: &mut [S],
     ) {
         self.rays.clear();
         self.ray_path.clear();
+        self.teleported.clear();
         for &i in &self.active {
             let path = &mut self.paths[i as usize];
             let sink = &mut sinks[i as usize];
             let (n, v) = (path.n, -path.dir);
             if let Some(ls) = path.light {
                 if !self.blocked[ls.ray as usize] {
-                    let (f, pdf_b) = if path.obj == NO_OBJECT {
+                    let (f, pdf_b) = if path.obj == NO_OBJECT && path.glass_vertex {
+                        // A transparent region reflects the light only.
+                        let g = scene.glass_pixel(path.q).map(|g| g.interface);
+                        let fr = Frame::from_normal(n);
+                        g.map_or((Vec3::ZERO, 0.0), |g| {
+                            dielectric::eval_pdf(&g, fr.to_local(v), fr.to_local(ls.dir))
+                        })
+                    } else if path.obj == NO_OBJECT {
                         bsdf::eval_pdf(&path.mat, n, v, ls.dir)
                     } else {
                         surface_eval_pdf(&scene.objects[path.obj as usize], n, v, ls.dir)
@@ -599,6 +619,42 @@ impl Wavefront {
             let Some(c) = path.next else {
                 continue;
             };
+            if let Some(p2) = c.teleport {
+                // Through a transparent region: the background seen
+                // through pixel p2 is the next vertex.
+                path.next = None;
+                if !sink.object_dir() {
+                    continue;
+                }
+                path.throughput *= c.weight;
+                path.dir = c.dir;
+                path.glass += 1;
+                let sg = scene.screen_glass.as_ref().expect("teleports need regions");
+                let (pt, prim) = sg.surface[p2 as usize];
+                if prim == crate::scene::NO_SURFACE {
+                    // The sky shows through.
+                    sink.bsdf_sky(c.dir, 1.0 / c.pdf);
+                    path.l += path.throughput * scene.env.eval(c.dir);
+                    continue;
+                }
+                if !sink.bounce(1.0 / c.pdf) {
+                    continue;
+                }
+                let q = scene.background_base() + p2 as usize;
+                if !may_shade(scene, opts, path, q) {
+                    continue;
+                }
+                path.p = pt;
+                path.hit = Hit {
+                    t: 0.0,
+                    prim,
+                    u: 0.0,
+                    v: 0.0,
+                };
+                path.q = q;
+                self.teleported.push(i);
+                continue;
+            }
             let go_on = if path.obj != NO_OBJECT {
                 sink.object_dir()
             } else {
@@ -671,6 +727,7 @@ impl Wavefront {
             prefetch(&scene.materials, q);
             self.next_active.push(i);
         }
+        self.next_active.extend_from_slice(&self.teleported);
         std::mem::swap(&mut self.active, &mut self.next_active);
     }
 }
@@ -765,6 +822,7 @@ fn shade_object(
             weight: s.weight,
             pdf: s.pdf,
             delta: false,
+            teleport: None,
         }),
         Surface::Diffuse(a) => {
             let dir = Frame::from_normal(n).to_world(square_to_cosine_hemisphere(u1, u2));
@@ -774,6 +832,7 @@ fn shade_object(
                 weight: a,
                 pdf,
                 delta: false,
+                teleport: None,
             })
         }
         Surface::Glass(g) => {
@@ -783,10 +842,109 @@ fn shade_object(
                 weight: s.weight,
                 pdf: s.pdf,
                 delta: s.delta,
+                teleport: None,
             })
         }
     }
     .filter(|c| c.weight.max_element() > 0.0 && c.weight.is_finite());
+}
+
+/// Shades a vertex in a transparent region of the depth mesh (the paper's
+/// single-view transparency, eqs. 22–23): the front surface is a glass
+/// interface; a reflection goes on into the scene; a refraction ωt1 goes
+/// d1 into the object, leaves through a back surface parallel to the front
+/// surface seen where it is (the normal of the pixel x1 = x + d1·ωt1
+/// projects to) in direction ωt2, and after d2 more reaches
+/// x2 = x1 + d2·ωt2: the path goes on at the background seen through the
+/// pixel x2 projects to, whose material is the region's (inpainted)
+/// background. Refraction in and out carries √(T·tint) each and the
+/// region's (1 − metallic), the exit (1 − F) too; total internal
+/// reflection at the exit loses the light. Draws the same dimensions as
+/// any vertex.
+#[inline(never)]
+fn shade_screen_glass(
+    scene: &RenderScene,
+    path: &mut Path,
+    g: crate::scene::GlassPixel,
+    k: VertexKeys,
+    st: &mut RenderStats,
+    rays: &mut Vec<(Vec3, Vec3)>,
+) {
+    let n = scene.face_normals[path.hit.prim as usize];
+    let v = -path.dir;
+    path.n = n;
+    path.ng = n;
+    path.obj = NO_OBJECT;
+    path.glass_vertex = true;
+    path.mat = scene.materials[path.q];
+    let frame = Frame::from_normal(n);
+    let (ue1, ue2) = path.rng.next_2d_with(k.light);
+    path.light = None;
+    if !g.interface.is_smooth() {
+        if let Some((wl, le, pdf_e)) = scene.env.sample(ue1, ue2) {
+            // Only reflection reaches the envmap directly from here.
+            if n.dot(wl) > 0.0 && n.dot(v) > 0.0 && pdf_e > 0.0 {
+                st.shadow_rays += 1;
+                path.light = Some(LightSample {
+                    dir: wl,
+                    le,
+                    pdf: pdf_e,
+                    ray: rays.len() as u32,
+                });
+                rays.push((offset_origin(path.p, n, wl), wl));
+            }
+        }
+    }
+    let u_lobe = path.rng.next_f32_with(k.lobe);
+    let (u1, u2) = path.rng.next_2d_with(k.direction);
+    let wi = frame.to_local(v);
+    path.next = dielectric::sample(&g.interface, wi, u_lobe, u1, u2).and_then(|s| {
+        let dir = frame.to_world(s.wo).normalize_or(s.wo);
+        if s.wo.z * wi.z > 0.0 {
+            return Some(Continuation {
+                dir,
+                weight: s.weight,
+                pdf: s.pdf,
+                delta: s.delta,
+                teleport: None,
+            });
+        }
+        // Into the object, out through the back, to the background.
+        let x1 = path.p + dir * g.d1;
+        let p1 = scene.pixel_of(x1).unwrap_or(path.q);
+        let sg = scene.screen_glass.as_ref()?;
+        let nb = match sg.surface[p1].1 {
+            crate::scene::NO_SURFACE => n,
+            prim => scene.face_normals[prim as usize],
+        };
+        // Leaving: the back surface's outward normal is −nb; seen from
+        // inside, the direction back along the ray is −dir.
+        let m = -nb;
+        let wi_exit = -dir;
+        let (f2, cos_t, _, eta_ti) = dielectric::fresnel(wi_exit.dot(m), g.interface.eta);
+        if f2 >= 1.0 {
+            return None;
+        }
+        let out = dielectric::refract(wi_exit, m, cos_t, eta_ti).normalize_or_zero();
+        if out == Vec3::ZERO {
+            return None;
+        }
+        let weight = s.weight
+            * g.interface.refraction_weight()
+            * ((1.0 - f2) * eta_ti * eta_ti * (1.0 - path.mat.metallic));
+        if !weight.is_finite() || !(weight.max_element() > 0.0) {
+            return None;
+        }
+        let x2 = x1 + out * g.d2;
+        let p2 = scene.pixel_of(x2).unwrap_or(path.q);
+        Some(Continuation {
+            dir: out,
+            weight,
+            pdf: s.pdf,
+            delta: true,
+            teleport: Some(p2 as u32),
+        })
+    });
 }
 
 /// Asks for the cache line of `v[i]` ahead of its use.

@@ -91,6 +91,31 @@ pub struct SceneObject {
     pub surface: Surface,
 }
 
+/// One pixel of a transparent region: its glass interface and refraction
+/// distances (scene units; see `matflow_scene::transparency`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct GlassPixel {
+    pub interface: Dielectric,
+    pub d1: f32,
+    pub d2: f32,
+}
+
+/// Transparent regions of the depth mesh (the paper's single-view
+/// transparency) and what shows through them.
+pub struct ScreenGlass {
+    /// Per pixel, its glass inside a region.
+    pub glass: Vec<Option<GlassPixel>>,
+    /// Per pixel, the background's material (inpainted inside the regions,
+    /// the ordinary one elsewhere), sanitised.
+    pub background: Vec<Material>,
+    /// Per pixel, the depth mesh's surface seen through the pixel's centre:
+    /// point and triangle ([`NO_SURFACE`]: sky).
+    pub surface: Vec<(Vec3, u32)>,
+}
+
+/// [`ScreenGlass::surface`] of a pixel that sees the sky.
+pub const NO_SURFACE: u32 = u32::MAX;
+
 pub struct RenderScene {
     pub camera: Camera,
     /// The depth mesh's triangles first, then each object's.
@@ -109,6 +134,10 @@ pub struct RenderScene {
     /// Surfaces of the objects, sanitised. A vertex on object `k` uses
     /// material index `width·height + k`.
     pub objects: Vec<Surface>,
+    /// Transparent regions, when the materials have any. A vertex on the
+    /// background seen through pixel `p` uses material index
+    /// `width·height + objects + p`.
+    pub screen_glass: Option<ScreenGlass>,
     pub env: EnvMap,
     focal: f32,
     principal: Vec2,
@@ -169,7 +198,12 @@ impl RenderScene {
             at += n;
         }
         let materials = materials_from_maps(maps);
+        let screen_glass = maps
+            .transparency
+            .as_ref()
+            .map(|t| screen_glass(&camera, &bvh, screen_prims, maps, t));
         Ok(RenderScene {
+            screen_glass,
             screen_prims,
             prim_object,
             objects: objects.iter().map(|o| o.surface.sanitized()).collect(),
@@ -225,10 +259,42 @@ impl RenderScene {
         self.objects.get(q.wrapping_sub(self.materials.len()))
     }
 
-    /// Whether material index `q` is glass.
+    /// The first material index of background vertices.
+    #[inline]
+    pub fn background_base(&self) -> usize {
+        self.materials.len() + self.objects.len()
+    }
+
+    /// The glass of pixel `q`, when it lies in a transparent region.
+    #[inline]
+    pub fn glass_pixel(&self, q: usize) -> Option<&GlassPixel> {
+        self.screen_glass.as_ref()?.glass.get(q)?.as_ref()
+    }
+
+    /// The screen-space material of index `q`: a pixel's, or the
+    /// background's seen through a pixel.
+    #[inline]
+    pub fn screen_material(&self, q: usize) -> Material {
+        match self.materials.get(q) {
+            Some(m) => *m,
+            None => self
+                .screen_glass
+                .as_ref()
+                .and_then(|g| g.background.get(q - self.background_base()))
+                .copied()
+                .unwrap_or(Material {
+                    albedo: Vec3::ZERO,
+                    roughness: 1.0,
+                    metallic: 0.0,
+                }),
+        }
+    }
+
+    /// Whether material index `q` is glass (an object's or a transparent
+    /// region's).
     #[inline]
     pub fn is_glass(&self, q: usize) -> bool {
-        self.object_surface(q).is_some_and(Surface::is_glass)
+        self.object_surface(q).is_some_and(Surface::is_glass) || self.glass_pixel(q).is_some()
     }
 
     /// Per pixel (row-major), the fraction of an `n`×`n` grid of camera
@@ -261,6 +327,13 @@ impl RenderScene {
             .collect()
     }
 
+    /// The pixel a camera-space point projects into, like
+    /// [`Self::material_index`] (nearest, clamped to the film).
+    #[inline]
+    pub fn pixel_of(&self, p: Vec3) -> Option<usize> {
+        self.material_index(p)
+    }
+
     /// Interpolated vertex normal at a hit.
     #[inline]
     pub fn shading_normal(&self, prim: u32, u: f32, v: f32) -> Vec3 {
@@ -280,5 +353,70 @@ impl RenderScene {
             -1.0,
         )
         .normalize()
+    }
+}
+
+/// The transparent regions' per-pixel data: glass, background materials,
+/// and the depth mesh's surface through each pixel centre (the first hit
+/// on the depth mesh, passing through inserted objects).
+fn screen_glass(
+    camera: &Camera,
+    bvh: &Bvh,
+    screen_prims: usize,
+    maps: &MaterialMaps,
+    t: &matflow_scene::transparency::Transparency,
+) -> ScreenGlass {
+    use rayon::prelude::*;
+    let (w, h) = (camera.width, camera.height);
+    let fin = |x: f32| if x.is_finite() { x.max(0.0) } else { 0.0 };
+    let glass = (0..w * h)
+        .map(|k| {
+            t.is_glass(k).then(|| GlassPixel {
+                interface: Dielectric {
+                    eta: t.ior.data[k],
+                    transmission: t.transmission.data[k],
+                    tint: t.tint.data[k],
+                    roughness: t.roughness.data[k],
+                }
+                .sanitized(),
+                d1: fin(t.d1.data[k]),
+                d2: fin(t.d2.data[k]),
+            })
+        })
+        .collect();
+    let background = (0..w * h)
+        .map(|k| {
+            let (albedo, roughness, metallic) = maps.background_at(k);
+            Material {
+                albedo,
+                roughness,
+                metallic,
+            }
+            .sanitized()
+        })
+        .collect();
+    let f = camera.focal();
+    let pp = camera.principal_point();
+    let surface = (0..w * h)
+        .into_par_iter()
+        .with_min_len(256)
+        .map(|k| {
+            let film = Vec2::new((k % w) as f32 + 0.5, (k / w) as f32 + 0.5);
+            let d =
+                Vec3::new((film.x - 0.5 - pp.x) / f, -(film.y - 0.5 - pp.y) / f, -1.0).normalize();
+            let mut tmin = 0.0;
+            while let Some(hit) = bvh.intersect(Vec3::ZERO, d, tmin, f32::INFINITY) {
+                if (hit.prim as usize) < screen_prims {
+                    return (d * hit.t, hit.prim);
+                }
+                tmin = hit.t * (1.0 + 1e-6) + 1e-6;
+            }
+            (Vec3::ZERO, NO_SURFACE)
+        })
+        .collect();
+    ScreenGlass {
+        glass,
+        background,
+        surface,
     }
 }

@@ -23,6 +23,7 @@ use crate::color::srgb_to_linear;
 use crate::error::{Result, SceneError};
 use crate::image::{GrayImage, Image, RgbImage};
 use crate::io;
+use crate::transparency::Transparency;
 
 /// Which material maps to use.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -67,19 +68,66 @@ pub struct MaterialMaps {
     pub metallic: GrayImage,
     /// Camera-space normals, when the source has them.
     pub normal: Option<RgbImage>,
+    /// Regions made transparent, when there are any.
+    pub transparency: Option<Transparency>,
 }
 
 impl MaterialMaps {
-    /// Per texel, whether albedo, roughness or metallic differ from
-    /// `other`'s (maps of the same size).
+    /// Per texel, whether albedo, roughness or metallic — or the glass of
+    /// a transparent region — differ from `other`'s (maps of the same
+    /// size).
     pub fn changed_texels(&self, other: &MaterialMaps) -> Vec<bool> {
         (0..self.albedo.data.len())
             .map(|i| {
                 self.albedo.data[i] != other.albedo.data[i]
                     || self.roughness.data[i] != other.roughness.data[i]
                     || self.metallic.data[i] != other.metallic.data[i]
+                    || match (&self.transparency, &other.transparency) {
+                        (None, None) => false,
+                        (Some(a), Some(b)) => a.glass_differs(b, i),
+                        (Some(t), None) | (None, Some(t)) => t.is_glass(i),
+                    }
             })
             .collect()
+    }
+
+    /// Per texel, whether the material of the background seen through it
+    /// differs from `other`'s: inside a transparent region its own
+    /// background material, elsewhere the texel's ordinary one.
+    pub fn changed_background(&self, other: &MaterialMaps) -> Vec<bool> {
+        (0..self.albedo.data.len())
+            .map(|i| {
+                fn glass(m: &MaterialMaps, i: usize) -> Option<&Transparency> {
+                    m.transparency.as_ref().filter(|t| t.is_glass(i))
+                }
+                match (glass(self, i), glass(other, i)) {
+                    (None, None) => {
+                        self.albedo.data[i] != other.albedo.data[i]
+                            || self.roughness.data[i] != other.roughness.data[i]
+                            || self.metallic.data[i] != other.metallic.data[i]
+                    }
+                    (Some(a), Some(b)) => a.background_differs(b, i),
+                    _ => true,
+                }
+            })
+            .collect()
+    }
+
+    /// The material of the background at texel `i`: (albedo, roughness,
+    /// metallic).
+    pub fn background_at(&self, i: usize) -> (Vec3, f32, f32) {
+        match self.transparency.as_ref().filter(|t| t.is_glass(i)) {
+            Some(t) => (
+                t.bg_albedo.data[i],
+                t.bg_roughness.data[i],
+                t.bg_metallic.data[i],
+            ),
+            None => (
+                self.albedo.data[i],
+                self.roughness.data[i],
+                self.metallic.data[i],
+            ),
+        }
     }
 }
 
@@ -97,6 +145,7 @@ impl MaterialMaps {
             roughness: Image::new(w, h, roughness),
             metallic: Image::new(w, h, metallic),
             normal: None,
+            transparency: None,
         }
     }
 }
@@ -284,6 +333,7 @@ impl Bundle {
                     } else {
                         None
                     },
+                    transparency: None,
                 }
             }
             Some(f) => {
@@ -297,6 +347,7 @@ impl Bundle {
                     } else {
                         None
                     },
+                    transparency: None,
                 }
             }
         };

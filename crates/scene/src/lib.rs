@@ -17,6 +17,7 @@ pub mod io;
 pub mod meshfile;
 pub mod metrics;
 pub mod synthetic;
+pub mod transparency;
 
 pub use bundle::{Bundle, MaterialMaps, MaterialSource};
 pub use camera::Camera;

@@ -326,6 +326,7 @@ pub fn generate(seed: u64, width: usize, height: usize) -> SyntheticScene {
             roughness: rough,
             metallic: metal,
             normal: Some(normal),
+            transparency: None,
         },
         envmap: procedural_sky(seed, 32, 16),
     }
@@ -374,6 +375,7 @@ pub fn degrade(maps: &MaterialMaps, seed: u64) -> MaterialMaps {
         roughness,
         metallic,
         normal: maps.normal.clone(),
+        transparency: None,
     }
 }
 

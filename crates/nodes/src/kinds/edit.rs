@@ -44,7 +44,7 @@ impl EditNode {
         }
     }
 
-    fn mask(p: &Params, maps: &MaterialMaps) -> Result<Image<bool>, NodeError> {
+    pub(crate) fn mask(p: &Params, maps: &MaterialMaps) -> Result<Image<bool>, NodeError> {
         let (w, h) = (maps.width(), maps.height());
         let m = if let Some(path) = p.path("mask_png") {
             let m = io::read_mask(&path).map_err(err)?;
@@ -78,6 +78,46 @@ impl EditNode {
     }
 }
 
+pub(crate) const MASK_PNG: ParamSpec = ParamSpec {
+    name: "mask_png",
+    ty: ParamType::InPath,
+    default: Some("~"),
+    unit: "",
+    doc: "a PNG of the image's size; white (and opaque) pixels are edited",
+};
+
+pub(crate) const MASK_RECT: ParamSpec = ParamSpec {
+    name: "mask_rect",
+    ty: ParamType::Floats {
+        len: 4,
+        min: 0.0,
+        max: 65536.0,
+    },
+    default: Some("~"),
+    unit: "px",
+    doc: "[x0, y0, x1, y1], x1 and y1 exclusive, origin top left",
+};
+
+pub(crate) const MASK_FLOOD: ParamSpec = ParamSpec {
+    name: "mask_flood",
+    ty: ParamType::Floats {
+        len: 2,
+        min: 0.0,
+        max: 65536.0,
+    },
+    default: Some("~"),
+    unit: "px",
+    doc: "[x, y] seed pixel; the region grows over similar albedo",
+};
+
+pub(crate) const FLOOD_TOLERANCE: ParamSpec = ParamSpec {
+    name: "flood_tolerance",
+    ty: ParamType::Float { min: 0.0, max: 1.0 },
+    default: Some("0.08"),
+    unit: "γ-encoded",
+    doc: "largest per-channel albedo difference from the seed that joins the region",
+};
+
 const EDIT_INFO: NodeInfo = NodeInfo {
     kind: "edit",
     version: 1,
@@ -93,42 +133,10 @@ const EDIT_INFO: NodeInfo = NodeInfo {
             unit: "",
             doc: "the materials to edit (a scene gives its predictions)",
         },
-        ParamSpec {
-            name: "mask_png",
-            ty: ParamType::InPath,
-            default: Some("~"),
-            unit: "",
-            doc: "a PNG of the image's size; white (and opaque) pixels are edited",
-        },
-        ParamSpec {
-            name: "mask_rect",
-            ty: ParamType::Floats {
-                len: 4,
-                min: 0.0,
-                max: 65536.0,
-            },
-            default: Some("~"),
-            unit: "px",
-            doc: "[x0, y0, x1, y1], x1 and y1 exclusive, origin top left",
-        },
-        ParamSpec {
-            name: "mask_flood",
-            ty: ParamType::Floats {
-                len: 2,
-                min: 0.0,
-                max: 65536.0,
-            },
-            default: Some("~"),
-            unit: "px",
-            doc: "[x, y] seed pixel; the region grows over similar albedo",
-        },
-        ParamSpec {
-            name: "flood_tolerance",
-            ty: ParamType::Float { min: 0.0, max: 1.0 },
-            default: Some("0.08"),
-            unit: "γ-encoded",
-            doc: "largest per-channel albedo difference from the seed that joins the region",
-        },
+        MASK_PNG,
+        MASK_RECT,
+        MASK_FLOOD,
+        FLOOD_TOLERANCE,
         ParamSpec {
             name: "roughness",
             ty: ParamType::Float { min: 0.0, max: 1.0 },
@@ -223,71 +231,16 @@ impl Node for EditNode {
     fn info(&self) -> &'static NodeInfo {
         &EDIT_INFO
     }
-    fn check_film(&self, p: &Params, (w, h): (usize, usize)) -> Result<(), String> {
-        if let Some(r) = p.floats("mask_rect") {
-            if r[0] >= w as f64 || r[1] >= h as f64 || r[2] <= 0.0 || r[3] <= 0.0 {
-                return Err(format!(
-                    "mask_rect [{}, {}, {}, {}] lies outside the {w}x{h} image",
-                    r[0], r[1], r[2], r[3]
-                ));
-            }
-        }
-        if let Some(s) = p.floats("mask_flood") {
-            if s[0] >= w as f64 || s[1] >= h as f64 {
-                return Err(format!(
-                    "mask_flood: seed pixel ({}, {}) is outside the {w}x{h} image",
-                    s[0], s[1]
-                ));
-            }
-        }
-        if let Some(path) = p.path("mask_png") {
-            if let Ok(m) = io::read_mask(&path) {
-                if (m.width, m.height) != (w, h) {
-                    return Err(format!(
-                        "{}: the mask is {}x{} but the image is {w}x{h}",
-                        path.display(),
-                        m.width,
-                        m.height
-                    ));
-                }
-            }
-        }
-        Ok(())
+    fn check_film(&self, p: &Params, size: (usize, usize)) -> Result<(), String> {
+        check_mask_film(p, size)
     }
     /// A mask file is decoded before any stage runs: a corrupt or empty
     /// one must not cost the upstream stages first.
     fn preflight(&self, p: &Params) -> Result<(), String> {
-        if let Some(path) = p.path("mask_png") {
-            let m = io::read_mask(&path).map_err(|e| e.to_string())?;
-            if !m.data.iter().any(|&b| b) {
-                return Err(format!(
-                    "{}: the mask selects no pixels (white, opaque pixels are edited)",
-                    path.display()
-                ));
-            }
-        }
-        Ok(())
+        preflight_mask(p)
     }
     fn check(&self, p: &Params) -> Result<(), String> {
-        if let Some(r) = p.floats("mask_rect") {
-            if r[2] <= r[0] || r[3] <= r[1] {
-                return Err(format!(
-                    "mask_rect [{}, {}, {}, {}] is empty: give [x0, y0, x1, y1] with x1 > x0 and y1 > y0",
-                    r[0], r[1], r[2], r[3]
-                ));
-            }
-        }
-        let masks: Vec<&str> = MASKS.iter().copied().filter(|m| p.is_set(m)).collect();
-        if masks.len() != 1 {
-            return Err(format!(
-                "give exactly one of mask_png, mask_rect, mask_flood (got {})",
-                if masks.is_empty() {
-                    "none".to_string()
-                } else {
-                    masks.join(", ")
-                }
-            ));
-        }
+        check_mask_choice(p)?;
         let changes = OPS.iter().any(|o| match *o {
             "roughness_scale" | "metallic_scale" | "saturation_scale" | "value_scale" => {
                 p.f64(o) != 1.0
@@ -316,4 +269,75 @@ impl Node for EditNode {
         ]
         .into())
     }
+}
+
+/// Pixel positions and mask sizes against the image size.
+pub(crate) fn check_mask_film(p: &Params, (w, h): (usize, usize)) -> Result<(), String> {
+    if let Some(r) = p.floats("mask_rect") {
+        if r[0] >= w as f64 || r[1] >= h as f64 || r[2] <= 0.0 || r[3] <= 0.0 {
+            return Err(format!(
+                "mask_rect [{}, {}, {}, {}] lies outside the {w}x{h} image",
+                r[0], r[1], r[2], r[3]
+            ));
+        }
+    }
+    if let Some(s) = p.floats("mask_flood") {
+        if s[0] >= w as f64 || s[1] >= h as f64 {
+            return Err(format!(
+                "mask_flood: seed pixel ({}, {}) is outside the {w}x{h} image",
+                s[0], s[1]
+            ));
+        }
+    }
+    if let Some(path) = p.path("mask_png") {
+        if let Ok(m) = io::read_mask(&path) {
+            if (m.width, m.height) != (w, h) {
+                return Err(format!(
+                    "{}: the mask is {}x{} but the image is {w}x{h}",
+                    path.display(),
+                    m.width,
+                    m.height
+                ));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Decodes a mask file before anything runs.
+pub(crate) fn preflight_mask(p: &Params) -> Result<(), String> {
+    if let Some(path) = p.path("mask_png") {
+        let m = io::read_mask(&path).map_err(|e| e.to_string())?;
+        if !m.data.iter().any(|&b| b) {
+            return Err(format!(
+                "{}: the mask selects no pixels (white, opaque pixels are edited)",
+                path.display()
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Exactly one mask, and a non-empty rectangle.
+pub(crate) fn check_mask_choice(p: &Params) -> Result<(), String> {
+    if let Some(r) = p.floats("mask_rect") {
+        if r[2] <= r[0] || r[3] <= r[1] {
+            return Err(format!(
+                "mask_rect [{}, {}, {}, {}] is empty: give [x0, y0, x1, y1] with x1 > x0 and y1 > y0",
+                r[0], r[1], r[2], r[3]
+            ));
+        }
+    }
+    let masks: Vec<&str> = MASKS.iter().copied().filter(|m| p.is_set(m)).collect();
+    if masks.len() != 1 {
+        return Err(format!(
+            "give exactly one of mask_png, mask_rect, mask_flood (got {})",
+            if masks.is_empty() {
+                "none".to_string()
+            } else {
+                masks.join(", ")
+            }
+        ));
+    }
+    Ok(())
 }

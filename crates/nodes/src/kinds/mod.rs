@@ -11,3 +11,4 @@ pub mod relight;
 pub mod render;
 pub mod synthetic_scene;
 pub mod trace;
+pub mod transparency;

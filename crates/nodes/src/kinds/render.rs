@@ -181,6 +181,8 @@ pub(crate) fn rerender_kept(
             .zip(objs)
             .map(|(a, b)| a.surface != b.surface),
     );
+    // Background vertices (seen through transparent regions) come last.
+    changed.extend(k.materials.changed_background(edited));
     Ok(k.cache
         .rerender_changed(&k.image, scene, &k.render_options(), &changed))
 }
