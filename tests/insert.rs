@@ -289,3 +289,94 @@ fn the_readme_documents_every_node_kind_as_matflow_kinds_prints_it() {
         "README.md's node reference differs from `matflow kinds` (regenerate it)"
     );
 }
+
+#[test]
+fn the_glass_pipeline_makes_a_region_transparent_and_re_edits_t_from_kept_paths() {
+    let work = tmp("glass");
+    let cache = work.join("cache");
+    let report = work.join("report.json");
+    let run = |extra: &[&str]| -> (Output, BTreeMap<String, String>) {
+        let out_s = format!("glass.output={}", s(&work.join("glass.exr")));
+        let file = repo().join("pipelines/glass.yaml");
+        let mut args = vec![
+            "run",
+            s(&file),
+            "--quiet",
+            "--cache",
+            s(&cache),
+            "--report",
+            s(&report),
+        ];
+        for set in [
+            "scene.size=64",
+            "scene.spp=8",
+            "lighting.budget_seconds=1",
+            "recovered.budget_seconds=2",
+            "base.spp=8",
+            "base.path_spp=4",
+            "glassy.mask_flood=~",
+            "glassy.mask_rect=[44, 38, 58, 52]",
+            out_s.as_str(),
+        ] {
+            args.push("--set");
+            args.push(set);
+        }
+        args.extend_from_slice(extra);
+        let out = matflow(&args);
+        if !out.status.success() {
+            return (out, BTreeMap::new());
+        }
+        let r: Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+        let st = r["stages"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|s| {
+                (
+                    s["name"].as_str().unwrap().to_string(),
+                    s["status"].as_str().unwrap().to_string(),
+                )
+            })
+            .collect();
+        (out, st)
+    };
+    let (out, st) = run(&[]);
+    assert!(out.status.success(), "{}", text(&out));
+    assert!(st.values().all(|s| s == "executed"), "{st:?}");
+    let first = io::read_exr_rgb(&work.join("glass.exr")).unwrap();
+    assert!(first.data.iter().all(|v| v.is_finite()));
+    // Less transmission: the transparency and its render re-run, from the
+    // kept paths; pixels far from the region keep their values.
+    let (out, st) = run(&["--set", "glassy.transmission=0.3"]);
+    assert!(out.status.success(), "{}", text(&out));
+    let mut executed: Vec<&String> = st
+        .iter()
+        .filter(|(_, v)| *v == "executed")
+        .map(|(k, _)| k)
+        .collect();
+    executed.sort();
+    assert_eq!(executed, ["glass", "glassy"], "{st:?}");
+    let second = io::read_exr_rgb(&work.join("glass.exr")).unwrap();
+    let changed = second
+        .data
+        .iter()
+        .zip(&first.data)
+        .filter(|(a, b)| a != b)
+        .count();
+    assert!(
+        changed >= 14 * 14 / 2 && changed < 64 * 64 / 2,
+        "{changed} pixels changed"
+    );
+    // A refraction map must match the image.
+    let bad = work.join("small.exr");
+    io::write_exr_rgb(&bad, &matflow_scene::RgbImage::new(8, 8, glam::Vec3::ZERO)).unwrap();
+    let set = format!("glassy.refraction_map={}", s(&bad));
+    let (out, _) = run(&["--set", &set]);
+    assert!(!out.status.success());
+    assert!(
+        text(&out).contains("refraction map is 8x8"),
+        "{}",
+        text(&out)
+    );
+    let _ = std::fs::remove_dir_all(&work);
+}
