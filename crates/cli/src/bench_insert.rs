@@ -254,7 +254,11 @@ fn glass_region(a: &BenchInsertArgs, exe: &Path) -> Result<()> {
     ];
     let run = |file: &Path, extra: &[String]| -> Result<(f64, String)> {
         let mut c = Command::new(exe);
-        c.arg("run").arg(file).arg("--quiet").arg("--cache").arg(&cache);
+        c.arg("run")
+            .arg(file)
+            .arg("--quiet")
+            .arg("--cache")
+            .arg(&cache);
         for s in sets.iter().chain(extra) {
             c.arg("--set").arg(s);
         }
@@ -262,7 +266,10 @@ fn glass_region(a: &BenchInsertArgs, exe: &Path) -> Result<()> {
         let out = c.output()?;
         let secs = t.elapsed().as_secs_f64();
         if !out.status.success() {
-            bail!("matflow run failed:\n{}", String::from_utf8_lossy(&out.stderr));
+            bail!(
+                "matflow run failed:\n{}",
+                String::from_utf8_lossy(&out.stderr)
+            );
         }
         let text = String::from_utf8_lossy(&out.stdout).into_owned();
         Ok((secs, text.lines().last().unwrap_or("").to_string()))
@@ -288,8 +295,15 @@ fn glass_region(a: &BenchInsertArgs, exe: &Path) -> Result<()> {
         let Some(i) = text.find("\noutputs:") else {
             bail!("{}: no `outputs:` line", file.display());
         };
-        let end = text[i + 1..].find('\n').map(|j| i + 1 + j).unwrap_or(text.len());
-        let mut t = format!("{}\noutputs: [glass, fresh, reference]{}", &text[..i], &text[end..]);
+        let end = text[i + 1..]
+            .find('\n')
+            .map(|j| i + 1 + j)
+            .unwrap_or(text.len());
+        let mut t = format!(
+            "{}\noutputs: [glass, fresh, reference]{}",
+            &text[..i],
+            &text[end..]
+        );
         let work = std::fs::canonicalize(&a.work)?;
         for (name, spp, seed) in [("fresh", a.spp, 0), ("reference", a.reference_spp, 99)] {
             t.push_str(&format!(
