@@ -206,7 +206,7 @@ fn relax(u: &mut [f32], w: usize, h: usize, unknown: &[bool]) {
     let extent = ((x1 - x0).max(y1 - y0) + 2) as f64;
     let omega = (2.0 / (1.0 + (std::f64::consts::PI / extent).sin())) as f32;
     let (red, black): (Vec<usize>, Vec<usize>) =
-        cells.iter().partition(|&&k| (k % w + k / w) % 2 == 0);
+        cells.iter().partition(|&&k| (k % w + k / w).is_multiple_of(2));
     let at = |u: &[f32], x: usize, y: usize, dx: isize, dy: isize| -> f32 {
         // Mirror at the border: the missing neighbour is the pixel itself.
         let nx = x as isize + dx;
@@ -367,7 +367,7 @@ mod tests {
     fn harmonic_inpainting_reproduces_linear_fields_and_keeps_the_known_pixels() {
         let n = 40;
         let f = |x: usize, y: usize| 0.3 + 0.01 * x as f32 - 0.02 * y as f32;
-        let img = GrayImage::from_fn(n, n, |x, y| f(x, y));
+        let img = GrayImage::from_fn(n, n, f);
         let mask = disk(n, (20.0, 18.0), 9.0);
         let mut holed = img.clone();
         for (k, &m) in mask.data.iter().enumerate() {
