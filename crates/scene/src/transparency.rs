@@ -205,8 +205,9 @@ fn relax(u: &mut [f32], w: usize, h: usize, unknown: &[bool]) {
     }
     let extent = ((x1 - x0).max(y1 - y0) + 2) as f64;
     let omega = (2.0 / (1.0 + (std::f64::consts::PI / extent).sin())) as f32;
-    let (red, black): (Vec<usize>, Vec<usize>) =
-        cells.iter().partition(|&&k| (k % w + k / w).is_multiple_of(2));
+    let (red, black): (Vec<usize>, Vec<usize>) = cells
+        .iter()
+        .partition(|&&k| (k % w + k / w).is_multiple_of(2));
     let at = |u: &[f32], x: usize, y: usize, dx: isize, dy: isize| -> f32 {
         // Mirror at the border: the missing neighbour is the pixel itself.
         let nx = x as isize + dx;
