@@ -367,6 +367,29 @@ fn the_glass_pipeline_makes_a_region_transparent_and_re_edits_t_from_kept_paths(
         (14 * 14 / 2..64 * 64 / 2).contains(&changed),
         "{changed} pixels changed"
     );
+    // Distances from a refraction map (the refraction-length network's
+    // output) are used as given: a map of zeros makes the same materials
+    // as a zero thickness and gap.
+    let digest = |extra: &[&str]| {
+        let (out, _) = run(extra);
+        assert!(out.status.success(), "{}", text(&out));
+        let r: Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+        r["stages"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|s| s["name"] == "glassy")
+            .unwrap()["outputs"]["materials"]
+            .clone()
+    };
+    let zeros = work.join("zeros.exr");
+    io::write_exr_rgb(&zeros, &matflow_scene::RgbImage::new(64, 64, glam::Vec3::ZERO)).unwrap();
+    let set = format!("glassy.refraction_map={}", s(&zeros));
+    let from_map = digest(&["--set", &set]);
+    let from_rule = digest(&["--set", "glassy.thickness=0", "--set", "glassy.gap=0"]);
+    let default_rule = digest(&[]);
+    assert_eq!(from_map, from_rule);
+    assert_ne!(from_map, default_rule, "the default rule gives the region thickness");
     // A refraction map must match the image.
     let bad = work.join("small.exr");
     io::write_exr_rgb(&bad, &matflow_scene::RgbImage::new(8, 8, glam::Vec3::ZERO)).unwrap();
