@@ -383,13 +383,20 @@ fn the_glass_pipeline_makes_a_region_transparent_and_re_edits_t_from_kept_paths(
             .clone()
     };
     let zeros = work.join("zeros.exr");
-    io::write_exr_rgb(&zeros, &matflow_scene::RgbImage::new(64, 64, glam::Vec3::ZERO)).unwrap();
+    io::write_exr_rgb(
+        &zeros,
+        &matflow_scene::RgbImage::new(64, 64, glam::Vec3::ZERO),
+    )
+    .unwrap();
     let set = format!("glassy.refraction_map={}", s(&zeros));
     let from_map = digest(&["--set", &set]);
     let from_rule = digest(&["--set", "glassy.thickness=0", "--set", "glassy.gap=0"]);
     let default_rule = digest(&[]);
     assert_eq!(from_map, from_rule);
-    assert_ne!(from_map, default_rule, "the default rule gives the region thickness");
+    assert_ne!(
+        from_map, default_rule,
+        "the default rule gives the region thickness"
+    );
     // A refraction map must match the image.
     let bad = work.join("small.exr");
     io::write_exr_rgb(&bad, &matflow_scene::RgbImage::new(8, 8, glam::Vec3::ZERO)).unwrap();

@@ -122,11 +122,15 @@ pub fn bench_glass(a: BenchGlassArgs) -> Result<()> {
                 mesh: floor.clone(),
                 normals: Vec::new(),
                 surface: Surface::Diffuse(Vec3::splat(0.6)),
+                uvs: Vec::new(),
+                texture: None,
             },
             SceneObject {
                 mesh: jug.mesh.clone(),
                 normals: jug.normals.clone(),
                 surface: Surface::Glass(glass),
+                uvs: Vec::new(),
+                texture: None,
             },
         ];
         let maps = MaterialMaps::uniform(n, n, Vec3::splat(0.5), 1.0, 0.0);

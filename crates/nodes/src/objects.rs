@@ -19,8 +19,10 @@ use glam::{Mat3, Quat, Vec2, Vec3};
 use matflow_engine::{ParamSpec, ParamType, Value};
 use matflow_geom::{Bvh, TriMesh};
 use matflow_render::{Dielectric, Material, SceneObject, Surface};
+use matflow_scene::color::srgb_to_linear;
 use matflow_scene::meshfile::{read_mesh, FileMaterial, MeshPart};
-use matflow_scene::Camera;
+use matflow_scene::{Camera, RgbImage};
+use std::sync::Arc;
 
 use crate::artifact::Artifact;
 use crate::{err, NodeError};
@@ -371,6 +373,8 @@ pub fn place(
         .fold(0.0f32, f32::max)
         .max(1e-3);
     let mut out = Vec::new();
+    let mut textures: std::collections::HashMap<std::path::PathBuf, Arc<RgbImage>> =
+        std::collections::HashMap::new();
     for (i, s) in specs.iter().enumerate() {
         let name = s.mesh.display();
         let parts = read_entry(i, s).map_err(err)?;
@@ -437,6 +441,36 @@ pub fn place(
                 .material
                 .or_else(|| part.material.as_ref().map(surface_of_file))
                 .unwrap_or(Surface::Diffuse(Vec3::splat(0.8)));
+            // The MTL's diffuse texture, when the entry gives no material
+            // and the part has texture coordinates.
+            let texture = match (
+                &s.material,
+                part.material
+                    .as_ref()
+                    .and_then(|m| m.diffuse_texture.clone()),
+            ) {
+                (None, Some(path)) if part.uvs.len() == part.positions.len() => {
+                    let t = match textures.get(&path) {
+                        Some(t) => t.clone(),
+                        None => {
+                            let raw = matflow_scene::io::read_ldr_raw(&path).map_err(|e| {
+                                err(format!("objects[{i}] ({name}): its MTL's map_Kd: {e}"))
+                            })?;
+                            let lin = Arc::new(raw.map(|c| {
+                                Vec3::new(
+                                    srgb_to_linear(c.x),
+                                    srgb_to_linear(c.y),
+                                    srgb_to_linear(c.z),
+                                )
+                            }));
+                            textures.insert(path, lin.clone());
+                            lin
+                        }
+                    };
+                    Some(t)
+                }
+                _ => None,
+            };
             out.push(SceneObject {
                 mesh: TriMesh {
                     positions,
@@ -445,6 +479,12 @@ pub fn place(
                 },
                 normals,
                 surface,
+                uvs: if texture.is_some() {
+                    part.uvs
+                } else {
+                    Vec::new()
+                },
+                texture,
             });
         }
         if out.len() == first {
@@ -476,20 +516,30 @@ pub fn place(
 pub fn put_objects(a: &mut Artifact, prefix: &str, objects: &[SceneObject]) {
     let mut meta = Vec::new();
     let (mut pos, mut idx, mut nrm) = (Vec::new(), Vec::new(), Vec::new());
-    let mut surf = Vec::new();
+    let (mut surf, mut uvs, mut tex) = (Vec::new(), Vec::new(), Vec::new());
     for o in objects {
+        let (tw, th) = o.texture.as_ref().map_or((0, 0), |t| (t.width, t.height));
         meta.extend([
             o.mesh.positions.len() as u32,
             o.mesh.indices.len() as u32,
             o.normals.len() as u32,
+            o.uvs.len() as u32,
+            tw as u32,
+            th as u32,
         ]);
         pos.extend(o.mesh.positions.iter().flat_map(|p| p.to_array()));
         idx.extend(o.mesh.indices.iter().flatten().copied());
         nrm.extend(o.normals.iter().flat_map(|p| p.to_array()));
         surf.extend(surface_words(&o.surface));
+        uvs.extend(o.uvs.iter().flat_map(|p| p.to_array()));
+        if let Some(t) = &o.texture {
+            tex.extend(t.data.iter().flat_map(|p| p.to_array()));
+        }
     }
     let n = |v: &[f32], k: usize| (v.len() / k) as u32;
-    a.put_u32(&format!("{prefix}meta"), objects.len() as u32, 3, meta);
+    a.put_f32(&format!("{prefix}uvs"), n(&uvs, 2), 2, uvs.clone());
+    a.put_f32(&format!("{prefix}textures"), n(&tex, 3), 3, tex.clone());
+    a.put_u32(&format!("{prefix}meta"), objects.len() as u32, 6, meta);
     a.put_f32(&format!("{prefix}positions"), n(&pos, 3), 3, pos.clone());
     a.put_u32(&format!("{prefix}indices"), (idx.len() / 3) as u32, 3, idx);
     a.put_f32(&format!("{prefix}normals"), n(&nrm, 3), 3, nrm.clone());
@@ -551,19 +601,42 @@ pub fn get_objects(a: &Artifact, prefix: &str) -> Result<Vec<SceneObject>, NodeE
     if !a.has(&key) {
         return Ok(Vec::new());
     }
-    let meta = a.u32_list(&key, 3)?;
+    let meta = a.u32_list(&key, 6)?;
+    let uv_all = a.f32_list(&format!("{prefix}uvs"), 2)?;
+    let tex_all = a.f32_list(&format!("{prefix}textures"), 3)?;
+    let (mut u0, mut t0) = (0usize, 0usize);
     let pos = a.f32_list(&format!("{prefix}positions"), 3)?;
     let idx = a.u32_list(&format!("{prefix}indices"), 3)?;
     let nrm = a.f32_list(&format!("{prefix}normals"), 3)?;
     let surf = a.f32_list(&format!("{prefix}surfaces"), 9)?;
     let bad = || err("objects artifact: sections do not match");
-    if surf.len() != meta.len() / 3 * 9 {
+    if surf.len() != meta.len() / 6 * 9 {
         return Err(bad());
     }
     let (mut p0, mut i0, mut n0) = (0usize, 0usize, 0usize);
     let mut out = Vec::new();
-    for (k, m) in meta.chunks_exact(3).enumerate() {
+    for (k, m) in meta.chunks_exact(6).enumerate() {
         let (np, ni, nn) = (m[0] as usize, m[1] as usize, m[2] as usize);
+        let (nuv, tw, th) = (m[3] as usize, m[4] as usize, m[5] as usize);
+        let uvs: Vec<Vec2> = uv_all
+            .get(2 * u0..2 * (u0 + nuv))
+            .ok_or_else(bad)?
+            .chunks_exact(2)
+            .map(|c| Vec2::new(c[0], c[1]))
+            .collect();
+        u0 += nuv;
+        let texture = if tw * th > 0 {
+            let d = tex_all
+                .get(3 * t0..3 * (t0 + tw * th))
+                .ok_or_else(bad)?
+                .chunks_exact(3)
+                .map(|c| Vec3::new(c[0], c[1], c[2]))
+                .collect();
+            t0 += tw * th;
+            Some(Arc::new(RgbImage::from_vec(tw, th, d)))
+        } else {
+            None
+        };
         let positions: Vec<Vec3> = pos
             .get(3 * p0..3 * (p0 + np))
             .ok_or_else(bad)?
@@ -594,6 +667,8 @@ pub fn get_objects(a: &Artifact, prefix: &str) -> Result<Vec<SceneObject>, NodeE
             },
             normals,
             surface: surface_from_words(&surf[9 * k..9 * k + 9])?,
+            uvs,
+            texture,
         });
     }
     Ok(out)
@@ -918,6 +993,71 @@ mod tests {
         }
         assert!(missed * 10 < n * n, "{missed} pixels missed");
         let _ = encode_mesh;
+        let _ = std::fs::remove_dir_all(&d);
+    }
+}
+
+#[cfg(test)]
+mod texture_tests {
+    use super::*;
+    use matflow_render::{render, EnvMap, PixelFilter, RenderOptions, RenderScene};
+    use matflow_scene::{GrayImage, MaterialMaps};
+
+    #[test]
+    fn an_mtl_diffuse_texture_colours_the_object() {
+        let d = std::env::temp_dir().join(format!("matflow-objects-tex-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        std::fs::create_dir_all(&d).unwrap();
+        // A 4x1 texture: red on the left half, blue on the right.
+        let (r, b) = (Vec3::new(1.0, 0.0, 0.0), Vec3::new(0.0, 0.0, 1.0));
+        let tex = RgbImage::from_vec(4, 1, vec![r, r, b, b]);
+        matflow_scene::io::write_png_gamma(&d.join("t.png"), &tex).unwrap();
+        std::fs::write(d.join("m.mtl"), "newmtl painted\nKd 1 1 1\nmap_Kd t.png\n").unwrap();
+        std::fs::write(
+            d.join("quad.obj"),
+            "mtllib m.mtl\nv -1 -1 0\nv 1 -1 0\nv 1 1 0\nv -1 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\n\
+             usemtl painted\nf 1/1 2/2 3/3 4/4\n",
+        )
+        .unwrap();
+        let n = 16;
+        let cam = Camera::new(n, n);
+        let wall =
+            matflow_geom::mesh_from_depth(&GrayImage::new(n, n, 50.0), &cam, &Default::default())
+                .unwrap()
+                .mesh;
+        let s = ObjectSpec {
+            mesh: d.join("quad.obj"),
+            translate: Some(Vec3::new(0.0, 0.0, -3.0)),
+            anchor: None,
+            rotate_deg: Vec3::ZERO,
+            scale: Vec3::ONE,
+            material: None,
+        };
+        let objs = place(&[s], &cam, &wall).unwrap();
+        assert!(objs[0].texture.is_some() && objs[0].uvs.len() == objs[0].mesh.vertex_count());
+        // The artifact keeps the texture.
+        let mut a = Artifact::new("paths");
+        put_objects(&mut a, "obj_", &objs);
+        let back = get_objects(&Artifact::decode(&a.encode(), "paths").unwrap(), "obj_").unwrap();
+        assert_eq!(back[0].texture, objs[0].texture);
+        assert_eq!(back[0].uvs, objs[0].uvs);
+        let env = EnvMap::new(&RgbImage::new(32, 16, Vec3::ONE)).unwrap();
+        let maps = MaterialMaps::uniform(n, n, Vec3::splat(0.5), 1.0, 0.0);
+        let scene = RenderScene::with_objects(cam, wall, &maps, env, &objs).unwrap();
+        let img = render(
+            &scene,
+            &RenderOptions {
+                spp: 16,
+                max_depth: 2,
+                filter: PixelFilter::Box,
+                ..Default::default()
+            },
+            &|_, _| {},
+        )
+        .image;
+        let (left, right) = (img.get(n / 2 - 3, n / 2), img.get(n / 2 + 2, n / 2));
+        assert!(left.x > 0.5 && left.z < 0.2 * left.x, "left {left}");
+        assert!(right.z > 0.5 && right.x < 0.2 * right.z, "right {right}");
         let _ = std::fs::remove_dir_all(&d);
     }
 }

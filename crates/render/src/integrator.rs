@@ -261,6 +261,8 @@ struct Path {
     mat: bsdf::Material,
     obj: u32,
     glass_vertex: bool,
+    /// An object's texture colour at the vertex (white otherwise).
+    tex: Vec3,
     light: Option<LightSample>,
     next: Option<Continuation>,
 }
@@ -290,6 +292,7 @@ impl Path {
             ng: Vec3::ZERO,
             obj: NO_OBJECT,
             glass_vertex: false,
+            tex: Vec3::ONE,
             mat: bsdf::Material {
                 albedo: Vec3::ZERO,
                 roughness: 1.0,
@@ -512,7 +515,10 @@ impl Wavefront {
             sinks[i as usize].vertex(path.q, path.vertices == 0);
             path.vertices += 1;
             if let Some(&surface) = scene.object_surface(path.q) {
-                path.obj = (path.q - scene.materials.len()) as u32;
+                let obj = path.q - scene.materials.len();
+                path.obj = obj as u32;
+                path.tex = scene.object_texture(obj, path.hit.prim, path.hit.u, path.hit.v);
+                let surface = surface.textured(path.tex);
                 shade_object(scene, path, surface, k, st, &mut self.rays);
                 continue;
             }
@@ -609,7 +615,8 @@ impl Wavefront {
                     } else if path.obj == NO_OBJECT {
                         bsdf::eval_pdf(&path.mat, n, v, ls.dir)
                     } else {
-                        surface_eval_pdf(&scene.objects[path.obj as usize], n, v, ls.dir)
+                        let s = scene.objects[path.obj as usize].textured(path.tex);
+                        surface_eval_pdf(&s, n, v, ls.dir)
                     };
                     let w = mis_power(ls.pdf, pdf_b) / ls.pdf;
                     sink.emitter(n, v, ls.dir, w);

@@ -83,12 +83,53 @@ impl Surface {
 
 /// An object placed in the scene: a triangle mesh in camera space, its
 /// per-vertex shading normals (empty: smooth normals computed from the
-/// mesh) and its surface.
+/// mesh), its surface and, optionally, a colour texture (linear RGB)
+/// with per-vertex texture coordinates that multiplies the albedo of a
+/// diffuse or principled surface.
 #[derive(Clone, Debug)]
 pub struct SceneObject {
     pub mesh: TriMesh,
     pub normals: Vec<Vec3>,
     pub surface: Surface,
+    pub uvs: Vec<Vec2>,
+    pub texture: Option<std::sync::Arc<matflow_scene::RgbImage>>,
+}
+
+/// A texture lookup: bilinear, wrapping, v = 0 at the bottom row (OBJ).
+pub fn texture_at(t: &matflow_scene::RgbImage, uv: Vec2) -> Vec3 {
+    let (w, h) = (t.width, t.height);
+    if w == 0 || h == 0 || !uv.is_finite() {
+        return Vec3::ONE;
+    }
+    let x = (uv.x - uv.x.floor()) * w as f32 - 0.5;
+    let y = (1.0 - (uv.y - uv.y.floor())) * h as f32 - 0.5;
+    let (x0, y0) = (x.floor(), y.floor());
+    let (fx, fy) = (x - x0, y - y0);
+    let wrap = |i: f32, n: usize| (i as i64).rem_euclid(n as i64) as usize;
+    let px = |i: f32, j: f32| t.data[wrap(j, h) * w + wrap(i, w)];
+    let top = px(x0, y0) * (1.0 - fx) + px(x0 + 1.0, y0) * fx;
+    let bottom = px(x0, y0 + 1.0) * (1.0 - fx) + px(x0 + 1.0, y0 + 1.0) * fx;
+    let c = top * (1.0 - fy) + bottom * fy;
+    if c.is_finite() {
+        c.clamp(Vec3::ZERO, Vec3::ONE)
+    } else {
+        Vec3::ONE
+    }
+}
+
+impl Surface {
+    /// The surface with its albedo multiplied by `tex` (glass unchanged).
+    #[inline]
+    pub fn textured(self, tex: Vec3) -> Surface {
+        match self {
+            Surface::Diffuse(a) => Surface::Diffuse(a * tex),
+            Surface::Principled(m) => Surface::Principled(Material {
+                albedo: m.albedo * tex,
+                ..m
+            }),
+            g => g,
+        }
+    }
 }
 
 /// One pixel of a transparent region: its glass interface and refraction
@@ -134,6 +175,11 @@ pub struct RenderScene {
     /// Surfaces of the objects, sanitised. A vertex on object `k` uses
     /// material index `width·height + k`.
     pub objects: Vec<Surface>,
+    /// Per object, its texture, and the texture coordinates of every
+    /// vertex from `object_vertices` on (objects without one: zeros).
+    pub textures: Vec<Option<std::sync::Arc<matflow_scene::RgbImage>>>,
+    pub uvs: Vec<Vec2>,
+    pub object_vertices: usize,
     /// Transparent regions, when the materials have any. A vertex on the
     /// background seen through pixel `p` uses material index
     /// `width·height + objects + p`.
@@ -198,11 +244,30 @@ impl RenderScene {
             at += n;
         }
         let materials = materials_from_maps(maps);
+        let mut uvs = Vec::new();
+        for o in objects {
+            let n = o.mesh.vertex_count();
+            if o.texture.is_some() && o.uvs.len() == n {
+                uvs.extend_from_slice(&o.uvs);
+            } else {
+                uvs.extend(std::iter::repeat_n(Vec2::ZERO, n));
+            }
+        }
         let screen_glass = maps
             .transparency
             .as_ref()
             .map(|t| screen_glass(&camera, &bvh, screen_prims, maps, t));
         Ok(RenderScene {
+            textures: objects
+                .iter()
+                .map(|o| {
+                    o.texture
+                        .clone()
+                        .filter(|_| o.uvs.len() == o.mesh.vertex_count())
+                })
+                .collect(),
+            uvs,
+            object_vertices: screen_vertices,
             screen_glass,
             screen_prims,
             prim_object,
@@ -332,6 +397,24 @@ impl RenderScene {
     #[inline]
     pub fn pixel_of(&self, p: Vec3) -> Option<usize> {
         self.material_index(p)
+    }
+
+    /// The texture colour of object `k` at a hit on triangle `prim`
+    /// (barycentrics `u`, `v`); white for untextured objects.
+    #[inline]
+    pub fn object_texture(&self, k: usize, prim: u32, u: f32, v: f32) -> Vec3 {
+        let Some(Some(t)) = self.textures.get(k) else {
+            return Vec3::ONE;
+        };
+        let tri = self.mesh.indices[prim as usize];
+        let uv = |i: u32| {
+            self.uvs
+                .get((i as usize).wrapping_sub(self.object_vertices))
+                .copied()
+                .unwrap_or(Vec2::ZERO)
+        };
+        let st = uv(tri[0]) * (1.0 - u - v) + uv(tri[1]) * u + uv(tri[2]) * v;
+        texture_at(t, st)
     }
 
     /// Interpolated vertex normal at a hit.

@@ -42,6 +42,8 @@ fn object(s: Shape, surface: Surface) -> SceneObject {
         mesh: s.mesh,
         normals: s.normals,
         surface,
+        uvs: Vec::new(),
+        texture: None,
     }
 }
 

@@ -179,7 +179,7 @@ pub(crate) fn rerender_kept(
         k.objects
             .iter()
             .zip(objs)
-            .map(|(a, b)| a.surface != b.surface),
+            .map(|(a, b)| a.surface != b.surface || a.uvs != b.uvs || a.texture != b.texture),
     );
     // Background vertices (seen through transparent regions) come last.
     changed.extend(k.materials.changed_background(edited));
