@@ -373,3 +373,56 @@ fn copy_dir(from: &Path, to: &Path) {
         std::fs::copy(&f, &t).unwrap();
     }
 }
+
+#[test]
+fn mesh_files() {
+    // OBJ (with an MTL beside it) and PLY, ASCII and binary, through the
+    // readers and object placement.
+    let dir = tmp("meshes");
+    std::fs::write(
+        dir.join("m.mtl"),
+        "newmtl g\nKd 0.5 0.5 0.5\nNi 1.4\nd 0.2\nillum 7\n",
+    )
+    .unwrap();
+    let obj = |s: &str| s.as_bytes().to_vec();
+    let objs = vec![
+        std::fs::read(repo().join("pipelines/meshes/cube.obj")).unwrap(),
+        obj("mtllib m.mtl\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\nvn 0 0 1\nusemtl g\nf 1/1/1 2/2/1 3/3/1 4/4/1\n"),
+    ];
+    let mut ply_ascii = String::from("ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\nelement face 2\nproperty list uchar int vertex_indices\nend_header\n");
+    ply_ascii += "0 0 0\n1 0 0\n1 1 0\n0 1 0\n3 0 1 2\n3 0 2 3\n";
+    let mut ply_bin = b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n".to_vec();
+    for v in [[0f32, 0., 0.], [1., 0., 0.], [0., 1., 0.]] {
+        for c in v {
+            ply_bin.extend(c.to_le_bytes());
+        }
+    }
+    ply_bin.push(3);
+    for i in [0i32, 1, 2] {
+        ply_bin.extend(i.to_le_bytes());
+    }
+    let cam = matflow_scene::Camera::new(8, 8);
+    let wall = matflow_geom::mesh_from_depth(&Image::new(8, 8, 5.0f32), &cam, &Default::default())
+        .unwrap()
+        .mesh;
+    for (name, corpus) in [
+        ("obj", objs),
+        ("ply", vec![ply_ascii.into_bytes(), ply_bin]),
+    ] {
+        let f = dir.join(format!("x.{name}"));
+        fuzz(name, &corpus, |_, b| {
+            std::fs::write(&f, b).unwrap();
+            let _ = matflow_scene::meshfile::read_mesh(&f);
+            let spec = matflow_nodes::objects::ObjectSpec {
+                mesh: f.clone(),
+                translate: Some(glam::Vec3::new(0.0, 0.0, -3.0)),
+                anchor: None,
+                rotate_deg: glam::Vec3::ZERO,
+                scale: glam::Vec3::ONE,
+                material: None,
+            };
+            let _ = matflow_nodes::objects::place(&[spec], &cam, &wall);
+        });
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
