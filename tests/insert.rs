@@ -295,12 +295,12 @@ fn the_glass_pipeline_makes_a_region_transparent_and_re_edits_t_from_kept_paths(
     let work = tmp("glass");
     let cache = work.join("cache");
     let report = work.join("report.json");
-    let run = |extra: &[&str]| -> (Output, BTreeMap<String, String>) {
+    let glass_yaml = repo().join("pipelines/glass.yaml");
+    let run_file = |file: &Path, extra: &[&str]| -> (Output, BTreeMap<String, String>) {
         let out_s = format!("glass.output={}", s(&work.join("glass.exr")));
-        let file = repo().join("pipelines/glass.yaml");
         let mut args = vec![
             "run",
-            s(&file),
+            s(file),
             "--quiet",
             "--cache",
             s(&cache),
@@ -340,6 +340,7 @@ fn the_glass_pipeline_makes_a_region_transparent_and_re_edits_t_from_kept_paths(
             .collect();
         (out, st)
     };
+    let run = |extra: &[&str]| run_file(&glass_yaml, extra);
     let (out, st) = run(&[]);
     assert!(out.status.success(), "{}", text(&out));
     assert!(st.values().all(|s| s == "executed"), "{st:?}");
@@ -370,8 +371,8 @@ fn the_glass_pipeline_makes_a_region_transparent_and_re_edits_t_from_kept_paths(
     // Distances from a refraction map (the refraction-length network's
     // output) are used as given: a map of zeros makes the same materials
     // as a zero thickness and gap.
-    let digest = |extra: &[&str]| {
-        let (out, _) = run(extra);
+    let digest_of = |file: &Path, extra: &[&str]| {
+        let (out, _) = run_file(file, extra);
         assert!(out.status.success(), "{}", text(&out));
         let r: Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
         r["stages"]
@@ -382,6 +383,7 @@ fn the_glass_pipeline_makes_a_region_transparent_and_re_edits_t_from_kept_paths(
             .unwrap()["outputs"]["materials"]
             .clone()
     };
+    let digest = |extra: &[&str]| digest_of(&glass_yaml, extra);
     let zeros = work.join("zeros.exr");
     io::write_exr_rgb(
         &zeros,
@@ -393,6 +395,14 @@ fn the_glass_pipeline_makes_a_region_transparent_and_re_edits_t_from_kept_paths(
     let from_rule = digest(&["--set", "glassy.thickness=0", "--set", "glassy.gap=0"]);
     let default_rule = digest(&[]);
     assert_eq!(from_map, from_rule);
+    // The same map from a stage (where a refraction-length network's
+    // output comes in): an `image` stage reading the file.
+    let with_stage = work.join("glass-with-map.yaml");
+    let yaml = std::fs::read_to_string(&glass_yaml).unwrap()
+        + "  dists:\n    kind: image\n    path: zeros.exr\n";
+    std::fs::write(&with_stage, yaml).unwrap();
+    let from_stage = digest_of(&with_stage, &["--set", "glassy.refraction=dists"]);
+    assert_eq!(from_stage, from_map);
     assert_ne!(
         from_map, default_rule,
         "the default rule gives the region thickness"

@@ -108,6 +108,14 @@ const TRANSPARENCY_INFO: NodeInfo = NodeInfo {
                   refraction-length network outputs them",
         },
         ParamSpec {
+            name: "refraction",
+            ty: ParamType::Ref(&["image"]),
+            default: Some("~"),
+            unit: "",
+            doc: "a stage giving the same map as an image (d1 in R, d2 in G, normalised): where \
+                  a refraction-length network's output comes in",
+        },
+        ParamSpec {
             name: "refraction_scale",
             ty: ParamType::Float { min: 0.0, max: 1e6 },
             default: Some("1"),
@@ -197,8 +205,22 @@ impl Node for TransparencyNode {
     }
     fn check(&self, p: &Params) -> Result<(), String> {
         check_mask_choice(p)?;
-        if p.is_set("refraction_map") && (p.is_set("thickness") || p.is_set("gap")) {
-            return Err("`refraction_map` gives d1 and d2: drop `thickness` and `gap`".into());
+        if p.is_set("refraction_map") && p.is_set("refraction") {
+            return Err(
+                "give `refraction_map` (a file) or `refraction` (a stage), not both".into(),
+            );
+        }
+        let given = if p.is_set("refraction_map") {
+            Some("refraction_map")
+        } else if p.is_set("refraction") {
+            Some("refraction")
+        } else {
+            None
+        };
+        if let Some(g) = given {
+            if p.is_set("thickness") || p.is_set("gap") {
+                return Err(format!("`{g}` gives d1 and d2: drop `thickness` and `gap`"));
+            }
         }
         Ok(())
     }
@@ -267,14 +289,30 @@ impl Node for TransparencyNode {
             || inpaint_harmonic_gray(&bg_m, &hole),
         );
         // Refraction distances.
-        let (d1, d2) = if let Some(path) = p.path("refraction_map") {
-            let m = io::read_exr_rgb(&path).map_err(err)?;
+        let map = match (p.path("refraction_map"), ctx.opt_input("refraction")) {
+            (Some(path), _) => Some((
+                io::read_exr_rgb(&path).map_err(err)?,
+                path.display().to_string(),
+            )),
+            (None, Some(b)) => Some((
+                Artifact::decode(b, "image")?.rgb("image")?,
+                "the `refraction` stage's image".to_string(),
+            )),
+            _ => None,
+        };
+        let (d1, d2) = if let Some((m, what)) = map {
             if (m.width, m.height) != (w, h) {
                 return Err(err(format!(
-                    "{}: the refraction map is {}x{} but the materials are {w}x{h}",
-                    path.display(),
-                    m.width,
-                    m.height
+                    "{what}: the refraction map is {}x{} but the materials are {w}x{h}",
+                    m.width, m.height
+                )));
+            }
+            if m.data
+                .iter()
+                .any(|v| !v.is_finite() || v.x < 0.0 || v.y < 0.0)
+            {
+                return Err(err(format!(
+                    "{what}: refraction distances must be finite and not negative"
                 )));
             }
             let s = f32p("refraction_scale");
