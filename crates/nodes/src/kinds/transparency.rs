@@ -471,3 +471,99 @@ mod tests {
         }
     }
 }
+
+#[cfg(test)]
+mod node_tests {
+    use super::*;
+    use crate::data::{encode_image, encode_mesh};
+    use matflow_engine::Value;
+    use matflow_scene::Camera;
+
+    fn params(extra: &[(&str, Value)]) -> Params {
+        let mut m = BTreeMap::new();
+        for p in TRANSPARENCY_INFO.params {
+            let v = match p.default {
+                Some(d) => matflow_engine::value::parse_override(d).unwrap(),
+                None => Value::Null,
+            };
+            let v = p.ty.normalize(&v).unwrap_or(v);
+            m.insert(p.name.to_string(), v);
+        }
+        for (k, v) in extra {
+            m.insert(k.to_string(), v.clone());
+        }
+        Params(m)
+    }
+
+    #[test]
+    fn the_region_gets_glass_distances_and_a_background() {
+        let n = 20;
+        let cam = Camera::new(n, n);
+        let tri =
+            matflow_geom::mesh_from_depth(&GrayImage::new(n, n, 4.0), &cam, &Default::default())
+                .unwrap()
+                .mesh;
+        let grey = Vec3::new(0.4, 0.3, 0.2);
+        let maps = MaterialMaps::uniform(n, n, grey, 0.6, 0.1);
+        let rect = Value::List([5.0, 5.0, 15.0, 15.0].map(Value::Float).to_vec());
+        let run = |extra: &[(&str, Value)], bg: Option<Vec<u8>>| {
+            let p = params(extra);
+            let mut inputs = BTreeMap::new();
+            inputs.insert("materials".to_string(), encode_materials(&maps).into());
+            inputs.insert("mesh".to_string(), encode_mesh(n, n, &tri).into());
+            if let Some(b) = bg {
+                inputs.insert("background".to_string(), b.into());
+            }
+            let ctx = RunContext {
+                stage: "t",
+                params: &p,
+                inputs,
+                seed: 0,
+                progress: &|_, _| {},
+            };
+            let out = TransparencyNode.run(&ctx).unwrap();
+            crate::data::materials_from(&out["materials"]).unwrap()
+        };
+        // Inpainted: the surroundings are uniform, so is the background.
+        let m = run(&[("mask_rect", rect.clone())], None);
+        let t = m.transparency.as_ref().unwrap();
+        let c = 10 * n + 10;
+        assert!(t.is_glass(c) && !t.is_glass(0));
+        assert_eq!(t.ior.data[c], 1.5);
+        assert!((t.bg_albedo.data[c] - grey).abs().max_element() < 1e-4);
+        assert!((t.bg_roughness.data[c] - 0.6).abs() < 1e-4);
+        // The round-object rule: thickest in the middle, about the region's
+        // width (10 px at depth 4, focal n/2/tan 17.5°).
+        let width = 10.0 * 4.0 / cam.focal();
+        assert!(
+            t.d1.data[c] > 0.6 * width && t.d1.data[c] < 1.2 * width,
+            "{}",
+            t.d1.data[c]
+        );
+        assert!(t.d1.data[5 * n + 10] < t.d1.data[c]);
+        assert_eq!(t.d2.data[c], t.d1.data[c], "the gap defaults to d1");
+        assert_eq!(
+            (m.albedo, m.roughness),
+            (maps.albedo.clone(), maps.roughness.clone())
+        );
+        // Given: the background image is used inside the region.
+        let green = Vec3::new(0.1, 0.8, 0.2);
+        let img = encode_image("image", "image", &matflow_scene::RgbImage::new(n, n, green));
+        let m = run(
+            &[
+                ("mask_rect", rect.clone()),
+                ("thickness", Value::Float(0.5)),
+                ("gap", Value::Float(2.0)),
+                ("transmission", Value::Float(0.3)),
+            ],
+            Some(img),
+        );
+        let t = m.transparency.as_ref().unwrap();
+        assert_eq!(t.bg_albedo.data[c], green);
+        assert_eq!(
+            (t.d1.data[c], t.d2.data[c], t.transmission.data[c]),
+            (0.5, 2.0, 0.3)
+        );
+        assert_eq!(t.d1.data[0], 0.0);
+    }
+}
