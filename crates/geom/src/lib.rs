@@ -7,6 +7,7 @@
 pub mod bvh;
 pub mod depth_mesh;
 pub mod mesh;
+pub mod refraction;
 pub mod shapes;
 
 pub use bvh::{Bvh, Hit, PACKET};

@@ -1,0 +1,216 @@
+//! Refraction lengths (the paper's supplement §10, eq. 24): along a camera
+//! ray through an object, the distance to its secondary interface, as the
+//! refraction-length dataset labels it — with straight rays, the paper's
+//! simplification for an index of refraction near 1.
+//!
+//! With P_n the n-th intersection of the ray with the object (n = 1, 2, …)
+//! and n its outward normal there,
+//!
+//! d = ‖P_{n+1} − P_n‖ if ω·n > 0 and the object is hollow,
+//!     ‖P_{n+1} − P_n‖ if ω·n < 0 and the object is solid,
+//!     0 otherwise;
+//!
+//! the pixel's label is the first non-zero d along the ray (a solid
+//! object's chord from where the ray enters; a hollow one's crossing of its
+//! cavity, from where the ray leaves the wall), 0 when there is none (a
+//! miss, a hit on a single surface).
+//!
+//! The transparency edit's two distances come from the same hits: d1 from
+//! where the ray enters the object to where it finally leaves it (all of
+//! its crossings), d2 from there to the next surface behind (the
+//! background; 0 when there is none).
+
+use glam::Vec3;
+
+use crate::bvh::Bvh;
+use crate::mesh::TriMesh;
+
+/// Every intersection of a ray with `bvh` beyond `tmin`, nearest first:
+/// (distance, triangle). Hits closer together than `eps` (a ray through an
+/// edge or a vertex meets two triangles at one point) count once.
+pub fn all_hits(bvh: &Bvh, origin: Vec3, dir: Vec3, tmin: f32, eps: f32) -> Vec<(f32, u32)> {
+    let mut out: Vec<(f32, u32)> = Vec::new();
+    let mut t0 = tmin;
+    // A ray crosses a closed mesh a bounded number of times; the cap only
+    // guards against degenerate input.
+    for _ in 0..4096 {
+        let Some(h) = bvh.intersect(origin, dir, t0, f32::INFINITY) else {
+            break;
+        };
+        if out.last().is_none_or(|&(t, _)| h.t - t > eps) {
+            out.push((h.t, h.prim));
+        }
+        // Step past this hit, relative to its distance.
+        t0 = h.t + eps.max(h.t.abs() * 1e-6);
+    }
+    out
+}
+
+/// Eq. 24 along the ray `origin + t·dir` (`dir` unit) through `mesh`
+/// (outward-facing triangles) and its `bvh`.
+pub fn refraction_length(mesh: &TriMesh, bvh: &Bvh, origin: Vec3, dir: Vec3, hollow: bool) -> f32 {
+    let hits = all_hits(bvh, origin, dir, 0.0, 1e-5);
+    for w in hits.windows(2) {
+        let (t, prim) = w[0];
+        let n = mesh.face_normal(prim as usize);
+        let c = dir.dot(n);
+        let counts = if hollow { c > 0.0 } else { c < 0.0 };
+        if counts {
+            let d = w[1].0 - t;
+            if d.is_finite() && d > 0.0 {
+                return d;
+            }
+        }
+    }
+    0.0
+}
+
+/// The transparency edit's (d1, d2) along the ray: from the first hit on
+/// the object to the last, and from there to the first hit on `behind`
+/// (0 without one); (0, 0) when the ray misses the object.
+pub fn transparency_distances(
+    object: &Bvh,
+    behind: Option<&Bvh>,
+    origin: Vec3,
+    dir: Vec3,
+) -> (f32, f32) {
+    let hits = all_hits(object, origin, dir, 0.0, 1e-5);
+    let (Some(&(t_in, _)), Some(&(t_out, _))) = (hits.first(), hits.last()) else {
+        return (0.0, 0.0);
+    };
+    let d2 = behind
+        .and_then(|b| b.intersect(origin, dir, t_out + 1e-5, f32::INFINITY))
+        .map_or(0.0, |h| h.t - t_out);
+    ((t_out - t_in).max(0.0), d2.max(0.0))
+}
+
+/// Normalises labels to [0, 1] by their largest value; returns the labels
+/// and the normaliser (what to multiply by to get lengths back; 1 when all
+/// are 0).
+pub fn normalise(d: &[f32]) -> (Vec<f32>, f32) {
+    let m = d
+        .iter()
+        .copied()
+        .filter(|x| x.is_finite())
+        .fold(0.0f32, f32::max);
+    if !(m > 0.0) {
+        return (vec![0.0; d.len()], 1.0);
+    }
+    (
+        d.iter()
+            .map(|&x| {
+                if x.is_finite() {
+                    (x / m).clamp(0.0, 1.0)
+                } else {
+                    0.0
+                }
+            })
+            .collect(),
+        m,
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::shapes::sphere;
+
+    /// A solid ball of radius `r` at the origin, and a hollow one: the
+    /// outer surface and an inner one of radius `inner` facing the cavity
+    /// (its triangles reversed).
+    fn ball(r: f32) -> TriMesh {
+        sphere(r, 96, 192).mesh
+    }
+    fn shell(r: f32, inner: f32) -> TriMesh {
+        let mut m = ball(r);
+        let i = ball(inner);
+        let base = m.positions.len() as u32;
+        m.positions.extend(i.positions);
+        m.indices.extend(
+            i.indices
+                .iter()
+                .map(|t| [t[0] + base, t[2] + base, t[1] + base]),
+        );
+        m
+    }
+
+    #[test]
+    fn a_solid_ball_gives_its_chord() {
+        let (r, cam) = (1.0f32, Vec3::new(0.0, 0.0, 5.0));
+        let m = ball(r);
+        let bvh = Bvh::build(&m);
+        for b in [0.0f32, 0.3, 0.6, 0.9] {
+            let target = Vec3::new(b, 0.0, 0.0);
+            let dir = (target - cam).normalize();
+            // Distance of the line from the centre.
+            let dist = cam.cross(dir).length();
+            let want = 2.0 * (r * r - dist * dist).max(0.0).sqrt();
+            let got = refraction_length(&m, &bvh, cam, dir, false);
+            // The tessellation is within 0.1 % of the sphere.
+            assert!((got - want).abs() < 3e-3 * r, "b={b}: {got} vs {want}");
+            // As hollow, a single surface has no cavity: 0.
+            assert_eq!(refraction_length(&m, &bvh, cam, dir, true), 0.0);
+        }
+        // A miss gives 0.
+        assert_eq!(refraction_length(&m, &bvh, cam, Vec3::Y, false), 0.0);
+    }
+
+    #[test]
+    fn a_hollow_shell_gives_its_cavity_crossing_and_a_solid_one_its_wall() {
+        let (r, inner) = (1.0f32, 0.7f32);
+        let m = shell(r, inner);
+        let bvh = Bvh::build(&m);
+        let cam = Vec3::new(0.0, 0.0, 5.0);
+        for b in [0.0f32, 0.4] {
+            let dir = (Vec3::new(b, 0.0, 0.0) - cam).normalize();
+            let dist = cam.cross(dir).length();
+            let chord = |rad: f32| 2.0 * (rad * rad - dist * dist).max(0.0).sqrt();
+            // Hollow: from the wall into the cavity, across it.
+            let got = refraction_length(&m, &bvh, cam, dir, true);
+            assert!(
+                (got - chord(inner)).abs() < 3e-3,
+                "b={b}: {got} vs {}",
+                chord(inner)
+            );
+            // Solid (the rule for non-hollow objects): the first wall crossing.
+            let wall = (chord(r) - chord(inner)) / 2.0;
+            let got = refraction_length(&m, &bvh, cam, dir, false);
+            assert!((got - wall).abs() < 3e-3, "b={b}: {got} vs {wall}");
+        }
+        // Past the cavity the ray crosses only the wall: hollow gives 0.
+        let dir = (Vec3::new(0.85, 0.0, 0.0) - cam).normalize();
+        assert_eq!(refraction_length(&m, &bvh, cam, dir, true), 0.0);
+    }
+
+    #[test]
+    fn transparency_distances_span_the_object_and_the_gap_behind() {
+        let m = ball(1.0);
+        let bvh = Bvh::build(&m);
+        let mut wall = TriMesh::default();
+        wall.add_box(Vec3::new(-10.0, -10.0, -4.0), Vec3::new(10.0, 10.0, -3.0));
+        let wb = Bvh::build(&wall);
+        let cam = Vec3::new(0.0, 0.0, 5.0);
+        let (d1, d2) = transparency_distances(&bvh, Some(&wb), cam, -Vec3::Z);
+        assert!(
+            (d1 - 2.0).abs() < 3e-3 && (d2 - 2.0).abs() < 3e-3,
+            "{d1} {d2}"
+        );
+        assert_eq!(transparency_distances(&bvh, None, cam, -Vec3::Z).1, 0.0);
+        assert_eq!(
+            transparency_distances(&bvh, Some(&wb), cam, Vec3::Y),
+            (0.0, 0.0)
+        );
+    }
+
+    #[test]
+    fn the_normaliser_round_trips() {
+        let d = [0.0f32, 0.5, 2.0, 1.25, f32::NAN];
+        let (n, k) = normalise(&d);
+        assert_eq!(k, 2.0);
+        for (a, b) in n.iter().zip(&d[..4]) {
+            assert!((a * k - b).abs() < 1e-6);
+        }
+        assert_eq!(n[4], 0.0);
+        assert_eq!(normalise(&[0.0, 0.0]), (vec![0.0, 0.0], 1.0));
+    }
+}
