@@ -183,6 +183,25 @@ mod tests {
     }
 
     #[test]
+    fn a_cup_seen_from_the_side_gives_its_cavity() {
+        let (_, cup, hollow) = crate::shapes::refraction_objects()
+            .into_iter()
+            .find(|(n, ..)| *n == "cup")
+            .unwrap();
+        assert!(hollow);
+        let bvh = Bvh::build(&cup.mesh);
+        let y = 0.4;
+        let cam = Vec3::new(0.0, y, 5.0);
+        let d = refraction_length(&cup.mesh, &bvh, cam, -Vec3::Z, true);
+        // Outer radius 0.32 + 0.05·y, walls 0.03; 64 segments shave 0.12 %.
+        let want = 2.0 * (0.32 + 0.05 * y - 0.03);
+        assert!((d - want).abs() < 2e-3 * want + 1e-3, "{d} vs {want}");
+        // The same cup taken as solid: the wall it enters through.
+        let w = refraction_length(&cup.mesh, &bvh, cam, -Vec3::Z, false);
+        assert!((w - 0.03).abs() < 2e-3, "{w}");
+    }
+
+    #[test]
     fn transparency_distances_span_the_object_and_the_gap_behind() {
         let m = ball(1.0);
         let bvh = Bvh::build(&m);

@@ -227,6 +227,134 @@ pub fn cuboid(lo: Vec3, hi: Vec3) -> Shape {
     s
 }
 
+/// A hollow vessel of revolution: the outer profile `outer(y)` (radius at
+/// height y in [0, height]) with walls `wall` thick and a floor as thick,
+/// open at the top (a rim joins the outer and inner walls). One closed
+/// surface whose normals face out of the material: the outside, the rim,
+/// the inside of the cavity and its floor.
+pub fn vessel(outer: impl Fn(f32) -> f32, height: f32, wall: f32, segments: usize) -> Shape {
+    let pts = 48;
+    let mut profile = vec![Vec2::new(0.0, 0.0)];
+    for k in 0..=pts {
+        let y = height * k as f32 / pts as f32;
+        profile.push(Vec2::new(outer(y).max(2.0 * wall), y));
+    }
+    for k in (0..=pts).rev() {
+        let y = wall + (height - wall) * k as f32 / pts as f32;
+        profile.push(Vec2::new((outer(y) - wall).max(wall), y));
+    }
+    profile.push(Vec2::new(0.0, wall));
+    revolve(&profile, None, segments)
+}
+
+/// A solid blob: a sphere of radius `r` whose radius varies smoothly with
+/// direction by up to `bump`·r (a fruit-like shape), seeded by `seed`.
+pub fn blob(r: f32, bump: f32, seed: u32, rings: usize, segments: usize) -> Shape {
+    let mut s = sphere(1.0, rings, segments);
+    let k = seed as f32 * 0.618;
+    let f = |d: Vec3| {
+        1.0 + bump
+            * ((3.0 * d.x + k).sin() * 0.5
+                + (2.0 * d.y + 2.0 * k).sin() * 0.3
+                + (4.0 * d.z - k).sin() * 0.2)
+    };
+    for p in &mut s.mesh.positions {
+        let d = p.normalize_or(Vec3::Y);
+        *p = d * r * f(d);
+    }
+    // Normals of the displaced surface, from its faces.
+    let mut acc = vec![Vec3::ZERO; s.mesh.positions.len()];
+    for t in &s.mesh.indices {
+        let [a, b, c] = t.map(|i| s.mesh.positions[i as usize]);
+        let n = (b - a).cross(c - a);
+        for &i in t {
+            acc[i as usize] += n;
+        }
+    }
+    s.normals = acc.iter().map(|n| n.normalize_or(Vec3::Y)).collect();
+    s
+}
+
+/// The objects of the refraction-length dataset (the paper's supplement
+/// §10): name, shape (standing on y = 0, about 1 high) and whether it is
+/// hollow (eq. 24's rule). Vessels — a cup, a jug, a bottle, a vase — are
+/// hollow; an ellipsoid, fruit-like blobs, a box, a torus and a ball are
+/// solid.
+pub fn refraction_objects() -> Vec<(&'static str, Shape, bool)> {
+    use std::f32::consts::PI;
+    let seg = 64;
+    vec![
+        ("cup", vessel(|y| 0.32 + 0.05 * y, 0.8, 0.03, seg), true),
+        (
+            "jug",
+            vessel(
+                |y| 0.2 + 0.22 * (PI * (y / 0.75).min(1.0)).sin().max(0.0),
+                1.0,
+                0.03,
+                seg,
+            ),
+            true,
+        ),
+        (
+            "bottle",
+            vessel(
+                |y| {
+                    let t = ((y - 0.55) / 0.2).clamp(0.0, 1.0);
+                    0.28 * (1.0 - t) + 0.08 * t
+                },
+                1.1,
+                0.025,
+                seg,
+            ),
+            true,
+        ),
+        (
+            "vase",
+            vessel(|y| 0.22 + 0.1 * (2.0 * PI * y / 1.2).sin(), 1.2, 0.03, seg),
+            true,
+        ),
+        (
+            "ellipsoid",
+            {
+                let mut e = sphere(1.0, 32, seg);
+                for p in &mut e.mesh.positions {
+                    *p = Vec3::new(0.45 * p.x, 0.3 * p.y + 0.3, 0.35 * p.z);
+                }
+                for n in &mut e.normals {
+                    *n = Vec3::new(n.x / 0.45, n.y / 0.3, n.z / 0.35).normalize_or(Vec3::Y);
+                }
+                e
+            },
+            false,
+        ),
+        (
+            "apple",
+            blob(0.4, 0.12, 1, 32, seg).transformed(1.0, Vec3::new(0.0, 0.4, 0.0)),
+            false,
+        ),
+        (
+            "lemon",
+            blob(0.3, 0.2, 2, 32, seg).transformed(1.0, Vec3::new(0.0, 0.3, 0.0)),
+            false,
+        ),
+        (
+            "box",
+            cuboid(Vec3::new(-0.3, 0.0, -0.2), Vec3::new(0.3, 0.5, 0.2)),
+            false,
+        ),
+        (
+            "torus",
+            torus(0.35, 0.12, 24, seg).transformed(1.0, Vec3::new(0.0, 0.12, 0.0)),
+            false,
+        ),
+        (
+            "ball",
+            sphere(0.4, 32, seg).transformed(1.0, Vec3::new(0.0, 0.4, 0.0)),
+            false,
+        ),
+    ]
+}
+
 /// The shapes matflow ships for inserting (`pipelines/meshes/`), each
 /// standing on y = 0 with its base centred on the origin (so `anchor`
 /// stands it on a surface): a jug 1 high, a torus lying flat (outer
@@ -288,6 +416,29 @@ mod tests {
         by_pos
             .iter()
             .all(|(&(a, b), &n)| n == 1 && by_pos.get(&(b, a)) == Some(&1))
+    }
+
+    #[test]
+    fn refraction_objects_are_closed_and_hollow_vessels_hold_a_cavity() {
+        for (name, s, hollow) in refraction_objects() {
+            assert!(closed(&s.mesh), "{name} is not closed");
+            let v = volume(&s.mesh);
+            assert!(v > 0.0, "{name}: volume {v}");
+            assert_eq!(s.normals.len(), s.mesh.positions.len(), "{name}");
+            if hollow {
+                // The material is a thin shell: far less than the solid of
+                // the same outline.
+                let lo = s.mesh.positions.iter().fold(f32::MAX, |m, p| m.min(p.y));
+                let hi = s.mesh.positions.iter().fold(f32::MIN, |m, p| m.max(p.y));
+                let r = s
+                    .mesh
+                    .positions
+                    .iter()
+                    .fold(0.0f32, |m, p| m.max(p.x.hypot(p.z)));
+                let cylinder = std::f64::consts::PI * (r * r) as f64 * (hi - lo) as f64;
+                assert!(v < 0.5 * cylinder, "{name}: {v} of {cylinder}");
+            }
+        }
     }
 
     #[test]
