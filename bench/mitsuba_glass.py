@@ -29,21 +29,10 @@ import os
 import sys
 import time
 
-MIN_LLVM_MAJOR = 17
+# Dr.Jit needs libLLVM >= 17 on x86 (see drjit_llvm.py beside this script).
+from drjit_llvm import choose as choose_llvm  # noqa: E402
 
-
-def _preparse_llvm():
-    # As in mitsuba_render.py: Mitsuba 3.9 needs libLLVM >= 17 on x86.
-    if "DRJIT_LIBLLVM_PATH" in os.environ:
-        return
-    for major in range(30, MIN_LLVM_MAJOR - 1, -1):
-        lib = f"/usr/lib/x86_64-linux-gnu/libLLVM-{major}.so"
-        if os.path.exists(lib):
-            os.environ["DRJIT_LIBLLVM_PATH"] = lib
-            break
-
-
-_preparse_llvm()
+choose_llvm()
 
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402

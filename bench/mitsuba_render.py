@@ -70,30 +70,16 @@ import statistics
 import sys
 import time
 
-# Mitsuba 3.9 / Dr.Jit 1.5 emit the llvm.minimum/maximum intrinsics (e.g. in
-# the path integrator's Russian-roulette code, even when it is disabled),
-# which the x86 backend of LLVM 16 and older cannot compile: the first kernel
-# then aborts the process with "LLVM ERROR: Cannot select: ... fminimum".
-# Dr.Jit loads whichever libLLVM it finds (Debian 12: LLVM 15) unless
-# DRJIT_LIBLLVM_PATH names one, so --llvm must take effect before Dr.Jit
-# initialises its LLVM backend, i.e. before mitsuba is imported.
-MIN_LLVM_MAJOR = 17
+# Dr.Jit needs libLLVM >= 17 on x86; choose it before mitsuba is imported
+# (see drjit_llvm.py beside this script).
+from drjit_llvm import MIN_LLVM_MAJOR, choose as choose_llvm  # noqa: E402
 
 
 def _preparse_llvm():
     pre = argparse.ArgumentParser(add_help=False)
     pre.add_argument("--llvm")
     known, _ = pre.parse_known_args()
-    if known.llvm:
-        os.environ["DRJIT_LIBLLVM_PATH"] = known.llvm
-    elif "DRJIT_LIBLLVM_PATH" not in os.environ:
-        # The newest system libLLVM new enough (Debian: apt-get install
-        # libllvm19), so the benchmark needs no flag where one is installed.
-        for major in range(30, MIN_LLVM_MAJOR - 1, -1):
-            lib = f"/usr/lib/x86_64-linux-gnu/libLLVM-{major}.so"
-            if os.path.exists(lib):
-                os.environ["DRJIT_LIBLLVM_PATH"] = lib
-                break
+    choose_llvm(known.llvm)
 
 
 _preparse_llvm()

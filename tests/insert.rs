@@ -52,19 +52,59 @@ fn objects(jug: &str) -> String {
     )
 }
 
+/// `matflow run FILE --quiet --cache CACHE --report WORK/report.json`
+/// with `--set` for each of `sets`, then `extra`: the output and the
+/// report (null when the run failed).
+fn run_pipeline(
+    file: &Path,
+    cache: &Path,
+    work: &Path,
+    sets: &[String],
+    extra: &[&str],
+) -> (Output, Value) {
+    let report = work.join("report.json");
+    let mut args = vec![
+        "run",
+        s(file),
+        "--quiet",
+        "--cache",
+        s(cache),
+        "--report",
+        s(&report),
+    ];
+    for set in sets {
+        args.push("--set");
+        args.push(set);
+    }
+    args.extend_from_slice(extra);
+    let out = matflow(&args);
+    if !out.status.success() {
+        return (out, Value::Null);
+    }
+    let r = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    (out, r)
+}
+
+/// Stage → status, from a report.
+fn statuses(r: &Value) -> BTreeMap<String, String> {
+    r["stages"]
+        .as_array()
+        .map(|a| {
+            a.iter()
+                .map(|s| {
+                    (
+                        s["name"].as_str().unwrap().to_string(),
+                        s["status"].as_str().unwrap().to_string(),
+                    )
+                })
+                .collect()
+        })
+        .unwrap_or_default()
+}
+
 /// Runs pipelines/insert.yaml at 64²; returns the report's stage statuses.
 fn run_insert(cache: &Path, work: &Path, extra: &[String]) -> (Output, BTreeMap<String, String>) {
-    let report = work.join("report.json");
-    let mut args: Vec<String> = vec![
-        "run".into(),
-        s(&repo().join("pipelines/insert.yaml")).into(),
-        "--quiet".into(),
-        "--cache".into(),
-        s(cache).into(),
-        "--report".into(),
-        s(&report).into(),
-    ];
-    for set in [
+    let sets = [
         "scene.size=64".to_string(),
         "scene.spp=8".into(),
         "lighting.budget_seconds=1".into(),
@@ -74,29 +114,16 @@ fn run_insert(cache: &Path, work: &Path, extra: &[String]) -> (Output, BTreeMap<
         format!("base.objects={}", objects("{type: glass, ior: 1.5}")),
         format!("inserted.output={}", s(&work.join("inserted.exr"))),
         format!("full.output={}", s(&work.join("full.exr"))),
-    ] {
-        args.push("--set".into());
-        args.push(set);
-    }
-    args.extend(extra.iter().cloned());
-    let argv: Vec<&str> = args.iter().map(|a| a.as_str()).collect();
-    let out = matflow(&argv);
-    if !out.status.success() {
-        return (out, BTreeMap::new());
-    }
-    let r: Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
-    let st = r["stages"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|s| {
-            (
-                s["name"].as_str().unwrap().to_string(),
-                s["status"].as_str().unwrap().to_string(),
-            )
-        })
-        .collect();
-    (out, st)
+    ];
+    let extra: Vec<&str> = extra.iter().map(|a| a.as_str()).collect();
+    let (out, r) = run_pipeline(
+        &repo().join("pipelines/insert.yaml"),
+        cache,
+        work,
+        &sets,
+        &extra,
+    );
+    (out, statuses(&r))
 }
 
 #[test]
@@ -294,53 +321,26 @@ fn the_readme_documents_every_node_kind_as_matflow_kinds_prints_it() {
 fn the_glass_pipeline_makes_a_region_transparent_and_re_edits_t_from_kept_paths() {
     let work = tmp("glass");
     let cache = work.join("cache");
-    let report = work.join("report.json");
     let glass_yaml = repo().join("pipelines/glass.yaml");
-    let run_file = |file: &Path, extra: &[&str]| -> (Output, BTreeMap<String, String>) {
-        let out_s = format!("glass.output={}", s(&work.join("glass.exr")));
-        let mut args = vec![
-            "run",
-            s(file),
-            "--quiet",
-            "--cache",
-            s(&cache),
-            "--report",
-            s(&report),
-        ];
-        for set in [
-            "scene.size=64",
-            "scene.spp=8",
-            "lighting.budget_seconds=1",
-            "recovered.budget_seconds=2",
-            "base.spp=8",
-            "base.path_spp=4",
-            "glassy.mask_flood=~",
-            "glassy.mask_rect=[44, 38, 58, 52]",
-            out_s.as_str(),
-        ] {
-            args.push("--set");
-            args.push(set);
-        }
-        args.extend_from_slice(extra);
-        let out = matflow(&args);
-        if !out.status.success() {
-            return (out, BTreeMap::new());
-        }
-        let r: Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
-        let st = r["stages"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|s| {
-                (
-                    s["name"].as_str().unwrap().to_string(),
-                    s["status"].as_str().unwrap().to_string(),
-                )
-            })
-            .collect();
-        (out, st)
+    let sets: Vec<String> = [
+        "scene.size=64",
+        "scene.spp=8",
+        "lighting.budget_seconds=1",
+        "recovered.budget_seconds=2",
+        "base.spp=8",
+        "base.path_spp=4",
+        "glassy.mask_flood=~",
+        "glassy.mask_rect=[44, 38, 58, 52]",
+    ]
+    .iter()
+    .map(|x| x.to_string())
+    .chain([format!("glass.output={}", s(&work.join("glass.exr")))])
+    .collect();
+    let run_file = |file: &Path, extra: &[&str]| run_pipeline(file, &cache, &work, &sets, extra);
+    let run = |extra: &[&str]| {
+        let (out, r) = run_file(&glass_yaml, extra);
+        (out, statuses(&r))
     };
-    let run = |extra: &[&str]| run_file(&glass_yaml, extra);
     let (out, st) = run(&[]);
     assert!(out.status.success(), "{}", text(&out));
     assert!(st.values().all(|s| s == "executed"), "{st:?}");
@@ -372,9 +372,8 @@ fn the_glass_pipeline_makes_a_region_transparent_and_re_edits_t_from_kept_paths(
     // output) are used as given: a map of zeros makes the same materials
     // as a zero thickness and gap.
     let digest_of = |file: &Path, extra: &[&str]| {
-        let (out, _) = run_file(file, extra);
+        let (out, r) = run_file(file, extra);
         assert!(out.status.success(), "{}", text(&out));
-        let r: Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
         r["stages"]
             .as_array()
             .unwrap()

@@ -13,7 +13,6 @@
 //!    scene (sRGB PSNR).
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
@@ -22,7 +21,7 @@ use matflow_geom::mesh_for_view;
 use matflow_render::{render, EnvMap, RenderOptions, RenderScene};
 use matflow_scene::metrics::psnr_gamma;
 
-use crate::bench_pipeline::median;
+use crate::bench_pipeline::{median, run_child};
 
 #[derive(Args)]
 pub struct BenchInsertArgs {
@@ -128,28 +127,7 @@ pub fn bench_insert(a: BenchInsertArgs) -> Result<()> {
         format!("inserted.output={}", a.work.join("inserted.exr").display()),
         format!("full.output={}", a.work.join("full.exr").display()),
     ];
-    let run_file = |file: &Path, extra: &[String]| -> Result<(f64, String)> {
-        let mut c = Command::new(&exe);
-        c.arg("run")
-            .arg(file)
-            .arg("--quiet")
-            .arg("--cache")
-            .arg(&cache);
-        for s in base_sets.iter().chain(extra) {
-            c.arg("--set").arg(s);
-        }
-        let t = Instant::now();
-        let out = c.output()?;
-        let secs = t.elapsed().as_secs_f64();
-        if !out.status.success() {
-            bail!(
-                "matflow run failed:\n{}",
-                String::from_utf8_lossy(&out.stderr)
-            );
-        }
-        let text = String::from_utf8_lossy(&out.stdout).into_owned();
-        Ok((secs, text.lines().last().unwrap_or("").to_string()))
-    };
+    let run_file = |file: &Path, extra: &[String]| run_child(&exe, file, &cache, &base_sets, extra);
     let (first, summary) = run_file(&a.pipeline, &[])?;
     outln!("first run (empty cache): {first:.2} s   [{summary}]");
     let tints = [
@@ -252,28 +230,7 @@ fn glass_region(a: &BenchInsertArgs, exe: &Path) -> Result<()> {
         ),
         format!("glass.output={}", a.work.join("glass.exr").display()),
     ];
-    let run = |file: &Path, extra: &[String]| -> Result<(f64, String)> {
-        let mut c = Command::new(exe);
-        c.arg("run")
-            .arg(file)
-            .arg("--quiet")
-            .arg("--cache")
-            .arg(&cache);
-        for s in sets.iter().chain(extra) {
-            c.arg("--set").arg(s);
-        }
-        let t = Instant::now();
-        let out = c.output()?;
-        let secs = t.elapsed().as_secs_f64();
-        if !out.status.success() {
-            bail!(
-                "matflow run failed:\n{}",
-                String::from_utf8_lossy(&out.stderr)
-            );
-        }
-        let text = String::from_utf8_lossy(&out.stdout).into_owned();
-        Ok((secs, text.lines().last().unwrap_or("").to_string()))
-    };
+    let run = |file: &Path, extra: &[String]| run_child(exe, file, &cache, &sets, extra);
     let (first, s) = run(&file, &[])?;
     outln!("glass: first run (empty cache): {first:.2} s   [{s}]");
     let ts = [0.6, 0.3, 0.8, 0.45];

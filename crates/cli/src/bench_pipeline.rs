@@ -135,6 +135,38 @@ fn big_pipelines(
     Ok(())
 }
 
+/// `matflow run FILE --quiet --cache CACHE --set S…` (the `sets`, then
+/// `extra`) as a child process, as a user runs it: its wall time and the
+/// summary line it ends with.
+pub(crate) fn run_child(
+    exe: &std::path::Path,
+    file: &std::path::Path,
+    cache: &std::path::Path,
+    sets: &[String],
+    extra: &[String],
+) -> Result<(f64, String)> {
+    let mut c = Command::new(exe);
+    c.arg("run")
+        .arg(file)
+        .arg("--quiet")
+        .arg("--cache")
+        .arg(cache);
+    for s in sets.iter().chain(extra) {
+        c.arg("--set").arg(s);
+    }
+    let t = Instant::now();
+    let out = c.output()?;
+    let secs = t.elapsed().as_secs_f64();
+    if !out.status.success() {
+        bail!(
+            "matflow run failed:\n{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    let text = String::from_utf8_lossy(&out.stdout).into_owned();
+    Ok((secs, text.lines().last().unwrap_or("").to_string()))
+}
+
 pub(crate) fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(|a, b| a.total_cmp(b));
     v[v.len() / 2]
@@ -149,29 +181,8 @@ pub fn bench_pipeline(a: BenchPipelineArgs) -> Result<()> {
     std::fs::create_dir_all(&a.work)?;
     let cache = a.work.join("cache");
     let base = demo_sets(a.size, a.spp, &a.work);
-    let run_file = |file: &std::path::Path, extra: &[String]| -> Result<(f64, String)> {
-        let mut c = Command::new(&exe);
-        c.arg("run")
-            .arg(file)
-            .arg("--quiet")
-            .arg("--cache")
-            .arg(&cache);
-        for s in base.iter().chain(extra) {
-            c.arg("--set").arg(s);
-        }
-        let t = Instant::now();
-        let out = c.output()?;
-        let secs = t.elapsed().as_secs_f64();
-        if !out.status.success() {
-            bail!(
-                "matflow run failed:\n{}",
-                String::from_utf8_lossy(&out.stderr)
-            );
-        }
-        let text = String::from_utf8_lossy(&out.stdout).into_owned();
-        let summary = text.lines().last().unwrap_or("").to_string();
-        Ok((secs, summary))
-    };
+    let run_file =
+        |file: &std::path::Path, extra: &[String]| run_child(&exe, file, &cache, &base, extra);
     let run = |extra: &[String]| run_file(&a.pipeline, extra);
     outln!(
         "bench pipeline: {} at {}², {} spp, {} thread(s); each run is a child `matflow run`",

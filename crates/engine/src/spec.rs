@@ -284,17 +284,24 @@ pub fn parse(
     // for it are dropped, its other overrides and the kind's defaults
     // make the new stage (how one pipeline runs on a generated scene or
     // on a photo's bundle).
+    if let Some(o) = overrides
+        .iter()
+        .find(|o| !raws.iter().any(|r| r.name == o.stage))
+    {
+        return Err(err(
+            None,
+            format!(
+                "--set {}: there is no stage `{}`",
+                clip(&o.text),
+                clip(&o.stage)
+            ),
+        ));
+    }
     for o in overrides.iter().filter(|o| o.param == "kind") {
-        let Some(r) = raws.iter_mut().find(|r| r.name == o.stage) else {
-            return Err(err(
-                None,
-                format!(
-                    "--set {}: there is no stage `{}`",
-                    clip(&o.text),
-                    clip(&o.stage)
-                ),
-            ));
-        };
+        let r = raws
+            .iter_mut()
+            .find(|r| r.name == o.stage)
+            .expect("stages checked");
         match &o.value {
             Value::Str(k) if reg.get(k).is_some() => {
                 r.kind = k.clone();
@@ -315,16 +322,10 @@ pub fn parse(
     }
     // Overrides replace or add parameters; they carry no location.
     for o in overrides.iter().filter(|o| o.param != "kind") {
-        let Some(r) = raws.iter_mut().find(|r| r.name == o.stage) else {
-            return Err(err(
-                None,
-                format!(
-                    "--set {}: there is no stage `{}`",
-                    clip(&o.text),
-                    clip(&o.stage)
-                ),
-            ));
-        };
+        let r = raws
+            .iter_mut()
+            .find(|r| r.name == o.stage)
+            .expect("stages checked");
         let node = reg.get(&r.kind).expect("kind checked");
         if !node.params().iter().any(|p| p.name == o.param) {
             return Err(err(

@@ -4,6 +4,26 @@ use std::io::Write;
 
 use glam::{Vec2, Vec3};
 
+/// Corner `k` (bits: x, y, z at the high end) of the box `lo`..`hi`.
+pub fn box_corner(lo: Vec3, hi: Vec3, k: u32) -> Vec3 {
+    Vec3::new(
+        if k & 1 != 0 { hi.x } else { lo.x },
+        if k & 2 != 0 { hi.y } else { lo.y },
+        if k & 4 != 0 { hi.z } else { lo.z },
+    )
+}
+
+/// A box's faces as quads of [`box_corner`]s, counter-clockwise from
+/// outside: −x, +x, −y, +y, −z, +z.
+pub const BOX_QUADS: [[u32; 4]; 6] = [
+    [0, 4, 6, 2],
+    [1, 3, 7, 5],
+    [0, 1, 5, 4],
+    [2, 6, 7, 3],
+    [0, 2, 3, 1],
+    [4, 5, 7, 6],
+];
+
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct TriMesh {
     pub positions: Vec<Vec3>,
@@ -34,22 +54,9 @@ impl TriMesh {
     pub fn add_box(&mut self, lo: Vec3, hi: Vec3) {
         let base = self.positions.len() as u32;
         for k in 0..8u32 {
-            self.positions.push(Vec3::new(
-                if k & 1 != 0 { hi.x } else { lo.x },
-                if k & 2 != 0 { hi.y } else { lo.y },
-                if k & 4 != 0 { hi.z } else { lo.z },
-            ));
+            self.positions.push(box_corner(lo, hi, k));
         }
-        // Faces as quads (a, b, c, d) counter-clockwise from outside.
-        const QUADS: [[u32; 4]; 6] = [
-            [0, 4, 6, 2], // -x
-            [1, 3, 7, 5], // +x
-            [0, 1, 5, 4], // -y
-            [2, 6, 7, 3], // +y
-            [0, 2, 3, 1], // -z
-            [4, 5, 7, 6], // +z
-        ];
-        for q in QUADS {
+        for q in BOX_QUADS {
             self.indices.push([base + q[0], base + q[1], base + q[2]]);
             self.indices.push([base + q[0], base + q[2], base + q[3]]);
         }

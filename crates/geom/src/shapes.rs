@@ -7,7 +7,7 @@ use std::f32::consts::PI;
 
 use glam::{Vec2, Vec3};
 
-use crate::mesh::TriMesh;
+use crate::mesh::{box_corner, TriMesh, BOX_QUADS};
 
 /// A mesh with per-vertex shading normals.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -161,67 +161,14 @@ pub fn jug(segments: usize) -> Shape {
     revolve(&profile, None, segments)
 }
 
-/// An axis-aligned box with flat normals.
+/// An axis-aligned box with flat normals (a [`TriMesh::add_box`] whose
+/// faces do not share vertices).
 pub fn cuboid(lo: Vec3, hi: Vec3) -> Shape {
     let mut s = Shape::default();
-    let faces: [(Vec3, [Vec3; 4]); 6] = [
-        (
-            -Vec3::X,
-            [
-                Vec3::new(0., 0., 0.),
-                Vec3::new(0., 0., 1.),
-                Vec3::new(0., 1., 1.),
-                Vec3::new(0., 1., 0.),
-            ],
-        ),
-        (
-            Vec3::X,
-            [
-                Vec3::new(1., 0., 0.),
-                Vec3::new(1., 1., 0.),
-                Vec3::new(1., 1., 1.),
-                Vec3::new(1., 0., 1.),
-            ],
-        ),
-        (
-            -Vec3::Y,
-            [
-                Vec3::new(0., 0., 0.),
-                Vec3::new(1., 0., 0.),
-                Vec3::new(1., 0., 1.),
-                Vec3::new(0., 0., 1.),
-            ],
-        ),
-        (
-            Vec3::Y,
-            [
-                Vec3::new(0., 1., 0.),
-                Vec3::new(0., 1., 1.),
-                Vec3::new(1., 1., 1.),
-                Vec3::new(1., 1., 0.),
-            ],
-        ),
-        (
-            -Vec3::Z,
-            [
-                Vec3::new(0., 0., 0.),
-                Vec3::new(0., 1., 0.),
-                Vec3::new(1., 1., 0.),
-                Vec3::new(1., 0., 0.),
-            ],
-        ),
-        (
-            Vec3::Z,
-            [
-                Vec3::new(0., 0., 1.),
-                Vec3::new(1., 0., 1.),
-                Vec3::new(1., 1., 1.),
-                Vec3::new(0., 1., 1.),
-            ],
-        ),
-    ];
-    for (n, corners) in faces {
-        let ids = corners.map(|c| s.push(lo + (hi - lo) * c, n));
+    for q in BOX_QUADS {
+        let c = q.map(|k| box_corner(lo, hi, k));
+        let n = (c[1] - c[0]).cross(c[2] - c[0]);
+        let ids = c.map(|p| s.push(p, n));
         s.quad(ids[0], ids[1], ids[2], ids[3]);
     }
     s
@@ -361,14 +308,14 @@ pub fn refraction_objects() -> Vec<(&'static str, Shape, bool)> {
 /// radius 0.55, tube 0.15), a sphere of radius 0.5 and a unit cube.
 pub fn shipped() -> Vec<(&'static str, Shape)> {
     vec![
-        ("jug", jug(64)),
+        ("jug", jug(40)),
         (
             "torus",
-            torus(0.4, 0.15, 32, 64).transformed(1.0, Vec3::new(0.0, 0.15, 0.0)),
+            torus(0.4, 0.15, 20, 40).transformed(1.0, Vec3::new(0.0, 0.15, 0.0)),
         ),
         (
             "sphere",
-            sphere(0.5, 32, 64).transformed(1.0, Vec3::new(0.0, 0.5, 0.0)),
+            sphere(0.5, 20, 40).transformed(1.0, Vec3::new(0.0, 0.5, 0.0)),
         ),
         (
             "cube",

@@ -156,6 +156,18 @@ pub fn render_scene(
     env: &RgbImage,
 ) -> Result<RenderScene, NodeError> {
     let (cam, tri) = decode_mesh(mesh)?;
+    scene_of(cam, tri, maps, env, &[])
+}
+
+/// A renderable scene from a decoded mesh, materials, an envmap and
+/// inserted objects; the materials must be the camera's size.
+pub fn scene_of(
+    cam: Camera,
+    tri: TriMesh,
+    maps: &MaterialMaps,
+    env: &RgbImage,
+    objects: &[matflow_render::SceneObject],
+) -> Result<RenderScene, NodeError> {
     if maps.width() != cam.width || maps.height() != cam.height {
         return Err(err(format!(
             "materials are {}x{} but the mesh's camera is {}x{}",
@@ -165,7 +177,8 @@ pub fn render_scene(
             cam.height
         )));
     }
-    RenderScene::new(cam, tri, maps, EnvMap::new(env).map_err(err)?).map_err(err)
+    RenderScene::with_objects(cam, tri, maps, EnvMap::new(env).map_err(err)?, objects)
+        .map_err(failed)
 }
 
 pub(crate) fn mesh_of(depth: &GrayImage, angle: f64) -> Result<TriMesh, NodeError> {

@@ -16,6 +16,8 @@ pub use kinds::insert::composite_differential;
 mod kinds;
 pub mod objects;
 mod recovery;
+#[cfg(test)]
+mod testutil;
 
 use matflow_engine::{Node, NodeError, Registry};
 

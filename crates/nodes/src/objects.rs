@@ -712,12 +712,11 @@ pub fn read_objects_file(path: &Path) -> Result<Vec<ObjectSpec>, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::data::{encode_mesh, Kept};
     use crate::kinds::insert::composite_differential;
     use crate::kinds::render::rerender_kept;
+    use crate::testutil::{check_retrace, opts, trace_kept};
     use matflow_geom::shapes;
-    use matflow_inverse::paths::{CacheOptions, PathCache};
-    use matflow_render::{render, EnvMap, PixelFilter, RenderOptions, RenderScene};
+    use matflow_render::{render, EnvMap, RenderScene};
     use matflow_scene::meshfile::obj_text;
     use matflow_scene::GrayImage;
 
@@ -917,40 +916,11 @@ mod tests {
         let scene = |objs: &[SceneObject]| {
             RenderScene::with_objects(cam, tri.clone(), &s.maps, env.clone(), objs).unwrap()
         };
-        let opts = RenderOptions {
-            spp: 6,
-            max_depth: 4,
-            seed: 11,
-            filter: PixelFilter::Box,
-            ..Default::default()
-        };
+        let opts = opts();
         let base = scene(&objs);
-        let image = render(&base, &opts, &|_, _| {}).image;
         let plain = render(&scene(&[]), &opts, &|_, _| {}).image;
-        let cache = PathCache::build(
-            &base,
-            &CacheOptions {
-                spp: 4,
-                max_depth: 4,
-                seed: 5,
-                env_width: 32,
-                env_height: 16,
-            },
-            &|_, _| {},
-        )
-        .unwrap();
-        let kept = Kept {
-            cache,
-            spp: 6,
-            seed: 11,
-            materials: s.maps.clone(),
-            envmap: s.envmap.clone(),
-            image: image.clone(),
-            objects: objs.clone(),
-            background: Some(plain.clone()),
-            coverage: Some(base.object_coverage(4)),
-        };
-        let kept = Kept::decode(&kept.encode()).unwrap();
+        let kept = trace_kept(&base, &s.maps, &s.envmap, &objs, Some(plain.clone()));
+        let image = kept.image.clone();
         assert!(same_geometry(&kept.objects, &objs));
         // Differential compositing changes the photo only where a path
         // met an object: elsewhere with and without are bit-identical.
@@ -979,20 +949,9 @@ mod tests {
         let full = render(&escene, &opts, &|_, _| {}).image;
         let mut changed = vec![false; n * n];
         changed.extend([false, true]);
-        let hit: std::collections::BTreeSet<u32> =
-            kept.cache.pixels_reaching(&changed).into_iter().collect();
-        assert!(!hit.is_empty() && hit.len() < n * n, "{}", hit.len());
-        let mut missed = 0;
-        for p in 0..n * n {
-            if hit.contains(&(p as u32)) {
-                assert_eq!(got.data[p], full.data[p], "re-traced pixel {p}");
-            } else {
-                assert_eq!(got.data[p], image.data[p], "kept pixel {p}");
-                missed += (full.data[p] != image.data[p]) as usize;
-            }
-        }
+        let (hit, missed) = check_retrace(&kept, &changed, &got, &full);
+        assert!(hit > 0 && hit < n * n, "{hit}");
         assert!(missed * 10 < n * n, "{missed} pixels missed");
-        let _ = encode_mesh;
         let _ = std::fs::remove_dir_all(&d);
     }
 }

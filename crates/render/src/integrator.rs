@@ -536,20 +536,16 @@ impl Wavefront {
             path.glass_vertex = false;
 
             // Next-event estimation towards the environment map.
-            let (ue1, ue2) = path.rng.next_2d_with(k.light);
-            path.light = None;
-            if let Some((wl, le, pdf_e)) = scene.env.sample(ue1, ue2) {
-                if n.dot(wl) > 0.0 && pdf_e > 0.0 {
-                    st.shadow_rays += 1;
-                    path.light = Some(LightSample {
-                        dir: wl,
-                        le,
-                        pdf: pdf_e,
-                        ray: self.rays.len() as u32,
-                    });
-                    self.rays.push((offset_origin(path.p, n, wl), wl));
-                }
-            }
+            sample_light(
+                scene,
+                path,
+                k.light,
+                true,
+                n,
+                |wl| n.dot(wl) > 0.0,
+                st,
+                &mut self.rays,
+            );
 
             // The BSDF sample the path continues with.
             let u_lobe = path.rng.next_f32_with(k.lobe);
@@ -750,6 +746,41 @@ fn may_shade(scene: &RenderScene, opts: &RenderOptions, path: &Path, q: usize) -
     }
 }
 
+/// Next-event estimation towards the environment map: draws the vertex's
+/// envmap sample (always, so every vertex draws the same dimensions) and,
+/// when `enabled`, `accept(direction)` and its pdf is positive, queues the
+/// shadow ray, leaving by the geometric normal `ng`.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn sample_light(
+    scene: &RenderScene,
+    path: &mut Path,
+    key: Keys2d,
+    enabled: bool,
+    ng: Vec3,
+    accept: impl Fn(Vec3) -> bool,
+    st: &mut RenderStats,
+    rays: &mut Vec<(Vec3, Vec3)>,
+) {
+    let (ue1, ue2) = path.rng.next_2d_with(key);
+    path.light = None;
+    if !enabled {
+        return;
+    }
+    if let Some((wl, le, pdf_e)) = scene.env.sample(ue1, ue2) {
+        if accept(wl) && pdf_e > 0.0 {
+            st.shadow_rays += 1;
+            path.light = Some(LightSample {
+                dir: wl,
+                le,
+                pdf: pdf_e,
+                ray: rays.len() as u32,
+            });
+            rays.push((offset_origin(path.p, ng, wl), wl));
+        }
+    }
+}
+
 /// [`Path::obj`] of a vertex on the depth mesh.
 const NO_OBJECT: u32 = u32::MAX;
 
@@ -803,24 +834,9 @@ fn shade_object(
     path.ng = ng;
     path.glass_vertex = glass.is_some();
     // Next-event estimation (not for smooth glass: its lobes are deltas).
-    let (ue1, ue2) = path.rng.next_2d_with(k.light);
-    path.light = None;
     let smooth = glass.is_some_and(|g| g.is_smooth());
-    if !smooth {
-        if let Some((wl, le, pdf_e)) = scene.env.sample(ue1, ue2) {
-            let facing = glass.is_some() || (ng.dot(wl) > 0.0 && n.dot(wl) > 0.0);
-            if facing && pdf_e > 0.0 {
-                st.shadow_rays += 1;
-                path.light = Some(LightSample {
-                    dir: wl,
-                    le,
-                    pdf: pdf_e,
-                    ray: rays.len() as u32,
-                });
-                rays.push((offset_origin(path.p, ng, wl), wl));
-            }
-        }
-    }
+    let facing = |wl: Vec3| glass.is_some() || (ng.dot(wl) > 0.0 && n.dot(wl) > 0.0);
+    sample_light(scene, path, k.light, !smooth, ng, facing, st, rays);
     let u_lobe = path.rng.next_f32_with(k.lobe);
     let (u1, u2) = path.rng.next_2d_with(k.direction);
     path.next = match surface {
@@ -885,23 +901,18 @@ fn shade_screen_glass(
     path.glass_vertex = true;
     path.mat = scene.materials[path.q];
     let frame = Frame::from_normal(n);
-    let (ue1, ue2) = path.rng.next_2d_with(k.light);
-    path.light = None;
-    if !g.interface.is_smooth() {
-        if let Some((wl, le, pdf_e)) = scene.env.sample(ue1, ue2) {
-            // Only reflection reaches the envmap directly from here.
-            if n.dot(wl) > 0.0 && n.dot(v) > 0.0 && pdf_e > 0.0 {
-                st.shadow_rays += 1;
-                path.light = Some(LightSample {
-                    dir: wl,
-                    le,
-                    pdf: pdf_e,
-                    ray: rays.len() as u32,
-                });
-                rays.push((offset_origin(path.p, n, wl), wl));
-            }
-        }
-    }
+    // Only reflection reaches the envmap directly from here.
+    let reflects = |wl: Vec3| n.dot(wl) > 0.0 && n.dot(v) > 0.0;
+    sample_light(
+        scene,
+        path,
+        k.light,
+        !g.interface.is_smooth(),
+        n,
+        reflects,
+        st,
+        rays,
+    );
     let u_lobe = path.rng.next_f32_with(k.lobe);
     let (u1, u2) = path.rng.next_2d_with(k.direction);
     let wi = frame.to_local(v);

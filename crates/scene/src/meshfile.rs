@@ -529,17 +529,27 @@ fn read_ply(path: &Path) -> Result<MeshPart> {
 }
 
 /// Writes `part` as Wavefront OBJ text (positions, normals and faces),
-/// the format matflow's shipped meshes use.
+/// the format matflow's shipped meshes use; coordinates to 5 decimals.
 pub fn obj_text(part: &MeshPart, comment: &str) -> String {
+    // Fixed decimals, trailing zeros dropped, no negative zero.
+    let num = |x: f32| {
+        let t = format!("{x:.5}");
+        let t = t.trim_end_matches('0').trim_end_matches('.');
+        if t == "-0" || t.is_empty() {
+            "0".to_string()
+        } else {
+            t.to_string()
+        }
+    };
     let mut s = String::new();
     for line in comment.lines() {
         s.push_str(&format!("# {line}\n"));
     }
     for p in &part.positions {
-        s.push_str(&format!("v {} {} {}\n", p.x, p.y, p.z));
+        s.push_str(&format!("v {} {} {}\n", num(p.x), num(p.y), num(p.z)));
     }
     for n in &part.normals {
-        s.push_str(&format!("vn {} {} {}\n", n.x, n.y, n.z));
+        s.push_str(&format!("vn {} {} {}\n", num(n.x), num(n.y), num(n.z)));
     }
     let with_n = part.normals.len() == part.positions.len() && !part.normals.is_empty();
     for t in &part.indices {

@@ -21,14 +21,14 @@ use std::path::PathBuf;
 
 use matflow_engine::node::{Bytes, Params};
 use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
-use matflow_render::{render, EnvMap, RenderOptions, RenderScene, SceneObject};
+use matflow_render::{render, RenderOptions, RenderScene, SceneObject};
 use matflow_scene::{Image, MaterialMaps, RgbImage};
 
 use crate::artifact::Artifact;
 use crate::data::{decode_mesh, encode_image, envmap_from, materials_from, Kept, SceneData, MESH};
-use crate::kinds::render::{pair, write_pair};
+use crate::err;
+use crate::kinds::render::pair;
 use crate::objects;
-use crate::{err, failed};
 
 pub struct InsertNode;
 
@@ -213,23 +213,7 @@ fn scene_with(
     env: &RgbImage,
     objs: &[SceneObject],
 ) -> Result<RenderScene, NodeError> {
-    if maps.width() != cam.width || maps.height() != cam.height {
-        return Err(err(format!(
-            "materials are {}x{} but the mesh's camera is {}x{}",
-            maps.width(),
-            maps.height(),
-            cam.width,
-            cam.height
-        )));
-    }
-    RenderScene::with_objects(
-        *cam,
-        tri.clone(),
-        maps,
-        EnvMap::new(env).map_err(err)?,
-        objs,
-    )
-    .map_err(failed)
+    crate::data::scene_of(*cam, tri.clone(), maps, env, objs)
 }
 
 impl Node for InsertNode {
@@ -366,13 +350,6 @@ impl Node for InsertNode {
         params: &Params,
         outputs: &BTreeMap<String, Bytes>,
     ) -> Result<Vec<PathBuf>, NodeError> {
-        let Some(path) = params.path("output") else {
-            return Ok(vec![]);
-        };
-        let b = outputs
-            .get("image")
-            .ok_or_else(|| err("the insertion has no image"))?;
-        let img = Artifact::decode(&b[..], "image")?.rgb("image")?;
-        write_pair(&path, &img)
+        crate::kinds::render::write_output_image(params, outputs)
     }
 }

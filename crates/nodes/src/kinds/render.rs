@@ -25,10 +25,7 @@ pub(crate) fn pair(path: &Path) -> [PathBuf; 2] {
 /// each through a temporary file renamed into place; a file that already
 /// holds the same bytes is not rewritten (a cached run changes nothing on
 /// disk).
-pub(crate) fn write_pair(
-    path: &Path,
-    img: &matflow_scene::RgbImage,
-) -> Result<Vec<PathBuf>, NodeError> {
+fn write_pair(path: &Path, img: &matflow_scene::RgbImage) -> Result<Vec<PathBuf>, NodeError> {
     let [exr, png] = pair(path);
     io::write_if_changed(&exr, &io::encode_exr_rgb(&exr, img).map_err(err)?).map_err(err)?;
     io::write_if_changed(&png, &io::encode_png_gamma(&png, img).map_err(err)?).map_err(err)?;
@@ -136,23 +133,7 @@ pub(crate) fn edited_image(
     edited: &MaterialMaps,
 ) -> Result<RgbImage, NodeError> {
     let (cam, tri) = crate::data::decode_mesh(mesh)?;
-    if edited.width() != cam.width || edited.height() != cam.height {
-        return Err(err(format!(
-            "materials are {}x{} but the mesh's camera is {}x{}",
-            edited.width(),
-            edited.height(),
-            cam.width,
-            cam.height
-        )));
-    }
-    let scene = matflow_render::RenderScene::with_objects(
-        cam,
-        tri,
-        edited,
-        matflow_render::EnvMap::new(&k.envmap).map_err(err)?,
-        &k.objects,
-    )
-    .map_err(crate::failed)?;
+    let scene = crate::data::scene_of(cam, tri, edited, &k.envmap, &k.objects)?;
     rerender_kept(k, &scene, edited, &k.objects)
 }
 
@@ -242,13 +223,22 @@ impl Node for RenderNode {
         params: &Params,
         outputs: &BTreeMap<String, Bytes>,
     ) -> Result<Vec<PathBuf>, NodeError> {
-        let Some(path) = params.path("output") else {
-            return Ok(vec![]);
-        };
-        let b = outputs
-            .get("image")
-            .ok_or_else(|| err("the render has no image"))?;
-        let img = Artifact::decode(&b[..], "image")?.rgb("image")?;
-        write_pair(&path, &img)
+        write_output_image(params, outputs)
     }
+}
+
+/// Writes the `image` output to the `output` path (EXR and PNG), when
+/// one is given: what the image-producing kinds materialise.
+pub(crate) fn write_output_image(
+    params: &Params,
+    outputs: &BTreeMap<String, Bytes>,
+) -> Result<Vec<PathBuf>, NodeError> {
+    let Some(path) = params.path("output") else {
+        return Ok(vec![]);
+    };
+    let b = outputs
+        .get("image")
+        .ok_or_else(|| err("the stage made no image"))?;
+    let img = Artifact::decode(&b[..], "image")?.rgb("image")?;
+    write_pair(&path, &img)
 }

@@ -20,7 +20,7 @@ use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType
 use matflow_inverse::paths::{CacheOptions, PathCache};
 use matflow_render::{render, PixelFilter, RenderOptions};
 
-use crate::data::{encode_image, envmap_from, materials_from, render_scene, Kept, MESH};
+use crate::data::{encode_image, envmap_from, materials_from, Kept, MESH};
 use crate::failed;
 use crate::kinds::insert::COVERAGE_GRID;
 
@@ -135,26 +135,12 @@ impl Node for TraceNode {
         let maps = materials_from(ctx.input("materials")?)?;
         let env = envmap_from(ctx.input("envmap")?)?;
         let specs = crate::objects::specs(p.get("objects"))?;
-        let objects = if specs.is_empty() {
-            Vec::new()
-        } else {
-            let (cam, tri) = crate::data::decode_mesh(ctx.input("mesh")?)?;
-            crate::objects::place(&specs, &cam, &tri)?
-        };
-        let scene = render_scene(ctx.input("mesh")?, &maps, &env)?;
-        let scene = if objects.is_empty() {
-            scene
-        } else {
-            let (cam, tri) = crate::data::decode_mesh(ctx.input("mesh")?)?;
-            matflow_render::RenderScene::with_objects(
-                cam,
-                tri,
-                &maps,
-                matflow_render::EnvMap::new(&env).map_err(crate::err)?,
-                &objects,
-            )
-            .map_err(failed)?
-        };
+        let (cam, tri) = crate::data::decode_mesh(ctx.input("mesh")?)?;
+        let objects = crate::objects::place(&specs, &cam, &tri)?;
+        // With objects the depth mesh is needed again for the render
+        // without them.
+        let plain_mesh = (!objects.is_empty()).then(|| tri.clone());
+        let scene = crate::data::scene_of(cam, tri, &maps, &env, &objects)?;
         let depth = p.i64("depth") as u32;
         let spp = p.i64("spp") as u32;
         let parts = if objects.is_empty() { 2 } else { 3 };
@@ -170,16 +156,17 @@ impl Node for TraceNode {
         })
         .image;
         // With objects, the same render without them, for compositing.
-        let background = if objects.is_empty() {
-            None
-        } else {
-            let plain = render_scene(ctx.input("mesh")?, &maps, &env)?;
-            Some(
-                render(&plain, &opts, &|d, t| {
-                    (ctx.progress)((2 * t + d) as u64, parts * t as u64)
-                })
-                .image,
-            )
+        let background = match plain_mesh {
+            None => None,
+            Some(tri) => {
+                let plain = crate::data::scene_of(cam, tri, &maps, &env, &[])?;
+                Some(
+                    render(&plain, &opts, &|d, t| {
+                        (ctx.progress)((2 * t + d) as u64, parts * t as u64)
+                    })
+                    .image,
+                )
+            }
         };
         let cache = PathCache::build(
             &scene,
@@ -216,8 +203,9 @@ impl Node for TraceNode {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::data::encode_mesh;
+    use crate::data::{encode_mesh, render_scene};
     use crate::kinds::render::edited_image;
+    use crate::testutil::{check_retrace, opts, trace_kept};
     use glam::Vec3;
     use matflow_scene::Camera;
 
@@ -234,38 +222,7 @@ mod tests {
             .mesh;
         let mesh = encode_mesh(n, n, &tri);
         let scene = render_scene(&mesh, &s.maps, &s.envmap).unwrap();
-        let opts = RenderOptions {
-            spp: 6,
-            max_depth: 4,
-            seed: 11,
-            filter: PixelFilter::Box,
-            ..Default::default()
-        };
-        let image = render(&scene, &opts, &|_, _| {}).image;
-        let cache = PathCache::build(
-            &scene,
-            &CacheOptions {
-                spp: 4,
-                max_depth: 4,
-                seed: 5,
-                env_width: 32,
-                env_height: 16,
-            },
-            &|_, _| {},
-        )
-        .unwrap();
-        let kept = Kept {
-            cache,
-            spp: 6,
-            seed: 11,
-            materials: s.maps.clone(),
-            envmap: s.envmap.clone(),
-            image,
-            objects: Vec::new(),
-            background: None,
-            coverage: None,
-        };
-        let kept = Kept::decode(&kept.encode()).unwrap();
+        let kept = trace_kept(&scene, &s.maps, &s.envmap, &[], None);
         let mut edited = s.maps.clone();
         for y in 14..20 {
             for x in 4..10 {
@@ -277,25 +234,13 @@ mod tests {
         let got = edited_image(&kept, &mesh, &edited).unwrap();
         let full = render(
             &render_scene(&mesh, &edited, &s.envmap).unwrap(),
-            &opts,
+            &opts(),
             &|_, _| {},
         )
         .image;
-        let hit: std::collections::BTreeSet<u32> = kept
-            .cache
-            .pixels_reaching(&kept.materials.changed_texels(&edited))
-            .into_iter()
-            .collect();
-        assert!(hit.len() >= 36 && hit.len() < n * n, "{} pixels", hit.len());
-        let mut differ = 0;
-        for p in 0..n * n {
-            if hit.contains(&(p as u32)) {
-                assert_eq!(got.data[p], full.data[p], "re-traced pixel {p}");
-            } else {
-                assert_eq!(got.data[p], kept.image.data[p], "kept pixel {p}");
-                differ += (full.data[p] != kept.image.data[p]) as usize;
-            }
-        }
+        let (hit, differ) =
+            check_retrace(&kept, &kept.materials.changed_texels(&edited), &got, &full);
+        assert!(hit >= 36 && hit < n * n, "{hit} pixels");
         // What the kept paths miss is rare indirect light.
         assert!(differ * 4 < n * n, "{differ} pixels missed");
         assert!(kept

@@ -375,10 +375,9 @@ impl Node for TransparencyNode {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::data::Kept;
     use crate::kinds::render::rerender_kept;
-    use matflow_inverse::paths::{CacheOptions, PathCache};
-    use matflow_render::{render, EnvMap, PixelFilter, RenderOptions, RenderScene};
+    use crate::testutil::{check_retrace, opts, trace_kept};
+    use matflow_render::{render, EnvMap, RenderScene};
     use matflow_scene::Camera;
 
     /// Re-editing a transparent region's T re-traces what its kept paths
@@ -412,61 +411,19 @@ mod tests {
         };
         let env = EnvMap::new(&s.envmap).unwrap();
         let scene = |m: &MaterialMaps| RenderScene::new(cam, tri.clone(), m, env.clone()).unwrap();
-        let opts = RenderOptions {
-            spp: 6,
-            max_depth: 4,
-            seed: 11,
-            filter: PixelFilter::Box,
-            ..Default::default()
-        };
         for (base_maps, edited) in [(glassy(1.0), glassy(0.4)), (s.maps.clone(), glassy(1.0))] {
-            let base = scene(&base_maps);
-            let image = render(&base, &opts, &|_, _| {}).image;
-            let cache = PathCache::build(
-                &base,
-                &CacheOptions {
-                    spp: 4,
-                    max_depth: 4,
-                    seed: 5,
-                    env_width: 32,
-                    env_height: 16,
-                },
-                &|_, _| {},
-            )
-            .unwrap();
-            let kept = Kept {
-                cache,
-                spp: 6,
-                seed: 11,
-                materials: base_maps.clone(),
-                envmap: s.envmap.clone(),
-                image: image.clone(),
-                objects: Vec::new(),
-                background: None,
-                coverage: None,
-            };
-            let kept = Kept::decode(&kept.encode()).unwrap();
+            let kept = trace_kept(&scene(&base_maps), &base_maps, &s.envmap, &[], None);
             assert!(
                 kept.materials.transparency == base_maps.transparency,
                 "the transparency layer round-trips"
             );
             let escene = scene(&edited);
             let got = rerender_kept(&kept, &escene, &edited, &[]).unwrap();
-            let full = render(&escene, &opts, &|_, _| {}).image;
+            let full = render(&escene, &opts(), &|_, _| {}).image;
             let mut changed = base_maps.changed_texels(&edited);
             changed.extend(base_maps.changed_background(&edited));
-            let hit: std::collections::BTreeSet<u32> =
-                kept.cache.pixels_reaching(&changed).into_iter().collect();
-            assert!(hit.len() >= 64 && hit.len() < n * n, "{}", hit.len());
-            let mut missed = 0;
-            for p in 0..n * n {
-                if hit.contains(&(p as u32)) {
-                    assert_eq!(got.data[p], full.data[p], "re-traced pixel {p}");
-                } else {
-                    assert_eq!(got.data[p], image.data[p], "kept pixel {p}");
-                    missed += (full.data[p] != image.data[p]) as usize;
-                }
-            }
+            let (hit, missed) = check_retrace(&kept, &changed, &got, &full);
+            assert!(hit >= 64 && hit < n * n, "{hit}");
             assert!(missed * 10 < n * n, "{missed} pixels missed");
         }
     }

@@ -1,0 +1,82 @@
+//! What the kept-path tests share: the render and kept paths of a small
+//! scene as a `trace` stage keeps them, and the check that a re-edit from
+//! them is bit-identical to a full render wherever it re-traced.
+
+use std::collections::BTreeSet;
+
+use matflow_inverse::paths::{CacheOptions, PathCache};
+use matflow_render::{render, PixelFilter, RenderOptions, RenderScene, SceneObject};
+use matflow_scene::{MaterialMaps, RgbImage};
+
+use crate::data::Kept;
+
+/// The base render's options (box filter, as `trace` renders).
+pub(crate) fn opts() -> RenderOptions {
+    RenderOptions {
+        spp: 6,
+        max_depth: 4,
+        seed: 11,
+        filter: PixelFilter::Box,
+        ..Default::default()
+    }
+}
+
+/// The render of `scene` (made with `maps`, `envmap` and `objects`) and 4
+/// kept paths per pixel, passed through the `paths` artifact's bytes.
+pub(crate) fn trace_kept(
+    scene: &RenderScene,
+    maps: &MaterialMaps,
+    envmap: &RgbImage,
+    objects: &[SceneObject],
+    background: Option<RgbImage>,
+) -> Kept {
+    let o = opts();
+    let cache = PathCache::build(
+        scene,
+        &CacheOptions {
+            spp: 4,
+            max_depth: o.max_depth,
+            seed: 5,
+            env_width: envmap.width,
+            env_height: envmap.height,
+        },
+        &|_, _| {},
+    )
+    .unwrap();
+    let kept = Kept {
+        cache,
+        spp: o.spp,
+        seed: o.seed,
+        materials: maps.clone(),
+        envmap: envmap.clone(),
+        image: render(scene, &o, &|_, _| {}).image,
+        coverage: (!objects.is_empty()).then(|| scene.object_coverage(4)),
+        objects: objects.to_vec(),
+        background,
+    };
+    Kept::decode(&kept.encode()).unwrap()
+}
+
+/// Checks `got` (a re-edit from `kept`'s paths for the texels `changed`)
+/// against `full` (a full render of the edited scene): equal bit for bit
+/// on every pixel the kept paths say the change reaches, the base render
+/// elsewhere. Returns how many pixels were re-traced and how many kept
+/// ones a full render would have changed (what the kept paths missed).
+pub(crate) fn check_retrace(
+    kept: &Kept,
+    changed: &[bool],
+    got: &RgbImage,
+    full: &RgbImage,
+) -> (usize, usize) {
+    let hit: BTreeSet<u32> = kept.cache.pixels_reaching(changed).into_iter().collect();
+    let mut missed = 0;
+    for p in 0..got.data.len() {
+        if hit.contains(&(p as u32)) {
+            assert_eq!(got.data[p], full.data[p], "re-traced pixel {p}");
+        } else {
+            assert_eq!(got.data[p], kept.image.data[p], "kept pixel {p}");
+            missed += (full.data[p] != kept.image.data[p]) as usize;
+        }
+    }
+    (hit.len(), missed)
+}
