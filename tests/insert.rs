@@ -102,6 +102,19 @@ fn statuses(r: &Value) -> BTreeMap<String, String> {
         .unwrap_or_default()
 }
 
+/// The stages that executed (sorted: a report's map is).
+fn executed(st: &BTreeMap<String, String>) -> Vec<&str> {
+    st.iter()
+        .filter(|(_, v)| *v == "executed")
+        .map(|(k, _)| k.as_str())
+        .collect()
+}
+
+/// How many pixels of two images of one size differ.
+fn pixels_differing(a: &matflow_scene::RgbImage, b: &matflow_scene::RgbImage) -> usize {
+    a.data.iter().zip(&b.data).filter(|(x, y)| x != y).count()
+}
+
 /// Runs pipelines/insert.yaml at 64²; returns the report's stage statuses.
 fn run_insert(cache: &Path, work: &Path, extra: &[String]) -> (Output, BTreeMap<String, String>) {
     let sets = [
@@ -144,12 +157,7 @@ fn the_insert_pipeline_composites_and_re_edits_an_object_from_kept_paths() {
         .iter()
         .chain(&full.data)
         .all(|v| v.is_finite()));
-    let differ = inserted
-        .data
-        .iter()
-        .zip(&full.data)
-        .filter(|(a, b)| a != b)
-        .count();
+    let differ = pixels_differing(&inserted, &full);
     assert!(differ > 64 * 64 / 2, "{differ}");
 
     // Tinting the jug re-runs only the composited stage, from kept paths.
@@ -159,19 +167,9 @@ fn the_insert_pipeline_composites_and_re_edits_an_object_from_kept_paths() {
     );
     let (out, st) = run_insert(&cache, &work, &["--set".into(), tinted]);
     assert!(out.status.success(), "{}", text(&out));
-    let executed: Vec<&String> = st
-        .iter()
-        .filter(|(_, v)| *v == "executed")
-        .map(|(k, _)| k)
-        .collect();
-    assert_eq!(executed, ["inserted"], "{st:?}");
+    assert_eq!(executed(&st), ["inserted"], "{st:?}");
     let again = io::read_exr_rgb(&work.join("inserted.exr")).unwrap();
-    let changed = again
-        .data
-        .iter()
-        .zip(&inserted.data)
-        .filter(|(a, b)| a != b)
-        .count();
+    let changed = pixels_differing(&again, &inserted);
     assert!(
         changed > 0 && changed < 64 * 64 / 2,
         "{changed} pixels changed"
@@ -350,20 +348,9 @@ fn the_glass_pipeline_makes_a_region_transparent_and_re_edits_t_from_kept_paths(
     // kept paths; pixels far from the region keep their values.
     let (out, st) = run(&["--set", "glassy.transmission=0.3"]);
     assert!(out.status.success(), "{}", text(&out));
-    let mut executed: Vec<&String> = st
-        .iter()
-        .filter(|(_, v)| *v == "executed")
-        .map(|(k, _)| k)
-        .collect();
-    executed.sort();
-    assert_eq!(executed, ["glass", "glassy"], "{st:?}");
+    assert_eq!(executed(&st), ["glass", "glassy"], "{st:?}");
     let second = io::read_exr_rgb(&work.join("glass.exr")).unwrap();
-    let changed = second
-        .data
-        .iter()
-        .zip(&first.data)
-        .filter(|(a, b)| a != b)
-        .count();
+    let changed = pixels_differing(&second, &first);
     assert!(
         (14 * 14 / 2..64 * 64 / 2).contains(&changed),
         "{changed} pixels changed"

@@ -15,13 +15,13 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result};
 use clap::Args;
 use matflow_geom::mesh_for_view;
 use matflow_render::{render, EnvMap, RenderOptions, RenderScene};
 use matflow_scene::metrics::psnr_gamma;
 
-use crate::bench_pipeline::{median, run_child};
+use crate::bench_pipeline::{median, run_child, with_outputs};
 
 #[derive(Args)]
 pub struct BenchInsertArgs {
@@ -158,19 +158,7 @@ pub fn bench_insert(a: BenchInsertArgs) -> Result<()> {
     if a.reference_spp > 0 {
         let jug = format!("{{type: glass, ior: 1.5, tint: {}}}", tints[0]);
         let edited = objects_yaml(n, &meshes, &jug);
-        let text = std::fs::read_to_string(&a.pipeline)?;
-        let Some(i) = text.find("\noutputs:") else {
-            bail!("{}: no `outputs:` line", a.pipeline.display());
-        };
-        let end = text[i + 1..]
-            .find('\n')
-            .map(|j| i + 1 + j)
-            .unwrap_or(text.len());
-        let mut t = format!(
-            "{}\noutputs: [kept, fresh, reference]{}",
-            &text[..i],
-            &text[end..]
-        );
+        let mut t = with_outputs(&a.pipeline, "[kept, fresh, reference]")?;
         let work = std::fs::canonicalize(&a.work)?;
         t.push_str(&format!(
             "  kept:\n    kind: insert\n    mesh: mesh\n    materials: recovered\n    paths: base\n    \
@@ -248,19 +236,7 @@ fn glass_region(a: &BenchInsertArgs, exe: &Path) -> Result<()> {
         median(edits)
     );
     if a.reference_spp > 0 {
-        let text = std::fs::read_to_string(&file)?;
-        let Some(i) = text.find("\noutputs:") else {
-            bail!("{}: no `outputs:` line", file.display());
-        };
-        let end = text[i + 1..]
-            .find('\n')
-            .map(|j| i + 1 + j)
-            .unwrap_or(text.len());
-        let mut t = format!(
-            "{}\noutputs: [glass, fresh, reference]{}",
-            &text[..i],
-            &text[end..]
-        );
+        let mut t = with_outputs(&file, "[glass, fresh, reference]")?;
         let work = std::fs::canonicalize(&a.work)?;
         for (name, spp, seed) in [("fresh", a.spp, 0), ("reference", a.reference_spp, 99)] {
             t.push_str(&format!(

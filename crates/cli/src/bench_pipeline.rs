@@ -167,6 +167,24 @@ pub(crate) fn run_child(
     Ok((secs, text.lines().last().unwrap_or("").to_string()))
 }
 
+/// The text of the pipeline `file` with its `outputs:` line replaced by
+/// `outputs: OUTPUTS` (a benchmark appends its own check stages).
+pub(crate) fn with_outputs(file: &std::path::Path, outputs: &str) -> Result<String> {
+    let text = std::fs::read_to_string(file)?;
+    let Some(i) = text.find("\noutputs:") else {
+        bail!("{}: no `outputs:` line", file.display());
+    };
+    let end = text[i + 1..]
+        .find('\n')
+        .map(|j| i + 1 + j)
+        .unwrap_or(text.len());
+    Ok(format!(
+        "{}\noutputs: {outputs}{}",
+        &text[..i],
+        &text[end..]
+    ))
+}
+
 pub(crate) fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(|a, b| a.total_cmp(b));
     v[v.len() / 2]
@@ -224,19 +242,7 @@ pub fn bench_pipeline(a: BenchPipelineArgs) -> Result<()> {
         // The demo plus two renders of the edited scene: a full path trace
         // at the same spp and a reference, both with the box filter the
         // kept-path render uses.
-        let text = std::fs::read_to_string(&a.pipeline)?;
-        let Some(i) = text.find("\noutputs:") else {
-            bail!("{}: no `outputs:` line", a.pipeline.display());
-        };
-        let end = text[i + 1..]
-            .find('\n')
-            .map(|j| i + 1 + j)
-            .unwrap_or(text.len());
-        let mut t = format!(
-            "{}\noutputs: [edited, full, reference]{}",
-            &text[..i],
-            &text[end..]
-        );
+        let mut t = with_outputs(&a.pipeline, "[edited, full, reference]")?;
         for (name, spp, seed) in [("full", a.spp, 0), ("reference", a.reference_spp, 99)] {
             t.push_str(&format!(
                 "  {name}:\n    kind: render\n    mesh: mesh\n    materials: shiny\n    \

@@ -714,7 +714,7 @@ mod tests {
     use super::*;
     use crate::kinds::insert::composite_differential;
     use crate::kinds::render::rerender_kept;
-    use crate::testutil::{check_retrace, opts, trace_kept};
+    use crate::testutil::{check_retrace, opts, small_room, trace_kept};
     use matflow_geom::shapes;
     use matflow_render::{render, EnvMap, RenderScene};
     use matflow_scene::meshfile::obj_text;
@@ -882,11 +882,7 @@ mod tests {
     fn object_surfaces_round_trip_and_re_edits_retrace_bit_identically() {
         let d = dir("reedit");
         let n = 24;
-        let s = matflow_scene::synthetic::generate(3, n, n);
-        let cam = Camera::new(n, n);
-        let tri = matflow_geom::mesh_from_depth(&s.depth, &cam, &Default::default())
-            .unwrap()
-            .mesh;
+        let (s, cam, tri) = small_room(n);
         let ball = write_shape(&d, "ball", &shapes::sphere(0.5, 12, 24));
         let jug = write_shape(&d, "jug", &shapes::jug(16));
         let specs = vec![

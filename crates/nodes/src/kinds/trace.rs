@@ -205,9 +205,8 @@ mod tests {
     use super::*;
     use crate::data::{encode_mesh, render_scene};
     use crate::kinds::render::edited_image;
-    use crate::testutil::{check_retrace, opts, trace_kept};
+    use crate::testutil::{check_retrace, opts, small_room, trace_kept};
     use glam::Vec3;
-    use matflow_scene::Camera;
 
     /// An edit re-traces exactly the pixels it can reach: there the result
     /// equals a full re-render bit for bit, elsewhere the base; and the
@@ -215,11 +214,7 @@ mod tests {
     #[test]
     fn edits_retrace_what_they_reach_bit_identically() {
         let n = 24;
-        let s = matflow_scene::synthetic::generate(3, n, n);
-        let cam = Camera::new(n, n);
-        let tri = matflow_geom::mesh_from_depth(&s.depth, &cam, &Default::default())
-            .unwrap()
-            .mesh;
+        let (s, _, tri) = small_room(n);
         let mesh = encode_mesh(n, n, &tri);
         let scene = render_scene(&mesh, &s.maps, &s.envmap).unwrap();
         let kept = trace_kept(&scene, &s.maps, &s.envmap, &[], None);

@@ -376,9 +376,8 @@ impl Node for TransparencyNode {
 mod tests {
     use super::*;
     use crate::kinds::render::rerender_kept;
-    use crate::testutil::{check_retrace, opts, trace_kept};
+    use crate::testutil::{check_retrace, opts, small_room, trace_kept};
     use matflow_render::{render, EnvMap, RenderScene};
-    use matflow_scene::Camera;
 
     /// Re-editing a transparent region's T re-traces what its kept paths
     /// reach, bit-identical there to a full render; so does making a
@@ -386,11 +385,7 @@ mod tests {
     #[test]
     fn transmission_re_edits_retrace_bit_identically() {
         let n = 24;
-        let s = matflow_scene::synthetic::generate(3, n, n);
-        let cam = Camera::new(n, n);
-        let tri = matflow_geom::mesh_from_depth(&s.depth, &cam, &Default::default())
-            .unwrap()
-            .mesh;
+        let (s, cam, tri) = small_room(n);
         let mask = Image::from_fn(n, n, |x, y| (8..16).contains(&x) && (12..20).contains(&y));
         let glassy = |t_value: f32| {
             let mut t = Transparency::none(&s.maps.albedo, &s.maps.roughness, &s.maps.metallic);
