@@ -45,6 +45,7 @@ mod bench_pipeline;
 mod bench_synthetic;
 mod cluster;
 mod commands;
+mod dataset;
 mod invert;
 mod routes;
 mod run;
@@ -81,6 +82,10 @@ enum Cmd {
     /// Run a pipeline file: only what its outputs need, cached stages
     /// served from the content-addressed store.
     Run(run::RunArgs),
+    /// Generate a dataset's WebDataset shards from a spec (`dataset:`
+    /// section), all or one process's share; `dataset merge DIR` checks
+    /// and indexes them.
+    Dataset(dataset::DatasetArgs),
     /// Print the node kinds a pipeline may use: parameters (type, default,
     /// unit) and outputs, as markdown.
     Kinds,
@@ -110,6 +115,7 @@ fn main() {
         Cmd::Synth(a) => commands::synth(a),
         Cmd::Invert(a) => invert::invert_cmd(a),
         Cmd::Run(a) => run::run(a),
+        Cmd::Dataset(a) => dataset::dataset(a),
         Cmd::Cache(c) => run::cache(c),
         Cmd::Kinds => {
             out!("{}", matflow_nodes::reference_markdown());

@@ -241,7 +241,7 @@ fn print_table(r: &Report) {
 
 /// Refuses a run estimated above [`spec::EXPENSIVE_SECONDS`], naming the
 /// estimate and the stages that make it up.
-fn refuse_if_expensive(pipeline: &std::path::Path, est: &[(String, f64)]) -> Result<()> {
+pub fn refuse_if_expensive(pipeline: &std::path::Path, est: &[(String, f64)]) -> Result<()> {
     let total: f64 = est.iter().map(|(_, s)| s).sum();
     if total <= spec::EXPENSIVE_SECONDS {
         return Ok(());
@@ -278,6 +278,26 @@ pub fn duration(s: f64) -> String {
 }
 
 pub fn run(a: RunArgs) -> Result<()> {
+    // A file with a `dataset:` section is a dataset job (with its own
+    // stages, if any).
+    if crate::dataset::has_dataset_section(&a.pipeline) {
+        return crate::dataset::generate(
+            &a.pipeline,
+            &crate::dataset::GenerateArgs {
+                spec: Some(a.pipeline.clone()),
+                out: None,
+                shards: a.shards.map(|n| n as u64),
+                shard: a.shard.map(|i| i as u64),
+                cache: a.cache.clone(),
+                set: a.set.clone(),
+                parallel: a.parallel,
+                quiet: a.quiet,
+                report: a.report.clone(),
+                allow_expensive: a.allow_expensive,
+                remote: a.remote.clone(),
+            },
+        );
+    }
     let reg = matflow_nodes::registry();
     let overrides = a
         .set

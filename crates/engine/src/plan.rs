@@ -200,6 +200,7 @@ mod tests {
                 stages,
                 outputs,
                 remote_cache: None,
+                dataset: None,
             };
             assert_eq!(order(&p), by_passes(&p), "case {case}");
         }

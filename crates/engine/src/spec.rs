@@ -74,6 +74,9 @@ pub struct Pipeline {
     pub outputs: Vec<String>,
     /// The remote store tier named in the file (`remote_cache:`), if any.
     pub remote_cache: Option<String>,
+    /// The file's `dataset:` section as written (the dataset crate reads
+    /// it: the engine only carries it).
+    pub dataset: Option<(Value, Loc)>,
 }
 
 impl Pipeline {
@@ -138,6 +141,24 @@ pub fn parse(
     reg: &Registry,
     overrides: &[Override],
 ) -> Result<Pipeline, SpecError> {
+    let (root, root_loc) = parse_yaml(text).map_err(|e| SpecError {
+        file: path.to_path_buf(),
+        loc: Some(e.loc),
+        message: e.message,
+    })?;
+    parse_value(root, root_loc, path, reg, overrides)
+}
+
+/// Validates a pipeline already parsed from YAML (`root`, at `root_loc`
+/// of `path`); what [`parse`] does after parsing, and how a dataset's
+/// generated stages join a file's own.
+pub fn parse_value(
+    root: Value,
+    root_loc: Loc,
+    path: &Path,
+    reg: &Registry,
+    overrides: &[Override],
+) -> Result<Pipeline, SpecError> {
     let err = |loc: Option<Loc>, message: String| SpecError {
         file: path.to_path_buf(),
         loc,
@@ -153,7 +174,6 @@ pub fn parse(
             }
         })
         .unwrap_or_else(|| PathBuf::from("."));
-    let (root, root_loc) = parse_yaml(text).map_err(|e| err(Some(e.loc), e.message))?;
     let Value::Map(top) = root else {
         return Err(err(
             Some(root_loc),
@@ -167,6 +187,7 @@ pub fn parse(
     let mut stages_node = None;
     let mut outputs_node = None;
     let mut remote_cache = None;
+    let mut dataset = None;
     for (k, kl, v, vl) in &top {
         match k.as_str() {
             "pipeline" => match v {
@@ -182,25 +203,32 @@ pub fn parse(
                 _ => {
                     return Err(err(
                         Some(*vl),
-                        "`remote_cache` is an endpoint: grpc://HOST:PORT or grpcs://HOST:PORT".into(),
+                        "`remote_cache` is an endpoint: grpc://HOST:PORT or grpcs://HOST:PORT"
+                            .into(),
                     ))
                 }
             },
             "stages" => stages_node = Some((v, *vl)),
             "outputs" => outputs_node = Some((v, *vl)),
+            "dataset" => dataset = Some((v.clone(), *vl)),
             _ => {
                 return Err(err(
                     Some(*kl),
                     format!(
-                        "unknown key `{}` (a pipeline has pipeline, description, remote_cache, stages, outputs)",
+                        "unknown key `{}` (a pipeline has pipeline, description, remote_cache, \
+                         stages, outputs, dataset)",
                         clip(k)
                     ),
                 ))
             }
         }
     }
-    let Some((stages_v, stages_loc)) = stages_node else {
-        return Err(err(Some(root_loc), "missing `stages:`".into()));
+    let empty = Value::Map(Vec::new());
+    let (stages_v, stages_loc) = match stages_node {
+        Some(s) => s,
+        // A dataset spec alone: its stages are generated.
+        None if dataset.is_some() && outputs_node.is_none() => (&empty, root_loc),
+        None => return Err(err(Some(root_loc), "missing `stages:`".into())),
     };
     let Value::Map(stage_entries) = stages_v else {
         return Err(err(
@@ -548,11 +576,16 @@ pub fn parse(
         }
     })?;
     // Outputs.
-    let Some((outputs_v, outputs_loc)) = outputs_node else {
-        return Err(err(
-            Some(root_loc),
-            "missing `outputs:` (the stages whose results are wanted)".into(),
-        ));
+    let no_outputs = Value::List(Vec::new());
+    let (outputs_v, outputs_loc) = match outputs_node {
+        Some(o) => o,
+        None if dataset.is_some() && stages.is_empty() => (&no_outputs, root_loc),
+        None => {
+            return Err(err(
+                Some(root_loc),
+                "missing `outputs:` (the stages whose results are wanted)".into(),
+            ))
+        }
     };
     let outputs: Vec<String> = match outputs_v {
         Value::List(xs) => xs
@@ -573,7 +606,7 @@ pub fn parse(
             ))
         }
     };
-    if outputs.is_empty() {
+    if outputs.is_empty() && !stages.is_empty() {
         return Err(err(Some(outputs_loc), "`outputs` is empty".into()));
     }
     for o in &outputs {
@@ -590,6 +623,7 @@ pub fn parse(
         stages,
         outputs,
         remote_cache,
+        dataset,
     };
     if let Some(cycle) = crate::plan::find_cycle(&p) {
         let first = p.stage(&cycle[0]).map(|s| s.loc);

@@ -237,7 +237,8 @@ mod tests {
 /// What the refraction-length dataset stores per sample about the object,
 /// per pixel of `camera` (through the pixel centre): whether the object is
 /// seen, its camera-space depth z and outward normal where it is, the eq.
-/// 24 label and the transparency edit's d1 (d2 needs what lies behind).
+/// 24 label and the transparency edit's d1 and d2 (d2: from where the ray
+/// leaves the object to the first surface of `behind`; 0 without one).
 #[derive(Clone, Debug, PartialEq)]
 pub struct ObjectLabels {
     pub mask: matflow_scene::Image<bool>,
@@ -245,6 +246,7 @@ pub struct ObjectLabels {
     pub normal: matflow_scene::RgbImage,
     pub length: matflow_scene::GrayImage,
     pub d1: matflow_scene::GrayImage,
+    pub d2: matflow_scene::GrayImage,
 }
 
 /// [`ObjectLabels`] of `object` (camera space, outward-facing) seen by
@@ -253,24 +255,30 @@ pub fn object_labels(
     camera: &matflow_scene::Camera,
     object: &TriMesh,
     hollow: bool,
+    behind: Option<&TriMesh>,
 ) -> ObjectLabels {
     use matflow_scene::Image;
     let (w, h) = (camera.width, camera.height);
     let bvh = Bvh::build(object);
+    let behind = behind.filter(|m| m.triangle_count() > 0).map(Bvh::build);
     let f = camera.focal();
     let pp = camera.principal_point();
-    let per_pixel: Vec<(bool, f32, Vec3, f32, f32)> = (0..w * h)
+    let per_pixel: Vec<(bool, f32, Vec3, f32, f32, f32)> = (0..w * h)
         .map(|k| {
             let (x, y) = ((k % w) as f32 + 0.5, (k / w) as f32 + 0.5);
             let dir = Vec3::new((x - 0.5 - pp.x) / f, -(y - 0.5 - pp.y) / f, -1.0).normalize();
             let hits = all_hits(&bvh, Vec3::ZERO, dir, 0.0, 1e-5);
             let Some(&(t0, prim)) = hits.first() else {
-                return (false, 0.0, Vec3::ZERO, 0.0, 0.0);
+                return (false, 0.0, Vec3::ZERO, 0.0, 0.0, 0.0);
             };
             let n = object.face_normal(prim as usize);
-            let d1 = hits.last().map_or(0.0, |&(t1, _)| t1 - t0);
+            let t1 = hits.last().map_or(t0, |&(t1, _)| t1);
+            let d2 = behind
+                .as_ref()
+                .and_then(|b| b.intersect(Vec3::ZERO, dir, t1 + 1e-5, f32::INFINITY))
+                .map_or(0.0, |hit| (hit.t - t1).max(0.0));
             let len = refraction_length(object, &bvh, Vec3::ZERO, dir, hollow);
-            (true, -(dir * t0).z, n, len, d1.max(0.0))
+            (true, -(dir * t0).z, n, len, (t1 - t0).max(0.0), d2)
         })
         .collect();
     ObjectLabels {
@@ -279,6 +287,7 @@ pub fn object_labels(
         normal: Image::from_vec(w, h, per_pixel.iter().map(|p| p.2).collect()),
         length: Image::from_vec(w, h, per_pixel.iter().map(|p| p.3).collect()),
         d1: Image::from_vec(w, h, per_pixel.iter().map(|p| p.4).collect()),
+        d2: Image::from_vec(w, h, per_pixel.iter().map(|p| p.5).collect()),
     }
 }
 
@@ -292,7 +301,9 @@ mod label_tests {
         let n = 32;
         let cam = matflow_scene::Camera::new(n, n);
         let ball = sphere(1.0, 64, 128).transformed(1.0, Vec3::new(0.0, 0.0, -6.0));
-        let l = object_labels(&cam, &ball.mesh, false);
+        let mut wall = TriMesh::default();
+        wall.add_box(Vec3::new(-50.0, -50.0, -11.0), Vec3::new(50.0, 50.0, -10.0));
+        let l = object_labels(&cam, &ball.mesh, false, Some(&wall));
         // The ball covers about π·(1/6·f)² pixels.
         let r_px = cam.focal() / 6.0;
         let want = std::f32::consts::PI * r_px * r_px;
@@ -304,6 +315,9 @@ mod label_tests {
         assert!((l.depth.data[c] - 5.0).abs() < 0.02, "{}", l.depth.data[c]);
         assert!(l.normal.data[c].z > 0.99);
         assert!((l.length.data[c] - 2.0).abs() < 0.02 && (l.d1.data[c] - 2.0).abs() < 0.02);
+        // The wall is 3 behind the ball's back (at z = -7).
+        assert!((l.d2.data[c] - 3.0).abs() < 0.02, "{}", l.d2.data[c]);
+        assert_eq!(l.d2.data[0], 0.0);
         // Off the ball: nothing.
         assert!(!l.mask.data[0] && l.length.data[0] == 0.0 && l.depth.data[0] == 0.0);
         // Every label finite, lengths within the diameter.

@@ -222,6 +222,25 @@ pub fn blob(r: f32, bump: f32, seed: u32, rings: usize, segments: usize) -> Shap
     s
 }
 
+/// The names of [`refraction_objects`], in order.
+pub const REFRACTION_OBJECT_NAMES: &[&str] = &[
+    "cup",
+    "jug",
+    "bottle",
+    "vase",
+    "ellipsoid",
+    "apple",
+    "lemon",
+    "box",
+    "torus",
+    "ball",
+];
+
+/// Whether the built-in refraction object `name` is hollow (the vessels).
+pub fn refraction_object_is_hollow(name: &str) -> bool {
+    matches!(name, "cup" | "jug" | "bottle" | "vase")
+}
+
 /// The objects of the refraction-length dataset (the paper's supplement
 /// §10): name, shape (standing on y = 0, about 1 high) and whether it is
 /// hollow (eq. 24's rule). Vessels — a cup, a jug, a bottle, a vase — are
@@ -367,7 +386,10 @@ mod tests {
 
     #[test]
     fn refraction_objects_are_closed_and_hollow_vessels_hold_a_cavity() {
+        let names: Vec<&str> = refraction_objects().iter().map(|o| o.0).collect();
+        assert_eq!(names, REFRACTION_OBJECT_NAMES);
         for (name, s, hollow) in refraction_objects() {
+            assert_eq!(refraction_object_is_hollow(name), hollow, "{name}");
             assert!(closed(&s.mesh), "{name} is not closed");
             let v = volume(&s.mesh);
             assert!(v > 0.0, "{name}: volume {v}");

@@ -13,6 +13,7 @@ pub mod artifact;
 mod data;
 pub use data::render_seconds;
 pub use kinds::insert::composite_differential;
+pub use kinds::refraction::OBJECT_NAMES as REFRACTION_OBJECTS;
 mod kinds;
 pub mod objects;
 mod recovery;
@@ -37,6 +38,8 @@ pub fn registry() -> Registry {
         Box::new(kinds::render::RenderNode),
         Box::new(kinds::trace::TraceNode),
         Box::new(kinds::insert::InsertNode),
+        Box::new(kinds::refraction::RefractionLabelsNode),
+        Box::new(kinds::refraction::RefractionRenderNode),
     ];
     for n in nodes {
         r.add(n);

@@ -92,3 +92,25 @@ pub(crate) fn check_retrace(
     }
     (hit.len(), missed)
 }
+
+/// A node's parameters: its defaults, normalised as the loader does, with
+/// `extra` on top.
+pub(crate) fn params_of(
+    info: &matflow_engine::NodeInfo,
+    extra: &[(&str, matflow_engine::Value)],
+) -> matflow_engine::node::Params {
+    use matflow_engine::Value;
+    let mut m = std::collections::BTreeMap::new();
+    for p in info.params {
+        let v = match p.default {
+            Some(d) => matflow_engine::value::parse_override(d).unwrap(),
+            None => Value::Null,
+        };
+        let v = p.ty.normalize(&v).unwrap_or(v);
+        m.insert(p.name.to_string(), v);
+    }
+    for (k, v) in extra {
+        m.insert(k.to_string(), v.clone());
+    }
+    matflow_engine::node::Params(m)
+}

@@ -333,9 +333,51 @@ pub fn rotate_and_expose(env: &RgbImage, deg: f64, ev: f64) -> RgbImage {
     })
 }
 
+/// The map seen from a turned frame: the texel for direction `d` takes
+/// the bilinear lookup of `env` at `to_env · d` (`to_env` a rotation from
+/// the new frame into the map's). How a dataset views an object from
+/// above while its camera keeps matflow's fixed orientation.
+pub fn rotated(env: &RgbImage, to_env: glam::Mat3) -> RgbImage {
+    let (w, h) = (env.width, env.height);
+    if w < 2 || h < 2 {
+        return env.clone();
+    }
+    Image::from_fn(w, h, |x, y| {
+        let u = (x as f32 + 0.5) / w as f32;
+        let v = y as f32 / (h - 1) as f32;
+        let d = (to_env * uv_to_dir(u, v)).normalize_or(Vec3::Y);
+        let (r, c, fx, fy) = locate_cell(w, h, d);
+        let c1 = (c + 1) % w;
+        let a = env.get(c, r) * (1.0 - fx) + env.get(c1, r) * fx;
+        let b = env.get(c, r + 1) * (1.0 - fx) + env.get(c1, r + 1) * fx;
+        a * (1.0 - fy) + b * fy
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_turned_map_looks_up_the_turned_direction() {
+        let env = Image::from_fn(64, 32, |x, y| Vec3::new(x as f32, y as f32, 1.0));
+        assert_eq!(
+            rotated(&env, glam::Mat3::IDENTITY).data.len(),
+            env.data.len()
+        );
+        // The identity keeps texels up to the bilinear blend at texel centres.
+        let same = rotated(&env, glam::Mat3::IDENTITY);
+        for y in 0..32 {
+            for x in 1..63 {
+                assert!((same.get(x, y) - env.get(x, y)).abs().max_element() < 1e-3);
+            }
+        }
+        // Turning about x by 90 degrees sends the zenith to the horizon.
+        let m = glam::Mat3::from_rotation_x(std::f32::consts::FRAC_PI_2);
+        let up = EnvMap::new(&env).unwrap().eval(m * Vec3::Y);
+        let r = EnvMap::new(&rotated(&env, m)).unwrap().eval(Vec3::Y);
+        assert!((up - r).abs().max_element() < 1.0, "{up} vs {r}");
+    }
 
     #[test]
     fn cdf_inversion_finds_the_bin_a_plain_search_finds() {

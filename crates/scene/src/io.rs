@@ -431,6 +431,41 @@ pub fn encode_png_gamma(path: &Path, img: &RgbImage) -> Result<Vec<u8>> {
     Ok(buf.into_inner())
 }
 
+/// Linear RGB as an 8-bit sRGB PNG in memory (clipped to [0, 1]): how a
+/// dataset stores its photographs.
+pub fn png_srgb_bytes(img: &RgbImage) -> Result<Vec<u8>> {
+    let mut out = image::RgbImage::new(img.width as u32, img.height as u32);
+    for (o, v) in out.pixels_mut().zip(img.data.iter()) {
+        let f = |c: f32| color::to_u8(color::linear_to_srgb(c.clamp(0.0, 1.0)));
+        *o = Rgb([f(v.x), f(v.y), f(v.z)]);
+    }
+    let mut buf = Cursor::new(Vec::new());
+    out.write_to(&mut buf, ImageFormat::Png)
+        .map_err(|e| SceneError::Encode {
+            path: "(a PNG in memory)".into(),
+            message: e.to_string(),
+        })?;
+    Ok(buf.into_inner())
+}
+
+/// A mask as an 8-bit grey PNG in memory: 255 inside, 0 outside.
+pub fn png_mask_bytes(mask: &Image<bool>) -> Result<Vec<u8>> {
+    let out = image::GrayImage::from_fn(mask.width as u32, mask.height as u32, |x, y| {
+        image::Luma([if mask.get(x as usize, y as usize) {
+            255
+        } else {
+            0
+        }])
+    });
+    let mut buf = Cursor::new(Vec::new());
+    out.write_to(&mut buf, ImageFormat::Png)
+        .map_err(|e| SceneError::Encode {
+            path: "(a PNG in memory)".into(),
+            message: e.to_string(),
+        })?;
+    Ok(buf.into_inner())
+}
+
 /// Writes a map in [0, 1] (roughness, metallic) as an 8-bit PNG through the
 /// sRGB curve, as Mitsuba's bitmap writer did for the reference's `*Pred.png`.
 pub fn write_png_srgb_map(path: &Path, img: &GrayImage) -> Result<()> {

@@ -11,11 +11,13 @@ pub mod bundle;
 pub mod camera;
 pub mod color;
 pub mod edit;
+pub mod envgen;
 pub mod error;
 pub mod image;
 pub mod io;
 pub mod meshfile;
 pub mod metrics;
+pub mod npy;
 pub mod synthetic;
 pub mod transparency;
 

@@ -58,24 +58,24 @@ struct Object {
 }
 
 /// SplitMix64-based generator for scene layout.
-struct Rng(u64);
+pub(crate) struct Rng(pub(crate) u64);
 impl Rng {
-    fn next(&mut self) -> u64 {
+    pub(crate) fn next(&mut self) -> u64 {
         self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
         let mut z = self.0;
         z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
         z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
         z ^ (z >> 31)
     }
-    fn f(&mut self) -> f32 {
+    pub(crate) fn f(&mut self) -> f32 {
         (self.next() >> 40) as f32 / (1u64 << 24) as f32
     }
-    fn range(&mut self, a: f32, b: f32) -> f32 {
+    pub(crate) fn range(&mut self, a: f32, b: f32) -> f32 {
         a + (b - a) * self.f()
     }
 }
 
-fn hsv(h: f32, s: f32, v: f32) -> Vec3 {
+pub(crate) fn hsv(h: f32, s: f32, v: f32) -> Vec3 {
     let h6 = (h.rem_euclid(1.0)) * 6.0;
     let c = v * s;
     let x = c * (1.0 - ((h6 % 2.0) - 1.0).abs());
@@ -188,7 +188,7 @@ pub fn procedural_sky(seed: u64, width: usize, height: usize) -> RgbImage {
     })
 }
 
-fn sph(u: f32, v: f32) -> Vec3 {
+pub(crate) fn sph(u: f32, v: f32) -> Vec3 {
     let phi = 2.0 * std::f32::consts::PI * u;
     let theta = std::f32::consts::PI * v;
     Vec3::new(

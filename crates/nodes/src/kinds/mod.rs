@@ -7,6 +7,7 @@ pub mod image;
 pub mod insert;
 pub mod material_opt;
 pub mod mesh;
+pub mod refraction;
 pub mod relight;
 pub mod render;
 pub mod synthetic_scene;

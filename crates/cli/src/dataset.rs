@@ -1,0 +1,325 @@
+//! `matflow dataset`: generate a dataset's shards (all of them, or one
+//! process's share of a job split `--shards N --shard I`), and `matflow
+//! dataset merge DIR`: check the shards against their manifests and index
+//! them.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use clap::{Args, Subcommand};
+use indicatif::{ProgressBar, ProgressStyle};
+use matflow_dataset::{merge, Job};
+use matflow_engine::spec::{self, Override};
+use matflow_engine::{run_pipeline, Digest, Observer, StageReport, Status, Value};
+
+#[derive(Args)]
+#[command(args_conflicts_with_subcommands = true)]
+pub struct DatasetArgs {
+    #[command(subcommand)]
+    pub cmd: Option<DatasetCmd>,
+    #[command(flatten)]
+    pub gen: GenerateArgs,
+}
+
+#[derive(Subcommand)]
+pub enum DatasetCmd {
+    /// Check every shard in DIR against its manifest (members, order,
+    /// BLAKE3 digests, every sample once) and write manifest.jsonl and
+    /// index.json; exits 1 listing what is wrong.
+    Merge { dir: PathBuf },
+}
+
+#[derive(Args)]
+pub struct GenerateArgs {
+    /// The dataset spec: a YAML file with a `dataset:` section.
+    pub spec: Option<PathBuf>,
+    /// Output folder (default: the spec's `out`).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Split the job over this many processes (e.g. a job array's tasks):
+    /// with --shard I, write tar shards I, I+N, I+2N, …
+    #[arg(long, value_name = "N", requires = "shard")]
+    pub shards: Option<u64>,
+    /// Which process this is (0-based; with --shards).
+    #[arg(long, value_name = "I", requires = "shards")]
+    pub shard: Option<u64>,
+    /// Cache folder (as for `run`).
+    #[arg(long)]
+    pub cache: Option<PathBuf>,
+    /// Override: dataset.samples=N, dataset.params.size=64, or a stage
+    /// parameter of the file's own stages (YAML syntax; repeatable).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub set: Vec<String>,
+    /// Samples' stages run at once.
+    #[arg(long, default_value_t = 2)]
+    pub parallel: usize,
+    /// No progress bar.
+    #[arg(long)]
+    pub quiet: bool,
+    /// Write a JSON report (the run's stages and the shards) here.
+    #[arg(long)]
+    pub report: Option<PathBuf>,
+    /// Run even when estimated at more than an hour with nothing cached.
+    #[arg(long)]
+    pub allow_expensive: bool,
+    #[command(flatten)]
+    pub remote: crate::cluster::RemoteArgs,
+}
+
+pub fn dataset(a: DatasetArgs) -> Result<()> {
+    match a.cmd {
+        Some(DatasetCmd::Merge { dir }) => merge_cmd(&dir),
+        None => {
+            let Some(spec) = a.gen.spec.clone() else {
+                bail!("give a dataset spec (matflow dataset SPEC.yaml --out DIR) or `merge DIR`");
+            };
+            generate(&spec, &a.gen)
+        }
+    }
+}
+
+fn merge_cmd(dir: &Path) -> Result<()> {
+    let r = merge(dir)?;
+    if !r.problems.is_empty() {
+        for p in &r.problems {
+            eprintln!("{p}");
+        }
+        bail!(
+            "{}: {} problem{} in {} shard{}; nothing was written",
+            dir.display(),
+            r.problems.len(),
+            if r.problems.len() == 1 { "" } else { "s" },
+            r.shards,
+            if r.shards == 1 { "" } else { "s" }
+        );
+    }
+    outln!(
+        "{}: {} samples in {} shards, {} bytes: manifest.jsonl and index.json written",
+        dir.display(),
+        r.samples,
+        r.shards,
+        r.bytes
+    );
+    Ok(())
+}
+
+/// Whether a YAML file has a `dataset:` section (what sends `matflow run`
+/// here).
+pub fn has_dataset_section(file: &Path) -> bool {
+    let Ok(text) = std::fs::read_to_string(file) else {
+        return false;
+    };
+    matches!(
+        matflow_engine::value::parse_yaml(&text),
+        Ok((Value::Map(m), _)) if m.iter().any(|e| e.0 == "dataset")
+    )
+}
+
+/// A progress bar over samples: a sample counts when all its stages have
+/// finished (run or found cached).
+struct SampleBar {
+    bar: Option<ProgressBar>,
+    stages_per_sample: usize,
+    pending: Mutex<BTreeMap<String, usize>>,
+}
+
+impl Observer for SampleBar {
+    fn finished(&self, r: &StageReport) {
+        let Some((_, idx)) = r.name.rsplit_once('-') else {
+            return;
+        };
+        let mut p = self.pending.lock().unwrap();
+        let n = p.entry(idx.to_string()).or_insert(0);
+        *n += 1;
+        if *n == self.stages_per_sample {
+            p.remove(idx);
+            if let Some(b) = &self.bar {
+                b.inc(1);
+            }
+        }
+    }
+}
+
+pub fn generate(file: &Path, a: &GenerateArgs) -> Result<()> {
+    let t0 = Instant::now();
+    let overrides = a
+        .set
+        .iter()
+        .map(|s| Override::parse(s))
+        .collect::<std::result::Result<Vec<_>, String>>()
+        .map_err(anyhow::Error::msg)?;
+    let (ds_over, stage_over) = matflow_dataset::spec::split_overrides(&overrides);
+    let text = std::fs::read_to_string(file)
+        .with_context(|| format!("{}: cannot read the dataset spec", file.display()))?;
+    let (root, root_loc) = matflow_engine::value::parse_yaml(&text).map_err(|e| {
+        anyhow::anyhow!(
+            "{}:{}:{}: {}",
+            file.display(),
+            e.loc.line,
+            e.loc.col,
+            e.message
+        )
+    })?;
+    let section = match &root {
+        Value::Map(m) => m.iter().find(|e| e.0 == "dataset").cloned(),
+        _ => None,
+    };
+    let Some((_, _, sv, sl)) = section else {
+        bail!(
+            "{}: no `dataset:` section (a dataset spec is a mapping with `dataset:`)",
+            file.display()
+        );
+    };
+    let spec =
+        matflow_dataset::parse_section(&sv, sl, file, &ds_over).map_err(anyhow::Error::msg)?;
+    let out = match (&a.out, &spec.out) {
+        (Some(o), _) => o.clone(),
+        (None, Some(o)) => o.clone(),
+        (None, None) => bail!(
+            "{}: give --out DIR or `out:` in the dataset section",
+            file.display()
+        ),
+    };
+    check_out(&out, file, &spec.reads)?;
+    let split = match (a.shards, a.shard) {
+        (Some(0), _) => bail!("--shards 0: give at least 1"),
+        (Some(n), Some(i)) if i >= n => bail!("--shard {i}: must be below --shards {n}"),
+        (Some(n), Some(i)) => Some((n, i)),
+        _ => None,
+    };
+    let job = Job::new(spec).map_err(anyhow::Error::msg)?;
+    let shards = job.shards_of(split);
+    let reg = matflow_nodes::registry();
+    let doc = job.pipeline_root(Some(&root), &shards);
+    let p =
+        spec::parse_value(doc, root_loc, file, &reg, &stage_over).map_err(anyhow::Error::msg)?;
+    if !a.allow_expensive {
+        crate::run::refuse_if_expensive(file, &spec::estimate_seconds(&p, &reg))?;
+    }
+    job.claim(&out)?;
+    let samples: u64 = shards
+        .iter()
+        .map(|&k| job.spec.shard_samples(k).count() as u64)
+        .sum();
+    if shards.is_empty() {
+        outln!(
+            "{}: this process has no shards (the dataset has {})",
+            file.display(),
+            job.spec.shard_count()
+        );
+        return Ok(());
+    }
+    let dir = crate::run::cache_dir(a.cache.as_deref());
+    let reg = Arc::new(reg);
+    let (store, exec) = crate::cluster::executor(
+        &a.remote,
+        p.remote_cache.as_deref(),
+        &dir,
+        reg.clone(),
+        a.parallel,
+    )?;
+    let bar = (!a.quiet).then(|| {
+        let b = ProgressBar::new(samples);
+        b.set_style(
+            ProgressStyle::with_template(
+                "{prefix} [{bar:30}] {pos}/{len} samples  {per_sec}  ETA {eta}",
+            )
+            .expect("a valid template")
+            .progress_chars("=> "),
+        );
+        b.set_prefix(job.spec.name.clone());
+        b
+    });
+    let obs = SampleBar {
+        bar,
+        stages_per_sample: job.plan.sample(0).stages.len(),
+        pending: Mutex::new(BTreeMap::new()),
+    };
+    let report = run_pipeline(&p, &reg, &store, exec.as_ref(), &obs);
+    if let Some(b) = &obs.bar {
+        b.finish_and_clear();
+    }
+    if let Some(f) = report.failure() {
+        bail!("{}: {f}", file.display());
+    }
+    let outputs: BTreeMap<String, BTreeMap<String, String>> = report
+        .stages
+        .iter()
+        .map(|s| (s.name.clone(), s.outputs.clone()))
+        .collect();
+    let fetch = |hex: &str| -> std::result::Result<Vec<u8>, String> {
+        let d = Digest::from_hex(hex).ok_or_else(|| format!("bad digest {hex}"))?;
+        match store.get(&d) {
+            Ok(Some(b)) => Ok(b.to_vec()),
+            Ok(None) => Err(format!("blob {hex} is not in the store")),
+            Err(e) => Err(e.to_string()),
+        }
+    };
+    let mut bytes = 0u64;
+    for &k in &shards {
+        bytes += job.write_shard(k, &outputs, &fetch, &out)?;
+    }
+    let executed = report
+        .stages
+        .iter()
+        .filter(|s| s.status == Status::Executed)
+        .count();
+    let cached = report
+        .stages
+        .iter()
+        .filter(|s| s.status == Status::Cached)
+        .count();
+    let secs = t0.elapsed().as_secs_f64();
+    outln!(
+        "{}: {samples} samples in {} shard{} ({bytes} bytes) in {}: {executed} stages run, \
+         {cached} cached; {:.2} samples/s",
+        out.display(),
+        shards.len(),
+        if shards.len() == 1 { "" } else { "s" },
+        crate::run::duration(secs),
+        samples as f64 / secs.max(1e-9)
+    );
+    if let Some(path) = &a.report {
+        let json = serde_json::json!({
+            "dataset": job.spec.name,
+            "out": out.display().to_string(),
+            "shards": shards,
+            "samples": samples,
+            "bytes": bytes,
+            "seconds": secs,
+            "stages_executed": executed,
+            "stages_cached": cached,
+            "run": report,
+        });
+        matflow_scene::io::write_atomic(path, &serde_json::to_vec_pretty(&json)?)
+            .with_context(|| format!("writing the report {}", path.display()))?;
+    }
+    Ok(())
+}
+
+/// The output folder must not be, or hold, the spec or an input.
+fn check_out(out: &Path, file: &Path, reads: &[(PathBuf, String)]) -> Result<()> {
+    let real = |p: &Path| -> PathBuf {
+        std::fs::canonicalize(p).unwrap_or_else(|_| {
+            std::env::current_dir()
+                .map(|c| c.join(p))
+                .unwrap_or_else(|_| p.to_path_buf())
+        })
+    };
+    let o = real(out);
+    let mut inputs: Vec<(PathBuf, String)> = vec![(real(file), "the dataset spec".into())];
+    inputs.extend(reads.iter().map(|(p, w)| (real(p), w.clone())));
+    for (p, what) in inputs {
+        if p.starts_with(&o) {
+            bail!(
+                "--out {}: holds {what} ({}); write the dataset elsewhere",
+                out.display(),
+                p.display()
+            );
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,474 @@
+//! Dataset jobs over the binary: the same spec gives byte-identical shards
+//! in one process or split over three (on one thread or two), a job killed
+//! with SIGKILL resumes without recomputing a finished sample, the shards
+//! open with Python's `tarfile` and the `webdataset` loader with the
+//! manifest's BLAKE3 digests (Python's own `blake3`), `merge` finds
+//! damage, and bad specs get errors with a line and column.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+fn tmp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("matflow-dataset-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn matflow(args: &[&str], threads: usize) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_matflow"))
+        .args(args)
+        .env_remove("MATFLOW_CACHE")
+        .env("RAYON_NUM_THREADS", threads.to_string())
+        .output()
+        .expect("run matflow")
+}
+
+fn text(o: &Output) -> String {
+    format!(
+        "{}\n{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    )
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+/// A small refraction dataset spec: `samples` at 32², 4 spp.
+fn spec(dir: &Path, samples: u64, shard_size: u64, spp: u64) -> PathBuf {
+    let f = dir.join("spec.yaml");
+    std::fs::write(
+        &f,
+        format!(
+            "dataset:\n  name: tiny\n  generator: refraction\n  samples: {samples}\n  seed: 7\n  \
+             shard_size: {shard_size}\n  params:\n    size: 32\n    spp: {spp}\n    \
+             procedural_envmaps: 4\n    envmap_width: 64\n"
+        ),
+    )
+    .unwrap();
+    f
+}
+
+/// Every file of a folder: name → bytes.
+fn files(dir: &Path) -> BTreeMap<String, Vec<u8>> {
+    std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.is_file())
+        .map(|p| {
+            (
+                p.file_name().unwrap().to_string_lossy().into_owned(),
+                std::fs::read(&p).unwrap(),
+            )
+        })
+        .collect()
+}
+
+fn report(path: &Path) -> serde_json::Value {
+    serde_json::from_slice(&std::fs::read(path).unwrap()).unwrap()
+}
+
+#[test]
+fn one_process_or_three_on_one_thread_or_two_give_the_same_bytes() {
+    let w = tmp("split");
+    let f = spec(&w, 8, 3, 4);
+    // One process, one thread.
+    let (out1, cache1) = (w.join("one"), w.join("cache1"));
+    let o = matflow(
+        &[
+            "dataset",
+            s(&f),
+            "--out",
+            s(&out1),
+            "--cache",
+            s(&cache1),
+            "--quiet",
+        ],
+        1,
+    );
+    assert!(o.status.success(), "{}", text(&o));
+    // Three processes at once sharing one store, two threads each.
+    let (out3, cache3) = (w.join("three"), w.join("cache3"));
+    let kids: Vec<_> = (0..3)
+        .map(|i| {
+            Command::new(env!("CARGO_BIN_EXE_matflow"))
+                .args([
+                    "dataset",
+                    s(&f),
+                    "--out",
+                    s(&out3),
+                    "--cache",
+                    s(&cache3),
+                    "--quiet",
+                    "--shards",
+                    "3",
+                    "--shard",
+                    &i.to_string(),
+                ])
+                .env("RAYON_NUM_THREADS", "2")
+                .stdout(Stdio::piped())
+                .stderr(Stdio::piped())
+                .spawn()
+                .unwrap()
+        })
+        .collect();
+    for k in kids {
+        let o = k.wait_with_output().unwrap();
+        assert!(o.status.success(), "{}", text(&o));
+    }
+    let (a, b) = (files(&out1), files(&out3));
+    let names: Vec<&String> = a.keys().collect();
+    assert_eq!(
+        names,
+        [
+            "dataset.json",
+            "tiny-000000.jsonl",
+            "tiny-000000.tar",
+            "tiny-000001.jsonl",
+            "tiny-000001.tar",
+            "tiny-000002.jsonl",
+            "tiny-000002.tar"
+        ]
+    );
+    for (n, bytes) in &a {
+        assert!(
+            b.get(n) == Some(bytes),
+            "{n} differs between 1 and 3 processes"
+        );
+    }
+    assert_eq!(a.len(), b.len());
+    // Merging indexes both identically.
+    for d in [&out1, &out3] {
+        let o = matflow(&["dataset", "merge", s(d)], 1);
+        assert!(o.status.success(), "{}", text(&o));
+        assert!(text(&o).contains("8 samples in 3 shards"), "{}", text(&o));
+    }
+    assert_eq!(
+        std::fs::read(out1.join("manifest.jsonl")).unwrap(),
+        std::fs::read(out3.join("manifest.jsonl")).unwrap()
+    );
+    // A second run finds every sample cached and rewrites nothing.
+    let rep = w.join("again.json");
+    let o = matflow(
+        &[
+            "dataset",
+            s(&f),
+            "--out",
+            s(&out1),
+            "--cache",
+            s(&cache1),
+            "--quiet",
+            "--report",
+            s(&rep),
+        ],
+        2,
+    );
+    assert!(o.status.success(), "{}", text(&o));
+    let r = report(&rep);
+    assert_eq!(
+        (r["stages_executed"].as_u64(), r["stages_cached"].as_u64()),
+        (Some(0), Some(16))
+    );
+    // More samples keep the first ones: only the new samples' stages run.
+    let o = matflow(
+        &[
+            "dataset",
+            s(&f),
+            "--out",
+            s(&w.join("more")),
+            "--cache",
+            s(&cache1),
+            "--quiet",
+            "--set",
+            "dataset.samples=10",
+            "--report",
+            s(&rep),
+        ],
+        2,
+    );
+    assert!(o.status.success(), "{}", text(&o));
+    assert_eq!(report(&rep)["stages_executed"].as_u64(), Some(4));
+    assert_eq!(
+        files(&w.join("more"))["tiny-000000.tar"],
+        a["tiny-000000.tar"],
+        "a shard of the first samples changed"
+    );
+    // A render setting re-runs the renders, not the labels.
+    let o = matflow(
+        &[
+            "dataset",
+            s(&f),
+            "--out",
+            s(&w.join("spp")),
+            "--cache",
+            s(&cache1),
+            "--quiet",
+            "--set",
+            "dataset.params.spp=2",
+            "--report",
+            s(&rep),
+        ],
+        2,
+    );
+    assert!(o.status.success(), "{}", text(&o));
+    let r = report(&rep);
+    let executed: Vec<&str> = r["run"]["stages"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|s| s["status"] == "executed")
+        .map(|s| s["kind"].as_str().unwrap())
+        .collect();
+    assert_eq!(executed.len(), 8);
+    assert!(
+        executed.iter().all(|k| *k == "refraction_render"),
+        "{executed:?}"
+    );
+    let _ = std::fs::remove_dir_all(&w);
+}
+
+#[test]
+fn a_killed_job_resumes_with_identical_bytes_and_no_recomputation() {
+    let w = tmp("kill");
+    let f = spec(&w, 24, 4, 48);
+    // The answer, from a run never interrupted.
+    let want = w.join("want");
+    let o = matflow(
+        &[
+            "dataset",
+            s(&f),
+            "--out",
+            s(&want),
+            "--cache",
+            s(&w.join("c0")),
+            "--quiet",
+        ],
+        2,
+    );
+    assert!(o.status.success(), "{}", text(&o));
+    // Kill a run once a few stages are cached.
+    let (out, cache) = (w.join("out"), w.join("c1"));
+    let mut kid = Command::new(env!("CARGO_BIN_EXE_matflow"))
+        .args([
+            "dataset",
+            s(&f),
+            "--out",
+            s(&out),
+            "--cache",
+            s(&cache),
+            "--quiet",
+        ])
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let actions = |c: &Path| -> usize {
+        walk(&c.join("actions"))
+            .iter()
+            .filter(|p| p.extension().is_some_and(|e| e == "json"))
+            .count()
+    };
+    let t0 = Instant::now();
+    while actions(&cache) < 6 && t0.elapsed() < Duration::from_secs(60) {
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    kid.kill().unwrap(); // SIGKILL
+    kid.wait().unwrap();
+    let finished = actions(&cache);
+    assert!(
+        (6..48).contains(&finished),
+        "{finished} stages finished before the kill: make the job longer"
+    );
+    let rep = w.join("resume.json");
+    let o = matflow(
+        &[
+            "dataset",
+            s(&f),
+            "--out",
+            s(&out),
+            "--cache",
+            s(&cache),
+            "--quiet",
+            "--report",
+            s(&rep),
+        ],
+        2,
+    );
+    assert!(o.status.success(), "{}", text(&o));
+    let r = report(&rep);
+    assert_eq!(
+        (r["stages_cached"].as_u64(), r["stages_executed"].as_u64()),
+        (Some(finished as u64), Some(48 - finished as u64)),
+        "the resumed run recomputed a finished stage"
+    );
+    assert_eq!(files(&out), files(&want));
+    let _ = std::fs::remove_dir_all(&w);
+}
+
+fn walk(d: &Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    if let Ok(rd) = std::fs::read_dir(d) {
+        for e in rd.flatten() {
+            let p = e.path();
+            if p.is_dir() {
+                out.extend(walk(&p));
+            } else {
+                out.push(p);
+            }
+        }
+    }
+    out
+}
+
+/// Python's `tarfile`, `webdataset` and `blake3` read the shards: member
+/// names, every member's digest against the manifest, the arrays' shapes
+/// and ranges.
+#[test]
+fn python_reads_the_shards_and_the_manifest_digests_match() {
+    let w = tmp("python");
+    let f = spec(&w, 5, 2, 4);
+    let out = w.join("out");
+    let o = matflow(
+        &[
+            "dataset",
+            s(&f),
+            "--out",
+            s(&out),
+            "--cache",
+            s(&w.join("c")),
+            "--quiet",
+        ],
+        2,
+    );
+    assert!(o.status.success(), "{}", text(&o));
+    let o = matflow(&["dataset", "merge", s(&out)], 1);
+    assert!(o.status.success(), "{}", text(&o));
+    let script = r#"
+import io, json, sys, tarfile
+import blake3, numpy as np, webdataset as wds
+out = sys.argv[1]
+desc = json.load(open(f"{out}/dataset.json"))
+manifest = [json.loads(l) for l in open(f"{out}/manifest.jsonl")]
+assert len(manifest) == desc["samples"] == 5, len(manifest)
+by_key = {m["key"]: m for m in manifest}
+seen = 0
+for k in range(desc["shards"]):
+    with tarfile.open(f"{out}/tiny-{k:06d}.tar") as t:
+        for m in t.getmembers():
+            assert m.isfile() and m.mode == 0o644 and m.mtime == 0, m.name
+            key, member = m.name.split(".", 1)
+            data = t.extractfile(m).read()
+            want = by_key[key]["members"][member]
+            assert blake3.blake3(data).hexdigest() == want["blake3"], m.name
+            assert len(data) == want["bytes"]
+            seen += 1
+assert seen == 5 * len(desc["members"]), seen
+urls = f"{out}/" + desc["shard_pattern"]
+n = 0
+for s in wds.WebDataset(urls, shardshuffle=False).decode("rgb8"):
+    L, d1, mask = s["length.npy"], s["d1.npy"], s["mask.png"]
+    assert L.shape == (32, 32) and L.dtype == np.float16, (L.shape, L.dtype)
+    assert s["normal.npy"].shape == (32, 32, 3)
+    assert 0.0 <= L.min() and L.max() <= 1.0
+    inside = mask[..., 0] > 127
+    assert inside.any() and (L[~inside] == 0).all() and (d1[~inside] == 0).all()
+    assert s["image.png"].shape == (32, 32, 3)
+    assert s["render.json"]["spp"] == 4 and "object" in s["meta.json"]
+    n += 1
+assert n == 5, n
+print("ok", seen)
+"#;
+    let o = Command::new("python3")
+        .arg("-c")
+        .arg(script)
+        .arg(&out)
+        .output()
+        .expect("python3");
+    assert!(o.status.success(), "{}", text(&o));
+    // Damage one byte of a member: merge names the member and writes nothing.
+    std::fs::remove_file(out.join("manifest.jsonl")).unwrap();
+    let tar = out.join("tiny-000001.tar");
+    let mut b = std::fs::read(&tar).unwrap();
+    let at = b.len() - 1024 - 100;
+    b[at] ^= 0xff;
+    std::fs::write(&tar, &b).unwrap();
+    let o = matflow(&["dataset", "merge", s(&out)], 1);
+    assert!(!o.status.success());
+    assert!(
+        text(&o).contains("tiny-000001.tar") && text(&o).contains("BLAKE3"),
+        "{}",
+        text(&o)
+    );
+    assert!(!out.join("manifest.jsonl").exists());
+    // A missing shard is named too.
+    std::fs::remove_file(out.join("tiny-000002.tar")).unwrap();
+    let o = matflow(&["dataset", "merge", s(&out)], 1);
+    assert!(text(&o).contains("tiny-000002.tar"), "{}", text(&o));
+    let _ = std::fs::remove_dir_all(&w);
+}
+
+#[test]
+fn bad_specs_are_located_and_nothing_runs() {
+    let w = tmp("bad");
+    let cases: &[(&str, &str)] = &[
+        (
+            "dataset:\n  generator: refraction\n  samples: 0\n",
+            "3:12: dataset `samples`: expected an integer in [1,",
+        ),
+        (
+            "dataset:\n  generator: lenses\n  samples: 3\n",
+            "2:14: dataset: unknown generator `lenses` (one of: refraction)",
+        ),
+        (
+            "dataset:\n  generator: refraction\n  samples: 3\n  params:\n    size: 4\n",
+            "5:11: dataset `params`: field `size`: expected an integer in [8, 4096], got 4",
+        ),
+        (
+            "dataset:\n  generator: refraction\n  samples: 3\n  params:\n    objects: [{builtin: teapot}]\n",
+            "5:25: dataset `params`.objects[0]: field `builtin`: expected one of cup,",
+        ),
+        (
+            "dataset:\n  generator: refraction\n  samples: 3\n  params:\n    envmaps: [{file: nowhere.hdr}]\n",
+            "nowhere.hdr",
+        ),
+        (
+            "dataset:\n  generator: refraction\n  samples: 3\n  seeds: 4\n",
+            "4:3: dataset: unknown key `seeds`",
+        ),
+        (
+            "dataset:\n  generator: refraction\n  samples: 3\n  params:\n    elevation: [50, 10]\n",
+            "`elevation` [50, 10]",
+        ),
+    ];
+    for (k, (yaml, want)) in cases.iter().enumerate() {
+        let f = w.join(format!("bad{k}.yaml"));
+        std::fs::write(&f, yaml).unwrap();
+        let out = w.join(format!("out{k}"));
+        let o = matflow(
+            &[
+                "dataset",
+                s(&f),
+                "--out",
+                s(&out),
+                "--cache",
+                s(&w.join("c")),
+            ],
+            1,
+        );
+        assert!(!o.status.success(), "case {k} ran");
+        assert!(text(&o).contains(want), "case {k}: {}", text(&o));
+        assert!(!out.exists(), "case {k} wrote {}", out.display());
+    }
+    // An output folder that holds the spec is refused.
+    let f = spec(&w, 2, 1, 1);
+    let o = matflow(
+        &["dataset", s(&f), "--out", s(&w), "--cache", s(&w.join("c"))],
+        1,
+    );
+    assert!(text(&o).contains("holds the dataset spec"), "{}", text(&o));
+    let _ = std::fs::remove_dir_all(&w);
+}
