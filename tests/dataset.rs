@@ -421,7 +421,7 @@ fn bad_specs_are_located_and_nothing_runs() {
         ),
         (
             "dataset:\n  generator: lenses\n  samples: 3\n",
-            "2:14: dataset: unknown generator `lenses` (one of: refraction)",
+            "2:14: dataset: unknown generator `lenses` (one of: refraction, rooms)",
         ),
         (
             "dataset:\n  generator: refraction\n  samples: 3\n  params:\n    size: 4\n",
@@ -470,5 +470,84 @@ fn bad_specs_are_located_and_nothing_runs() {
         1,
     );
     assert!(text(&o).contains("holds the dataset spec"), "{}", text(&o));
+    let _ = std::fs::remove_dir_all(&w);
+}
+
+/// A `rooms` sample unpacks into a reference bundle: `matflow render`
+/// re-renders it from its depth and true materials, close to the
+/// photograph (the depth mesh lacks what the camera does not see, so not
+/// equal).
+#[test]
+fn a_rooms_sample_unpacks_into_a_bundle_that_renders() {
+    let w = tmp("rooms");
+    let f = w.join("rooms.yaml");
+    std::fs::write(
+        &f,
+        "dataset:\n  generator: rooms\n  samples: 2\n  seed: 5\n  params: {size: 32, spp: 16}\n",
+    )
+    .unwrap();
+    let out = w.join("out");
+    let o = matflow(
+        &[
+            "dataset",
+            s(&f),
+            "--out",
+            s(&out),
+            "--cache",
+            s(&w.join("c")),
+            "--quiet",
+        ],
+        2,
+    );
+    assert!(o.status.success(), "{}", text(&o));
+    let b = w.join("bundle");
+    let o = matflow(
+        &["dataset", "unpack", s(&out), "s00000001", "--to", s(&b)],
+        1,
+    );
+    assert!(o.status.success(), "{}", text(&o));
+    for f in [
+        "gt_image.exr",
+        "depth.exr",
+        "mesh_mask.png",
+        "ground_truth/albedo.exr",
+        "ground_truth/roughness.exr",
+        "ground_truth/metallic.exr",
+        "ground_truth/normal.exr",
+        "ground_truth/envmap.hdr",
+    ] {
+        assert!(b.join(f).is_file(), "{f} missing");
+    }
+    let o = matflow(
+        &[
+            "render",
+            "--bundle",
+            s(&b),
+            "--materials",
+            "ground_truth",
+            "--spp",
+            "16",
+            "--out",
+            s(&w.join("re.exr")),
+            "--compare",
+            s(&b.join("gt_image.exr")),
+        ],
+        2,
+    );
+    assert!(o.status.success(), "{}", text(&o));
+    let t = text(&o);
+    let psnr: f64 = t
+        .split("gt_image.exr: ")
+        .nth(1)
+        .and_then(|r| r.split(" dB").next())
+        .and_then(|v| v.trim().parse().ok())
+        .unwrap_or_else(|| panic!("no PSNR in {t}"));
+    assert!(psnr > 12.0, "{psnr} dB");
+    // A key that is not there is named.
+    let o = matflow(
+        &["dataset", "unpack", s(&out), "s00000009", "--to", s(&b)],
+        1,
+    );
+    assert!(text(&o).contains("no sample `s00000009`"), "{}", text(&o));
     let _ = std::fs::remove_dir_all(&w);
 }

@@ -12,6 +12,7 @@ use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 use matflow_dataset::{merge, Job};
+
 use matflow_engine::spec::{self, Override};
 use matflow_engine::{run_pipeline, Digest, Observer, StageReport, Status, Value};
 
@@ -30,6 +31,16 @@ pub enum DatasetCmd {
     /// BLAKE3 digests, every sample once) and write manifest.jsonl and
     /// index.json; exits 1 listing what is wrong.
     Merge { dir: PathBuf },
+    /// Write one sample's members from the dataset in DIR into a folder,
+    /// checked against the manifest, laid out as the generator says (a
+    /// `rooms` sample becomes a reference bundle `matflow render` reads).
+    Unpack {
+        dir: PathBuf,
+        /// The sample's key (s00000012).
+        key: String,
+        #[arg(long)]
+        to: PathBuf,
+    },
 }
 
 #[derive(Args)]
@@ -72,6 +83,11 @@ pub struct GenerateArgs {
 pub fn dataset(a: DatasetArgs) -> Result<()> {
     match a.cmd {
         Some(DatasetCmd::Merge { dir }) => merge_cmd(&dir),
+        Some(DatasetCmd::Unpack { dir, key, to }) => {
+            let files = matflow_dataset::unpack(&dir, &key, &to)?;
+            outln!("{}: {} files of {key}", to.display(), files.len());
+            Ok(())
+        }
         None => {
             let Some(spec) = a.gen.spec.clone() else {
                 bail!("give a dataset spec (matflow dataset SPEC.yaml --out DIR) or `merge DIR`");

@@ -37,6 +37,11 @@ pub trait Plan: Send + Sync {
     fn header(&self) -> serde_json::Value;
     /// The member names every sample has, in order.
     fn members(&self) -> Vec<String>;
+    /// Where `matflow dataset unpack` puts each member in a sample's
+    /// folder (a path relative to it); members not listed keep their name.
+    fn layout(&self) -> Vec<(&'static str, &'static str)> {
+        Vec::new()
+    }
 }
 
 pub trait Generator: Sync {
@@ -53,12 +58,13 @@ pub trait Generator: Sync {
 }
 
 /// The generators' names.
-pub const GENERATORS: &[&str] = &["refraction"];
+pub const GENERATORS: &[&str] = &["refraction", "rooms"];
 
 /// The generator called `name`.
 pub fn generator(name: &str) -> Option<&'static dyn Generator> {
     match name {
         "refraction" => Some(&crate::refraction::RefractionGenerator),
+        "rooms" => Some(&crate::rooms::RoomsGenerator),
         _ => None,
     }
 }

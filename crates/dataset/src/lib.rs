@@ -8,14 +8,16 @@
 //! into deterministic WebDataset tar shards ([`tar`]) with JSON-lines
 //! manifests, which [`shards::merge`] checks and indexes.
 //!
-//! Generators: [`refraction`], the paper's refraction-length dataset.
+//! Generators: [`refraction`], the paper's refraction-length dataset;
+//! [`rooms`], synthetic interiors with ground-truth materials.
 
 pub mod generator;
 pub mod refraction;
+pub mod rooms;
 pub mod shards;
 pub mod spec;
 pub mod tar;
 
 pub use generator::{generator, Generator, Plan, Sample, SampleStage, GENERATORS};
-pub use shards::{merge, Job, MergeReport, ShardError};
+pub use shards::{merge, unpack, Job, MergeReport, ShardError};
 pub use spec::{load, parse_section, DatasetSpec};

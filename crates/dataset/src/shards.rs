@@ -172,6 +172,7 @@ impl Job {
             ),
             "key_pattern": "s{index:08}",
             "members": members,
+            "layout": self.plan.layout().into_iter().collect::<BTreeMap<_, _>>(),
             "params": json_of(&s.params),
             "header": self.plan.header(),
         })
@@ -426,4 +427,79 @@ pub fn merge(dir: &Path) -> Result<MergeReport, ShardError> {
         matflow_scene::io::write_if_changed(&p, &b).map_err(|e| io_err(&p, e))?;
     }
     Ok(report)
+}
+
+/// Writes sample `key`'s members from the dataset in `dir` into the folder
+/// `to`, each checked against its manifest digest and placed where the
+/// dataset's `layout` says (e.g. a rooms sample as a reference bundle).
+/// Returns the files written.
+pub fn unpack(dir: &Path, key: &str, to: &Path) -> Result<Vec<PathBuf>, ShardError> {
+    let desc_path = dir.join("dataset.json");
+    let text = std::fs::read_to_string(&desc_path).map_err(|e| io_err(&desc_path, e))?;
+    let desc: serde_json::Value = serde_json::from_str(&text).map_err(|e| io_err(&desc_path, e))?;
+    let (Some(name), Some(shard_size), Some(samples)) = (
+        desc.get("name").and_then(|v| v.as_str()),
+        desc.get("shard_size").and_then(|v| v.as_u64()),
+        desc.get("samples").and_then(|v| v.as_u64()),
+    ) else {
+        return Err(io_err(&desc_path, "not a dataset description"));
+    };
+    let index = key
+        .strip_prefix('s')
+        .and_then(|d| d.parse::<u64>().ok())
+        .filter(|&i| i < samples && self::key(i) == key)
+        .ok_or_else(|| {
+            ShardError::Invalid(format!(
+                "no sample `{key}` (keys are s00000000 to {})",
+                self::key(samples.saturating_sub(1))
+            ))
+        })?;
+    let k = index / shard_size;
+    let tar_path = dir.join(format!("{name}-{k:06}.tar"));
+    let jl_path = dir.join(format!("{name}-{k:06}.jsonl"));
+    let bytes = std::fs::read(&tar_path).map_err(|e| io_err(&tar_path, e))?;
+    let lines = std::fs::read_to_string(&jl_path).map_err(|e| io_err(&jl_path, e))?;
+    let line: serde_json::Value = lines
+        .lines()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .find(|v| v.get("key").and_then(|k| k.as_str()) == Some(key))
+        .ok_or_else(|| io_err(&jl_path, format!("no line for sample {key}")))?;
+    let entries = tar::read(&bytes).map_err(|e| io_err(&tar_path, e))?;
+    let layout = desc.get("layout").and_then(|l| l.as_object());
+    let prefix = format!("{key}.");
+    let mut written = Vec::new();
+    for e in entries.iter().filter(|e| e.name.starts_with(&prefix)) {
+        let member = &e.name[prefix.len()..];
+        let data = &bytes[e.offset..e.offset + e.size];
+        let want = line
+            .get("members")
+            .and_then(|m| m.get(member))
+            .and_then(|m| m.get("blake3"))
+            .and_then(|d| d.as_str());
+        let got = blake3::hash(data).to_hex().to_string();
+        if want != Some(got.as_str()) {
+            return Err(io_err(
+                &tar_path,
+                format!(
+                    "{}: BLAKE3 {got}, the manifest says {}",
+                    e.name,
+                    want.unwrap_or("nothing")
+                ),
+            ));
+        }
+        let rel = layout
+            .and_then(|l| l.get(member))
+            .and_then(|v| v.as_str())
+            .unwrap_or(member);
+        let path = to.join(rel);
+        if let Some(parent) = path.parent() {
+            std::fs::create_dir_all(parent).map_err(|e| io_err(parent, e))?;
+        }
+        matflow_scene::io::write_atomic(&path, data).map_err(|e| io_err(&path, e))?;
+        written.push(path);
+    }
+    if written.is_empty() {
+        return Err(io_err(&tar_path, format!("no members for sample {key}")));
+    }
+    Ok(written)
 }

@@ -40,6 +40,7 @@ pub fn registry() -> Registry {
         Box::new(kinds::insert::InsertNode),
         Box::new(kinds::refraction::RefractionLabelsNode),
         Box::new(kinds::refraction::RefractionRenderNode),
+        Box::new(kinds::room::RoomSampleNode),
     ];
     for n in nodes {
         r.add(n);

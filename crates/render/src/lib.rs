@@ -12,6 +12,7 @@ pub mod filter;
 pub mod fmath;
 pub mod integrator;
 pub mod rng;
+pub mod rooms;
 pub mod scene;
 pub mod warp;
 

@@ -73,6 +73,19 @@ pub fn to_u8(c: f32) -> u8 {
     (c.clamp(0.0, 1.0) * 255.0 + 0.5) as u8
 }
 
+/// The scale that brings an image's log-average luminance to `key` (0.18:
+/// a photographer's middle grey), clamped to [1e-4, 1e4]: the automatic
+/// exposure of generated photographs.
+pub fn exposure_to_key(img: &crate::image::RgbImage, key: f64) -> f64 {
+    let mut log_sum = 0.0f64;
+    for c in &img.data {
+        let l = luminance(*c).max(0.0) as f64;
+        log_sum += if l.is_finite() { (l + 1e-4).ln() } else { 0.0 };
+    }
+    let log_avg = (log_sum / img.data.len().max(1) as f64).exp();
+    (key / log_avg.max(1e-6)).clamp(1e-4, 1e4)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

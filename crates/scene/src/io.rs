@@ -309,14 +309,18 @@ pub fn encode_exr_rgb(path: &Path, img: &RgbImage) -> Result<Vec<u8>> {
 
 /// Writes one float channel named `Y` (the reference's layout for depth).
 pub fn write_exr_gray(path: &Path, img: &GrayImage) -> Result<()> {
+    write_atomic(path, &encode_exr_gray(path, img)?)
+}
+
+/// The bytes [`write_exr_gray`] writes (`path` names the file in errors).
+pub fn encode_exr_gray(path: &Path, img: &GrayImage) -> Result<Vec<u8>> {
     let chan = x::AnyChannel::new("Y", x::FlatSamples::F32(img.data.clone()));
     let channels = x::AnyChannels::sort(smallvec_one(chan));
     let image = x::Image::from_encoded_channels((img.width, img.height), exr_encoding(), channels);
-    let bytes = exr_to_bytes(path, |c| {
+    exr_to_bytes(path, |c| {
         use x::WritableImage;
         image.write().non_parallel().to_buffered(c)
-    })?;
-    write_atomic(path, &bytes)
+    })
 }
 
 fn smallvec_one<T>(v: T) -> x::SmallVec<[T; 4]> {
@@ -350,6 +354,11 @@ pub fn read_hdr(path: &Path) -> Result<RgbImage> {
 /// Writes a Radiance HDR file (`#?RADIANCE`, RLE RGBE). Negative and
 /// non-finite values are written as 0.
 pub fn write_hdr(path: &Path, img: &RgbImage) -> Result<()> {
+    write_atomic(path, &encode_hdr(path, img)?)
+}
+
+/// The bytes [`write_hdr`] writes (`path` names the file in errors).
+pub fn encode_hdr(path: &Path, img: &RgbImage) -> Result<Vec<u8>> {
     let px: Vec<Rgb<f32>> = img
         .data
         .iter()
@@ -365,7 +374,7 @@ pub fn write_hdr(path: &Path, img: &RgbImage) -> Result<()> {
             path: path.into(),
             message: e.to_string(),
         })?;
-    write_atomic(path, &buf)
+    Ok(buf)
 }
 
 /// Reads an 8- or 16-bit PNG/JPEG as RGB values in [0, 1] (no transfer

@@ -10,6 +10,7 @@ pub mod mesh;
 pub mod refraction;
 pub mod relight;
 pub mod render;
+pub mod room;
 pub mod synthetic_scene;
 pub mod trace;
 pub mod transparency;

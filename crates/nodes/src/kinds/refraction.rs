@@ -625,13 +625,8 @@ impl Node for RefractionRenderNode {
         objects.push(object);
         let image = draw(&objects, 1)?;
         // Exposure: the background's log-average luminance to 0.18.
-        let mut log_sum = 0.0f64;
-        for c in &background.data {
-            let l = matflow_scene::color::luminance(*c).max(0.0) as f64;
-            log_sum += (l + 1e-4).ln();
-        }
-        let log_avg = (log_sum / background.data.len().max(1) as f64).exp();
-        let scale = (0.18 / log_avg.max(1e-6)).clamp(1e-4, 1e4) * 2f64.powf(p.f64("exposure"));
+        let scale =
+            matflow_scene::color::exposure_to_key(&background, 0.18) * 2f64.powf(p.f64("exposure"));
         let expose = |img: &RgbImage| img.map(|c| c * scale as f32);
         let mut out = BTreeMap::new();
         out.insert(

@@ -1,0 +1,538 @@
+//! Synthetic interiors with ground truth, for training and validating the
+//! prediction stage: a room of varied shape (a back wall, side walls and a
+//! ceiling present or not, an opening behind the camera), a floor plain,
+//! tiled or planked and sometimes glossy, furniture built of boxes
+//! (tables, cabinets, shelves) and primitives (balls, cylinders, tori,
+//! jugs) on the floor and on tables, matte, glossy and metal materials, a
+//! camera at a varied height, turned and tilted, and a procedural sky or
+//! room environment map. Unlike [`matflow_scene::synthetic`] (a depth map
+//! of the visible surfaces), the geometry is whole: it casts shadows
+//! from outside the view. Everything is a pure function of the seed.
+
+use std::sync::Arc;
+
+use glam::{Mat3, Vec2, Vec3};
+use matflow_geom::shapes::{cuboid, jug, revolve, sphere, torus, Shape};
+use matflow_geom::TriMesh;
+use matflow_scene::envgen::EnvKind;
+use matflow_scene::{Camera, GrayImage, Image, RgbImage};
+
+use crate::bsdf::Material;
+use crate::scene::{RenderScene, SceneObject, Surface};
+
+/// SplitMix64.
+struct Rng(u64);
+
+impl Rng {
+    fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^ (z >> 31)
+    }
+    fn f(&mut self) -> f32 {
+        (self.next_u64() >> 40) as f32 / (1u64 << 24) as f32
+    }
+    fn range(&mut self, a: f32, b: f32) -> f32 {
+        a + (b - a) * self.f()
+    }
+    fn chance(&mut self, p: f32) -> bool {
+        self.f() < p
+    }
+    fn below(&mut self, n: usize) -> usize {
+        ((self.next_u64() as u128 * n as u128) >> 64) as usize
+    }
+}
+
+fn hsv(h: f32, s: f32, v: f32) -> Vec3 {
+    let h6 = h.rem_euclid(1.0) * 6.0;
+    let c = v * s;
+    let x = c * (1.0 - ((h6 % 2.0) - 1.0).abs());
+    let (r, g, b) = match h6 as u32 {
+        0 => (c, x, 0.0),
+        1 => (x, c, 0.0),
+        2 => (0.0, c, x),
+        3 => (0.0, x, c),
+        4 => (x, 0.0, c),
+        _ => (c, 0.0, x),
+    };
+    Vec3::new(r, g, b) + Vec3::splat(v - c)
+}
+
+/// A generated room: objects in the camera's frame (the camera at the
+/// origin looking down −z), the environment map's kind and seed, how the
+/// camera is turned (camera frame → world, for turning the map) and the
+/// exposure (EV) a photograph of it should get.
+pub struct Room {
+    pub objects: Vec<SceneObject>,
+    pub env_kind: EnvKind,
+    pub env_seed: u64,
+    pub to_world: Mat3,
+    pub exposure: f32,
+}
+
+/// A material for furniture and objects: a quarter metal (gold, silver,
+/// copper-like, rough or polished), the rest dielectric of any colour,
+/// from matte to glossy.
+fn object_material(r: &mut Rng) -> Material {
+    if r.chance(0.25) {
+        let tints = [
+            Vec3::new(1.0, 0.78, 0.34),
+            Vec3::new(0.95, 0.93, 0.88),
+            Vec3::new(0.95, 0.64, 0.54),
+            Vec3::new(0.56, 0.57, 0.58),
+        ];
+        Material {
+            albedo: tints[r.below(tints.len())] * r.range(0.8, 1.0),
+            roughness: r.range(0.07, 0.5),
+            metallic: 1.0,
+        }
+    } else {
+        Material {
+            albedo: hsv(r.f(), r.range(0.0, 0.85), r.range(0.1, 0.9)),
+            roughness: r.range(0.1, 0.95),
+            metallic: 0.0,
+        }
+    }
+}
+
+/// A quad (a, b, c, d counter-clockwise seen from its front) with texture
+/// coordinates `uv` scaled from its corners.
+fn quad(p: [Vec3; 4], uv: [Vec2; 4]) -> (TriMesh, Vec<Vec2>) {
+    let m = TriMesh {
+        positions: p.to_vec(),
+        indices: vec![[0, 1, 2], [0, 2, 3]],
+        ..Default::default()
+    };
+    (m, uv.to_vec())
+}
+
+/// A pattern texture: tiles (a grid of `n`×`n` squares with grout),
+/// planks (stripes of varied shade) or none.
+fn floor_texture(r: &mut Rng) -> Option<RgbImage> {
+    match r.below(3) {
+        0 => None,
+        1 => {
+            let grout = r.range(0.5, 0.8);
+            Some(Image::from_fn(64, 64, |x, y| {
+                if x % 32 < 2 || y % 32 < 2 {
+                    Vec3::splat(grout)
+                } else {
+                    Vec3::ONE
+                }
+            }))
+        }
+        _ => {
+            let shades: Vec<f32> = (0..8).map(|_| r.range(0.7, 1.0)).collect();
+            Some(Image::from_fn(64, 64, |x, y| {
+                let s = shades[y / 8];
+                if y % 8 == 0 || (x + 16 * (y / 8)) % 64 == 0 {
+                    Vec3::splat(0.55)
+                } else {
+                    Vec3::splat(s)
+                }
+            }))
+        }
+    }
+}
+
+fn shape_object(s: Shape, to_cam: &dyn Fn(Vec3) -> Vec3, turn: Mat3, m: Material) -> SceneObject {
+    let mesh = TriMesh {
+        positions: s.mesh.positions.iter().map(|&p| to_cam(p)).collect(),
+        indices: s.mesh.indices,
+        ..Default::default()
+    };
+    SceneObject {
+        mesh,
+        normals: s
+            .normals
+            .iter()
+            .map(|&n| (turn * n).normalize_or(n))
+            .collect(),
+        surface: Surface::Principled(m),
+        uvs: Vec::new(),
+        texture: None,
+    }
+}
+
+/// The room of `seed`.
+pub fn room(seed: u64) -> Room {
+    let mut r = Rng(seed.wrapping_mul(0x2545_f491_4f6c_dd1d) ^ 0x0005_eed0_0f00);
+    // The room in world space: the camera at the origin, the floor below.
+    let floor = -r.range(1.0, 1.8);
+    let height = r.range(2.4, 3.4);
+    let ceil = floor + height;
+    let back = -r.range(5.0, 10.0);
+    let left = -r.range(1.8, 4.0);
+    let right = r.range(1.8, 4.0);
+    let front = r.range(1.0, 3.0);
+    let has_left = r.chance(0.8);
+    let has_right = r.chance(0.6);
+    let has_ceiling = r.chance(0.25);
+    // The camera: yaw and a downward tilt.
+    let yaw = r.range(-25.0, 25.0).to_radians();
+    let pitch = r.range(-22.0, 4.0).to_radians();
+    let to_world = Mat3::from_rotation_y(yaw) * Mat3::from_rotation_x(pitch);
+    let turn = to_world.transpose();
+    let to_cam = move |p: Vec3| turn * p;
+    let mut objects = Vec::new();
+    let mut plane = |corners: [Vec3; 4], uv_scale: f32, m: Material, tex: Option<RgbImage>| {
+        let uv = corners.map(|c| {
+            // Texture coordinates from the plane's two long axes.
+            let n = (corners[1] - corners[0]).cross(corners[2] - corners[0]);
+            let a = n.abs();
+            let (s, t) = if a.y >= a.x && a.y >= a.z {
+                (c.x, c.z)
+            } else if a.x >= a.z {
+                (c.z, c.y)
+            } else {
+                (c.x, c.y)
+            };
+            Vec2::new(s, t) * uv_scale
+        });
+        let (mesh, uvs) = quad(corners.map(to_cam), uv);
+        objects.push(SceneObject {
+            mesh,
+            normals: Vec::new(),
+            surface: Surface::Principled(m),
+            uvs,
+            texture: tex.map(Arc::new),
+        });
+    };
+    // Floor: plain, tiled or planked; a glossy finish now and then.
+    let floor_mat = Material {
+        albedo: hsv(r.range(0.0, 0.15), r.range(0.05, 0.6), r.range(0.2, 0.85)),
+        roughness: if r.chance(0.4) {
+            r.range(0.07, 0.25)
+        } else {
+            r.range(0.35, 0.9)
+        },
+        metallic: 0.0,
+    };
+    let tex = floor_texture(&mut r);
+    let tile = r.range(0.3, 0.9);
+    let (x0, x1, z0, z1) = (left, right, back, front);
+    // Where a side is open the floor runs on (a bigger hall).
+    let (fx0, fx1) = (
+        if has_left { x0 } else { x0 - 20.0 },
+        if has_right { x1 } else { x1 + 20.0 },
+    );
+    plane(
+        [
+            Vec3::new(fx0, floor, z1),
+            Vec3::new(fx1, floor, z1),
+            Vec3::new(fx1, floor, z0),
+            Vec3::new(fx0, floor, z0),
+        ],
+        1.0 / tile,
+        floor_mat,
+        tex,
+    );
+    let wall_mat = |r: &mut Rng| Material {
+        albedo: hsv(r.f(), r.range(0.0, 0.45), r.range(0.3, 0.9)),
+        roughness: r.range(0.5, 1.0),
+        metallic: 0.0,
+    };
+    // Back wall (facing +z), side walls facing inwards, the ceiling down.
+    let m = wall_mat(&mut r);
+    plane(
+        [
+            Vec3::new(x0, floor, z0),
+            Vec3::new(x1, floor, z0),
+            Vec3::new(x1, ceil, z0),
+            Vec3::new(x0, ceil, z0),
+        ],
+        1.0,
+        m,
+        None,
+    );
+    let m = wall_mat(&mut r);
+    if has_left {
+        plane(
+            [
+                Vec3::new(x0, floor, z1),
+                Vec3::new(x0, floor, z0),
+                Vec3::new(x0, ceil, z0),
+                Vec3::new(x0, ceil, z1),
+            ],
+            1.0,
+            m,
+            None,
+        );
+    }
+    let m = wall_mat(&mut r);
+    if has_right {
+        plane(
+            [
+                Vec3::new(x1, floor, z0),
+                Vec3::new(x1, floor, z1),
+                Vec3::new(x1, ceil, z1),
+                Vec3::new(x1, ceil, z0),
+            ],
+            1.0,
+            m,
+            None,
+        );
+    }
+    let m = wall_mat(&mut r);
+    if has_ceiling {
+        plane(
+            [
+                Vec3::new(x0, ceil, z0),
+                Vec3::new(x1, ceil, z0),
+                Vec3::new(x1, ceil, z1),
+                Vec3::new(x0, ceil, z1),
+            ],
+            1.0,
+            m,
+            None,
+        );
+    }
+    // Furniture and objects on the floor, in front of the camera, apart.
+    let mut taken: Vec<(Vec2, f32)> = Vec::new();
+    let n_items = 2 + r.below(5);
+    for _ in 0..n_items {
+        let kind = r.below(7);
+        let radius = match kind {
+            0 => r.range(0.5, 0.9),  // table
+            1 => r.range(0.35, 0.6), // cabinet
+            2 => r.range(0.4, 0.7),  // shelf
+            _ => r.range(0.15, 0.45),
+        };
+        let mut spot = None;
+        for _ in 0..12 {
+            let c = Vec2::new(
+                r.range(x0 + radius, x1 - radius),
+                r.range(z0 + radius, -1.5 - radius),
+            );
+            if taken.iter().all(|(p, q)| (*p - c).length() > q + radius) {
+                spot = Some(c);
+                break;
+            }
+        }
+        let Some(c) = spot else {
+            continue;
+        };
+        taken.push((c, radius));
+        let m = object_material(&mut r);
+        let at = |p: Vec3| to_cam(p + Vec3::new(c.x, floor, c.y));
+        match kind {
+            0 => {
+                // A table: a top on four legs, sometimes with a thing on it.
+                let top_h = r.range(0.65, 0.85);
+                let (hx, hz) = (radius, radius * r.range(0.55, 0.9));
+                let t = 0.04;
+                let mut parts = vec![cuboid(
+                    Vec3::new(-hx, top_h - t, -hz),
+                    Vec3::new(hx, top_h, hz),
+                )];
+                let l = 0.04;
+                for (sx, sz) in [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)] {
+                    let (px, pz) = (sx * (hx - 2.0 * l), sz * (hz - 2.0 * l));
+                    parts.push(cuboid(
+                        Vec3::new(px - l, 0.0, pz - l),
+                        Vec3::new(px + l, top_h - t, pz + l),
+                    ));
+                }
+                for p in parts {
+                    objects.push(shape_object(p, &at, turn, m));
+                }
+                if r.chance(0.7) {
+                    let s = r.range(0.1, 0.2);
+                    let m2 = object_material(&mut r);
+                    let thing = if r.chance(0.5) {
+                        sphere(s, 16, 32).transformed(1.0, Vec3::new(0.0, top_h + s, 0.0))
+                    } else {
+                        jug(32).transformed(2.0 * s, Vec3::new(0.0, top_h, 0.0))
+                    };
+                    objects.push(shape_object(thing, &at, turn, m2));
+                }
+            }
+            1 | 2 => {
+                // A cabinet (a block) or a shelf (a tall, shallow block).
+                let h = if kind == 1 {
+                    r.range(0.6, 1.2)
+                } else {
+                    r.range(1.3, 2.0)
+                };
+                let d = if kind == 1 {
+                    radius * 0.8
+                } else {
+                    radius * 0.4
+                };
+                objects.push(shape_object(
+                    cuboid(Vec3::new(-radius, 0.0, -d), Vec3::new(radius, h, d)),
+                    &at,
+                    turn,
+                    m,
+                ));
+            }
+            3 => objects.push(shape_object(
+                sphere(radius, 24, 48).transformed(1.0, Vec3::new(0.0, radius, 0.0)),
+                &at,
+                turn,
+                m,
+            )),
+            4 => {
+                let h = r.range(0.3, 1.0);
+                let cyl = revolve(
+                    &[
+                        Vec2::new(0.0, 0.0),
+                        Vec2::new(radius, 0.0),
+                        Vec2::new(radius, h),
+                        Vec2::new(0.0, h),
+                    ],
+                    Some(&[
+                        Vec2::new(0.0, -1.0),
+                        Vec2::new(1.0, 0.0),
+                        Vec2::new(1.0, 0.0),
+                        Vec2::new(0.0, 1.0),
+                    ]),
+                    48,
+                );
+                objects.push(shape_object(cyl, &at, turn, m));
+            }
+            5 => {
+                let tube = radius * 0.3;
+                objects.push(shape_object(
+                    torus(radius - tube, tube, 16, 48).transformed(1.0, Vec3::new(0.0, tube, 0.0)),
+                    &at,
+                    turn,
+                    m,
+                ))
+            }
+            _ => objects.push(shape_object(
+                jug(40).transformed(2.0 * radius, Vec3::ZERO),
+                &at,
+                turn,
+                m,
+            )),
+        }
+    }
+    let env_kind = if r.chance(0.5) {
+        EnvKind::Sky
+    } else {
+        EnvKind::Room
+    };
+    Room {
+        objects,
+        env_kind,
+        env_seed: r.next_u64() >> 1,
+        to_world,
+        exposure: r.range(-0.7, 0.7),
+    }
+}
+
+/// A scene's ground truth per pixel centre: camera-space depth z (0 where
+/// the ray leaves the scene), albedo (texture included), roughness and
+/// metallic as rendered, the shading normal in camera space turned to
+/// face the camera, and which pixels see nothing.
+pub struct GroundTruth {
+    pub depth: GrayImage,
+    pub albedo: RgbImage,
+    pub roughness: GrayImage,
+    pub metallic: GrayImage,
+    pub normal: RgbImage,
+    pub sky: Image<bool>,
+}
+
+/// [`GroundTruth`] of a scene made of objects only (no depth mesh).
+pub fn ground_truth(scene: &RenderScene, camera: &Camera) -> GroundTruth {
+    use rayon::prelude::*;
+    let (w, h) = (camera.width, camera.height);
+    let px: Vec<(f32, Vec3, f32, f32, Vec3, bool)> = (0..w * h)
+        .into_par_iter()
+        .map(|k| {
+            let film = Vec2::new((k % w) as f32 + 0.5, (k / w) as f32 + 0.5);
+            let d = camera.film_to_dir(film).normalize_or(-Vec3::Z);
+            let Some(hit) = scene.bvh.intersect(Vec3::ZERO, d, 0.0, f32::INFINITY) else {
+                return (0.0, Vec3::ZERO, 0.0, 0.0, Vec3::Z, true);
+            };
+            let obj = hit
+                .prim
+                .checked_sub(scene.screen_prims as u32)
+                .and_then(|q| scene.prim_object.get(q as usize))
+                .copied();
+            let (albedo, rough, metal) = match obj.and_then(|o| scene.objects.get(o as usize)) {
+                Some(Surface::Principled(m)) => {
+                    let tex =
+                        scene.object_texture(obj.unwrap_or(0) as usize, hit.prim, hit.u, hit.v);
+                    (m.albedo * tex, m.roughness, m.metallic)
+                }
+                Some(Surface::Diffuse(a)) => (*a, 1.0, 0.0),
+                _ => (Vec3::ZERO, 0.0, 0.0),
+            };
+            let mut n = scene.shading_normal(hit.prim, hit.u, hit.v);
+            if n.dot(d) > 0.0 {
+                n = -n;
+            }
+            let z = -(d * hit.t).z;
+            (z.max(0.0), albedo, rough, metal, n, false)
+        })
+        .collect();
+    GroundTruth {
+        depth: Image::from_vec(w, h, px.iter().map(|p| p.0).collect()),
+        albedo: Image::from_vec(w, h, px.iter().map(|p| p.1).collect()),
+        roughness: Image::from_vec(w, h, px.iter().map(|p| p.2).collect()),
+        metallic: Image::from_vec(w, h, px.iter().map(|p| p.3).collect()),
+        normal: Image::from_vec(w, h, px.iter().map(|p| p.4).collect()),
+        sky: Image::from_vec(w, h, px.iter().map(|p| p.5).collect()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::envmap::EnvMap;
+    use matflow_scene::MaterialMaps;
+
+    fn scene_of(room: &Room, n: usize) -> (RenderScene, Camera) {
+        let cam = Camera::new(n, n);
+        let maps = MaterialMaps {
+            albedo: Image::new(n, n, Vec3::splat(0.5)),
+            roughness: Image::new(n, n, 0.5),
+            metallic: Image::new(n, n, 0.0),
+            normal: None,
+            transparency: None,
+        };
+        let env = EnvMap::new(&Image::new(8, 4, Vec3::ONE)).unwrap();
+        let s =
+            RenderScene::with_objects(cam, TriMesh::default(), &maps, env, &room.objects).unwrap();
+        (s, cam)
+    }
+
+    #[test]
+    fn rooms_vary_and_their_ground_truth_is_valid() {
+        let mut metals = 0;
+        let mut glossy_floors = 0;
+        let mut layouts = std::collections::BTreeSet::new();
+        for seed in 0..24 {
+            let room = room(seed);
+            layouts.insert(room.objects.len());
+            let (s, cam) = scene_of(&room, 24);
+            let gt = ground_truth(&s, &cam);
+            // The floor fills the bottom row; everything seen is in front.
+            assert!((0..24).all(|x| !gt.sky.get(x, 23)), "seed {seed}");
+            for k in 0..24 * 24 {
+                assert!(gt.depth.data[k].is_finite() && gt.depth.data[k] >= 0.0);
+                assert!((gt.normal.data[k].length() - 1.0).abs() < 1e-3);
+                assert!(gt.albedo.data[k].max_element() <= 1.0);
+                if !gt.sky.data[k] {
+                    let d = s
+                        .camera
+                        .film_to_dir(Vec2::new((k % 24) as f32 + 0.5, (k / 24) as f32 + 0.5));
+                    assert!(
+                        gt.normal.data[k].dot(d) <= 1e-4,
+                        "seed {seed}: normal faces away"
+                    );
+                }
+            }
+            metals += gt.metallic.data.iter().filter(|&&m| m > 0.5).count().min(1);
+            glossy_floors += usize::from(gt.roughness.get(12, 23) < 0.3);
+        }
+        assert!(metals >= 3, "{metals} rooms show metal");
+        assert!(glossy_floors >= 3, "{glossy_floors} glossy floors");
+        assert!(layouts.len() >= 4, "{layouts:?}");
+    }
+}
