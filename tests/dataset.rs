@@ -120,12 +120,20 @@ fn one_process_or_three_on_one_thread_or_two_give_the_same_bytes() {
         let o = k.wait_with_output().unwrap();
         assert!(o.status.success(), "{}", text(&o));
     }
+    // The three processes leave the shards; merging checks and indexes
+    // them (one process that wrote every shard merged them already).
+    assert!(!out3.join("manifest.jsonl").exists());
+    let o = matflow(&["dataset", "merge", s(&out3)], 1);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("8 samples in 3 shards"), "{}", text(&o));
     let (a, b) = (files(&out1), files(&out3));
     let names: Vec<&String> = a.keys().collect();
     assert_eq!(
         names,
         [
             "dataset.json",
+            "index.json",
+            "manifest.jsonl",
             "tiny-000000.jsonl",
             "tiny-000000.tar",
             "tiny-000001.jsonl",
@@ -141,16 +149,6 @@ fn one_process_or_three_on_one_thread_or_two_give_the_same_bytes() {
         );
     }
     assert_eq!(a.len(), b.len());
-    // Merging indexes both identically.
-    for d in [&out1, &out3] {
-        let o = matflow(&["dataset", "merge", s(d)], 1);
-        assert!(o.status.success(), "{}", text(&o));
-        assert!(text(&o).contains("8 samples in 3 shards"), "{}", text(&o));
-    }
-    assert_eq!(
-        std::fs::read(out1.join("manifest.jsonl")).unwrap(),
-        std::fs::read(out3.join("manifest.jsonl")).unwrap()
-    );
     // A second run finds every sample cached and rewrites nothing.
     let rep = w.join("again.json");
     let o = matflow(
@@ -344,8 +342,6 @@ fn python_reads_the_shards_and_the_manifest_digests_match() {
         ],
         2,
     );
-    assert!(o.status.success(), "{}", text(&o));
-    let o = matflow(&["dataset", "merge", s(&out)], 1);
     assert!(o.status.success(), "{}", text(&o));
     let script = r#"
 import io, json, sys, tarfile
@@ -549,5 +545,108 @@ fn a_rooms_sample_unpacks_into_a_bundle_that_renders() {
         1,
     );
     assert!(text(&o).contains("no sample `s00000009`"), "{}", text(&o));
+    let _ = std::fs::remove_dir_all(&w);
+}
+
+/// The `refraction_length` node over the binary: the bundled network on
+/// the tract backend and on onnxruntime (the Python wheel's library,
+/// loaded at run time) gives the same distances to within 1e-4 scene
+/// units; a missing, corrupt or wrong-shaped model is an error naming the
+/// file and what was expected.
+#[test]
+fn refraction_length_runs_on_both_backends_and_names_bad_models() {
+    let w = tmp("onnx");
+    let p = w.join("lengths.yaml");
+    std::fs::write(
+        &p,
+        "stages:\n  scene:\n    kind: synthetic_scene\n    size: 64\n    spp: 4\n  \
+         lengths:\n    kind: refraction_length\n    scene: scene\n    \
+         mask_rect: [20, 20, 44, 44]\noutputs: [lengths]\n",
+    )
+    .unwrap();
+    let cache = w.join("cache");
+    let run = |extra: &[&str]| -> (Output, Option<serde_json::Value>) {
+        let rep = w.join("report.json");
+        let _ = std::fs::remove_file(&rep);
+        let mut args = vec![
+            "run",
+            s(&p),
+            "--quiet",
+            "--cache",
+            s(&cache),
+            "--report",
+            s(&rep),
+        ];
+        args.extend_from_slice(extra);
+        let o = matflow(&args, 2);
+        let r = std::fs::read(&rep)
+            .ok()
+            .and_then(|b| serde_json::from_slice(&b).ok());
+        (o, r)
+    };
+    let distances = |r: &serde_json::Value| -> Vec<f32> {
+        let hex = r["stages"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|s| s["name"] == "lengths")
+            .unwrap()["outputs"]["distances"]
+            .as_str()
+            .unwrap()
+            .to_string();
+        let blob = std::fs::read(cache.join("blobs").join(&hex[..2]).join(&hex[2..])).unwrap();
+        let img = matflow_nodes::artifact::Artifact::decode(&blob, "image")
+            .unwrap()
+            .rgb("image")
+            .unwrap();
+        img.data.iter().flat_map(|v| v.to_array()).collect()
+    };
+    let (o, r) = run(&[]);
+    assert!(o.status.success(), "{}", text(&o));
+    let tract = distances(&r.unwrap());
+    assert!(tract.iter().any(|&v| v > 0.0), "the network saw no object");
+    let (o, r) = run(&["--set", "lengths.backend=onnxruntime"]);
+    assert!(
+        o.status.success(),
+        "the onnxruntime backend needs `pip install onnxruntime`: {}",
+        text(&o)
+    );
+    let ort = distances(&r.unwrap());
+    let worst = tract
+        .iter()
+        .zip(&ort)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0f32, f32::max);
+    assert!(worst < 1e-4, "tract and onnxruntime differ by {worst}");
+    // Bad models, named.
+    let corrupt = w.join("corrupt.onnx");
+    std::fs::write(&corrupt, b"\x08\x07garbage").unwrap();
+    let identity =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/data/identity_3x8x8.onnx");
+    let cases = [
+        (w.join("missing.onnx"), "missing.onnx".to_string()),
+        (
+            corrupt.clone(),
+            format!(
+                "{}: not an ONNX model the tract backend can load",
+                corrupt.display()
+            ),
+        ),
+        (
+            identity.clone(),
+            "expected one input: f32 [N, 8, 64, 64], the model has Float32 [N, 3, 8, 8]".into(),
+        ),
+    ];
+    for (model, want) in cases {
+        let set = format!("lengths.model={}", s(&model));
+        let (o, _) = run(&["--set", &set]);
+        assert!(!o.status.success(), "{} was accepted", model.display());
+        assert!(
+            text(&o).contains(&want),
+            "{}: {}",
+            model.display(),
+            text(&o)
+        );
+    }
     let _ = std::fs::remove_dir_all(&w);
 }

@@ -329,6 +329,8 @@ fn the_glass_pipeline_makes_a_region_transparent_and_re_edits_t_from_kept_paths(
         "base.path_spp=4",
         "glassy.mask_flood=~",
         "glassy.mask_rect=[44, 38, 58, 52]",
+        "lengths.mask_flood=~",
+        "lengths.mask_rect=[44, 38, 58, 52]",
     ]
     .iter()
     .map(|x| x.to_string())
@@ -377,9 +379,16 @@ fn the_glass_pipeline_makes_a_region_transparent_and_re_edits_t_from_kept_paths(
     )
     .unwrap();
     let set = format!("glassy.refraction_map={}", s(&zeros));
-    let from_map = digest(&["--set", &set]);
-    let from_rule = digest(&["--set", "glassy.thickness=0", "--set", "glassy.gap=0"]);
-    let default_rule = digest(&[]);
+    let no_net = ["--set", "glassy.refraction=~"];
+    let from_map = digest(&[&no_net[..], &["--set", &set]].concat());
+    let from_rule = digest(
+        &[
+            &no_net[..],
+            &["--set", "glassy.thickness=0", "--set", "glassy.gap=0"],
+        ]
+        .concat(),
+    );
+    let from_network = digest(&[]);
     assert_eq!(from_map, from_rule);
     // The same map from a stage (where a refraction-length network's
     // output comes in): an `image` stage reading the file.
@@ -390,14 +399,14 @@ fn the_glass_pipeline_makes_a_region_transparent_and_re_edits_t_from_kept_paths(
     let from_stage = digest_of(&with_stage, &["--set", "glassy.refraction=dists"]);
     assert_eq!(from_stage, from_map);
     assert_ne!(
-        from_map, default_rule,
-        "the default rule gives the region thickness"
+        from_map, from_network,
+        "the network gives the region thickness"
     );
     // A refraction map must match the image.
     let bad = work.join("small.exr");
     io::write_exr_rgb(&bad, &matflow_scene::RgbImage::new(8, 8, glam::Vec3::ZERO)).unwrap();
     let set = format!("glassy.refraction_map={}", s(&bad));
-    let (out, _) = run(&["--set", &set]);
+    let (out, _) = run(&["--set", &set, "--set", "glassy.refraction=~"]);
     assert!(!out.status.success());
     assert!(
         text(&out).contains("refraction map is 8x8"),

@@ -35,6 +35,12 @@ pub enum BenchCmd {
     /// Object insertion: render time with and without objects, re-edits
     /// of an inserted object's material, their error.
     Insert(crate::bench_insert::BenchInsertArgs),
+    /// Dataset jobs: samples/s per generator, scaling from 1 to 2 shard
+    /// processes.
+    Dataset(crate::bench_dataset::BenchDatasetArgs),
+    /// The refraction-length network: inference time per 512² image on
+    /// each backend, held-out error next to the baselines.
+    Refraction(crate::bench_dataset::BenchRefractionArgs),
 }
 
 #[derive(Args)]
@@ -90,6 +96,8 @@ pub fn run(b: BenchCmd) -> Result<()> {
         BenchCmd::Pipeline(a) => crate::bench_pipeline::bench_pipeline(a),
         BenchCmd::Glass(a) => crate::bench_glass::bench_glass(a),
         BenchCmd::Insert(a) => crate::bench_insert::bench_insert(a),
+        BenchCmd::Dataset(a) => crate::bench_dataset::bench_dataset(a),
+        BenchCmd::Refraction(a) => crate::bench_dataset::bench_refraction(a),
     }
 }
 

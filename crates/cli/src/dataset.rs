@@ -298,6 +298,19 @@ pub fn generate(file: &Path, a: &GenerateArgs) -> Result<()> {
         crate::run::duration(secs),
         samples as f64 / secs.max(1e-9)
     );
+    // One process wrote every shard: check and index them now.
+    if split.is_none() {
+        let r = merge(&out)?;
+        if !r.problems.is_empty() {
+            for p in &r.problems {
+                eprintln!("{p}");
+            }
+            bail!(
+                "{}: the shards just written do not check out",
+                out.display()
+            );
+        }
+    }
     if let Some(path) = &a.report {
         let json = serde_json::json!({
             "dataset": job.spec.name,

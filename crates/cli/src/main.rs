@@ -37,6 +37,7 @@ pub fn write_out(args: std::fmt::Arguments, newline: bool) {
 
 mod bench;
 mod bench_compare;
+mod bench_dataset;
 mod bench_distributed;
 mod bench_glass;
 mod bench_insert;

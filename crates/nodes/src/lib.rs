@@ -14,6 +14,10 @@ mod data;
 pub use data::render_seconds;
 pub use kinds::insert::composite_differential;
 pub use kinds::refraction::OBJECT_NAMES as REFRACTION_OBJECTS;
+pub use kinds::refraction_length::{
+    BUNDLED_MODEL as BUNDLED_REFRACTION_MODEL,
+    BUNDLED_MODEL_BLAKE3 as BUNDLED_REFRACTION_MODEL_BLAKE3,
+};
 mod kinds;
 pub mod objects;
 mod recovery;
@@ -41,6 +45,7 @@ pub fn registry() -> Registry {
         Box::new(kinds::refraction::RefractionLabelsNode),
         Box::new(kinds::refraction::RefractionRenderNode),
         Box::new(kinds::room::RoomSampleNode),
+        Box::new(kinds::refraction_length::RefractionLengthNode),
     ];
     for n in nodes {
         r.add(n);

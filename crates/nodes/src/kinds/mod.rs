@@ -8,6 +8,7 @@ pub mod insert;
 pub mod material_opt;
 pub mod mesh;
 pub mod refraction;
+pub mod refraction_length;
 pub mod relight;
 pub mod render;
 pub mod room;

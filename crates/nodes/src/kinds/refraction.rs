@@ -388,7 +388,7 @@ fn io_mesh(path: &std::path::Path) -> Result<(TriMesh, Vec<Vec3>), NodeError> {
 
 pub struct RefractionLabelsNode;
 
-const LABELS_INFO: NodeInfo = NodeInfo {
+pub(crate) const LABELS_INFO: NodeInfo = NodeInfo {
     kind: "refraction_labels",
     version: 1,
     doc: "One sample's labels for the refraction-length network: the object's mask, depth, \
@@ -484,7 +484,7 @@ impl Node for RefractionLabelsNode {
 
 pub struct RefractionRenderNode;
 
-const RENDER_INFO: NodeInfo = NodeInfo {
+pub(crate) const RENDER_INFO: NodeInfo = NodeInfo {
     kind: "refraction_render",
     version: 1,
     doc: "One sample's photographs for the refraction-length network: the object (opaque, its \
