@@ -308,6 +308,7 @@ mod tests {
             .zip(&want.values)
             .map(|(a, b)| (a - b).abs())
             .fold(0.0f32, f32::max);
+        eprintln!("max |tract - torch| = {worst:e}");
         assert!(worst < 1e-4, "max |tract - torch| = {worst}");
         // An input of the wrong length is refused, not read past.
         assert!(m.run(1, vec![0.0; 5]).is_err());
