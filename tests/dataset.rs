@@ -650,3 +650,83 @@ fn refraction_length_runs_on_both_backends_and_names_bad_models() {
     }
     let _ = std::fs::remove_dir_all(&w);
 }
+
+/// A user's mesh folder and HDR file join the draw: every sample's object
+/// is one of the folder's meshes (labelled as the spec says) and its
+/// lighting the file; the labels see the mesh.
+#[test]
+fn user_meshes_and_envmap_files_join_the_draw() {
+    let w = tmp("user");
+    let meshes = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../pipelines/meshes");
+    let hdr = w.join("sky.hdr");
+    matflow_scene::io::write_hdr(&hdr, &matflow_scene::synthetic::procedural_sky(4, 64, 32))
+        .unwrap();
+    let f = w.join("user.yaml");
+    std::fs::write(
+        &f,
+        format!(
+            "dataset:\n  generator: refraction\n  samples: 6\n  seed: 3\n  params:\n    \
+             size: 24\n    spp: 2\n    procedural_envmaps: 0\n    \
+             objects: [{{file: {}, hollow: true}}]\n    envmaps: [{{file: sky.hdr}}]\n",
+            s(&meshes)
+        ),
+    )
+    .unwrap();
+    let out = w.join("out");
+    let o = matflow(
+        &[
+            "dataset",
+            s(&f),
+            "--out",
+            s(&out),
+            "--cache",
+            s(&w.join("c")),
+            "--quiet",
+        ],
+        2,
+    );
+    assert!(o.status.success(), "{}", text(&o));
+    let manifest = std::fs::read_to_string(out.join("manifest.jsonl")).unwrap();
+    let mut seen = std::collections::BTreeSet::new();
+    for line in manifest.lines() {
+        let v: serde_json::Value = serde_json::from_str(line).unwrap();
+        let p = &v["params"];
+        assert_eq!(p["hollow"], true);
+        assert!(p["envmap"].as_str().unwrap().ends_with("sky.hdr"), "{p}");
+        seen.insert(p["object"].as_str().unwrap().to_string());
+    }
+    let names = ["cube", "jug", "sphere", "torus"];
+    assert!(seen.iter().all(|o| names.contains(&o.as_str())), "{seen:?}");
+    let desc: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("dataset.json")).unwrap()).unwrap();
+    assert_eq!(desc["header"]["objects"].as_array().unwrap().len(), 4);
+    // A folder without meshes is named before anything runs.
+    let empty = w.join("empty");
+    std::fs::create_dir_all(&empty).unwrap();
+    let bad = w.join("bad.yaml");
+    std::fs::write(
+        &bad,
+        format!(
+            "dataset:\n  generator: refraction\n  samples: 2\n  params:\n    objects: [{{file: {}}}]\n",
+            s(&empty)
+        ),
+    )
+    .unwrap();
+    let o = matflow(
+        &[
+            "dataset",
+            s(&bad),
+            "--out",
+            s(&w.join("o2")),
+            "--cache",
+            s(&w.join("c")),
+        ],
+        1,
+    );
+    assert!(
+        text(&o).contains("holds no .obj or .ply files"),
+        "{}",
+        text(&o)
+    );
+    let _ = std::fs::remove_dir_all(&w);
+}
