@@ -134,26 +134,83 @@ pub fn has_dataset_section(file: &Path) -> bool {
     )
 }
 
-/// A progress bar over samples: a sample counts when all its stages have
-/// finished (run or found cached).
-struct SampleBar {
+/// Watches a dataset job's stages: a sample counts (on the progress bar)
+/// when all its stages have finished, run or found cached, and a tar
+/// shard is written as soon as all its samples have — so a long job's
+/// shards appear as it goes, not at its end.
+struct ShardWriter<'a> {
+    job: &'a Job,
+    out: &'a Path,
+    fetch: &'a (dyn Fn(&str) -> std::result::Result<Vec<u8>, String> + Sync),
     bar: Option<ProgressBar>,
-    stages_per_sample: usize,
-    pending: Mutex<BTreeMap<String, usize>>,
+    roles: Vec<&'static str>,
+    state: Mutex<WriterState>,
 }
 
-impl Observer for SampleBar {
+#[derive(Default)]
+struct WriterState {
+    /// Finished stages per unfinished sample.
+    stages_done: BTreeMap<u64, usize>,
+    /// Outputs of finished stages whose shard is not written yet.
+    outputs: BTreeMap<String, BTreeMap<String, String>>,
+    /// Samples left per shard of this process.
+    left: BTreeMap<u64, u64>,
+    bytes: u64,
+    written: usize,
+    errors: Vec<String>,
+}
+
+impl ShardWriter<'_> {
+    /// The sample a stage belongs to (`ROLE-INDEX` of this dataset).
+    fn sample_of(&self, stage: &str) -> Option<u64> {
+        let (role, idx) = stage.rsplit_once('-')?;
+        if !self.roles.contains(&role) {
+            return None;
+        }
+        idx.parse().ok()
+    }
+}
+
+impl Observer for ShardWriter<'_> {
     fn finished(&self, r: &StageReport) {
-        let Some((_, idx)) = r.name.rsplit_once('-') else {
+        if !matches!(r.status, Status::Executed | Status::Cached) {
+            return;
+        }
+        let Some(i) = self.sample_of(&r.name) else {
             return;
         };
-        let mut p = self.pending.lock().unwrap();
-        let n = p.entry(idx.to_string()).or_insert(0);
+        let mut st = self.state.lock().unwrap();
+        st.outputs.insert(r.name.clone(), r.outputs.clone());
+        let n = st.stages_done.entry(i).or_insert(0);
         *n += 1;
-        if *n == self.stages_per_sample {
-            p.remove(idx);
-            if let Some(b) = &self.bar {
-                b.inc(1);
+        if *n < self.roles.len() {
+            return;
+        }
+        st.stages_done.remove(&i);
+        if let Some(b) = &self.bar {
+            b.inc(1);
+        }
+        let k = i / self.job.spec.shard_size;
+        let Some(left) = st.left.get_mut(&k) else {
+            return;
+        };
+        *left -= 1;
+        if *left > 0 {
+            return;
+        }
+        st.left.remove(&k);
+        match self.job.write_shard(k, &st.outputs, self.fetch, self.out) {
+            Ok(b) => {
+                st.bytes += b;
+                st.written += 1;
+            }
+            Err(e) => st.errors.push(e.to_string()),
+        }
+        // What the shard needed is on disk now.
+        for i in self.job.spec.shard_samples(k) {
+            for role in &self.roles {
+                st.outputs
+                    .remove(&matflow_dataset::shards::stage_name(role, i));
             }
         }
     }
@@ -249,23 +306,6 @@ pub fn generate(file: &Path, a: &GenerateArgs) -> Result<()> {
         b.set_prefix(job.spec.name.clone());
         b
     });
-    let obs = SampleBar {
-        bar,
-        stages_per_sample: job.plan.sample(0).stages.len(),
-        pending: Mutex::new(BTreeMap::new()),
-    };
-    let report = run_pipeline(&p, &reg, &store, exec.as_ref(), &obs);
-    if let Some(b) = &obs.bar {
-        b.finish_and_clear();
-    }
-    if let Some(f) = report.failure() {
-        bail!("{}: {f}", file.display());
-    }
-    let outputs: BTreeMap<String, BTreeMap<String, String>> = report
-        .stages
-        .iter()
-        .map(|s| (s.name.clone(), s.outputs.clone()))
-        .collect();
     let fetch = |hex: &str| -> std::result::Result<Vec<u8>, String> {
         let d = Digest::from_hex(hex).ok_or_else(|| format!("bad digest {hex}"))?;
         match store.get(&d) {
@@ -274,10 +314,49 @@ pub fn generate(file: &Path, a: &GenerateArgs) -> Result<()> {
             Err(e) => Err(e.to_string()),
         }
     };
-    let mut bytes = 0u64;
-    for &k in &shards {
-        bytes += job.write_shard(k, &outputs, &fetch, &out)?;
+    let obs = ShardWriter {
+        job: &job,
+        out: &out,
+        fetch: &fetch,
+        bar,
+        roles: job.plan.sample(0).stages.iter().map(|s| s.role).collect(),
+        state: Mutex::new(WriterState {
+            left: shards
+                .iter()
+                .map(|&k| (k, job.spec.shard_samples(k).count() as u64))
+                .collect(),
+            ..Default::default()
+        }),
+    };
+    let report = run_pipeline(&p, &reg, &store, exec.as_ref(), &obs);
+    if let Some(b) = &obs.bar {
+        b.finish_and_clear();
     }
+    let st = obs.state.into_inner().unwrap();
+    if !st.errors.is_empty() {
+        bail!(
+            "{}: writing shards: {}",
+            out.display(),
+            st.errors.join("; ")
+        );
+    }
+    if let Some(f) = report.failure() {
+        bail!(
+            "{}: {f} ({} of {} shards written; a re-run recomputes nothing finished)",
+            file.display(),
+            st.written,
+            shards.len()
+        );
+    }
+    if st.written != shards.len() {
+        bail!(
+            "{}: {} of {} shards written, yet every stage finished",
+            out.display(),
+            st.written,
+            shards.len()
+        );
+    }
+    let bytes = st.bytes;
     let executed = report
         .stages
         .iter()
