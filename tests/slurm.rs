@@ -304,6 +304,73 @@ fn job_array_shards_then_merge_and_workers_under_srun() {
         );
     }
 
+    // --- A dataset spec is a pipeline to the same scripts: 3 array tasks
+    // each write their tar shards, the merge job checks and indexes them;
+    // the bytes are those of one local process.
+    let ds = work.join("dataset");
+    std::fs::create_dir_all(&ds).unwrap();
+    let spec = ds.join("spec.yaml");
+    std::fs::write(
+        &spec,
+        "dataset:\n  name: tiny\n  generator: refraction\n  samples: 6\n  seed: 2\n  \
+         shard_size: 2\n  out: out\n  params: {size: 24, spp: 2, procedural_envmaps: 2}\n",
+    )
+    .unwrap();
+    let local = Command::new(bin())
+        .args(["dataset", s(&spec), "--quiet", "--out"])
+        .arg(ds.join("local"))
+        .arg("--cache")
+        .arg(ds.join("local-cache"))
+        .output()
+        .unwrap();
+    assert!(
+        local.status.success(),
+        "{}",
+        String::from_utf8_lossy(&local.stderr)
+    );
+    let ds_reports = ds.join("reports");
+    let out = tb
+        .cmd("bash")
+        .arg(repo().join("cluster/slurm/submit-shards.sh"))
+        .args([s(&spec), "3", "--cache", s(&ds.join("store"))])
+        .env("MATFLOW_REPORT_DIR", &ds_reports)
+        .current_dir(&ds)
+        .output()
+        .unwrap();
+    let said = String::from_utf8_lossy(&out.stdout).to_string();
+    assert!(out.status.success(), "submit-shards.sh (dataset): {said}");
+    let ids: Vec<&str> = said
+        .split_whitespace()
+        .filter(|w| w.chars().all(|c| c.is_ascii_digit()) && !w.is_empty())
+        .collect();
+    let states = tb.wait(&ids, Duration::from_secs(240));
+    for t in 0..3 {
+        let st = &states[&format!("{}_{t}", ids[0])];
+        assert_eq!(st.0, "COMPLETED", "dataset task {t}: {st:?}{}", tb.logs());
+    }
+    assert_eq!(
+        states[ids[1]].0,
+        "COMPLETED",
+        "dataset merge: {}",
+        tb.logs()
+    );
+    let merged = report(&ds_reports.join("merge.json"));
+    assert_eq!(merged["stages_executed"], 0, "the merge recomputed samples");
+    for f in [
+        "dataset.json",
+        "manifest.jsonl",
+        "index.json",
+        "tiny-000000.tar",
+        "tiny-000001.tar",
+        "tiny-000002.tar",
+    ] {
+        assert!(
+            std::fs::read(ds.join("out").join(f)).ok()
+                == std::fs::read(ds.join("local").join(f)).ok(),
+            "{f}: the array's dataset differs from one local process"
+        );
+    }
+
     // --- workers.sbatch: two workers started by srun, the run against them
     // (buildbox-casd started by the script as the store, a token made for
     // the job).
