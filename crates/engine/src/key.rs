@@ -91,6 +91,14 @@ pub fn path_digest(p: &Path) -> std::io::Result<Digest> {
         }
         Ok(e.finish())
     } else {
+        // Many stages may name one file (a dataset's thousands of samples
+        // share a few envmaps): hash it once per process, again only when
+        // its size or modification time changes.
+        let stamp = (p.to_path_buf(), meta.len(), meta.modified().ok());
+        let memo = FILE_DIGESTS.get_or_init(Default::default);
+        if let Some(d) = memo.lock().ok().and_then(|m| m.get(&stamp).copied()) {
+            return Ok(d);
+        }
         let mut f = std::fs::File::open(p)?;
         let mut h = blake3::Hasher::new();
         let mut buf = vec![0u8; 1 << 16];
@@ -101,9 +109,21 @@ pub fn path_digest(p: &Path) -> std::io::Result<Digest> {
             }
             h.update(&buf[..n]);
         }
-        Ok(Digest(*h.finalize().as_bytes()))
+        let d = Digest(*h.finalize().as_bytes());
+        if let Ok(mut m) = memo.lock() {
+            m.insert(stamp, d);
+        }
+        Ok(d)
     }
 }
+
+type FileStamp = (std::path::PathBuf, u64, Option<std::time::SystemTime>);
+
+/// Digests of files already hashed by this process, by path, size and
+/// modification time.
+static FILE_DIGESTS: std::sync::OnceLock<
+    std::sync::Mutex<std::collections::HashMap<FileStamp, Digest>>,
+> = std::sync::OnceLock::new();
 
 fn params_part(e: &mut Enc, node: &dyn Node, params: &Params) -> std::io::Result<()> {
     for p in node.params() {
@@ -190,6 +210,22 @@ pub fn node_seed(node: &dyn Node, params: &Params) -> u64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_file_is_hashed_again_when_it_changes() {
+        let d = tempfile::tempdir().unwrap();
+        let f = d.path().join("x.bin");
+        std::fs::write(&f, b"one").unwrap();
+        let a = path_digest(&f).unwrap();
+        assert_eq!(a, Digest::of(b"one"));
+        assert_eq!(path_digest(&f).unwrap(), a, "the memo answers alike");
+        std::fs::write(&f, b"three").unwrap();
+        assert_eq!(path_digest(&f).unwrap(), Digest::of(b"three"));
+        // Same size, later time: hashed again.
+        std::thread::sleep(std::time::Duration::from_millis(20));
+        std::fs::write(&f, b"thrie").unwrap();
+        assert_eq!(path_digest(&f).unwrap(), Digest::of(b"thrie"));
+    }
 
     #[test]
     fn encoding_is_length_prefixed_and_canonical() {

@@ -548,9 +548,21 @@ impl Node for RefractionRenderNode {
             _ => Ok(()),
         }
     }
+    /// Only the envmap's format here: a dataset has thousands of these
+    /// stages sharing a few files, which its generator reads once each;
+    /// a damaged file fails its stage with the file's name.
     fn preflight(&self, p: &Params) -> Result<(), String> {
         if let Some(path) = p.path("envmap") {
-            io::read_envmap(&path).map_err(|e| e.to_string())?;
+            let ext = path
+                .extension()
+                .map(|e| e.to_string_lossy().to_lowercase())
+                .unwrap_or_default();
+            if ext != "hdr" && ext != "exr" {
+                return Err(format!(
+                    "{}: an environment map must be Radiance HDR (.hdr) or linear OpenEXR (.exr)",
+                    path.display()
+                ));
+            }
         }
         Ok(())
     }
