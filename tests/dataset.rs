@@ -743,3 +743,46 @@ fn user_meshes_and_envmap_files_join_the_draw() {
     );
     let _ = std::fs::remove_dir_all(&w);
 }
+
+/// A pipeline may carry a `dataset:` section beside its stages: `matflow
+/// run` runs both, the stages' outputs and the dataset's samples in one
+/// engine run.
+#[test]
+fn a_pipeline_with_a_dataset_section_runs_both() {
+    let w = tmp("section");
+    let f = w.join("both.yaml");
+    std::fs::write(
+        &f,
+        "stages:\n  scene:\n    kind: synthetic_scene\n    size: 16\n    spp: 1\n\
+         outputs: [scene]\n\
+         dataset:\n  name: extra\n  generator: refraction\n  samples: 2\n  out: data\n  \
+         params: {size: 16, spp: 1, procedural_envmaps: 1}\n",
+    )
+    .unwrap();
+    let rep = w.join("r.json");
+    let o = matflow(
+        &[
+            "run",
+            s(&f),
+            "--quiet",
+            "--cache",
+            s(&w.join("c")),
+            "--report",
+            s(&rep),
+        ],
+        2,
+    );
+    assert!(o.status.success(), "{}", text(&o));
+    let r = report(&rep);
+    let stages: Vec<&str> = r["run"]["stages"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s["name"].as_str().unwrap())
+        .collect();
+    assert!(stages.contains(&"scene"), "{stages:?}");
+    assert_eq!(stages.len(), 1 + 2 * 2, "{stages:?}");
+    assert!(w.join("data/extra-000000.tar").is_file());
+    assert!(w.join("data/manifest.jsonl").is_file());
+    let _ = std::fs::remove_dir_all(&w);
+}
