@@ -3,6 +3,7 @@
 //! around it ([`refraction`]: the crop it sees and how its output maps
 //! back to the image).
 
+pub mod matnet;
 pub mod refraction;
 pub mod runtime;
 
