@@ -1,10 +1,25 @@
-//! MatNet's pre-processing, exactly as the contract gives it
-//! (`../shared/paper/MATNET.md`): centre-crop the photo to a square,
-//! resize it to 512² bilinearly with `align_corners = true`, divide by 255
-//! and raise to the power 2.2 (no mean or std), then resize to the model's
-//! input bicubically (PyTorch's kernel: A = −0.75, `align_corners =
-//! false`, indices clamped at the borders, no antialiasing). Images are
-//! planar f32, channel-major ([C, H, W]), as the networks take them.
+//! MatNet's contract (`../shared/paper/MATNET.md`, and the reference's
+//! `inverse_img_w_mi.py`, `myutils/misc.py`, `Material_net/dpt.py`):
+//!
+//! - input: centre-crop the photo to a square (offsets rounded down),
+//!   keep RGB (drop alpha), resize it to 512² bilinearly with
+//!   `align_corners = true`; an 8-bit photo is divided by 255 and raised
+//!   to the power 2.2 (a pure power, not the piecewise sRGB curve; an EXR
+//!   is already linear and is not), with no mean or std and no clamp; then
+//!   resize to the model's input bicubically (the reference uses OpenCV's
+//!   `INTER_CUBIC`, PyTorch's kernel here: A = −0.75, half-pixel centres,
+//!   indices clamped at the borders, no antialiasing); 512 → 518 = 37·14.
+//! - output (the official network): depth [1, 1] (ReLU; raw, larger is
+//!   nearer as the reference meshes it: z = 2·max − d), albedo [1, 3],
+//!   roughness [1, 1], metallic [1, 1] (ReLU, unbounded), normal [1, 3]
+//!   (tanh then L2-normalised), each resized back to 512² bilinearly with
+//!   `align_corners = true`; the reference then clamps albedo to [0, 1],
+//!   roughness to [0.07, 1], metallic to [0, 1] in memory but writes the
+//!   unclamped values (albedo and normals as linear EXR, roughness and
+//!   metallic as sRGB-encoded 8-bit PNG, depth as EXR).
+//!
+//! Images here are planar f32, channel-major ([C, H, W]), as the networks
+//! take them.
 
 /// A planar image: `c` channels of `h`×`w`, channel-major.
 #[derive(Clone, Debug, PartialEq)]
