@@ -26,6 +26,22 @@ fn matflow(args: &[&str], threads: usize) -> Output {
         .expect("run matflow")
 }
 
+/// `matflow dataset SPEC --out OUT --cache CACHE --quiet EXTRA…` on
+/// `threads` threads.
+fn generate(spec: &Path, out: &Path, cache: &Path, extra: &[&str], threads: usize) -> Output {
+    let mut args = vec![
+        "dataset",
+        s(spec),
+        "--out",
+        s(out),
+        "--cache",
+        s(cache),
+        "--quiet",
+    ];
+    args.extend_from_slice(extra);
+    matflow(&args, threads)
+}
+
 fn text(o: &Output) -> String {
     format!(
         "{}\n{}",
@@ -78,18 +94,7 @@ fn one_process_or_three_on_one_thread_or_two_give_the_same_bytes() {
     let f = spec(&w, 8, 3, 4);
     // One process, one thread.
     let (out1, cache1) = (w.join("one"), w.join("cache1"));
-    let o = matflow(
-        &[
-            "dataset",
-            s(&f),
-            "--out",
-            s(&out1),
-            "--cache",
-            s(&cache1),
-            "--quiet",
-        ],
-        1,
-    );
+    let o = generate(&f, &out1, &cache1, &[], 1);
     assert!(o.status.success(), "{}", text(&o));
     // Three processes at once sharing one store, two threads each.
     let (out3, cache3) = (w.join("three"), w.join("cache3"));
@@ -151,20 +156,7 @@ fn one_process_or_three_on_one_thread_or_two_give_the_same_bytes() {
     assert_eq!(a.len(), b.len());
     // A second run finds every sample cached and rewrites nothing.
     let rep = w.join("again.json");
-    let o = matflow(
-        &[
-            "dataset",
-            s(&f),
-            "--out",
-            s(&out1),
-            "--cache",
-            s(&cache1),
-            "--quiet",
-            "--report",
-            s(&rep),
-        ],
-        2,
-    );
+    let o = generate(&f, &out1, &cache1, &["--report", s(&rep)], 2);
     assert!(o.status.success(), "{}", text(&o));
     let r = report(&rep);
     assert_eq!(
@@ -172,20 +164,11 @@ fn one_process_or_three_on_one_thread_or_two_give_the_same_bytes() {
         (Some(0), Some(16))
     );
     // More samples keep the first ones: only the new samples' stages run.
-    let o = matflow(
-        &[
-            "dataset",
-            s(&f),
-            "--out",
-            s(&w.join("more")),
-            "--cache",
-            s(&cache1),
-            "--quiet",
-            "--set",
-            "dataset.samples=10",
-            "--report",
-            s(&rep),
-        ],
+    let o = generate(
+        &f,
+        &w.join("more"),
+        &cache1,
+        &["--set", "dataset.samples=10", "--report", s(&rep)],
         2,
     );
     assert!(o.status.success(), "{}", text(&o));
@@ -196,20 +179,11 @@ fn one_process_or_three_on_one_thread_or_two_give_the_same_bytes() {
         "a shard of the first samples changed"
     );
     // A render setting re-runs the renders, not the labels.
-    let o = matflow(
-        &[
-            "dataset",
-            s(&f),
-            "--out",
-            s(&w.join("spp")),
-            "--cache",
-            s(&cache1),
-            "--quiet",
-            "--set",
-            "dataset.params.spp=2",
-            "--report",
-            s(&rep),
-        ],
+    let o = generate(
+        &f,
+        &w.join("spp"),
+        &cache1,
+        &["--set", "dataset.params.spp=2", "--report", s(&rep)],
         2,
     );
     assert!(o.status.success(), "{}", text(&o));
@@ -235,18 +209,7 @@ fn a_killed_job_resumes_with_identical_bytes_and_no_recomputation() {
     let f = spec(&w, 24, 4, 48);
     // The answer, from a run never interrupted.
     let want = w.join("want");
-    let o = matflow(
-        &[
-            "dataset",
-            s(&f),
-            "--out",
-            s(&want),
-            "--cache",
-            s(&w.join("c0")),
-            "--quiet",
-        ],
-        2,
-    );
+    let o = generate(&f, &want, &w.join("c0"), &[], 2);
     assert!(o.status.success(), "{}", text(&o));
     // Kill a run once a few stages are cached.
     let (out, cache) = (w.join("out"), w.join("c1"));
@@ -295,20 +258,7 @@ fn a_killed_job_resumes_with_identical_bytes_and_no_recomputation() {
         }
     }
     let rep = w.join("resume.json");
-    let o = matflow(
-        &[
-            "dataset",
-            s(&f),
-            "--out",
-            s(&out),
-            "--cache",
-            s(&cache),
-            "--quiet",
-            "--report",
-            s(&rep),
-        ],
-        2,
-    );
+    let o = generate(&f, &out, &cache, &["--report", s(&rep)], 2);
     assert!(o.status.success(), "{}", text(&o));
     let r = report(&rep);
     assert_eq!(
@@ -343,18 +293,7 @@ fn python_reads_the_shards_and_the_manifest_digests_match() {
     let w = tmp("python");
     let f = spec(&w, 5, 2, 4);
     let out = w.join("out");
-    let o = matflow(
-        &[
-            "dataset",
-            s(&f),
-            "--out",
-            s(&out),
-            "--cache",
-            s(&w.join("c")),
-            "--quiet",
-        ],
-        2,
-    );
+    let o = generate(&f, &out, &w.join("c"), &[], 2);
     assert!(o.status.success(), "{}", text(&o));
     let script = r#"
 import io, json, sys, tarfile
@@ -496,18 +435,7 @@ fn a_rooms_sample_unpacks_into_a_bundle_that_renders() {
     )
     .unwrap();
     let out = w.join("out");
-    let o = matflow(
-        &[
-            "dataset",
-            s(&f),
-            "--out",
-            s(&out),
-            "--cache",
-            s(&w.join("c")),
-            "--quiet",
-        ],
-        2,
-    );
+    let o = generate(&f, &out, &w.join("c"), &[], 2);
     assert!(o.status.success(), "{}", text(&o));
     let b = w.join("bundle");
     let o = matflow(
@@ -686,18 +614,7 @@ fn user_meshes_and_envmap_files_join_the_draw() {
     )
     .unwrap();
     let out = w.join("out");
-    let o = matflow(
-        &[
-            "dataset",
-            s(&f),
-            "--out",
-            s(&out),
-            "--cache",
-            s(&w.join("c")),
-            "--quiet",
-        ],
-        2,
-    );
+    let o = generate(&f, &out, &w.join("c"), &[], 2);
     assert!(o.status.success(), "{}", text(&o));
     let manifest = std::fs::read_to_string(out.join("manifest.jsonl")).unwrap();
     let mut seen = std::collections::BTreeSet::new();

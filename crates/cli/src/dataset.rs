@@ -13,7 +13,7 @@ use clap::{Args, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 use matflow_dataset::{merge, Job};
 
-use matflow_engine::spec::{self, Override};
+use matflow_engine::spec;
 use matflow_engine::{run_pipeline, Digest, Observer, StageReport, Status, Value};
 
 #[derive(Args)]
@@ -218,12 +218,7 @@ impl Observer for ShardWriter<'_> {
 
 pub fn generate(file: &Path, a: &GenerateArgs) -> Result<()> {
     let t0 = Instant::now();
-    let overrides = a
-        .set
-        .iter()
-        .map(|s| Override::parse(s))
-        .collect::<std::result::Result<Vec<_>, String>>()
-        .map_err(anyhow::Error::msg)?;
+    let overrides = crate::run::parse_overrides(&a.set)?;
     let (ds_over, stage_over) = matflow_dataset::spec::split_overrides(&overrides);
     let text = std::fs::read_to_string(file)
         .with_context(|| format!("{}: cannot read the dataset spec", file.display()))?;

@@ -277,6 +277,14 @@ pub fn duration(s: f64) -> String {
     }
 }
 
+/// The `--set` arguments, parsed.
+pub fn parse_overrides(set: &[String]) -> Result<Vec<Override>> {
+    set.iter()
+        .map(|s| Override::parse(s))
+        .collect::<std::result::Result<Vec<_>, String>>()
+        .map_err(anyhow::Error::msg)
+}
+
 pub fn run(a: RunArgs) -> Result<()> {
     // A file with a `dataset:` section is a dataset job (with its own
     // stages, if any).
@@ -299,12 +307,7 @@ pub fn run(a: RunArgs) -> Result<()> {
         );
     }
     let reg = matflow_nodes::registry();
-    let overrides = a
-        .set
-        .iter()
-        .map(|s| Override::parse(s))
-        .collect::<std::result::Result<Vec<_>, String>>()
-        .map_err(anyhow::Error::msg)?;
+    let overrides = parse_overrides(&a.set)?;
     // Everything is validated before the cache is even opened.
     let mut p = spec::load(&a.pipeline, &reg, &overrides).map_err(anyhow::Error::msg)?;
     if let (Some(n), Some(i)) = (a.shards, a.shard) {

@@ -69,36 +69,29 @@ pub fn generator(name: &str) -> Option<&'static dyn Generator> {
     }
 }
 
-/// A SplitMix64 stream: sample i's choices come from (seed, i) alone.
-#[derive(Clone, Debug)]
-pub struct Rng(u64);
+/// Sample i's random stream for one purpose (`salt`): SplitMix64 seeded
+/// from (seed, i, salt) alone.
+pub struct Rng(matflow_scene::synthetic::Rng);
 
 impl Rng {
-    /// The stream of sample `i` of a dataset seeded `seed`, for one
-    /// purpose (`salt`).
     pub fn for_sample(seed: u64, i: u64, salt: u64) -> Rng {
-        let mut r = Rng(seed ^ salt.wrapping_mul(0xd1b5_4a32_d192_ed03));
-        let a = r.next_u64();
-        Rng(a ^ i.wrapping_mul(0x9e37_79b9_7f4a_7c15))
+        use matflow_scene::synthetic::Rng as SplitMix;
+        let a = SplitMix(seed ^ salt.wrapping_mul(0xd1b5_4a32_d192_ed03)).next_u64();
+        Rng(SplitMix(a ^ i.wrapping_mul(0x9e37_79b9_7f4a_7c15)))
     }
     pub fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
+        self.0.next_u64()
     }
     /// Uniform in [0, 1), with 53 bits.
     pub fn f64(&mut self) -> f64 {
-        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
+        (self.0.next_u64() >> 11) as f64 / (1u64 << 53) as f64
     }
     pub fn range(&mut self, a: f64, b: f64) -> f64 {
         a + (b - a) * self.f64()
     }
     /// Uniform in 0..n (n > 0).
     pub fn below(&mut self, n: u64) -> u64 {
-        // Multiply-shift: unbiased enough for n far below 2^64.
-        ((self.next_u64() as u128 * n as u128) >> 64) as u64
+        self.0.below(n)
     }
 }
 

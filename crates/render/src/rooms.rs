@@ -15,50 +15,11 @@ use glam::{Mat3, Vec2, Vec3};
 use matflow_geom::shapes::{cuboid, jug, revolve, sphere, torus, Shape};
 use matflow_geom::TriMesh;
 use matflow_scene::envgen::EnvKind;
+use matflow_scene::synthetic::{hsv, Rng};
 use matflow_scene::{Camera, GrayImage, Image, RgbImage};
 
 use crate::bsdf::Material;
 use crate::scene::{RenderScene, SceneObject, Surface};
-
-/// SplitMix64.
-struct Rng(u64);
-
-impl Rng {
-    fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
-    }
-    fn f(&mut self) -> f32 {
-        (self.next_u64() >> 40) as f32 / (1u64 << 24) as f32
-    }
-    fn range(&mut self, a: f32, b: f32) -> f32 {
-        a + (b - a) * self.f()
-    }
-    fn chance(&mut self, p: f32) -> bool {
-        self.f() < p
-    }
-    fn below(&mut self, n: usize) -> usize {
-        ((self.next_u64() as u128 * n as u128) >> 64) as usize
-    }
-}
-
-fn hsv(h: f32, s: f32, v: f32) -> Vec3 {
-    let h6 = h.rem_euclid(1.0) * 6.0;
-    let c = v * s;
-    let x = c * (1.0 - ((h6 % 2.0) - 1.0).abs());
-    let (r, g, b) = match h6 as u32 {
-        0 => (c, x, 0.0),
-        1 => (x, c, 0.0),
-        2 => (0.0, c, x),
-        3 => (0.0, x, c),
-        4 => (x, 0.0, c),
-        _ => (c, 0.0, x),
-    };
-    Vec3::new(r, g, b) + Vec3::splat(v - c)
-}
 
 /// A generated room: objects in the camera's frame (the camera at the
 /// origin looking down −z), the environment map's kind and seed, how the
@@ -84,7 +45,7 @@ fn object_material(r: &mut Rng) -> Material {
             Vec3::new(0.56, 0.57, 0.58),
         ];
         Material {
-            albedo: tints[r.below(tints.len())] * r.range(0.8, 1.0),
+            albedo: tints[r.below(tints.len() as u64) as usize] * r.range(0.8, 1.0),
             roughness: r.range(0.07, 0.5),
             metallic: 1.0,
         }
@@ -489,13 +450,7 @@ mod tests {
 
     fn scene_of(room: &Room, n: usize) -> (RenderScene, Camera) {
         let cam = Camera::new(n, n);
-        let maps = MaterialMaps {
-            albedo: Image::new(n, n, Vec3::splat(0.5)),
-            roughness: Image::new(n, n, 0.5),
-            metallic: Image::new(n, n, 0.0),
-            normal: None,
-            transparency: None,
-        };
+        let maps = MaterialMaps::uniform(n, n, Vec3::splat(0.5), 0.5, 0.0);
         let env = EnvMap::new(&Image::new(8, 4, Vec3::ONE)).unwrap();
         let s =
             RenderScene::with_objects(cam, TriMesh::default(), &maps, env, &room.objects).unwrap();

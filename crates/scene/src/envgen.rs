@@ -90,7 +90,7 @@ pub fn room(seed: u64, width: usize, height: usize) -> RgbImage {
     let ceiling_albedo = Vec3::splat(rng.range(0.7, 0.95));
     let lamp_colour = hsv(rng.range(0.07, 0.14), rng.range(0.0, 0.35), 1.0);
     let lamp_power = rng.range(8.0, 40.0);
-    let lamps: Vec<Rect> = (0..1 + (rng.next() % 3) as usize)
+    let lamps: Vec<Rect> = (0..1 + (rng.next_u64() % 3) as usize)
         .map(|_| {
             let (cx, cz) = (rng.range(-lo.x, hi.x) * 0.7, rng.range(-lo.z, hi.z) * 0.7);
             let (sx, sz) = (rng.range(0.15, 0.6), rng.range(0.15, 0.6));
@@ -110,9 +110,9 @@ pub fn room(seed: u64, width: usize, height: usize) -> RgbImage {
         rng.range(0.2, 0.6),
         rng.range(0.1, 0.3),
     );
-    let windows: Vec<(usize, Rect)> = (0..1 + (rng.next() % 2) as usize)
+    let windows: Vec<(usize, Rect)> = (0..1 + (rng.next_u64() % 2) as usize)
         .map(|_| {
-            let wall = (rng.next() % 4) as usize;
+            let wall = (rng.next_u64() % 4) as usize;
             let half_span = if wall < 2 {
                 lo.z.min(hi.z)
             } else {

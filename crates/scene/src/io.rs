@@ -448,8 +448,18 @@ pub fn png_srgb_bytes(img: &RgbImage) -> Result<Vec<u8>> {
         let f = |c: f32| color::to_u8(color::linear_to_srgb(c.clamp(0.0, 1.0)));
         *o = Rgb([f(v.x), f(v.y), f(v.z)]);
     }
+    png_in_memory(out)
+}
+
+/// An 8-bit image as PNG bytes.
+fn png_in_memory<P, C>(img: image::ImageBuffer<P, C>) -> Result<Vec<u8>>
+where
+    P: image::PixelWithColorType,
+    [P::Subpixel]: image::EncodableLayout,
+    C: std::ops::Deref<Target = [P::Subpixel]>,
+{
     let mut buf = Cursor::new(Vec::new());
-    out.write_to(&mut buf, ImageFormat::Png)
+    img.write_to(&mut buf, ImageFormat::Png)
         .map_err(|e| SceneError::Encode {
             path: "(a PNG in memory)".into(),
             message: e.to_string(),

@@ -57,25 +57,35 @@ struct Object {
     tiles: bool,
 }
 
-/// SplitMix64-based generator for scene layout.
-pub(crate) struct Rng(pub(crate) u64);
+/// SplitMix64: the procedural generators' random stream (scene layout,
+/// envmaps, rooms, dataset draws).
+pub struct Rng(pub u64);
 impl Rng {
-    pub(crate) fn next(&mut self) -> u64 {
+    pub fn next_u64(&mut self) -> u64 {
         self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
         let mut z = self.0;
         z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
         z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
         z ^ (z >> 31)
     }
-    pub(crate) fn f(&mut self) -> f32 {
-        (self.next() >> 40) as f32 / (1u64 << 24) as f32
+    /// Uniform in [0, 1), 24 bits.
+    pub fn f(&mut self) -> f32 {
+        (self.next_u64() >> 40) as f32 / (1u64 << 24) as f32
     }
-    pub(crate) fn range(&mut self, a: f32, b: f32) -> f32 {
+    pub fn range(&mut self, a: f32, b: f32) -> f32 {
         a + (b - a) * self.f()
+    }
+    pub fn chance(&mut self, p: f32) -> bool {
+        self.f() < p
+    }
+    /// Uniform in 0..n (n > 0), by multiply-shift.
+    pub fn below(&mut self, n: u64) -> u64 {
+        ((self.next_u64() as u128 * n as u128) >> 64) as u64
     }
 }
 
-pub(crate) fn hsv(h: f32, s: f32, v: f32) -> Vec3 {
+/// HSV (each in [0, 1], hue wrapping) to linear RGB.
+pub fn hsv(h: f32, s: f32, v: f32) -> Vec3 {
     let h6 = (h.rem_euclid(1.0)) * 6.0;
     let c = v * s;
     let x = c * (1.0 - ((h6 % 2.0) - 1.0).abs());
@@ -249,7 +259,7 @@ pub fn generate(seed: u64, width: usize, height: usize) -> SyntheticScene {
             tiles: false,
         },
     ];
-    let n_obj = 3 + (rng.next() % 2) as usize;
+    let n_obj = 3 + (rng.next_u64() % 2) as usize;
     for k in 0..n_obj {
         let x = -2.0 + 4.0 * (k as f32 + rng.range(0.2, 0.8)) / n_obj as f32;
         let z = rng.range(-7.0, -4.5);

@@ -583,13 +583,7 @@ impl Node for RefractionRenderNode {
             let f = p.floats(name).unwrap_or_else(|| vec![0.5; 3]);
             Vec3::new(f[0] as f32, f[1] as f32, f[2] as f32)
         };
-        let maps = MaterialMaps {
-            albedo: Image::new(w, h, Vec3::splat(0.5)),
-            roughness: Image::new(w, h, 0.5),
-            metallic: Image::new(w, h, 0.0),
-            normal: None,
-            transparency: None,
-        };
+        let maps = MaterialMaps::uniform(w, h, Vec3::splat(0.5), 0.5, 0.0);
         let mut objects = Vec::new();
         if let Some((g, uvs)) = &v.ground {
             let tile = p.f32("ground_tile");

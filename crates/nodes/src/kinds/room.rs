@@ -15,7 +15,7 @@ use matflow_render::envmap::rotated;
 use matflow_render::rooms::{ground_truth, room};
 use matflow_render::{render, EnvMap, RenderOptions, RenderScene};
 use matflow_scene::envgen::procedural_envmap;
-use matflow_scene::{io, Camera, Image, MaterialMaps};
+use matflow_scene::{io, Camera, MaterialMaps};
 
 use crate::failed;
 
@@ -128,13 +128,7 @@ impl Node for RoomSampleNode {
         let world = procedural_envmap(r.env_kind, r.env_seed, ew, (ew / 2).max(2));
         let env_img = rotated(&world, r.to_world);
         let camera = Camera::new(n, n);
-        let maps = MaterialMaps {
-            albedo: Image::new(n, n, Vec3::splat(0.5)),
-            roughness: Image::new(n, n, 0.5),
-            metallic: Image::new(n, n, 0.0),
-            normal: None,
-            transparency: None,
-        };
+        let maps = MaterialMaps::uniform(n, n, Vec3::splat(0.5), 0.5, 0.0);
         let env = EnvMap::new(&env_img).map_err(failed)?;
         let scene = RenderScene::with_objects(camera, TriMesh::default(), &maps, env, &r.objects)
             .map_err(failed)?;
