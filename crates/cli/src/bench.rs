@@ -41,6 +41,10 @@ pub enum BenchCmd {
     /// The refraction-length network: inference time per 512² image on
     /// each backend, held-out error next to the baselines.
     Refraction(crate::bench_dataset::BenchRefractionArgs),
+    /// The prediction stage: inference time and peak memory per photo on
+    /// each backend, accuracy on held-out rooms and against the official
+    /// MatNet's predictions, end-to-end re-render PSNR.
+    Matnet(crate::bench_matnet::BenchMatnetArgs),
 }
 
 #[derive(Args)]
@@ -98,6 +102,7 @@ pub fn run(b: BenchCmd) -> Result<()> {
         BenchCmd::Insert(a) => crate::bench_insert::bench_insert(a),
         BenchCmd::Dataset(a) => crate::bench_dataset::bench_dataset(a),
         BenchCmd::Refraction(a) => crate::bench_dataset::bench_refraction(a),
+        BenchCmd::Matnet(a) => crate::bench_matnet::bench_matnet(a),
     }
 }
 

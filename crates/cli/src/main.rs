@@ -42,12 +42,14 @@ mod bench_distributed;
 mod bench_glass;
 mod bench_insert;
 mod bench_invert;
+mod bench_matnet;
 mod bench_pipeline;
 mod bench_synthetic;
 mod cluster;
 mod commands;
 mod dataset;
 mod invert;
+mod predict;
 mod routes;
 mod run;
 
@@ -80,6 +82,10 @@ enum Cmd {
     /// Recover the envmap and materials from a bundle's image and
     /// predictions; writes best_results/ and summary.json.
     Invert(invert::InvertArgs),
+    /// Predict a bundle from a photo (MatNet's stage: depth, albedo,
+    /// roughness, metallic, normals) with the bundled model or another
+    /// ONNX model under MatNet's contract.
+    Predict(predict::PredictArgs),
     /// Run a pipeline file: only what its outputs need, cached stages
     /// served from the content-addressed store.
     Run(run::RunArgs),
@@ -115,6 +121,7 @@ fn main() {
         Cmd::Shapes(a) => commands::shapes(a),
         Cmd::Synth(a) => commands::synth(a),
         Cmd::Invert(a) => invert::invert_cmd(a),
+        Cmd::Predict(a) => predict::predict(a),
         Cmd::Run(a) => run::run(a),
         Cmd::Dataset(a) => dataset::dataset(a),
         Cmd::Cache(c) => run::cache(c),

@@ -215,6 +215,9 @@ fn print_table(r: &Report) {
         for r in &s.retries {
             outln!("{:<18} retried: {r}", "");
         }
+        for n in &s.notes {
+            outln!("{:<18} {n}", "");
+        }
         for f in &s.files {
             outln!("{:<18} wrote {f}", "");
         }
@@ -322,29 +325,57 @@ pub fn run(a: RunArgs) -> Result<()> {
     if !a.allow_expensive {
         refuse_if_expensive(&a.pipeline, &spec::estimate_seconds(&p, &reg))?;
     }
-    let dir = cache_dir(a.cache.as_deref());
+    execute(
+        &p,
+        reg,
+        &Execution {
+            cache: a.cache.as_deref(),
+            remote: &a.remote,
+            parallel: a.parallel,
+            quiet: a.quiet,
+            report: a.report.as_deref(),
+            label: &a.pipeline.display().to_string(),
+        },
+    )
+}
+
+/// How [`execute`] runs a pipeline.
+pub struct Execution<'a> {
+    pub cache: Option<&'a Path>,
+    pub remote: &'a crate::cluster::RemoteArgs,
+    pub parallel: usize,
+    pub quiet: bool,
+    pub report: Option<&'a Path>,
+    /// Names the pipeline in a failure.
+    pub label: &'a str,
+}
+
+/// Runs a loaded pipeline: the store and executor, progress bars, the
+/// report (printed, and written when asked), an error when a stage failed.
+pub fn execute(p: &spec::Pipeline, reg: matflow_engine::Registry, e: &Execution) -> Result<()> {
+    let dir = cache_dir(e.cache);
     let reg = Arc::new(reg);
     let (store, exec) = crate::cluster::executor(
-        &a.remote,
+        e.remote,
         p.remote_cache.as_deref(),
         &dir,
         reg.clone(),
-        a.parallel,
+        e.parallel,
     )?;
     let bars = Bars {
         multi: MultiProgress::new(),
         bars: Mutex::new(BTreeMap::new()),
-        quiet: a.quiet,
+        quiet: e.quiet,
     };
-    let report = run_pipeline(&p, &reg, &store, exec.as_ref(), &bars);
-    if let Some(path) = &a.report {
+    let report = run_pipeline(p, &reg, &store, exec.as_ref(), &bars);
+    if let Some(path) = e.report {
         let json = serde_json::to_vec_pretty(&report)?;
         matflow_scene::io::write_atomic(path, &json)
             .with_context(|| format!("writing the report {}", path.display()))?;
     }
     print_table(&report);
     if let Some(f) = report.failure() {
-        bail!("{}: {f}", a.pipeline.display());
+        bail!("{}: {f}", e.label);
     }
     Ok(())
 }

@@ -68,6 +68,10 @@ pub struct StageReport {
     /// was recomputed).
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub retries: Vec<String>,
+    /// Lines the stage left for the report (its outputs of type `note`:
+    /// e.g. which backend and model a prediction used), cached or not.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub notes: Vec<String>,
     /// Bytes of inputs the stage read and outputs it wrote.
     pub bytes_in: u64,
     pub bytes_out: u64,
@@ -103,6 +107,7 @@ impl StageReport {
             worker: None,
             attempts: 0,
             retries: vec![],
+            notes: vec![],
             bytes_in: 0,
             bytes_out: 0,
             started: None,
@@ -674,6 +679,7 @@ pub fn run_pipeline(
                                     .map(|(k, d)| (k.clone(), d.hex()))
                                     .collect();
                                 rep.files = files;
+                                rep.notes = notes(node, &done.outputs, store);
                                 rep.error = None;
                                 obs.finished(&rep);
                                 slot.state = State::Done(done.outputs);
@@ -810,6 +816,18 @@ pub fn run_pipeline(
         bytes_downloaded: down,
         stages,
     }
+}
+
+/// The text of a stage's `note` outputs (an unreadable one is left out:
+/// notes are for the reader, not for the results).
+fn notes(node: &dyn Node, outputs: &BTreeMap<String, Digest>, store: &Tiered) -> Vec<String> {
+    node.outputs()
+        .iter()
+        .filter(|o| o.ty == "note")
+        .filter_map(|o| outputs.get(o.name))
+        .filter_map(|d| store.get(d).ok().flatten())
+        .map(|b| String::from_utf8_lossy(&b).trim().to_string())
+        .collect()
 }
 
 /// Writes the user's files for a stage (render outputs); a blob that

@@ -6,13 +6,18 @@
 //!
 //! Artifact types flowing between stages: `image` (linear RGB), `scene`
 //! (camera-space depth, the input image when there is one, predicted
-//! materials), `mesh`, `materials`, `envmap` (lat-long linear RGB), `mask`
-//! and `report` (JSON).
+//! materials), `mesh`, `materials`, `envmap` (lat-long linear RGB), `mask`,
+//! `report` (JSON), `file` (a file's bytes) and `note` (a line for the
+//! run report).
 
 pub mod artifact;
 mod data;
 pub use data::render_seconds;
 pub use kinds::insert::composite_differential;
+pub use kinds::matnet::{
+    load_model as load_matnet_model, predict as matnet_predict, read_photo as read_matnet_photo,
+    BUNDLED_MODEL as BUNDLED_MATNET_MODEL, BUNDLED_MODEL_BLAKE3 as BUNDLED_MATNET_MODEL_BLAKE3,
+};
 pub use kinds::refraction::OBJECT_NAMES as REFRACTION_OBJECTS;
 pub use kinds::refraction_length::{
     BUNDLED_MODEL as BUNDLED_REFRACTION_MODEL,
@@ -46,6 +51,7 @@ pub fn registry() -> Registry {
         Box::new(kinds::refraction::RefractionRenderNode),
         Box::new(kinds::room::RoomSampleNode),
         Box::new(kinds::refraction_length::RefractionLengthNode),
+        Box::new(kinds::matnet::MatnetNode),
     ];
     for n in nodes {
         r.add(n);

@@ -175,6 +175,339 @@ pub fn preprocess(photo: &Planar, square: usize, input: usize) -> Planar {
     resize_bicubic(&linearise(&sq), input, input, false)
 }
 
+/// The square side the photo is resized to first, and every output
+/// resized back to.
+pub const SQUARE: usize = 512;
+/// The input side for a model whose spatial input axes are dynamic:
+/// MatNet's (37 patches of 14).
+pub const DYNAMIC_INPUT: usize = 518;
+/// The smallest input side matflow accepts from a model.
+pub const MIN_INPUT: usize = 16;
+
+/// How a photo's values become the network's.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Encoding {
+    /// Display-encoded, 0–255 (8-bit; 16-bit values are divided by 257):
+    /// /255, then ^2.2 after the square resize.
+    Display,
+    /// Linear radiance (EXR): used as it is.
+    Linear,
+}
+
+/// The centred square of an `h`×`w` photo, resized to `side`² bilinearly
+/// with aligned corners — [`centre_square`] then [`resize_bilinear`],
+/// reading the photo through `at(channel, y, x)` so that a large photo is
+/// never copied whole.
+pub fn square_of(
+    h: usize,
+    w: usize,
+    at: impl Fn(usize, usize, usize) -> f32,
+    side: usize,
+) -> Planar {
+    let s = h.min(w);
+    let (y0, x0) = ((h - s) / 2, (w - s) / 2);
+    let mut out = Planar::new(3, side, side);
+    let axis = |i: usize| -> (usize, usize, f32) {
+        let src = source(i, s, side, true).max(0.0);
+        let i0 = (src.floor() as usize).min(s - 1);
+        let i1 = (i0 + 1).min(s - 1);
+        (i0, i1, (src - i0 as f64) as f32)
+    };
+    let cols: Vec<_> = (0..side).map(axis).collect();
+    for y in 0..side {
+        let (ya, yb, fy) = axis(y);
+        for (x, &(xa, xb, fx)) in cols.iter().enumerate() {
+            for ch in 0..3 {
+                let a = at(ch, y0 + ya, x0 + xa) * (1.0 - fx) + at(ch, y0 + ya, x0 + xb) * fx;
+                let b = at(ch, y0 + yb, x0 + xa) * (1.0 - fx) + at(ch, y0 + yb, x0 + xb) * fx;
+                out.set(ch, y, x, a * (1.0 - fy) + b * fy);
+            }
+        }
+    }
+    out
+}
+
+/// The network's input from the square: linearised when display-encoded,
+/// then resized bicubically to `input`².
+pub fn network_input(square: &Planar, enc: Encoding, input: usize) -> Planar {
+    let lin = match enc {
+        Encoding::Display => linearise(square),
+        Encoding::Linear => square.clone(),
+    };
+    if input == lin.h && input == lin.w {
+        lin
+    } else {
+        resize_bicubic(&lin, input, input, false)
+    }
+}
+
+/// What a model's depth output means.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum DepthKind {
+    /// MatNet's: disparity-like, larger is nearer (z = 2·max − d).
+    Disparity,
+    /// Camera-space z (metadata `matflow.depth = z`).
+    Z,
+}
+
+/// Where the five maps are among a model's outputs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Layout {
+    /// Outputs named `depth` (1), `albedo` (3), `roughness` (1),
+    /// `metallic` (1), `normal` (3): the official network's dict.
+    Named {
+        depth: usize,
+        albedo: usize,
+        roughness: usize,
+        metallic: usize,
+        normal: usize,
+    },
+    /// The two heads: `depth` (1) and `material` (8: albedo 0–2,
+    /// roughness 3, metallic 4, normal 5–7).
+    Heads { depth: usize, material: usize },
+}
+
+/// A model's reading of the contract: input side, output layout, depth
+/// meaning.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Contract {
+    pub input: usize,
+    pub layout: Layout,
+    pub depth: DepthKind,
+}
+
+const EXPECTED_OUTPUTS: &str = "outputs named depth [N, 1, h, w], albedo [N, 3, h, w], \
+    roughness [N, 1, h, w], metallic [N, 1, h, w] and normal [N, 3, h, w] (or depth and an \
+    8-channel material)";
+
+fn describe_ports(ports: &[crate::Port]) -> String {
+    if ports.is_empty() {
+        return "none".into();
+    }
+    ports
+        .iter()
+        .map(|p| p.describe())
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+impl Contract {
+    /// Reads the contract off a model's ports and metadata; a model that
+    /// does not honour it is an error saying what was expected and what
+    /// the model has.
+    pub fn of(
+        inputs: &[crate::Port],
+        outputs: &[crate::Port],
+        meta: &std::collections::BTreeMap<String, String>,
+    ) -> Result<Contract, String> {
+        let bad_input = |why: &str| {
+            format!(
+                "expected one input f32 [1 or N, 3, S, S] ({why}); the model has {}",
+                describe_ports(inputs)
+            )
+        };
+        if inputs.len() != 1 {
+            return Err(bad_input(&format!("{} inputs", inputs.len())));
+        }
+        let i = &inputs[0];
+        if !i.f32 || i.shape.len() != 4 {
+            return Err(bad_input("element type or rank"));
+        }
+        if i.shape[0] > 1 {
+            return Err(bad_input("a batch of one"));
+        }
+        if i.shape[1] != 3 && i.shape[1] >= 0 {
+            return Err(bad_input("3 channels"));
+        }
+        let input = match (i.shape[2], i.shape[3]) {
+            (a, b) if a < 0 && b < 0 => match meta.get("matflow.input_size") {
+                Some(v) => v
+                    .trim()
+                    .parse::<usize>()
+                    .map_err(|_| format!("metadata matflow.input_size = {v:?} is not a size"))?,
+                None => DYNAMIC_INPUT,
+            },
+            (a, b) if a == b && a > 0 => a as usize,
+            _ => return Err(bad_input("a square, fixed or fully dynamic")),
+        };
+        if !(MIN_INPUT..=4096).contains(&input) {
+            return Err(bad_input(&format!(
+                "a side of {MIN_INPUT} to 4096, not {input}"
+            )));
+        }
+        let find = |name: &str| outputs.iter().position(|p| p.name == name);
+        let check = |idx: usize, ch: i64| -> Result<usize, String> {
+            let p = &outputs[idx];
+            let ok = p.f32
+                && p.shape.len() == 4
+                && p.shape[0] <= 1
+                && (p.shape[1] == ch || p.shape[1] < 0);
+            if ok {
+                Ok(idx)
+            } else {
+                Err(format!(
+                    "expected {EXPECTED_OUTPUTS}; output {} is {}",
+                    p.name,
+                    p.describe()
+                ))
+            }
+        };
+        let layout = match (
+            find("depth"),
+            find("albedo"),
+            find("roughness"),
+            find("metallic"),
+            find("normal"),
+            find("material"),
+        ) {
+            (Some(d), Some(a), Some(r), Some(m), Some(n), None) if outputs.len() == 5 => {
+                Layout::Named {
+                    depth: check(d, 1)?,
+                    albedo: check(a, 3)?,
+                    roughness: check(r, 1)?,
+                    metallic: check(m, 1)?,
+                    normal: check(n, 3)?,
+                }
+            }
+            (Some(d), None, None, None, None, Some(m)) if outputs.len() == 2 => Layout::Heads {
+                depth: check(d, 1)?,
+                material: check(m, 8)?,
+            },
+            _ => {
+                return Err(format!(
+                    "expected {EXPECTED_OUTPUTS}; the model has {}",
+                    describe_ports(outputs)
+                ))
+            }
+        };
+        let depth = match meta.get("matflow.depth").map(|s| s.trim()) {
+            None | Some("disparity") => DepthKind::Disparity,
+            Some("z") => DepthKind::Z,
+            Some(v) => {
+                return Err(format!(
+                    "metadata matflow.depth = {v:?}: expected \"z\" or \"disparity\""
+                ))
+            }
+        };
+        Ok(Contract {
+            input,
+            layout,
+            depth,
+        })
+    }
+
+    pub fn describe(&self) -> String {
+        format!(
+            "input {0}x{0}, outputs {1}, depth {2}",
+            self.input,
+            match self.layout {
+                Layout::Named { .. } => "depth/albedo/roughness/metallic/normal",
+                Layout::Heads { .. } => "depth/material",
+            },
+            match self.depth {
+                DepthKind::Disparity => "disparity",
+                DepthKind::Z => "z",
+            }
+        )
+    }
+}
+
+/// The five maps at [`SQUARE`]², as the network gave them (resized, not
+/// clamped; normals renormalised after the resize).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Maps {
+    pub depth: Planar,
+    pub albedo: Planar,
+    pub roughness: Planar,
+    pub metallic: Planar,
+    pub normal: Planar,
+}
+
+/// Channels `c0..c0+n` of one output, resized to `side`² (bilinear,
+/// aligned corners).
+fn pick(o: &crate::Output, c0: usize, n: usize, side: usize) -> Result<Planar, String> {
+    let [b, c, h, w] = o.shape[..] else {
+        return Err(format!("output {} has shape {:?}", o.name, o.shape));
+    };
+    if b != 1 || c < c0 + n || h == 0 || w == 0 {
+        return Err(format!(
+            "output {} has shape {:?}: expected [1, {}, h, w]",
+            o.name,
+            o.shape,
+            c0 + n
+        ));
+    }
+    let p = Planar {
+        c: n,
+        h,
+        w,
+        data: o.data[c0 * h * w..(c0 + n) * h * w].to_vec(),
+    };
+    Ok(if h == side && w == side {
+        p
+    } else {
+        resize_bilinear(&p, side, side, true)
+    })
+}
+
+impl Maps {
+    /// The maps from one run's outputs (in the model's order).
+    pub fn from_outputs(outs: &[crate::Output], c: &Contract) -> Result<Maps, String> {
+        let (depth, albedo, roughness, metallic, mut normal) = match c.layout {
+            Layout::Named {
+                depth,
+                albedo,
+                roughness,
+                metallic,
+                normal,
+            } => (
+                pick(&outs[depth], 0, 1, SQUARE)?,
+                pick(&outs[albedo], 0, 3, SQUARE)?,
+                pick(&outs[roughness], 0, 1, SQUARE)?,
+                pick(&outs[metallic], 0, 1, SQUARE)?,
+                pick(&outs[normal], 0, 3, SQUARE)?,
+            ),
+            Layout::Heads { depth, material } => (
+                pick(&outs[depth], 0, 1, SQUARE)?,
+                pick(&outs[material], 0, 3, SQUARE)?,
+                pick(&outs[material], 3, 1, SQUARE)?,
+                pick(&outs[material], 4, 1, SQUARE)?,
+                pick(&outs[material], 5, 3, SQUARE)?,
+            ),
+        };
+        let n = SQUARE * SQUARE;
+        for i in 0..n {
+            let v = [normal.data[i], normal.data[n + i], normal.data[2 * n + i]];
+            let len = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+            let u = if len > 1e-6 && len.is_finite() {
+                [v[0] / len, v[1] / len, v[2] / len]
+            } else {
+                [0.0, 0.0, 1.0]
+            };
+            for (k, x) in u.into_iter().enumerate() {
+                normal.data[k * n + i] = x;
+            }
+        }
+        if c.depth == DepthKind::Z {
+            if let Some(i) = depth.data.iter().position(|&v| v < 0.0) {
+                return Err(format!(
+                    "the model's depth (camera-space z) is negative ({}) at x={}, y={}",
+                    depth.data[i],
+                    i % SQUARE,
+                    i / SQUARE
+                ));
+            }
+        }
+        Ok(Maps {
+            depth,
+            albedo,
+            roughness,
+            metallic,
+            normal,
+        })
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -253,5 +586,135 @@ mod tests {
         let want = (128.0f32 / 255.0).powf(2.2);
         assert!(out.data.iter().all(|v| (v - want).abs() < 1e-6));
         assert_eq!((out.c, out.h, out.w), (3, 11, 11));
+    }
+
+    /// Reading through the sampler equals cropping then resizing.
+    #[test]
+    fn square_of_equals_crop_then_resize() {
+        let photo = fixture("photo");
+        let px: Vec<u8> = photo.values.iter().map(|&v| v as u8).collect();
+        let p = Planar::from_interleaved_u8(9, 13, 3, &px);
+        let want = resize_bilinear(&centre_square(&p), 12, 12, true);
+        let got = square_of(9, 13, |c, y, x| p.at(c, y, x), 12);
+        assert_eq!(got, want);
+    }
+
+    fn port(name: &str, shape: &[i64]) -> crate::Port {
+        crate::Port {
+            name: name.into(),
+            f32: true,
+            elem: "Float32".into(),
+            shape: shape.to_vec(),
+        }
+    }
+
+    fn named(albedo_ch: i64) -> Vec<crate::Port> {
+        vec![
+            port("depth", &[1, 1, 37, 37]),
+            port("albedo", &[1, albedo_ch, 37, 37]),
+            port("roughness", &[1, 1, 37, 37]),
+            port("metallic", &[1, 1, 37, 37]),
+            port("normal", &[1, 3, 37, 37]),
+        ]
+    }
+
+    #[test]
+    fn the_contract_is_read_from_the_model() {
+        use std::collections::BTreeMap;
+        let none = BTreeMap::new();
+        let input = [port("image", &[1, 3, 518, 518])];
+        let c = Contract::of(&input, &named(3), &none).unwrap();
+        assert_eq!(c.input, 518);
+        assert_eq!(c.depth, DepthKind::Disparity);
+        assert!(matches!(c.layout, Layout::Named { albedo: 1, .. }));
+        // Dynamic spatial axes take MatNet's 518, or the metadata's size.
+        let dynamic = [port("x", &[-1, 3, -1, -1])];
+        let heads = [
+            port("material", &[-1, 8, -1, -1]),
+            port("depth", &[-1, 1, -1, -1]),
+        ];
+        let c = Contract::of(&dynamic, &heads, &none).unwrap();
+        assert_eq!(c.input, DYNAMIC_INPUT);
+        assert_eq!(
+            c.layout,
+            Layout::Heads {
+                depth: 1,
+                material: 0
+            }
+        );
+        let meta: BTreeMap<String, String> = [
+            ("matflow.input_size".to_string(), "256".to_string()),
+            ("matflow.depth".to_string(), "z".to_string()),
+        ]
+        .into();
+        let c = Contract::of(&dynamic, &heads, &meta).unwrap();
+        assert_eq!((c.input, c.depth), (256, DepthKind::Z));
+        // What does not honour it is refused, saying what and why.
+        let e = Contract::of(&input, &named(2), &none).unwrap_err();
+        assert!(
+            e.contains("output albedo is albedo f32 [1, 2, 37, 37]"),
+            "{e}"
+        );
+        let e = Contract::of(&input, &named(3)[..4], &none).unwrap_err();
+        assert!(e.contains("expected outputs named depth"), "{e}");
+        assert!(e.contains("the model has depth f32 [1, 1, 37, 37]"), "{e}");
+        let e = Contract::of(&[port("x", &[1, 3, 512, 256])], &named(3), &none).unwrap_err();
+        assert!(e.contains("a square"), "{e}");
+        let e = Contract::of(&[port("x", &[1, 1, 64, 64])], &named(3), &none).unwrap_err();
+        assert!(e.contains("3 channels"), "{e}");
+        let bad: BTreeMap<String, String> =
+            [("matflow.depth".to_string(), "metres".to_string())].into();
+        assert!(Contract::of(&input, &named(3), &bad)
+            .unwrap_err()
+            .contains("metres"));
+    }
+
+    #[test]
+    fn maps_are_resized_and_normals_renormalised() {
+        let c = Contract {
+            input: 4,
+            layout: Layout::Heads {
+                depth: 0,
+                material: 1,
+            },
+            depth: DepthKind::Z,
+        };
+        let (h, w) = (2, 2);
+        let depth = crate::Output {
+            name: "depth".into(),
+            shape: vec![1, 1, h, w],
+            data: vec![1.0, 2.0, 3.0, 4.0],
+        };
+        let mut m = vec![0.5f32; 8 * h * w];
+        // Normals (channels 5-7) of length 2 along z, and one zero vector.
+        for i in 0..4 {
+            m[5 * 4 + i] = 0.0;
+            m[6 * 4 + i] = 0.0;
+            m[7 * 4 + i] = if i == 3 { 0.0 } else { 2.0 };
+        }
+        let material = crate::Output {
+            name: "material".into(),
+            shape: vec![1, 8, h, w],
+            data: m,
+        };
+        let maps = Maps::from_outputs(&[depth.clone(), material.clone()], &c).unwrap();
+        assert_eq!((maps.depth.h, maps.albedo.c, maps.normal.c), (SQUARE, 3, 3));
+        // Corners keep their values (aligned corners).
+        assert_eq!(maps.depth.at(0, 0, 0), 1.0);
+        assert_eq!(maps.depth.at(0, SQUARE - 1, SQUARE - 1), 4.0);
+        for i in 0..SQUARE * SQUARE {
+            let n = [
+                maps.normal.data[i],
+                maps.normal.data[SQUARE * SQUARE + i],
+                maps.normal.data[2 * SQUARE * SQUARE + i],
+            ];
+            let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+            assert!((len - 1.0).abs() < 1e-5);
+        }
+        // Negative z is refused.
+        let mut neg = depth;
+        neg.data[2] = -1.0;
+        let e = Maps::from_outputs(&[neg, material], &c).unwrap_err();
+        assert!(e.contains("negative"), "{e}");
     }
 }

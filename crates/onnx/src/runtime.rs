@@ -150,15 +150,6 @@ fn environment(want: Backend) -> Result<&'static ort::environment::Environment, 
     }
 }
 
-/// A loaded model with one f32 input and one f32 output of fixed shapes
-/// (but for the batch).
-pub struct Model {
-    what: String,
-    session: Mutex<Session>,
-    input: [usize; 3],
-    output: [usize; 3],
-}
-
 fn shape_text(s: &[i64]) -> String {
     format!(
         "[{}]",
@@ -169,16 +160,80 @@ fn shape_text(s: &[i64]) -> String {
     )
 }
 
-impl Model {
-    /// Loads `bytes` (`what` names the file in errors) and checks that it
-    /// takes one f32 tensor [N, input…] and gives [N, output…].
-    pub fn load(
-        bytes: &[u8],
-        what: &str,
-        backend: Backend,
-        input: [usize; 3],
-        output: [usize; 3],
-    ) -> Result<Model, OnnxError> {
+/// One input or output of a model: its name, element type and shape (a
+/// negative dimension is dynamic).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Port {
+    pub name: String,
+    pub f32: bool,
+    pub elem: String,
+    pub shape: Vec<i64>,
+}
+
+impl Port {
+    /// `f32 [N, 3, 518, 518]`.
+    pub fn describe(&self) -> String {
+        format!(
+            "{} {} {}",
+            self.name,
+            if self.f32 {
+                "f32".into()
+            } else {
+                self.elem.clone()
+            },
+            shape_text(&self.shape)
+        )
+    }
+}
+
+/// One output of a run.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Output {
+    pub name: String,
+    pub shape: Vec<usize>,
+    pub data: Vec<f32>,
+}
+
+/// A loaded model of any signature: its ports are read from the model.
+pub struct Graph {
+    what: String,
+    backend: Backend,
+    session: Mutex<Session>,
+    pub inputs: Vec<Port>,
+    pub outputs: Vec<Port>,
+}
+
+fn ports(outlets: &[ort::value::Outlet]) -> Vec<Port> {
+    outlets
+        .iter()
+        .map(|o| {
+            let t = o.dtype();
+            let ty = t.tensor_type();
+            Port {
+                name: o.name().to_string(),
+                f32: ty == Some(ort::value::TensorElementType::Float32),
+                elem: match ty {
+                    Some(ty) => format!("{ty:?}"),
+                    None => "a non-tensor".into(),
+                },
+                shape: t
+                    .tensor_shape()
+                    .map(|s| s.iter().copied().collect())
+                    .unwrap_or_default(),
+            }
+        })
+        .collect()
+}
+
+/// Where a model comes from.
+pub enum Source<'a> {
+    Bytes(&'a [u8]),
+    File(&'a std::path::Path),
+}
+
+impl Graph {
+    /// Loads a model (`what` names it in errors).
+    pub fn load(source: Source, what: &str, backend: Backend) -> Result<Graph, OnnxError> {
         let env = environment(backend)?;
         let load = |e: ort::Error| OnnxError::Load {
             what: what.to_string(),
@@ -193,8 +248,89 @@ impl Model {
                 .with_intra_threads(1)
                 .map_err(|e| load(e.into()))?;
         }
-        let session = b.commit_from_memory(bytes).map_err(load)?;
-        let check = |kind: &str, outlets: &[ort::value::Outlet], want: [usize; 3]| {
+        let session = match source {
+            Source::Bytes(bytes) => b.commit_from_memory(bytes),
+            Source::File(path) => b.commit_from_file(path),
+        }
+        .map_err(load)?;
+        let inputs = ports(session.inputs());
+        let outputs = ports(session.outputs());
+        Ok(Graph {
+            what: what.to_string(),
+            backend,
+            session: Mutex::new(session),
+            inputs,
+            outputs,
+        })
+    }
+
+    pub fn what(&self) -> &str {
+        &self.what
+    }
+    pub fn backend(&self) -> Backend {
+        self.backend
+    }
+
+    /// Runs the model on one f32 input tensor of `shape`; returns every
+    /// output (f32, all values finite) in the model's order.
+    pub fn run(&self, shape: &[usize], x: Vec<f32>) -> Result<Vec<Output>, OnnxError> {
+        let run = |m: String| OnnxError::Run {
+            what: self.what.clone(),
+            message: m,
+        };
+        if x.len() != shape.iter().product::<usize>() {
+            return Err(run(format!(
+                "{} input values for a tensor of shape {shape:?}",
+                x.len()
+            )));
+        }
+        let t = Tensor::from_array((shape.to_vec(), x)).map_err(|e| run(e.to_string()))?;
+        let mut s = self
+            .session
+            .lock()
+            .map_err(|_| run("an earlier run panicked".into()))?;
+        let out = s.run(ort::inputs![t]).map_err(|e| run(e.to_string()))?;
+        let mut all = Vec::with_capacity(self.outputs.len());
+        for (i, port) in self.outputs.iter().enumerate() {
+            let (shape, data) = out[i]
+                .try_extract_tensor::<f32>()
+                .map_err(|e| run(format!("output {}: {e}", port.name)))?;
+            if let Some(j) = data.iter().position(|v| !v.is_finite()) {
+                return Err(run(format!(
+                    "output {} value {j} is {} (not finite)",
+                    port.name, data[j]
+                )));
+            }
+            all.push(Output {
+                name: port.name.clone(),
+                shape: shape.iter().map(|&d| d.max(0) as usize).collect(),
+                data: data.to_vec(),
+            });
+        }
+        Ok(all)
+    }
+}
+
+/// A loaded model with one f32 input and one f32 output of fixed shapes
+/// (but for the batch).
+pub struct Model {
+    graph: Graph,
+    input: [usize; 3],
+    output: [usize; 3],
+}
+
+impl Model {
+    /// Loads `bytes` (`what` names the file in errors) and checks that it
+    /// takes one f32 tensor [N, input…] and gives [N, output…].
+    pub fn load(
+        bytes: &[u8],
+        what: &str,
+        backend: Backend,
+        input: [usize; 3],
+        output: [usize; 3],
+    ) -> Result<Model, OnnxError> {
+        let graph = Graph::load(Source::Bytes(bytes), what, backend)?;
+        let check = |kind: &str, ports: &[Port], want: [usize; 3]| {
             let expected = format!(
                 "one {kind}: f32 {}",
                 shape_text(&[-1, want[0] as i64, want[1] as i64, want[2] as i64])
@@ -204,31 +340,26 @@ impl Model {
                 expected: expected.clone(),
                 found: s,
             };
-            if outlets.len() != 1 {
-                return Err(found(format!("{} {kind}s", outlets.len())));
+            if ports.len() != 1 {
+                return Err(found(format!("{} {kind}s", ports.len())));
             }
-            let t = outlets[0].dtype();
-            let (Some(shape), Some(ty)) = (t.tensor_shape(), t.tensor_type()) else {
-                return Err(found(format!("a {kind} that is not a tensor")));
-            };
-            let dims: Vec<i64> = shape.iter().copied().collect();
-            let ok = ty == ort::value::TensorElementType::Float32
-                && dims.len() == 4
-                && dims[1..]
+            let p = &ports[0];
+            let ok = p.f32
+                && p.shape.len() == 4
+                && p.shape[1..]
                     .iter()
                     .zip(want)
                     .all(|(&d, w)| d == w as i64 || d < 0);
             if ok {
                 Ok(())
             } else {
-                Err(found(format!("{ty:?} {}", shape_text(&dims))))
+                Err(found(format!("{} {}", p.elem, shape_text(&p.shape))))
             }
         };
-        check("input", session.inputs(), input)?;
-        check("output", session.outputs(), output)?;
+        check("input", &graph.inputs, input)?;
+        check("output", &graph.outputs, output)?;
         Ok(Model {
-            what: what.to_string(),
-            session: Mutex::new(session),
+            graph,
             input,
             output,
         })
@@ -237,35 +368,17 @@ impl Model {
     /// Runs a batch of `n` inputs (row-major [n, input…]); returns [n,
     /// output…].
     pub fn run(&self, n: usize, x: Vec<f32>) -> Result<Vec<f32>, OnnxError> {
-        let run = |m: String| OnnxError::Run {
-            what: self.what.clone(),
-            message: m,
-        };
         let [c, h, w] = self.input;
-        if x.len() != n * c * h * w {
-            return Err(run(format!(
-                "{} input values for a batch of {n} of {c}x{h}x{w}",
-                x.len()
-            )));
+        let mut out = self.graph.run(&[n, c, h, w], x)?;
+        let want = vec![n, self.output[0], self.output[1], self.output[2]];
+        let o = out.swap_remove(0);
+        if o.shape != want {
+            return Err(OnnxError::Run {
+                what: self.graph.what.clone(),
+                message: format!("output shape {:?}, expected {want:?}", o.shape),
+            });
         }
-        let t = Tensor::from_array(([n, c, h, w], x)).map_err(|e| run(e.to_string()))?;
-        let mut s = self
-            .session
-            .lock()
-            .map_err(|_| run("an earlier run panicked".into()))?;
-        let out = s.run(ort::inputs![t]).map_err(|e| run(e.to_string()))?;
-        let (shape, data) = out[0]
-            .try_extract_tensor::<f32>()
-            .map_err(|e| run(e.to_string()))?;
-        let want = [n, self.output[0], self.output[1], self.output[2]];
-        let got: Vec<usize> = shape.iter().map(|&d| d.max(0) as usize).collect();
-        if got != want {
-            return Err(run(format!("output shape {got:?}, expected {want:?}")));
-        }
-        if let Some(i) = data.iter().position(|v| !v.is_finite()) {
-            return Err(run(format!("output value {i} is not finite")));
-        }
-        Ok(data.to_vec())
+        Ok(o.data)
     }
 }
 

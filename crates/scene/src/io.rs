@@ -643,6 +643,181 @@ pub fn resize_bilinear(img: &RgbImage, w: usize, h: usize) -> RgbImage {
     })
 }
 
+/// The most pixels a photo given to a prediction stage may have (a
+/// 100-megapixel photo is read; larger ones are refused before decoding).
+pub const MAX_PHOTO_PIXELS: usize = 150_000_000;
+
+/// A photo's pixels as stored: 8- or 16-bit display-encoded samples
+/// (interleaved, `channels` per pixel: 1 grey, 2 grey + alpha, 3 RGB, 4
+/// RGBA) or linear RGB from an EXR.
+pub enum PhotoPixels {
+    U8 { channels: usize, data: Vec<u8> },
+    U16 { channels: usize, data: Vec<u16> },
+    Linear(RgbImage),
+}
+
+pub struct Photo {
+    pub width: usize,
+    pub height: usize,
+    pub pixels: PhotoPixels,
+}
+
+impl Photo {
+    /// Channel `ch` (0–2) at (`y`, `x`): 0–255 for 8-bit samples, /257
+    /// for 16-bit ones (the same scale), linear radiance for EXR. Grey is
+    /// read as R = G = B; alpha is ignored.
+    #[inline]
+    pub fn at(&self, ch: usize, y: usize, x: usize) -> f32 {
+        let i = y * self.width + x;
+        match &self.pixels {
+            PhotoPixels::U8 { channels, data } => {
+                let c = if *channels >= 3 { ch } else { 0 };
+                data[i * channels + c] as f32
+            }
+            PhotoPixels::U16 { channels, data } => {
+                let c = if *channels >= 3 { ch } else { 0 };
+                data[i * channels + c] as f32 / 257.0
+            }
+            PhotoPixels::Linear(img) => img.data[i][ch],
+        }
+    }
+    pub fn is_linear(&self) -> bool {
+        matches!(self.pixels, PhotoPixels::Linear(_))
+    }
+    /// What was converted on reading, for the record (empty when
+    /// nothing).
+    pub fn conversions(&self) -> Vec<&'static str> {
+        let mut v = vec![];
+        match &self.pixels {
+            PhotoPixels::U8 { channels, .. } | PhotoPixels::U16 { channels, .. } => {
+                if *channels <= 2 {
+                    v.push("grey replicated to RGB");
+                }
+                if *channels == 2 || *channels == 4 {
+                    v.push("alpha ignored");
+                }
+                if matches!(self.pixels, PhotoPixels::U16 { .. }) {
+                    v.push("16-bit samples scaled to 0-255 (/257, not rounded)");
+                }
+            }
+            PhotoPixels::Linear(_) => v.push("EXR read as linear RGB"),
+        }
+        v
+    }
+}
+
+/// Reads a photo (PNG or JPEG of 8 or 16 bits, grey or colour, with or
+/// without alpha; or an EXR, linear RGB or one channel). Refused with the
+/// reason: undecodable files, more than [`MAX_PHOTO_PIXELS`] (checked from
+/// the header, before decoding), and EXRs holding NaN, infinities or
+/// negative values.
+pub fn read_photo(path: &Path) -> Result<Photo> {
+    let bytes = read_bytes(path)?;
+    let too_big = |w: usize, h: usize| {
+        SceneError::invalid(
+            path,
+            format!(
+                "the photo is {w}x{h} = {:.1} megapixels, more than the {} megapixels matflow \
+                 reads; scale it down first",
+                (w * h) as f64 / 1e6,
+                MAX_PHOTO_PIXELS / 1_000_000
+            ),
+        )
+    };
+    if bytes.starts_with(&[0x76, 0x2f, 0x31, 0x01]) {
+        let (w, h) = exr_size(path)?;
+        if w * h > MAX_PHOTO_PIXELS {
+            return Err(too_big(w, h));
+        }
+        let img = read_exr_rgb(path)?;
+        for (i, p) in img.data.iter().enumerate() {
+            if !p.is_finite() || p.min_element() < 0.0 {
+                return Err(SceneError::invalid(
+                    path,
+                    format!(
+                        "pixel x={}, y={} is ({}, {}, {}): a photo must hold finite, \
+                         non-negative radiance",
+                        i % w,
+                        i / w,
+                        p.x,
+                        p.y,
+                        p.z
+                    ),
+                ));
+            }
+        }
+        return Ok(Photo {
+            width: w,
+            height: h,
+            pixels: PhotoPixels::Linear(img),
+        });
+    }
+    let decode = |e: image::ImageError| SceneError::Decode {
+        path: path.into(),
+        message: e.to_string(),
+    };
+    let reader = || {
+        image::ImageReader::new(Cursor::new(&bytes[..]))
+            .with_guessed_format()
+            .map_err(|e| SceneError::io(path, e))
+    };
+    let (w, h) = reader()?.into_dimensions().map_err(decode)?;
+    let (w, h) = (w as usize, h as usize);
+    check_size(path, w, h)?;
+    if w * h > MAX_PHOTO_PIXELS {
+        return Err(too_big(w, h));
+    }
+    let mut r = reader()?;
+    let mut limits = image::Limits::default();
+    limits.max_alloc = Some(4 << 30);
+    r.limits(limits);
+    let img = r.decode().map_err(decode)?;
+    use image::DynamicImage as D;
+    let pixels = match img {
+        D::ImageLuma8(b) => PhotoPixels::U8 {
+            channels: 1,
+            data: b.into_raw(),
+        },
+        D::ImageLumaA8(b) => PhotoPixels::U8 {
+            channels: 2,
+            data: b.into_raw(),
+        },
+        D::ImageRgb8(b) => PhotoPixels::U8 {
+            channels: 3,
+            data: b.into_raw(),
+        },
+        D::ImageRgba8(b) => PhotoPixels::U8 {
+            channels: 4,
+            data: b.into_raw(),
+        },
+        D::ImageLuma16(b) => PhotoPixels::U16 {
+            channels: 1,
+            data: b.into_raw(),
+        },
+        D::ImageLumaA16(b) => PhotoPixels::U16 {
+            channels: 2,
+            data: b.into_raw(),
+        },
+        D::ImageRgb16(b) => PhotoPixels::U16 {
+            channels: 3,
+            data: b.into_raw(),
+        },
+        D::ImageRgba16(b) => PhotoPixels::U16 {
+            channels: 4,
+            data: b.into_raw(),
+        },
+        other => PhotoPixels::U8 {
+            channels: 3,
+            data: other.to_rgb8().into_raw(),
+        },
+    };
+    Ok(Photo {
+        width: w,
+        height: h,
+        pixels,
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

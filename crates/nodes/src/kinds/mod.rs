@@ -6,6 +6,7 @@ pub mod envmap_opt;
 pub mod image;
 pub mod insert;
 pub mod material_opt;
+pub mod matnet;
 pub mod mesh;
 pub mod refraction;
 pub mod refraction_length;

@@ -1,0 +1,510 @@
+//! `matnet`: the prediction stage. A photograph in; MatNet's five maps out
+//! (depth, albedo, roughness, metallic, normals) through an ONNX model
+//! honouring MatNet's contract (`matflow_onnx::matnet`) — the model
+//! matflow trained on its own `rooms` dataset (`models/matnet_rooms.onnx`,
+//! built into the binary) or a given one, e.g. an export of the official
+//! network. The result is a `scene` for the stages downstream and, when
+//! `output` names a folder, a bundle in the reference's layout.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use glam::Vec3;
+use matflow_engine::node::{Bytes, Params};
+use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
+use matflow_onnx::matnet::{
+    network_input, square_of, Contract, DepthKind, Encoding, Maps, Planar, SQUARE,
+};
+use matflow_onnx::model_file::{
+    check_memory, info_of_bytes, info_of_file, memory_available, memory_needed, ModelInfo,
+};
+use matflow_onnx::{Backend, Graph, Source};
+use matflow_scene::bundle::{check_depth_range, disparity_to_depth};
+use matflow_scene::{io, GrayImage, Image, MaterialMaps, RgbImage};
+
+use crate::data::SceneData;
+use crate::{err, failed};
+
+/// The network matflow ships: trained by `train/matnet/train.py` on the
+/// `rooms` dataset (see `models/matnet_rooms.md`).
+pub const BUNDLED_MODEL: &[u8] = include_bytes!("../../../../models/matnet_rooms.onnx");
+/// Its BLAKE3, checked by a test: a new model must come with a new node
+/// version (the version is in every key).
+pub const BUNDLED_MODEL_BLAKE3: &str =
+    "ed7ff04d37bab551cefa862617a07d0ef13502e5e8ce9b5f8941bb1de98785c0";
+
+/// The shortest photo side accepted: below it there is nothing to
+/// predict from (the contract resizes everything to 512²).
+pub const MIN_PHOTO_SIDE: usize = 32;
+
+/// The files of a bundle this stage writes, in order.
+pub const FILES: &[&str] = &[
+    "gt_image.exr",
+    "gt_image.png",
+    "albedoPred.exr",
+    "normalPred.exr",
+    "roughnessPred.png",
+    "metallicPred.png",
+    "depth.exr",
+    "depthPred.exr",
+    "prediction.json",
+];
+
+pub struct MatnetNode;
+
+const fn file(name: &'static str, doc: &'static str) -> OutputSpec {
+    OutputSpec {
+        name,
+        ty: "file",
+        doc,
+    }
+}
+
+const INFO: NodeInfo = NodeInfo {
+    kind: "matnet",
+    version: 1,
+    doc: "MatNet's prediction stage: a photo (PNG/JPEG of 8 or 16 bits, grey or colour, or a \
+         linear EXR; any size and aspect) is centre-cropped, resized to 512² and run through an \
+         ONNX model under MatNet's contract (input size and output layout read from the model); \
+         out come depth, albedo, roughness, metallic and normals at 512², as a scene and (with \
+         output) a bundle in the reference's layout. ONNX through ort: tract (pure Rust) or \
+         onnxruntime (the Python wheel's library).",
+    params: &[
+        ParamSpec {
+            name: "photo",
+            ty: ParamType::InPath,
+            default: None,
+            unit: "",
+            doc: "the photograph",
+        },
+        ParamSpec {
+            name: "model",
+            ty: ParamType::InPath,
+            default: Some("~"),
+            unit: "",
+            doc: "an ONNX model honouring MatNet's contract (default: the bundled one, trained \
+                  here on synthetic rooms)",
+        },
+        ParamSpec {
+            name: "backend",
+            ty: ParamType::Choice(Backend::NAMES),
+            default: Some("tract"),
+            unit: "",
+            doc: "tract (built in) or onnxruntime (ORT_DYLIB_PATH or the onnxruntime wheel)",
+        },
+        ParamSpec {
+            name: "output",
+            ty: ParamType::OutPath,
+            default: Some("~"),
+            unit: "",
+            doc: "a folder to write the bundle to (gt_image, *Pred maps, depth, prediction.json)",
+        },
+    ],
+    outputs: &[
+        OutputSpec {
+            name: "scene",
+            ty: "scene",
+            doc: "depth (camera-space z), the photo (linear, 512²) and the predicted materials \
+                  (clamped as the reference does: albedo [0, 1], roughness [0.07, 1], metallic \
+                  [0, 1])",
+        },
+        file(
+            "gt_image.exr",
+            "the photo as the network saw it before its resize: linear, 512²",
+        ),
+        file("gt_image.png", "the same, 8-bit, power 1/2.2"),
+        file(
+            "albedoPred.exr",
+            "albedo, linear, unclamped (as the reference writes it)",
+        ),
+        file(
+            "normalPred.exr",
+            "normals, camera space, +z towards the camera",
+        ),
+        file(
+            "roughnessPred.png",
+            "roughness, 8-bit through the sRGB curve",
+        ),
+        file("metallicPred.png", "metallic, 8-bit through the sRGB curve"),
+        file(
+            "depth.exr",
+            "camera-space z, for a model whose metadata says matflow.depth = z",
+        ),
+        file(
+            "depthPred.exr",
+            "the raw disparity-like depth of a MatNet-style model",
+        ),
+        file(
+            "prediction.json",
+            "provenance: photo, conversions, model digest, contract, backend",
+        ),
+        OutputSpec {
+            name: "note",
+            ty: "note",
+            doc: "the backend and the model's digest, for the run report",
+        },
+    ],
+};
+
+/// A model ready to run, with what is known about it.
+pub struct Loaded {
+    pub graph: Graph,
+    pub contract: Contract,
+    pub info: ModelInfo,
+    pub what: String,
+}
+
+/// Loads the stage's model (the given file or the bundled one), checks
+/// its contract and that the machine has the memory to run it.
+pub fn load_model(model: Option<&Path>, backend: Backend) -> Result<Loaded, String> {
+    let (info, what) = match model {
+        Some(path) => (
+            info_of_file(path)
+                .map_err(|e| format!("{}: not an ONNX model: {e}", path.display()))?,
+            path.display().to_string(),
+        ),
+        None => (
+            info_of_bytes(BUNDLED_MODEL).map_err(|e| e.to_string())?,
+            "the bundled MatNet-contract model (models/matnet_rooms.onnx)".to_string(),
+        ),
+    };
+    // The input side is only known after loading; assume MatNet's 518²
+    // for the activations.
+    check_memory(
+        &what,
+        memory_needed(info.bytes, 3 * 518 * 518),
+        memory_available(),
+    )?;
+    let graph = match model {
+        Some(path) => Graph::load(Source::File(path), &what, backend),
+        None => Graph::load(Source::Bytes(BUNDLED_MODEL), &what, backend),
+    }
+    .map_err(|e| e.to_string())?;
+    let contract = Contract::of(&graph.inputs, &graph.outputs, &info.metadata)
+        .map_err(|e| format!("{what}: not a MatNet-contract model: {e}"))?;
+    Ok(Loaded {
+        graph,
+        contract,
+        info,
+        what,
+    })
+}
+
+/// What one prediction gives.
+pub struct Prediction {
+    /// The photo's centred square at 512², linear.
+    pub photo: RgbImage,
+    pub maps: Maps,
+    pub depth_kind: DepthKind,
+    /// Camera-space z from the depth output.
+    pub z: GrayImage,
+}
+
+fn rgb(p: &Planar) -> RgbImage {
+    let n = p.h * p.w;
+    Image::from_fn(p.w, p.h, |x, y| {
+        let i = y * p.w + x;
+        Vec3::new(p.data[i], p.data[n + i], p.data[2 * n + i])
+    })
+}
+
+fn gray(p: &Planar) -> GrayImage {
+    Image::from_vec(p.w, p.h, p.data.clone())
+}
+
+/// Reads a photo, refusing what cannot be predicted from.
+pub fn read_photo(path: &Path) -> Result<io::Photo, String> {
+    let photo = io::read_photo(path).map_err(|e| e.to_string())?;
+    if photo.width.min(photo.height) < MIN_PHOTO_SIDE {
+        return Err(format!(
+            "{}: the photo is {}x{}: too small to predict from (its shorter side must be at \
+             least {MIN_PHOTO_SIDE} pixels)",
+            path.display(),
+            photo.width,
+            photo.height
+        ));
+    }
+    Ok(photo)
+}
+
+/// Runs the contract on one photo: square, network input, inference,
+/// maps at 512².
+pub fn predict(photo: &io::Photo, m: &Loaded) -> Result<Prediction, String> {
+    let square = square_of(
+        photo.height,
+        photo.width,
+        |c, y, x| photo.at(c, y, x),
+        SQUARE,
+    );
+    let enc = if photo.is_linear() {
+        Encoding::Linear
+    } else {
+        Encoding::Display
+    };
+    let lin = match enc {
+        Encoding::Display => matflow_onnx::matnet::linearise(&square),
+        Encoding::Linear => square.clone(),
+    };
+    let x = network_input(&square, enc, m.contract.input);
+    let n = m.contract.input;
+    let outs = m
+        .graph
+        .run(&[1, 3, n, n], x.data)
+        .map_err(|e| e.to_string())?;
+    let maps = Maps::from_outputs(&outs, &m.contract).map_err(|e| format!("{}: {e}", m.what))?;
+    let raw = gray(&maps.depth);
+    let z = match m.contract.depth {
+        DepthKind::Z => raw,
+        DepthKind::Disparity => disparity_to_depth(&raw),
+    };
+    check_depth_range(Path::new(&m.what), &z)
+        .map_err(|e| format!("{e} (the model's depth output is unusable for this photo)"))?;
+    Ok(Prediction {
+        photo: rgb(&lin),
+        maps,
+        depth_kind: m.contract.depth,
+        z,
+    })
+}
+
+impl Prediction {
+    /// The materials as the reference holds them in memory (clamped).
+    pub fn materials(&self) -> MaterialMaps {
+        MaterialMaps {
+            albedo: rgb(&self.maps.albedo).map(|v| v.clamp(Vec3::ZERO, Vec3::ONE)),
+            roughness: gray(&self.maps.roughness).map(|v| v.clamp(0.07, 1.0)),
+            metallic: gray(&self.maps.metallic).map(|v| v.clamp(0.0, 1.0)),
+            normal: Some(rgb(&self.maps.normal)),
+            transparency: None,
+        }
+    }
+}
+
+fn backend_of(p: &Params) -> Backend {
+    Backend::from_name(p.str("backend")).unwrap_or(Backend::Tract)
+}
+
+impl Node for MatnetNode {
+    fn info(&self) -> &'static NodeInfo {
+        &INFO
+    }
+    fn film_size(&self, _p: &Params) -> Option<(usize, usize)> {
+        Some((SQUARE, SQUARE))
+    }
+    fn preflight(&self, p: &Params) -> Result<(), String> {
+        if let Some(photo) = p.path("photo") {
+            read_photo(&photo)?;
+        }
+        if p.is_set("model") || p.str("backend") != "tract" {
+            load_model(p.path("model").as_deref(), backend_of(p))?;
+        }
+        Ok(())
+    }
+    fn output_files(&self, p: &Params) -> Vec<PathBuf> {
+        match p.path("output") {
+            Some(dir) => FILES.iter().map(|f| dir.join(f)).collect(),
+            None => vec![],
+        }
+    }
+    fn run(&self, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
+        let p = ctx.params;
+        let photo_path = p.path("photo").unwrap_or_default();
+        let photo = read_photo(&photo_path).map_err(err)?;
+        let backend = backend_of(p);
+        let m = load_model(p.path("model").as_deref(), backend).map_err(err)?;
+        let pred = predict(&photo, &m).map_err(err)?;
+        let mut out = BTreeMap::new();
+        let scene = SceneData {
+            depth: pred.z.clone(),
+            target: Some(pred.photo.clone()),
+            pred: pred.materials(),
+        };
+        out.insert("scene".to_string(), scene.encode());
+        let mem = |name: &str| Path::new(name).to_path_buf();
+        let mut put = |name: &str, b: Result<Vec<u8>, matflow_scene::SceneError>| {
+            b.map(|b| {
+                out.insert(name.to_string(), b);
+            })
+            .map_err(failed)
+        };
+        put(
+            "gt_image.exr",
+            io::encode_exr_rgb(&mem("gt_image.exr"), &pred.photo),
+        )?;
+        put(
+            "gt_image.png",
+            io::encode_png_gamma(&mem("gt_image.png"), &pred.photo),
+        )?;
+        put(
+            "albedoPred.exr",
+            io::encode_exr_rgb(&mem("albedoPred.exr"), &rgb(&pred.maps.albedo)),
+        )?;
+        put(
+            "normalPred.exr",
+            io::encode_exr_rgb(&mem("normalPred.exr"), &rgb(&pred.maps.normal)),
+        )?;
+        put(
+            "roughnessPred.png",
+            io::png_srgb_bytes(&gray(&pred.maps.roughness).to_rgb()),
+        )?;
+        put(
+            "metallicPred.png",
+            io::png_srgb_bytes(&gray(&pred.maps.metallic).to_rgb()),
+        )?;
+        match pred.depth_kind {
+            DepthKind::Z => put("depth.exr", io::encode_exr_gray(&mem("depth.exr"), &pred.z))?,
+            DepthKind::Disparity => put(
+                "depthPred.exr",
+                io::encode_exr_gray(&mem("depthPred.exr"), &gray(&pred.maps.depth)),
+            )?,
+        }
+        let s = photo.width.min(photo.height);
+        let record = serde_json::json!({
+            "photo": photo_path.file_name().map(|n| n.to_string_lossy().into_owned()),
+            "photo_size": [photo.width, photo.height],
+            "crop": {"x": (photo.width - s) / 2, "y": (photo.height - s) / 2, "side": s},
+            "conversions": photo.conversions(),
+            "encoding": if photo.is_linear() { "linear" } else { "display: /255, ^2.2" },
+            "model": {
+                "file": p.path("model").map(|p| p.display().to_string()),
+                "blake3": m.info.blake3,
+                "bytes": m.info.bytes,
+                "producer": m.info.producer,
+                "metadata": m.info.metadata,
+            },
+            "contract": m.contract.describe(),
+            "backend": backend.name(),
+        });
+        out.insert(
+            "prediction.json".into(),
+            serde_json::to_vec_pretty(&record).map_err(failed)?,
+        );
+        out.insert(
+            "note".into(),
+            format!(
+                "{} backend; model blake3 {} ({:.1} MB; {})",
+                backend.name(),
+                m.info.blake3,
+                m.info.bytes as f64 / 1e6,
+                m.contract.describe()
+            )
+            .into_bytes(),
+        );
+        Ok(out)
+    }
+    fn materialize(
+        &self,
+        params: &Params,
+        outputs: &BTreeMap<String, Bytes>,
+    ) -> Result<Vec<PathBuf>, NodeError> {
+        let Some(dir) = params.path("output") else {
+            return Ok(vec![]);
+        };
+        std::fs::create_dir_all(&dir).map_err(|e| err(format!("{}: {e}", dir.display())))?;
+        let mut written = vec![];
+        for f in FILES {
+            let path = dir.join(f);
+            match outputs.get(*f) {
+                Some(b) => {
+                    io::write_if_changed(&path, b).map_err(failed)?;
+                    written.push(path);
+                }
+                // The other depth file of an earlier prediction would win
+                // over (or contradict) this one.
+                None => {
+                    if path.exists() {
+                        std::fs::remove_file(&path)
+                            .map_err(|e| err(format!("{}: {e}", path.display())))?;
+                    }
+                }
+            }
+        }
+        Ok(written)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn repo(rel: &str) -> PathBuf {
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../..")
+            .join(rel)
+    }
+
+    #[test]
+    fn the_bundled_model_is_the_committed_one() {
+        assert_eq!(
+            blake3::hash(BUNDLED_MODEL).to_hex().as_str(),
+            BUNDLED_MODEL_BLAKE3,
+            "a new model needs a new BUNDLED_MODEL_BLAKE3 and a new node version"
+        );
+        let on_disk = std::fs::read(repo("models/matnet_rooms.onnx")).unwrap();
+        assert_eq!(on_disk, BUNDLED_MODEL);
+    }
+
+    /// The whole chain in Rust (photo decoding, crop, resizes,
+    /// linearisation, tract) gives what PyTorch gave for the same photo
+    /// when the model was exported (`train/matnet/train.py` wrote the
+    /// outputs at every 4th pixel). Tolerance 1e-3 absolute on maps of
+    /// order 1 (depth: a few units): the pre-processing agrees with
+    /// PyTorch's to ~1e-6 and the network carries that through.
+    #[test]
+    fn the_bundled_model_matches_pytorch_on_the_fixture_photo() {
+        let photo = read_photo(&repo("tests/data/matnet_photo.png")).unwrap();
+        let m = load_model(None, Backend::Tract).unwrap();
+        assert_eq!(m.contract.input, 256);
+        assert_eq!(m.contract.depth, DepthKind::Z);
+        let square = square_of(
+            photo.height,
+            photo.width,
+            |c, y, x| photo.at(c, y, x),
+            SQUARE,
+        );
+        let x = network_input(&square, Encoding::Display, 256);
+        let outs = m.graph.run(&[1, 3, 256, 256], x.data).unwrap();
+        let want = matflow_scene::npy::decode(
+            &std::fs::read(repo("models/matnet_rooms.fixture_output.npy")).unwrap(),
+        )
+        .unwrap();
+        assert_eq!(want.shape, vec![9, 64, 64]);
+        let mut got = Vec::new();
+        for o in &outs {
+            let c = o.shape[1];
+            for ch in 0..c {
+                for y in (0..256).step_by(4) {
+                    for x in (0..256).step_by(4) {
+                        got.push(o.data[(ch * 256 + y) * 256 + x]);
+                    }
+                }
+            }
+        }
+        let worst = got
+            .iter()
+            .zip(&want.values)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0f32, f32::max);
+        eprintln!("max |rust - torch| = {worst:e}");
+        assert!(worst < 1e-3, "max |rust - torch| = {worst}");
+    }
+
+    #[test]
+    fn a_prediction_is_a_usable_scene() {
+        let photo = read_photo(&repo("tests/data/matnet_photo.png")).unwrap();
+        let m = load_model(None, Backend::Tract).unwrap();
+        let p = predict(&photo, &m).unwrap();
+        let mats = p.materials();
+        assert_eq!((p.z.width, p.z.height), (SQUARE, SQUARE));
+        assert!(p.z.data.iter().all(|&z| z > 0.0 && z.is_finite()));
+        assert!(mats
+            .roughness
+            .data
+            .iter()
+            .all(|&r| (0.07..=1.0).contains(&r)));
+        let n = mats.normal.unwrap();
+        assert!(n.data.iter().all(|v| (v.length() - 1.0).abs() < 1e-4));
+        // The photo the scene carries is the 512² square, linear.
+        assert_eq!(p.photo.width, SQUARE);
+    }
+}
