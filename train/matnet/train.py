@@ -149,7 +149,7 @@ class UNet(nn.Module):
         return depth, albedo, rough, metal, n
 
 
-def batch_tensors(d, idx, crop, rng, augment):
+def batch_tensors(d, idx, crop, rng, augment, exposure=(0.6, 1.6)):
     """Inputs and targets for samples `idx` (random crops and flips when
     training)."""
     n = len(idx)
@@ -169,7 +169,7 @@ def batch_tensors(d, idx, crop, rng, augment):
             "valid": d["valid"][i][sl][..., None].astype(np.float32),
         }
         if augment:
-            photo = photo * float(rng.uniform(0.6, 1.6))
+            photo = photo * float(rng.uniform(*exposure))
             if rng.random() < 0.5:
                 photo = photo[:, ::-1]
                 t = {k: v[:, ::-1].copy() for k, v in t.items()}
@@ -298,6 +298,7 @@ def main():
     ap.add_argument("--lr", type=float, default=2e-3)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--exposure", type=float, nargs=2, default=[0.6, 1.6], help="range of the photo's random exposure scale")
     args = ap.parse_args()
 
     torch.manual_seed(args.seed)
@@ -321,14 +322,14 @@ def main():
         crop = args.crop if step < args.steps else SIZE
         bs = args.batch if step < args.steps else max(1, args.batch * args.crop * args.crop // (SIZE * SIZE))
         idx = rng.integers(0, n, size=bs)
-        x, y = batch_tensors(train, idx, crop, rng, True)
+        x, y = batch_tensors(train, idx, crop, rng, True, tuple(args.exposure))
         parts = losses(model(x), y)
         loss = parts["depth"] + parts["albedo"] + parts["roughness"] + parts["metallic"] + parts["normal"]
         opt.zero_grad()
         loss.backward()
         opt.step()
         sched.step()
-        cur = {k: float(v) for k, v in parts.items()}
+        cur = {k: float(v.detach()) for k, v in parts.items()}
         run = cur if run is None else {k: 0.98 * run[k] + 0.02 * cur[k] for k in cur}
         if step % 100 == 0 or step == total - 1:
             el = time.time() - t_train
@@ -350,6 +351,7 @@ def main():
         "crop": args.crop,
         "lr": args.lr,
         "seed": args.seed,
+        "exposure": args.exposure,
         "threads": args.threads,
         "train_seconds": round(train_s, 1),
         "heldout_errors": errs,
