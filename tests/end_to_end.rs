@@ -297,24 +297,41 @@ fn invert_writes_best_results_deterministically_and_rerenders() {
             "{f} differs between 1 and 2 threads"
         );
     }
-    // Re-render the result, and relight it with the ground-truth envmap.
+    // Re-render the result (with the filter the inversion fitted with,
+    // unless told otherwise), and relight it with the ground-truth envmap.
     let out = dir.path().join("inv0");
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["options"]["pixel_filter"], "box");
     let r = dir.path().join("rr.exr");
-    ok(&matflow(
-        &[
+    let render = |materials: &str, extra: &[&str]| {
+        let mut args = vec![
             "render",
             "--bundle",
             s(&out),
             "--materials",
-            "best_results",
+            materials,
             "--spp",
             "4",
             "--out",
             s(&r),
-        ],
-        None,
-    ));
+        ];
+        args.extend_from_slice(extra);
+        ok(&matflow(&args, None))
+    };
+    let text = render("best_results", &[]);
+    assert!(
+        text.contains("box filter (the one matflow invert fitted these maps with)"),
+        "{text}"
+    );
     assert!(r.is_file());
+    let boxed = std::fs::read(&r).unwrap();
+    let text = render("best_results", &["--filter", "gaussian"]);
+    assert!(text.contains("gaussian filter (as asked)"), "{text}");
+    assert_ne!(std::fs::read(&r).unwrap(), boxed);
+    // Predictions are not what invert fitted: Mitsuba's Gaussian.
+    let text = render("pred", &[]);
+    assert!(text.contains("gaussian filter (the default)"), "{text}");
     ok(&matflow(
         &[
             "render",

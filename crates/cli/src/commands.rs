@@ -37,9 +37,11 @@ pub struct RenderArgs {
     /// Random seed.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Pixel filter: gaussian (Mitsuba's default) or box.
-    #[arg(long, default_value = "gaussian")]
-    pub filter: PixelFilter,
+    /// Pixel filter: gaussian (Mitsuba's default) or box. Default: for
+    /// `best_results` written by `matflow invert`, the filter it fitted
+    /// with (its summary.json says which: box); otherwise gaussian.
+    #[arg(long)]
+    pub filter: Option<PixelFilter>,
     /// Mesh boundary angle threshold in degrees.
     #[arg(long, default_value_t = 6.0)]
     pub mesh_angle: f64,
@@ -220,8 +222,40 @@ pub fn write_outputs(out: &Path, img: &RgbImage) -> Result<PathBuf> {
     Ok(png)
 }
 
+/// The filter a render uses: the one asked for; else, for the maps
+/// `matflow invert` wrote, the one it fitted them with (`summary.json`'s
+/// `options.pixel_filter`); else Mitsuba's Gaussian. Also says why.
+pub fn render_filter(
+    bundle: &Path,
+    materials: MaterialSource,
+    asked: Option<PixelFilter>,
+) -> Result<(PixelFilter, &'static str)> {
+    if let Some(f) = asked {
+        return Ok((f, "as asked"));
+    }
+    if materials == MaterialSource::BestResults {
+        let path = bundle.join("summary.json");
+        if let Ok(text) = std::fs::read_to_string(&path) {
+            let v: serde_json::Value = serde_json::from_str(&text)
+                .with_context(|| format!("{}: not JSON", path.display()))?;
+            if let Some(name) = v
+                .get("options")
+                .and_then(|o| o.get("pixel_filter"))
+                .and_then(|f| f.as_str())
+            {
+                let f = name.parse::<PixelFilter>().map_err(|e| {
+                    anyhow::anyhow!("{}: options.pixel_filter: {e}", path.display())
+                })?;
+                return Ok((f, "the one matflow invert fitted these maps with"));
+            }
+        }
+    }
+    Ok((PixelFilter::default(), "the default"))
+}
+
 pub fn render(a: RenderArgs) -> Result<()> {
     let t_all = Instant::now();
+    let (filter, why) = render_filter(&a.bundle, a.materials, a.filter)?;
     let loaded = load_scene(
         &a.bundle,
         a.materials,
@@ -234,7 +268,7 @@ pub fn render(a: RenderArgs) -> Result<()> {
         max_depth: a.depth,
         glass_depth: a.glass_depth,
         seed: a.seed,
-        filter: a.filter,
+        filter,
         reference_compat: a.reference_compat,
         ..Default::default()
     };
@@ -265,11 +299,12 @@ pub fn render(a: RenderArgs) -> Result<()> {
     let png = write_outputs(&a.out, &out.image)?;
     let s = out.stats;
     outln!(
-        "rendered {}x{} at {} spp, depth {} in {:.2} s (mesh and BVH {:.2} s, total {:.2} s): {:.1} M rays, {:.2} Mrays/s -> {}, {}",
+        "rendered {}x{} at {} spp, depth {}, {} filter ({why}) in {:.2} s (mesh and BVH {:.2} s, total {:.2} s): {:.1} M rays, {:.2} Mrays/s -> {}, {}",
         loaded.scene.camera.width,
         loaded.scene.camera.height,
         a.spp,
         a.depth,
+        filter.name(),
         seconds,
         loaded.seconds,
         t_all.elapsed().as_secs_f64(),

@@ -289,6 +289,7 @@ pub fn invert_cmd(a: InvertArgs) -> Result<()> {
             "zeta": opts.zeta,
             "max_depth": opts.max_depth,
             "seed": opts.seed,
+            "pixel_filter": matflow_inverse::invert::FIT_FILTER.name(),
         },
         "plan": res.report.plan,
         "stages": stages_with_seconds(&res, &stage_seconds),

@@ -28,6 +28,12 @@ use crate::denoise::{denoise_tables, Guide};
 use crate::envfit::{exposure_scale, strided_pixels, EnvTransport, FitTrace};
 use crate::loss::{loss_and_grad, Target};
 use crate::paths::{CacheError, CacheOptions, PathCache};
+
+/// The pixel filter the inversion fits and re-renders with (each sample in
+/// its own pixel, as the frozen paths are kept); `summary.json` records
+/// it so that a re-render of the result uses it too.
+pub const FIT_FILTER: PixelFilter = PixelFilter::Box;
+
 pub use crate::plan::{Plan, SceneCost};
 use crate::routes::{
     self, Chosen, EnvFitter, EnvRoute, EnvStage, EnvStart, MatRoute, MatStage, MatStart,
@@ -509,7 +515,7 @@ pub fn invert(
             max_depth: opts.max_depth,
             glass_depth: matflow_render::integrator::DEFAULT_GLASS_DEPTH,
             seed: opts.seed ^ 0xf1_4a1,
-            filter: PixelFilter::Box,
+            filter: FIT_FILTER,
             reference_compat: false,
             tile_size: 16,
             crop: None,

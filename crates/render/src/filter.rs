@@ -22,6 +22,14 @@ impl Default for PixelFilter {
 }
 
 impl PixelFilter {
+    /// The name `FromStr` reads back (`gaussian` for any Gaussian).
+    pub fn name(&self) -> &'static str {
+        match self {
+            PixelFilter::Gaussian { .. } => "gaussian",
+            PixelFilter::Box => "box",
+        }
+    }
+
     /// Splat radius in pixels (0 for the box filter).
     pub fn radius(&self) -> f32 {
         match *self {
