@@ -7,6 +7,7 @@
 pub mod bvh;
 pub mod depth_mesh;
 pub mod mesh;
+pub mod planes;
 pub mod refraction;
 pub mod shapes;
 
@@ -15,3 +16,4 @@ pub use depth_mesh::{
     mesh_for_view, mesh_from_depth, vertex_normals, DepthMesh, MeshError, MeshParams, MeshStats,
 };
 pub use mesh::TriMesh;
+pub use planes::{fit_planes, Plane, PlaneFit, PlaneKind, PlaneParams};
