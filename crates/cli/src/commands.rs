@@ -112,6 +112,10 @@ pub struct MeshArgs {
     /// Boundary angle threshold in degrees (the reference's code uses 6).
     #[arg(long, default_value_t = 6.0)]
     pub angle: f64,
+    /// Also extend the view's bounding planes (floor, ceiling, walls) past
+    /// the frame (matflow_geom::complete; not yet used by rendering).
+    #[arg(long)]
+    pub complete: bool,
     #[arg(long)]
     pub out: PathBuf,
 }
@@ -411,7 +415,33 @@ pub fn mesh(a: MeshArgs) -> Result<()> {
     let bundle = Bundle::open(&a.bundle)?;
     let depth = bundle.load_depth()?;
     let t0 = Instant::now();
-    let (cam, m) = mesh_for_view(&depth, a.angle)?;
+    let (cam, mut m) = mesh_for_view(&depth, a.angle)?;
+    if a.complete {
+        let c = matflow_geom::complete_beyond_frame(
+            &mut m.mesh,
+            &depth,
+            &cam,
+            &matflow_geom::CompleteParams::default(),
+        );
+        for f in &c.extended {
+            outln!(
+                "extended {:?} n=({:.3}, {:.3}, {:.3}) d={:.3}: {:.1} % of the view, reaches {:?} (left, right, top, bottom)",
+                f.kind,
+                f.plane.n.x,
+                f.plane.n.y,
+                f.plane.n.z,
+                f.plane.d,
+                100.0 * f.fraction,
+                f.reaches
+            );
+        }
+        outln!(
+            "completion: {} plane(s) extended ({} triangles), {} found but not extended",
+            c.extended.len(),
+            c.triangles,
+            c.kept_in
+        );
+    }
     let secs = t0.elapsed().as_secs_f64();
     let mut buf = Vec::new();
     m.mesh.write_ply(&mut buf, cam.width, cam.height)?;

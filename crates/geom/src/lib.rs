@@ -5,6 +5,7 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord, clippy::needless_range_loop)]
 
 pub mod bvh;
+pub mod complete;
 pub mod depth_mesh;
 pub mod mesh;
 pub mod planes;
@@ -12,6 +13,7 @@ pub mod refraction;
 pub mod shapes;
 
 pub use bvh::{Bvh, Hit, PACKET};
+pub use complete::{complete_beyond_frame, CompleteParams, Completion};
 pub use depth_mesh::{
     mesh_for_view, mesh_from_depth, vertex_normals, DepthMesh, MeshError, MeshParams, MeshStats,
 };
