@@ -45,6 +45,11 @@ pub struct RenderArgs {
     /// Mesh boundary angle threshold in degrees.
     #[arg(long, default_value_t = 6.0)]
     pub mesh_angle: f64,
+    /// Extend the view's bounding planes (floor, ceiling, walls) past the
+    /// frame before rendering (matflow_geom::complete), so that unseen
+    /// parts of the room block and reflect light.
+    #[arg(long)]
+    pub complete: bool,
     /// Reproduce the reference renderer's sampling-frame defect and its
     /// optimisation-time envmap layout (for comparing with its stored
     /// renders; physically incorrect).
@@ -160,6 +165,7 @@ pub fn load_scene(
     envmap: Option<&Path>,
     mesh_angle: f64,
     reference_compat: bool,
+    complete: bool,
 ) -> Result<LoadedScene> {
     let bundle = Bundle::open(bundle_dir)?;
     let depth = bundle.load_depth()?;
@@ -179,8 +185,22 @@ pub fn load_scene(
     }
     let env = EnvMap::new(&env_img).with_context(|| format!("{}", env_path.display()))?;
     let t0 = Instant::now();
-    let (scene, _) = scene_from_depth(&depth, &maps, env.clone(), mesh_angle)
-        .with_context(|| format!("{}: building the scene", bundle_dir.display()))?;
+    let scene = if complete {
+        let (cam, mut m) = mesh_for_view(&depth, mesh_angle)
+            .with_context(|| format!("{}: meshing", bundle_dir.display()))?;
+        matflow_geom::complete_beyond_frame(
+            &mut m.mesh,
+            &depth,
+            &cam,
+            &matflow_geom::CompleteParams::default(),
+        );
+        RenderScene::new(cam, m.mesh, &maps, env.clone())
+            .with_context(|| format!("{}: building the scene", bundle_dir.display()))?
+    } else {
+        scene_from_depth(&depth, &maps, env.clone(), mesh_angle)
+            .with_context(|| format!("{}: building the scene", bundle_dir.display()))?
+            .0
+    };
     Ok(LoadedScene {
         scene,
         maps,
@@ -266,6 +286,7 @@ pub fn render(a: RenderArgs) -> Result<()> {
         a.envmap.as_deref(),
         a.mesh_angle,
         a.reference_compat,
+        a.complete,
     )?;
     let opts = RenderOptions {
         spp: a.spp,
@@ -478,7 +499,7 @@ pub fn synth(a: SynthArgs) -> Result<()> {
     bundle.write_materials("ground_truth", &s.maps)?;
     io::write_hdr(&bundle.path("ground_truth/envmap.hdr"), &s.envmap)?;
     // Render the input photo with the true materials and lighting.
-    let loaded = load_scene(&a.out, MaterialSource::GroundTruth, None, 6.0, false)?;
+    let loaded = load_scene(&a.out, MaterialSource::GroundTruth, None, 6.0, false, false)?;
     let opts = RenderOptions {
         spp: a.spp,
         seed: a.seed,
@@ -498,6 +519,7 @@ pub fn synth(a: SynthArgs) -> Result<()> {
             MaterialSource::GroundTruth,
             Some(&env_path),
             6.0,
+            false,
             false,
         )?;
         let opts = RenderOptions {

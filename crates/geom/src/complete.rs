@@ -10,7 +10,8 @@
 //!    on the camera's foot point on the plane;
 //! 2. clipped to the camera's side of every other bounding plane (those
 //!    reaching no border too), so the extended floor, walls and ceiling
-//!    meet as a convex room;
+//!    meet as a convex room; without a ceiling in view, walls stop at the
+//!    highest point seen on them (the room may be open to the sky);
 //! 3. with the part inside the camera's frustum (through the outermost
 //!    pixel centres, where the depth mesh ends) cut away, so the extension
 //!    never covers what the image shows (nor a window's opening): the
@@ -151,6 +152,16 @@ pub fn complete_beyond_frame(
     done.kept_in = inside.len();
     let sides = frustum_sides(cam);
     let r = p.extent * zmax;
+    // Without a ceiling in view a wall's height is unknown (the room may
+    // be open to the sky): walls then stop at the highest point seen on
+    // them, measured along "up" (the floor's normal, else the camera's y).
+    let has_ceiling = bounding.iter().any(|f| f.kind == PlaneKind::Ceiling);
+    let up = bounding
+        .iter()
+        .find(|f| f.kind == PlaneKind::Floor)
+        .map(|f| f.plane.n)
+        .unwrap_or(Vec3::Y);
+    let tol = p.planes.tolerance as f32;
     for (k, f) in bounding.iter().enumerate() {
         // Only a plane that runs out of the frame continues beyond it; the
         // others still close the room (they clip the extensions).
@@ -171,6 +182,16 @@ pub fn complete_beyond_frame(
         for (j, o) in bounding.iter().enumerate() {
             if j != k {
                 poly = clip(&poly, o.plane.n, o.plane.d);
+            }
+        }
+        if f.kind == PlaneKind::Wall && !has_ceiling {
+            let top = points
+                .iter()
+                .filter(|(q, z)| f.plane.distance(*q).abs() <= tol * z)
+                .map(|(q, _)| up.dot(*q))
+                .reduce(f32::max);
+            if let Some(top) = top {
+                poly = clip(&poly, -up, top);
             }
         }
         let mut inner = poly;
