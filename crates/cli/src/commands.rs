@@ -158,6 +158,42 @@ pub struct LoadedScene {
     pub seconds: f64,
 }
 
+/// The view's bounding planes extended past the frame
+/// (`matflow_geom::complete`), each as an object with the mean material
+/// of the pixels seen on it.
+pub fn completion_objects(
+    depth: &matflow_scene::GrayImage,
+    cam: &matflow_scene::Camera,
+    maps: &matflow_scene::MaterialMaps,
+) -> Vec<matflow_render::SceneObject> {
+    let (exts, _) = matflow_geom::extensions(depth, cam, &matflow_geom::CompleteParams::default());
+    exts.into_iter()
+        .map(|e| {
+            let n = e.pixels.len().max(1) as f64;
+            let (mut a, mut r, mut m) = (glam::DVec3::ZERO, 0f64, 0f64);
+            for &i in &e.pixels {
+                let i = i as usize;
+                a += maps.albedo.data[i].as_dvec3();
+                r += maps.roughness.data[i] as f64;
+                m += maps.metallic.data[i] as f64;
+            }
+            let material = matflow_render::Material {
+                albedo: (a / n).as_vec3(),
+                roughness: (r / n) as f32,
+                metallic: (m / n) as f32,
+            };
+            let normals = vec![e.fit.plane.n; e.mesh.positions.len()];
+            matflow_render::SceneObject {
+                mesh: e.mesh,
+                normals,
+                surface: matflow_render::Surface::Principled(material),
+                uvs: Vec::new(),
+                texture: None,
+            }
+        })
+        .collect()
+}
+
 /// Builds mesh, BVH, materials and envmap for a bundle.
 pub fn load_scene(
     bundle_dir: &Path,
@@ -186,15 +222,10 @@ pub fn load_scene(
     let env = EnvMap::new(&env_img).with_context(|| format!("{}", env_path.display()))?;
     let t0 = Instant::now();
     let scene = if complete {
-        let (cam, mut m) = mesh_for_view(&depth, mesh_angle)
+        let (cam, m) = mesh_for_view(&depth, mesh_angle)
             .with_context(|| format!("{}: meshing", bundle_dir.display()))?;
-        matflow_geom::complete_beyond_frame(
-            &mut m.mesh,
-            &depth,
-            &cam,
-            &matflow_geom::CompleteParams::default(),
-        );
-        RenderScene::new(cam, m.mesh, &maps, env.clone())
+        let objects = completion_objects(&depth, &cam, &maps);
+        RenderScene::with_objects(cam, m.mesh, &maps, env.clone(), &objects)
             .with_context(|| format!("{}: building the scene", bundle_dir.display()))?
     } else {
         scene_from_depth(&depth, &maps, env.clone(), mesh_angle)

@@ -59,6 +59,17 @@ pub struct Completion {
     pub triangles: usize,
 }
 
+/// One extended plane: its fit, the triangles added beyond the frame
+/// (facing the room; no film positions) and the pixels of the view that
+/// lie on it (row-major indices), e.g. to give the extension their mean
+/// material.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Extension {
+    pub fit: PlaneFit,
+    pub mesh: TriMesh,
+    pub pixels: Vec<u32>,
+}
+
 /// Keeps the part of convex polygon `poly` where `n·p + d ≥ 0`.
 fn clip(poly: &[Vec3], n: Vec3, d: f32) -> Vec<Vec3> {
     let mut out = Vec::with_capacity(poly.len() + 2);
@@ -124,32 +135,30 @@ fn bounds_scene(f: &PlaneFit, points: &[(Vec3, f32)], p: &CompleteParams) -> boo
     front as f64 >= p.support * points.len() as f64
 }
 
-/// Extends the bounding planes of depth map `z` past the frame, appending
-/// triangles to `mesh` (the depth mesh of the same view).
-pub fn complete_beyond_frame(
-    mesh: &mut TriMesh,
-    z: &GrayImage,
-    cam: &Camera,
-    p: &CompleteParams,
-) -> Completion {
+/// The extensions of the bounding planes of depth map `z` past the frame,
+/// and how many planes were found but not extended.
+pub fn extensions(z: &GrayImage, cam: &Camera, p: &CompleteParams) -> (Vec<Extension>, usize) {
     let fits = fit_planes(z, cam, &p.planes);
     let (w, h) = (z.width, z.height);
-    let points: Vec<(Vec3, f32)> = (0..w * h)
+    let valid: Vec<usize> = (0..w * h)
         .filter(|&i| z.data[i] > 0.0 && z.data[i].is_finite())
-        .map(|i| {
+        .collect();
+    let points: Vec<(Vec3, f32)> = valid
+        .iter()
+        .map(|&i| {
             (
                 cam.backproject((i % w) as f32, (i / w) as f32, z.data[i]),
                 z.data[i],
             )
         })
         .collect();
-    let mut done = Completion::default();
+    let mut out = Vec::new();
     let Some(zmax) = points.iter().map(|&(_, z)| z).reduce(f32::max) else {
-        return done;
+        return (out, 0);
     };
     let (bounding, inside): (Vec<PlaneFit>, Vec<PlaneFit>) =
         fits.into_iter().partition(|f| bounds_scene(f, &points, p));
-    done.kept_in = inside.len();
+    let mut kept_in = inside.len();
     let sides = frustum_sides(cam);
     let r = p.extent * zmax;
     // Without a ceiling in view a wall's height is unknown (the room may
@@ -166,10 +175,13 @@ pub fn complete_beyond_frame(
         // Only a plane that runs out of the frame continues beyond it; the
         // others still close the room (they clip the extensions).
         if !f.reaches.iter().any(|&r| r) {
-            done.kept_in += 1;
+            kept_in += 1;
             continue;
         }
         let Plane { n, d } = f.plane;
+        let on: Vec<usize> = (0..points.len())
+            .filter(|&j| f.plane.distance(points[j].0).abs() <= tol * points[j].1)
+            .collect();
         let foot = -n * d;
         let u = n.any_orthonormal_vector();
         let v = n.cross(u);
@@ -185,17 +197,12 @@ pub fn complete_beyond_frame(
             }
         }
         if f.kind == PlaneKind::Wall && !has_ceiling {
-            let top = points
-                .iter()
-                .filter(|(q, z)| f.plane.distance(*q).abs() <= tol * z)
-                .map(|(q, _)| up.dot(*q))
-                .reduce(f32::max);
-            if let Some(top) = top {
+            if let Some(top) = on.iter().map(|&j| up.dot(points[j].0)).reduce(f32::max) {
                 poly = clip(&poly, -up, top);
             }
         }
+        let mut mesh = TriMesh::default();
         let mut inner = poly;
-        let mut added = 0;
         for s in sides {
             if inner.len() < 3 {
                 break;
@@ -207,33 +214,61 @@ pub fn complete_beyond_frame(
             }
             let base = mesh.positions.len() as u32;
             mesh.positions.extend_from_slice(&outside);
-            if !mesh.film.is_empty() {
-                mesh.film.extend(outside.iter().map(|&q| {
-                    cam.project(q)
-                        .map(|f| f.clamp(Vec2::ZERO, Vec2::new(w as f32, h as f32)))
-                        .unwrap_or(Vec2::ZERO)
-                }));
-            }
             for t in 1..outside.len() - 1 {
                 let (a, b, c) = (outside[0], outside[t], outside[t + 1]);
                 if (b - a).cross(c - a).length_squared() <= 1e-12 * r * r {
                     continue;
                 }
-                let tri = if (b - a).cross(c - a).dot(n) >= 0.0 {
+                mesh.indices.push(if (b - a).cross(c - a).dot(n) >= 0.0 {
                     [base, base + t as u32, base + t as u32 + 1]
                 } else {
                     [base, base + t as u32 + 1, base + t as u32]
-                };
-                mesh.indices.push(tri);
-                added += 1;
+                });
             }
         }
-        if added > 0 {
-            done.triangles += added;
-            done.extended.push(f.clone());
-        } else {
-            done.kept_in += 1;
+        if mesh.indices.is_empty() {
+            kept_in += 1;
+            continue;
         }
+        out.push(Extension {
+            fit: f.clone(),
+            mesh,
+            pixels: on.iter().map(|&j| valid[j] as u32).collect(),
+        });
+    }
+    (out, kept_in)
+}
+
+/// Extends the bounding planes of depth map `z` past the frame, appending
+/// the triangles to `mesh` (the depth mesh of the same view; film
+/// positions of the new vertices: their projection clamped to the image,
+/// 0 behind the camera).
+pub fn complete_beyond_frame(
+    mesh: &mut TriMesh,
+    z: &GrayImage,
+    cam: &Camera,
+    p: &CompleteParams,
+) -> Completion {
+    let (exts, kept_in) = extensions(z, cam, p);
+    let (w, h) = (z.width as f32, z.height as f32);
+    let mut done = Completion {
+        kept_in,
+        ..Completion::default()
+    };
+    for e in exts {
+        let base = mesh.positions.len() as u32;
+        mesh.positions.extend_from_slice(&e.mesh.positions);
+        if !mesh.film.is_empty() {
+            mesh.film.extend(e.mesh.positions.iter().map(|&q| {
+                cam.project(q)
+                    .map(|f| f.clamp(Vec2::ZERO, Vec2::new(w, h)))
+                    .unwrap_or(Vec2::ZERO)
+            }));
+        }
+        mesh.indices
+            .extend(e.mesh.indices.iter().map(|t| t.map(|k| k + base)));
+        done.triangles += e.mesh.indices.len();
+        done.extended.push(e.fit);
     }
     done
 }

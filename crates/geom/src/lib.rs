@@ -13,7 +13,7 @@ pub mod refraction;
 pub mod shapes;
 
 pub use bvh::{Bvh, Hit, PACKET};
-pub use complete::{complete_beyond_frame, CompleteParams, Completion};
+pub use complete::{complete_beyond_frame, extensions, CompleteParams, Completion, Extension};
 pub use depth_mesh::{
     mesh_for_view, mesh_from_depth, vertex_normals, DepthMesh, MeshError, MeshParams, MeshStats,
 };
