@@ -108,6 +108,31 @@ fn synth_then_render_writes_exr_png_and_summary() {
     let (pos, faces) =
         matflow_geom::mesh::read_ply_positions_faces(&std::fs::read(&ply).unwrap()).unwrap();
     assert!(!pos.is_empty() && !faces.is_empty());
+    // With the room completed past the frame: more triangles in the PLY,
+    // and a render that still runs (the extension as objects).
+    let text = ok(&matflow(
+        &["mesh", "--bundle", s(&b), "--complete", "--out", s(&ply)],
+        None,
+    ));
+    assert!(text.contains("completion: "), "{text}");
+    let (_, more) =
+        matflow_geom::mesh::read_ply_positions_faces(&std::fs::read(&ply).unwrap()).unwrap();
+    assert!(more.len() >= faces.len(), "{text}");
+    ok(&matflow(
+        &[
+            "render",
+            "--bundle",
+            s(&b),
+            "--materials",
+            "ground_truth",
+            "--spp",
+            "2",
+            "--complete",
+            "--out",
+            s(&out),
+        ],
+        None,
+    ));
 }
 
 #[test]
