@@ -185,3 +185,12 @@ impl Worker {
             .status();
     }
 }
+
+/// An empty scratch folder `matflow-{prefix}-{pid}-{name}` in the temp
+/// directory (emptied first: a re-run starts clean).
+pub fn scratch(prefix: &str, name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("matflow-{prefix}-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}

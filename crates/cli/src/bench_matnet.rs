@@ -19,8 +19,8 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use glam::Vec3;
-use matflow_nodes::{load_matnet_model, matnet_predict, read_matnet_photo};
-use matflow_onnx::matnet::{network_input, square_of, Encoding, SQUARE};
+use matflow_nodes::{load_matnet_model, matnet_linear_square, matnet_predict, read_matnet_photo};
+use matflow_onnx::matnet::network_input;
 use matflow_onnx::Backend;
 use matflow_scene::{Bundle, GrayImage, Image, MaterialMaps, MaterialSource, RgbImage};
 
@@ -91,14 +91,8 @@ fn time_one(a: &BenchMatnetArgs, backend: Backend) -> Result<()> {
         let t = Instant::now();
         matnet_predict(&photo, &m).map_err(anyhow::Error::msg)?;
         whole.push(t.elapsed().as_secs_f64());
-        let sq = square_of(
-            photo.height,
-            photo.width,
-            |c, y, x| photo.at(c, y, x),
-            SQUARE,
-        );
         let n = m.contract.input;
-        let x = network_input(&sq, Encoding::Display, n);
+        let x = network_input(&matnet_linear_square(&photo), n);
         let t = Instant::now();
         m.graph
             .run(&[1, 3, n, n], x.data)
@@ -181,15 +175,6 @@ fn timing_table(a: &BenchMatnetArgs) -> Result<()> {
     Ok(())
 }
 
-/// Bilinear resize of an RGB map (pixel centres), for comparing maps of
-/// different sizes.
-fn resize(img: &RgbImage, w: usize, h: usize) -> RgbImage {
-    if img.width == w && img.height == h {
-        return img.clone();
-    }
-    matflow_scene::io::resize_bilinear(img, w, h)
-}
-
 /// Errors of predicted maps against reference maps over the pixels where
 /// the reference depth is positive.
 #[derive(Default, Clone, Copy)]
@@ -239,33 +224,24 @@ impl Errors {
     }
 }
 
-fn median_of(v: &[f32]) -> f64 {
-    let mut v: Vec<f32> = v.to_vec();
-    v.sort_by(|a, b| a.total_cmp(b));
-    if v.is_empty() {
-        0.0
-    } else {
-        v[v.len() / 2] as f64
-    }
-}
-
 /// `pred` against `truth` (truth's size; the prediction is resized).
 fn compare(pred: &MaterialMaps, z: &GrayImage, truth: &MaterialMaps, tz: &GrayImage) -> Errors {
     let (w, h) = (tz.width, tz.height);
-    let albedo = resize(&pred.albedo, w, h);
-    let rough = resize(&pred.roughness.to_rgb(), w, h);
-    let metal = resize(&pred.metallic.to_rgb(), w, h);
-    let normal = resize(
-        pred.normal.as_ref().expect("predictions carry normals"),
-        w,
-        h,
-    );
-    let zp = resize(&z.to_rgb(), w, h);
     let valid: Vec<usize> = (0..w * h).filter(|&i| tz.data[i] > 0.0).collect();
-    let n = valid.len().max(1) as f64;
-    let zt: Vec<f32> = valid.iter().map(|&i| tz.data[i]).collect();
-    let zq: Vec<f32> = valid.iter().map(|&i| zp.data[i].x).collect();
-    let scale = median_of(&zt) / median_of(&zq).max(1e-12);
+    if valid.is_empty() {
+        return Errors::default();
+    }
+    // Bilinear at pixel centres: the identity when the sizes agree.
+    let resize = |img: &RgbImage| matflow_scene::io::resize_bilinear(img, w, h);
+    let albedo = resize(&pred.albedo);
+    let rough = resize(&pred.roughness.to_rgb());
+    let metal = resize(&pred.metallic.to_rgb());
+    let normal = resize(pred.normal.as_ref().expect("predictions carry normals"));
+    let zp = resize(&z.to_rgb());
+    let n = valid.len() as f64;
+    let zt: Vec<f64> = valid.iter().map(|&i| tz.data[i] as f64).collect();
+    let zq: Vec<f64> = valid.iter().map(|&i| zp.data[i].x as f64).collect();
+    let scale = median(zt.clone()) / median(zq.clone()).max(1e-12);
     let mut e = Errors {
         pixels: n,
         ..Errors::default()
@@ -281,7 +257,7 @@ fn compare(pred: &MaterialMaps, z: &GrayImage, truth: &MaterialMaps, tz: &GrayIm
             let b = tn.data[i].normalize_or_zero();
             e.normal_deg += (a.dot(b).clamp(-1.0, 1.0) as f64).acos().to_degrees();
         }
-        let (p, t) = (zq[k] as f64, zt[k] as f64);
+        let (p, t) = (zq[k], zt[k]);
         e.depth_absrel += (p - t).abs() / t;
         e.depth_aligned += (p * scale - t).abs() / t;
     }
@@ -304,8 +280,12 @@ fn constant_of(truth: &MaterialMaps, tz: &GrayImage) -> (MaterialMaps, GrayImage
     let a = valid.iter().map(|&i| truth.albedo.data[i]).sum::<Vec3>() / n;
     let r = valid.iter().map(|&i| truth.roughness.data[i]).sum::<f32>() / n;
     let m = valid.iter().map(|&i| truth.metallic.data[i]).sum::<f32>() / n;
-    let zs: Vec<f32> = valid.iter().map(|&i| tz.data[i]).collect();
-    let z = median_of(&zs) as f32;
+    let zs: Vec<f64> = valid.iter().map(|&i| tz.data[i] as f64).collect();
+    let z = if zs.is_empty() {
+        1.0
+    } else {
+        median(zs) as f32
+    };
     let mut maps = MaterialMaps::uniform(w, h, a, r, m);
     maps.normal = Some(Image::new(w, h, Vec3::Z));
     (maps, Image::new(w, h, z))

@@ -276,27 +276,8 @@ pub fn complete_beyond_frame(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::planes::testmaps::{render_planes, wavy};
     use crate::planes::PlaneKind;
-
-    fn render_planes(cam: &Camera, planes: &[(Vec3, f32)]) -> GrayImage {
-        let mut z = GrayImage::new(cam.width, cam.height, 0.0);
-        for y in 0..cam.height {
-            for x in 0..cam.width {
-                let dir = cam.backproject(x as f32, y as f32, 1.0);
-                let mut best = f32::INFINITY;
-                for &(n, d) in planes {
-                    let t = -d / n.dot(dir);
-                    if t > 0.0 && t < best {
-                        best = t;
-                    }
-                }
-                if best.is_finite() {
-                    z.data[y * cam.width + x] = best;
-                }
-            }
-        }
-        z
-    }
 
     /// The nearest hit of a ray from the origin on `mesh`'s triangles from
     /// index `from` on (Möller–Trumbore).
@@ -402,15 +383,7 @@ mod tests {
     #[test]
     fn a_view_without_planes_is_unchanged() {
         let cam = Camera::new(64, 64);
-        let mut z = GrayImage::new(64, 64, 0.0);
-        for y in 0..64 {
-            for x in 0..64 {
-                let (u, v) = (x as f32 / 64.0, y as f32 / 64.0);
-                z.data[y * 64 + x] = 3.0
-                    + 1.0 * (u * 23.0).sin() * (v * 19.0).cos()
-                    + 0.6 * (u * u * 11.0 + v * 9.0).sin();
-            }
-        }
+        let z = wavy(64);
         let mut mesh = TriMesh::default();
         mesh.add_box(Vec3::splat(-1.0), Vec3::splat(1.0));
         let before = mesh.clone();

@@ -167,10 +167,14 @@ fn through(a: DVec3, b: DVec3, c: DVec3) -> Option<(DVec3, f64)> {
 /// first.
 pub fn fit_planes(z: &GrayImage, cam: &Camera, p: &PlaneParams) -> Vec<PlaneFit> {
     let (w, h) = (z.width, z.height);
-    let point = |i: usize| -> DVec3 {
-        let (x, y) = (i % w, i / w);
-        cam.backproject(x as f32, y as f32, z.data[i]).as_dvec3()
-    };
+    // Every pixel's point once (the search tests each many times).
+    let points: Vec<DVec3> = (0..w * h)
+        .map(|i| {
+            cam.backproject((i % w) as f32, (i / w) as f32, z.data[i])
+                .as_dvec3()
+        })
+        .collect();
+    let point = |i: usize| points[i];
     let valid: Vec<usize> = (0..w * h)
         .filter(|&i| z.data[i] > 0.0 && z.data[i].is_finite())
         .collect();
@@ -340,13 +344,15 @@ pub fn fit_planes(z: &GrayImage, cam: &Camera, p: &PlaneParams) -> Vec<PlaneFit>
     out
 }
 
+/// Analytic depth maps for the tests here and in `complete`.
 #[cfg(test)]
-mod tests {
-    use super::*;
+pub(crate) mod testmaps {
+    use glam::Vec3;
+    use matflow_scene::{Camera, GrayImage};
 
     /// Depth of the nearest of `planes` (n·p + d = 0, n towards the
     /// camera) along each pixel's ray; 0 where none is hit in front.
-    fn render_planes(cam: &Camera, planes: &[(Vec3, f32)]) -> GrayImage {
+    pub fn render_planes(cam: &Camera, planes: &[(Vec3, f32)]) -> GrayImage {
         let mut z = GrayImage::new(cam.width, cam.height, 0.0);
         for y in 0..cam.height {
             for x in 0..cam.width {
@@ -365,6 +371,26 @@ mod tests {
         }
         z
     }
+
+    /// A `n`×`n` wavy surface around depth 3 with no plane in it.
+    pub fn wavy(n: usize) -> GrayImage {
+        let mut z = GrayImage::new(n, n, 0.0);
+        for y in 0..n {
+            for x in 0..n {
+                let (u, v) = (x as f32 / 64.0, y as f32 / 64.0);
+                z.data[y * n + x] = 3.0
+                    + 1.0 * (u * 23.0).sin() * (v * 19.0).cos()
+                    + 0.6 * (u * u * 11.0 + v * 9.0).sin();
+            }
+        }
+        z
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::testmaps::{render_planes, wavy};
+    use super::*;
 
     fn close(a: &Plane, n: Vec3, d: f32) -> bool {
         a.n.dot(n) > 0.9999 && (a.d - d).abs() < 1e-3 * d.max(1.0)
@@ -436,15 +462,7 @@ mod tests {
     fn a_scene_without_planes_gives_none() {
         let cam = Camera::new(64, 64);
         // A wavy surface: no plane holds 8 % of it within 1 % of depth.
-        let mut z = GrayImage::new(64, 64, 0.0);
-        for y in 0..64 {
-            for x in 0..64 {
-                let (u, v) = (x as f32 / 64.0, y as f32 / 64.0);
-                z.data[y * 64 + x] = 3.0
-                    + 1.0 * (u * 23.0).sin() * (v * 19.0).cos()
-                    + 0.6 * (u * u * 11.0 + v * 9.0).sin();
-            }
-        }
+        let z = wavy(64);
         let fits = fit_planes(&z, &cam, &PlaneParams::default());
         assert!(fits.is_empty(), "{fits:?}");
         // Empty and tiny maps too.

@@ -28,6 +28,31 @@ pub(crate) const MESH: ParamSpec = ParamSpec {
     doc: "geometry and camera",
 };
 
+/// Which engine runs a stage's ONNX model (`refraction_length`, `matnet`).
+pub(crate) const BACKEND: ParamSpec = ParamSpec {
+    name: "backend",
+    ty: ParamType::Choice(matflow_onnx::Backend::NAMES),
+    default: Some("tract"),
+    unit: "",
+    doc: "tract (built in) or onnxruntime (ORT_DYLIB_PATH or the onnxruntime wheel)",
+};
+
+/// The backend a stage asked for (the parameter is checked on load).
+pub(crate) fn backend_of(p: &matflow_engine::node::Params) -> matflow_onnx::Backend {
+    matflow_onnx::Backend::from_name(p.str("backend")).unwrap_or(matflow_onnx::Backend::Tract)
+}
+
+/// Adds output file `name` of a kind whose outputs are files, encoded by
+/// `encode` (given the name, for its errors).
+pub(crate) fn put_file(
+    out: &mut std::collections::BTreeMap<String, Vec<u8>>,
+    name: &str,
+    encode: impl FnOnce(&Path) -> Result<Vec<u8>, matflow_scene::SceneError>,
+) -> Result<(), NodeError> {
+    out.insert(name.to_string(), encode(Path::new(name)).map_err(failed)?);
+    Ok(())
+}
+
 /// What a `scene` artifact holds.
 pub struct SceneData {
     /// Camera-space depth z (0: sky).

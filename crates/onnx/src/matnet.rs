@@ -172,7 +172,7 @@ pub fn linearise(p: &Planar) -> Planar {
 /// (align_corners), linear, then `input`² bicubic.
 pub fn preprocess(photo: &Planar, square: usize, input: usize) -> Planar {
     let sq = resize_bilinear(&centre_square(photo), square, square, true);
-    resize_bicubic(&linearise(&sq), input, input, false)
+    network_input(&linearise(&sq), input)
 }
 
 /// The square side the photo is resized to first, and every output
@@ -227,17 +227,21 @@ pub fn square_of(
     out
 }
 
-/// The network's input from the square: linearised when display-encoded,
-/// then resized bicubically to `input`².
-pub fn network_input(square: &Planar, enc: Encoding, input: usize) -> Planar {
-    let lin = match enc {
-        Encoding::Display => linearise(square),
-        Encoding::Linear => square.clone(),
-    };
+/// The square in linear values: linearised when display-encoded.
+pub fn linear(square: Planar, enc: Encoding) -> Planar {
+    match enc {
+        Encoding::Display => linearise(&square),
+        Encoding::Linear => square,
+    }
+}
+
+/// The network's input from the linear square: resized bicubically to
+/// `input`² (as it is when already that size).
+pub fn network_input(lin: &Planar, input: usize) -> Planar {
     if input == lin.h && input == lin.w {
-        lin
+        lin.clone()
     } else {
-        resize_bicubic(&lin, input, input, false)
+        resize_bicubic(lin, input, input, false)
     }
 }
 

@@ -128,8 +128,11 @@ impl ExrChannels {
 
 /// Size (width, height) of an EXR's first layer, from its header alone.
 pub fn exr_size(path: &Path) -> Result<(usize, usize)> {
-    let bytes = read_bytes(path)?;
-    let meta = exr_meta(path, &bytes)?;
+    exr_size_of(path, &read_bytes(path)?)
+}
+
+fn exr_size_of(path: &Path, bytes: &[u8]) -> Result<(usize, usize)> {
+    let meta = exr_meta(path, bytes)?;
     let h = meta
         .headers
         .first()
@@ -187,7 +190,12 @@ fn check_exr_header(path: &Path, bytes: &[u8]) -> Result<()> {
 }
 
 pub fn read_exr_channels(path: &Path) -> Result<ExrChannels> {
-    let bytes = read_bytes(path)?;
+    exr_channels_of(path, read_bytes(path)?)
+}
+
+/// [`read_exr_channels`] of a file already read (`path` names it in
+/// errors).
+fn exr_channels_of(path: &Path, bytes: Vec<u8>) -> Result<ExrChannels> {
     check_exr_header(path, &bytes)?;
     let img = x::read()
         .no_deep_data()
@@ -232,7 +240,10 @@ pub fn read_exr_channels(path: &Path) -> Result<ExrChannels> {
 /// Reads an RGB EXR. A single-channel file (`Y` or any one channel) is
 /// replicated into RGB.
 pub fn read_exr_rgb(path: &Path) -> Result<RgbImage> {
-    let c = read_exr_channels(path)?;
+    exr_rgb_of(path, read_exr_channels(path)?)
+}
+
+fn exr_rgb_of(path: &Path, c: ExrChannels) -> Result<RgbImage> {
     let (w, h) = (c.width, c.height);
     if let (Some(r), Some(g), Some(b)) = (c.get("R"), c.get("G"), c.get("B")) {
         let data = (0..w * h).map(|i| Vec3::new(r[i], g[i], b[i])).collect();
@@ -706,15 +717,38 @@ impl Photo {
     }
 }
 
-/// Reads a photo (PNG or JPEG of 8 or 16 bits, grey or colour, with or
-/// without alpha; or an EXR, linear RGB or one channel). Refused with the
-/// reason: undecodable files, more than [`MAX_PHOTO_PIXELS`] (checked from
-/// the header, before decoding), and EXRs holding NaN, infinities or
-/// negative values.
-pub fn read_photo(path: &Path) -> Result<Photo> {
-    let bytes = read_bytes(path)?;
-    let too_big = |w: usize, h: usize| {
-        SceneError::invalid(
+fn is_exr(bytes: &[u8]) -> bool {
+    bytes.starts_with(&[0x76, 0x2f, 0x31, 0x01])
+}
+
+fn image_reader<'a>(path: &Path, bytes: &'a [u8]) -> Result<image::ImageReader<Cursor<&'a [u8]>>> {
+    image::ImageReader::new(Cursor::new(bytes))
+        .with_guessed_format()
+        .map_err(|e| SceneError::io(path, e))
+}
+
+/// A photo's size from its header, refused past [`MAX_PHOTO_PIXELS`]
+/// (nothing is decoded): what [`read_photo`] checks first.
+pub fn photo_size(path: &Path) -> Result<(usize, usize)> {
+    photo_size_of(path, &read_bytes(path)?)
+}
+
+fn photo_size_of(path: &Path, bytes: &[u8]) -> Result<(usize, usize)> {
+    let (w, h) = if is_exr(bytes) {
+        exr_size_of(path, bytes)?
+    } else {
+        let (w, h) =
+            image_reader(path, bytes)?
+                .into_dimensions()
+                .map_err(|e| SceneError::Decode {
+                    path: path.into(),
+                    message: e.to_string(),
+                })?;
+        (w as usize, h as usize)
+    };
+    check_size(path, w, h)?;
+    if w * h > MAX_PHOTO_PIXELS {
+        return Err(SceneError::invalid(
             path,
             format!(
                 "the photo is {w}x{h} = {:.1} megapixels, more than the {} megapixels matflow \
@@ -722,14 +756,21 @@ pub fn read_photo(path: &Path) -> Result<Photo> {
                 (w * h) as f64 / 1e6,
                 MAX_PHOTO_PIXELS / 1_000_000
             ),
-        )
-    };
-    if bytes.starts_with(&[0x76, 0x2f, 0x31, 0x01]) {
-        let (w, h) = exr_size(path)?;
-        if w * h > MAX_PHOTO_PIXELS {
-            return Err(too_big(w, h));
-        }
-        let img = read_exr_rgb(path)?;
+        ));
+    }
+    Ok((w, h))
+}
+
+/// Reads a photo (PNG or JPEG of 8 or 16 bits, grey or colour, with or
+/// without alpha; or an EXR, linear RGB or one channel). Refused with the
+/// reason: undecodable files, more than [`MAX_PHOTO_PIXELS`] (checked from
+/// the header, before decoding), and EXRs holding NaN, infinities or
+/// negative values.
+pub fn read_photo(path: &Path) -> Result<Photo> {
+    let bytes = read_bytes(path)?;
+    let (w, h) = photo_size_of(path, &bytes)?;
+    if is_exr(&bytes) {
+        let img = exr_rgb_of(path, exr_channels_of(path, bytes)?)?;
         for (i, p) in img.data.iter().enumerate() {
             if !p.is_finite() || p.min_element() < 0.0 {
                 return Err(SceneError::invalid(
@@ -756,18 +797,7 @@ pub fn read_photo(path: &Path) -> Result<Photo> {
         path: path.into(),
         message: e.to_string(),
     };
-    let reader = || {
-        image::ImageReader::new(Cursor::new(&bytes[..]))
-            .with_guessed_format()
-            .map_err(|e| SceneError::io(path, e))
-    };
-    let (w, h) = reader()?.into_dimensions().map_err(decode)?;
-    let (w, h) = (w as usize, h as usize);
-    check_size(path, w, h)?;
-    if w * h > MAX_PHOTO_PIXELS {
-        return Err(too_big(w, h));
-    }
-    let mut r = reader()?;
+    let mut r = image_reader(path, &bytes)?;
     let mut limits = image::Limits::default();
     limits.max_alloc = Some(4 << 30);
     r.limits(limits);

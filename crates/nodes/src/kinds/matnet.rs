@@ -13,7 +13,7 @@ use glam::Vec3;
 use matflow_engine::node::{Bytes, Params};
 use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
 use matflow_onnx::matnet::{
-    network_input, square_of, Contract, DepthKind, Encoding, Maps, Planar, SQUARE,
+    linear, network_input, square_of, Contract, DepthKind, Encoding, Maps, Planar, SQUARE,
 };
 use matflow_onnx::model_file::{
     check_memory, info_of_bytes, info_of_file, memory_available, memory_needed, ModelInfo,
@@ -22,7 +22,7 @@ use matflow_onnx::{Backend, Graph, Source};
 use matflow_scene::bundle::{check_depth_range, disparity_to_depth};
 use matflow_scene::{io, GrayImage, Image, MaterialMaps, RgbImage};
 
-use crate::data::SceneData;
+use crate::data::{backend_of, put_file, SceneData, BACKEND};
 use crate::{err, failed};
 
 /// The network matflow ships: trained by `train/matnet/train.py` on the
@@ -85,13 +85,7 @@ const INFO: NodeInfo = NodeInfo {
             doc: "an ONNX model honouring MatNet's contract (default: the bundled one, trained \
                   here on synthetic rooms)",
         },
-        ParamSpec {
-            name: "backend",
-            ty: ParamType::Choice(Backend::NAMES),
-            default: Some("tract"),
-            unit: "",
-            doc: "tract (built in) or onnxruntime (ORT_DYLIB_PATH or the onnxruntime wheel)",
-        },
+        BACKEND,
         ParamSpec {
             name: "output",
             ty: ParamType::OutPath,
@@ -154,9 +148,11 @@ pub struct Loaded {
     pub what: String,
 }
 
-/// Loads the stage's model (the given file or the bundled one), checks
-/// its contract and that the machine has the memory to run it.
-pub fn load_model(model: Option<&Path>, backend: Backend) -> Result<Loaded, String> {
+/// What is known of the stage's model (the given file or the bundled one)
+/// before loading it: its digest, size and metadata (a corrupt or
+/// truncated file fails here), and that the machine has the memory to run
+/// it. Also names it for messages.
+fn model_info(model: Option<&Path>) -> Result<(ModelInfo, String), String> {
     let (info, what) = match model {
         Some(path) => (
             info_of_file(path)
@@ -175,6 +171,12 @@ pub fn load_model(model: Option<&Path>, backend: Backend) -> Result<Loaded, Stri
         memory_needed(info.bytes, 3 * 518 * 518),
         memory_available(),
     )?;
+    Ok((info, what))
+}
+
+/// Loads the stage's model and checks its contract.
+pub fn load_model(model: Option<&Path>, backend: Backend) -> Result<Loaded, String> {
+    let (info, what) = model_info(model)?;
     let graph = match model {
         Some(path) => Graph::load(Source::File(path), &what, backend),
         None => Graph::load(Source::Bytes(BUNDLED_MODEL), &what, backend),
@@ -212,24 +214,27 @@ fn gray(p: &Planar) -> GrayImage {
     Image::from_vec(p.w, p.h, p.data.clone())
 }
 
+fn check_photo_size(path: &Path, w: usize, h: usize) -> Result<(), String> {
+    if w.min(h) < MIN_PHOTO_SIDE {
+        return Err(format!(
+            "{}: the photo is {w}x{h}: too small to predict from (its shorter side must be at \
+             least {MIN_PHOTO_SIDE} pixels)",
+            path.display()
+        ));
+    }
+    Ok(())
+}
+
 /// Reads a photo, refusing what cannot be predicted from.
 pub fn read_photo(path: &Path) -> Result<io::Photo, String> {
     let photo = io::read_photo(path).map_err(|e| e.to_string())?;
-    if photo.width.min(photo.height) < MIN_PHOTO_SIDE {
-        return Err(format!(
-            "{}: the photo is {}x{}: too small to predict from (its shorter side must be at \
-             least {MIN_PHOTO_SIDE} pixels)",
-            path.display(),
-            photo.width,
-            photo.height
-        ));
-    }
+    check_photo_size(path, photo.width, photo.height)?;
     Ok(photo)
 }
 
-/// Runs the contract on one photo: square, network input, inference,
-/// maps at 512².
-pub fn predict(photo: &io::Photo, m: &Loaded) -> Result<Prediction, String> {
+/// The photo's centred square at 512², linear (the contract's first
+/// steps; the network's input is this resized to its side).
+pub fn linear_square(photo: &io::Photo) -> Planar {
     let square = square_of(
         photo.height,
         photo.width,
@@ -241,11 +246,14 @@ pub fn predict(photo: &io::Photo, m: &Loaded) -> Result<Prediction, String> {
     } else {
         Encoding::Display
     };
-    let lin = match enc {
-        Encoding::Display => matflow_onnx::matnet::linearise(&square),
-        Encoding::Linear => square.clone(),
-    };
-    let x = network_input(&square, enc, m.contract.input);
+    linear(square, enc)
+}
+
+/// Runs the contract on one photo: square, network input, inference,
+/// maps at 512².
+pub fn predict(photo: &io::Photo, m: &Loaded) -> Result<Prediction, String> {
+    let lin = linear_square(photo);
+    let x = network_input(&lin, m.contract.input);
     let n = m.contract.input;
     let outs = m
         .graph
@@ -280,10 +288,6 @@ impl Prediction {
     }
 }
 
-fn backend_of(p: &Params) -> Backend {
-    Backend::from_name(p.str("backend")).unwrap_or(Backend::Tract)
-}
-
 impl Node for MatnetNode {
     fn info(&self) -> &'static NodeInfo {
         &INFO
@@ -291,12 +295,19 @@ impl Node for MatnetNode {
     fn film_size(&self, _p: &Params) -> Option<(usize, usize)> {
         Some((SQUARE, SQUARE))
     }
+    /// Checks what can be checked without decoding the photo or loading
+    /// the model (both done once, when the stage runs): the photo's size
+    /// from its header, the model file, the memory, the onnxruntime library.
     fn preflight(&self, p: &Params) -> Result<(), String> {
         if let Some(photo) = p.path("photo") {
-            read_photo(&photo)?;
+            let (w, h) = io::photo_size(&photo).map_err(|e| e.to_string())?;
+            check_photo_size(&photo, w, h)?;
         }
-        if p.is_set("model") || p.str("backend") != "tract" {
-            load_model(p.path("model").as_deref(), backend_of(p))?;
+        if p.is_set("model") {
+            model_info(p.path("model").as_deref())?;
+        }
+        if backend_of(p) == Backend::OnnxRuntime {
+            matflow_onnx::runtime::find_onnxruntime().map_err(|e| e.to_string())?;
         }
         Ok(())
     }
@@ -320,43 +331,29 @@ impl Node for MatnetNode {
             pred: pred.materials(),
         };
         out.insert("scene".to_string(), scene.encode());
-        let mem = |name: &str| Path::new(name).to_path_buf();
-        let mut put = |name: &str, b: Result<Vec<u8>, matflow_scene::SceneError>| {
-            b.map(|b| {
-                out.insert(name.to_string(), b);
-            })
-            .map_err(failed)
-        };
-        put(
-            "gt_image.exr",
-            io::encode_exr_rgb(&mem("gt_image.exr"), &pred.photo),
-        )?;
-        put(
-            "gt_image.png",
-            io::encode_png_gamma(&mem("gt_image.png"), &pred.photo),
-        )?;
-        put(
-            "albedoPred.exr",
-            io::encode_exr_rgb(&mem("albedoPred.exr"), &rgb(&pred.maps.albedo)),
-        )?;
-        put(
-            "normalPred.exr",
-            io::encode_exr_rgb(&mem("normalPred.exr"), &rgb(&pred.maps.normal)),
-        )?;
-        put(
-            "roughnessPred.png",
-            io::png_srgb_bytes(&gray(&pred.maps.roughness).to_rgb()),
-        )?;
-        put(
-            "metallicPred.png",
-            io::png_srgb_bytes(&gray(&pred.maps.metallic).to_rgb()),
-        )?;
+        put_file(&mut out, "gt_image.exr", |p| {
+            io::encode_exr_rgb(p, &pred.photo)
+        })?;
+        put_file(&mut out, "gt_image.png", |p| {
+            io::encode_png_gamma(p, &pred.photo)
+        })?;
+        put_file(&mut out, "albedoPred.exr", |p| {
+            io::encode_exr_rgb(p, &rgb(&pred.maps.albedo))
+        })?;
+        put_file(&mut out, "normalPred.exr", |p| {
+            io::encode_exr_rgb(p, &rgb(&pred.maps.normal))
+        })?;
+        put_file(&mut out, "roughnessPred.png", |_| {
+            io::png_srgb_bytes(&gray(&pred.maps.roughness).to_rgb())
+        })?;
+        put_file(&mut out, "metallicPred.png", |_| {
+            io::png_srgb_bytes(&gray(&pred.maps.metallic).to_rgb())
+        })?;
         match pred.depth_kind {
-            DepthKind::Z => put("depth.exr", io::encode_exr_gray(&mem("depth.exr"), &pred.z))?,
-            DepthKind::Disparity => put(
-                "depthPred.exr",
-                io::encode_exr_gray(&mem("depthPred.exr"), &gray(&pred.maps.depth)),
-            )?,
+            DepthKind::Z => put_file(&mut out, "depth.exr", |p| io::encode_exr_gray(p, &pred.z))?,
+            DepthKind::Disparity => put_file(&mut out, "depthPred.exr", |p| {
+                io::encode_exr_gray(p, &gray(&pred.maps.depth))
+            })?,
         }
         let s = photo.width.min(photo.height);
         let record = serde_json::json!({
@@ -456,13 +453,7 @@ mod tests {
         let m = load_model(None, Backend::Tract).unwrap();
         assert_eq!(m.contract.input, 256);
         assert_eq!(m.contract.depth, DepthKind::Z);
-        let square = square_of(
-            photo.height,
-            photo.width,
-            |c, y, x| photo.at(c, y, x),
-            SQUARE,
-        );
-        let x = network_input(&square, Encoding::Display, 256);
+        let x = network_input(&linear_square(&photo), 256);
         let outs = m.graph.run(&[1, 3, 256, 256], x.data).unwrap();
         let want = matflow_scene::npy::decode(
             &std::fs::read(repo("models/matnet_rooms.fixture_output.npy")).unwrap(),

@@ -11,10 +11,10 @@ use std::path::Path;
 use matflow_engine::node::Params;
 use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
 use matflow_onnx::refraction::{expand, normals_from_depth, prepare, CROP, IN_CH, OUT_CH};
-use matflow_onnx::{Backend, Model};
+use matflow_onnx::Model;
 use matflow_scene::{Camera, Image};
 
-use crate::data::{encode_image, SceneData};
+use crate::data::{backend_of, encode_image, SceneData, BACKEND};
 use crate::err;
 use crate::kinds::edit::{
     check_mask_choice, check_mask_film, preflight_mask, EditNode, FLOOD_TOLERANCE, MASK_FLOOD,
@@ -57,13 +57,7 @@ const INFO: NodeInfo = NodeInfo {
             unit: "",
             doc: "an ONNX model with the same input and output (default: the bundled one)",
         },
-        ParamSpec {
-            name: "backend",
-            ty: ParamType::Choice(Backend::NAMES),
-            default: Some("tract"),
-            unit: "",
-            doc: "tract (built in) or onnxruntime (ORT_DYLIB_PATH or the onnxruntime wheel)",
-        },
+        BACKEND,
     ],
     outputs: &[OutputSpec {
         name: "distances",
@@ -74,7 +68,7 @@ const INFO: NodeInfo = NodeInfo {
 
 /// Loads the model of a stage: the given file or the bundled one.
 fn model(p: &Params) -> Result<Model, String> {
-    let backend = Backend::from_name(p.str("backend")).unwrap_or(Backend::Tract);
+    let backend = backend_of(p);
     let (bytes, what) = match p.path("model") {
         Some(path) => (
             std::fs::read(&path).map_err(|e| format!("{}: {e}", path.display()))?,

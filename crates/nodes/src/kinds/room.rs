@@ -5,7 +5,6 @@
 //! true albedo, roughness, metallic, normals and the lighting.
 
 use std::collections::BTreeMap;
-use std::path::Path;
 
 use glam::Vec3;
 use matflow_engine::node::Params;
@@ -17,6 +16,7 @@ use matflow_render::{render, EnvMap, RenderOptions, RenderScene};
 use matflow_scene::envgen::procedural_envmap;
 use matflow_scene::{io, Camera, MaterialMaps};
 
+use crate::data::put_file;
 use crate::failed;
 
 pub struct RoomSampleNode;
@@ -146,41 +146,24 @@ impl Node for RoomSampleNode {
         let img = raw.map(|c| c * k);
         let env_img = env_img.map(|c| c * k);
         let gt = ground_truth(&scene, &camera);
-        let mem = |name: &str| Path::new(name).to_path_buf();
         let mut out = BTreeMap::new();
-        let mut put = |name: &str, b: Result<Vec<u8>, matflow_scene::SceneError>| {
-            b.map(|b| {
-                out.insert(name.to_string(), b);
-            })
-            .map_err(failed)
-        };
-        put(
-            "gt_image.exr",
-            io::encode_exr_rgb(&mem("gt_image.exr"), &img),
-        )?;
-        put("gt_image.png", io::png_srgb_bytes(&img))?;
-        put(
-            "depth.exr",
-            io::encode_exr_gray(&mem("depth.exr"), &gt.depth),
-        )?;
-        put("mesh_mask.png", io::png_mask_bytes(&gt.sky))?;
-        put(
-            "albedo.exr",
-            io::encode_exr_rgb(&mem("albedo.exr"), &gt.albedo),
-        )?;
-        put(
-            "roughness.exr",
-            io::encode_exr_rgb(&mem("roughness.exr"), &gt.roughness.to_rgb()),
-        )?;
-        put(
-            "metallic.exr",
-            io::encode_exr_rgb(&mem("metallic.exr"), &gt.metallic.to_rgb()),
-        )?;
-        put(
-            "normal.exr",
-            io::encode_exr_rgb(&mem("normal.exr"), &gt.normal),
-        )?;
-        put("envmap.hdr", io::encode_hdr(&mem("envmap.hdr"), &env_img))?;
+        put_file(&mut out, "gt_image.exr", |p| io::encode_exr_rgb(p, &img))?;
+        put_file(&mut out, "gt_image.png", |_| io::png_srgb_bytes(&img))?;
+        put_file(&mut out, "depth.exr", |p| io::encode_exr_gray(p, &gt.depth))?;
+        put_file(&mut out, "mesh_mask.png", |_| io::png_mask_bytes(&gt.sky))?;
+        put_file(&mut out, "albedo.exr", |p| {
+            io::encode_exr_rgb(p, &gt.albedo)
+        })?;
+        put_file(&mut out, "roughness.exr", |p| {
+            io::encode_exr_rgb(p, &gt.roughness.to_rgb())
+        })?;
+        put_file(&mut out, "metallic.exr", |p| {
+            io::encode_exr_rgb(p, &gt.metallic.to_rgb())
+        })?;
+        put_file(&mut out, "normal.exr", |p| {
+            io::encode_exr_rgb(p, &gt.normal)
+        })?;
+        put_file(&mut out, "envmap.hdr", |p| io::encode_hdr(p, &env_img))?;
         Ok(out)
     }
 }
