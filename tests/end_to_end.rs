@@ -109,7 +109,9 @@ fn synth_then_render_writes_exr_png_and_summary() {
         matflow_geom::mesh::read_ply_positions_faces(&std::fs::read(&ply).unwrap()).unwrap();
     assert!(!pos.is_empty() && !faces.is_empty());
     // With the room completed past the frame: more triangles in the PLY,
-    // and a render that still runs (the extension as objects).
+    // and a render that still runs (the added triangles take the materials
+    // of the pixels they continue); an inversion with it, whose result
+    // renders with it by default.
     let text = ok(&matflow(
         &["mesh", "--bundle", s(&b), "--complete", "--out", s(&ply)],
         None,
@@ -133,6 +135,38 @@ fn synth_then_render_writes_exr_png_and_summary() {
         ],
         None,
     ));
+    let inv = dir.path().join("inv-room");
+    ok(&matflow(
+        &[
+            "invert",
+            "--bundle",
+            s(&b),
+            "--out",
+            s(&inv),
+            "--budget-seconds",
+            "3",
+            "--complete",
+            "room",
+            "--quiet",
+        ],
+        None,
+    ));
+    let text = ok(&matflow(
+        &[
+            "render",
+            "--bundle",
+            s(&inv),
+            "--spp",
+            "2",
+            "--out",
+            s(&out),
+        ],
+        None,
+    ));
+    assert!(
+        text.contains("completion room (the one matflow invert recovered these maps with)"),
+        "{text}"
+    );
 }
 
 #[test]
@@ -328,6 +362,7 @@ fn invert_writes_best_results_deterministically_and_rerenders() {
     let summary: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
     assert_eq!(summary["options"]["pixel_filter"], "box");
+    assert_eq!(summary["options"]["complete"], "none");
     let r = dir.path().join("rr.exr");
     let render = |materials: &str, extra: &[&str]| {
         let mut args = vec![
@@ -347,6 +382,10 @@ fn invert_writes_best_results_deterministically_and_rerenders() {
     let text = render("best_results", &[]);
     assert!(
         text.contains("box filter (the one matflow invert fitted these maps with)"),
+        "{text}"
+    );
+    assert!(
+        text.contains("completion none (the one matflow invert recovered these maps with)"),
         "{text}"
     );
     assert!(r.is_file());

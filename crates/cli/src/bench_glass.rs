@@ -96,7 +96,7 @@ pub fn bench_glass(a: BenchGlassArgs) -> Result<()> {
             Vec3::new(-30.0, -1.0, -60.0),
         ],
         indices: vec![[0, 1, 2], [0, 2, 3]],
-        film: Vec::new(),
+        ..Default::default()
     };
     let jug = shapes::jug(96).transformed(1.8, Vec3::new(0.0, -1.0, -5.5));
     write_ply(&a.work.join("floor.ply"), &floor, &[])?;

@@ -44,6 +44,46 @@ pub struct BenchInvertArgs {
     /// Where the child runs write their bundles.
     #[arg(long, default_value = "target/bench-invert")]
     pub work: PathBuf,
+    /// Relighting on unseen scenes instead: the validation set written by
+    /// `bench/relight_scenes.py` (its folder, with validation.json). Every
+    /// budget of --budgets runs on every scene of --halves.
+    #[arg(long)]
+    pub validation: Option<PathBuf>,
+    /// With --validation: which halves (tuning, heldback).
+    #[arg(long, num_args = 1.., default_values = ["tuning", "heldback"])]
+    pub halves: Vec<String>,
+    /// With --validation: configurations, each a string of extra `invert`
+    /// flags ("" is the defaults), optionally named as `name=flags`.
+    #[arg(long, num_args = 1.., allow_hyphen_values = true, default_values = [""])]
+    pub variants: Vec<String>,
+    /// With --validation: only these scenes (e.g. scene-03).
+    #[arg(long, num_args = 1..)]
+    pub scenes: Vec<String>,
+    /// With --validation: samples per pixel of the evaluation renders.
+    #[arg(long, default_value_t = 64)]
+    pub relight_spp: u32,
+    /// With --validation: the geometry past the frame, for `invert` and
+    /// every render (`--complete`: none, planes, room, closed); several
+    /// run in turn.
+    #[arg(long, num_args = 1.., default_values = ["none"])]
+    pub complete: Vec<crate::commands::CompleteMode>,
+}
+
+/// `name=flags` or just flags (named by themselves; "" is "default").
+fn parse_variant(v: &str) -> (String, Vec<String>) {
+    let (name, flags) = match v.split_once('=') {
+        Some((n, f)) if !n.trim_start().starts_with('-') => (n.trim().to_string(), f),
+        _ => (String::new(), v),
+    };
+    let flags: Vec<String> = flags.split_whitespace().map(String::from).collect();
+    let name = if !name.is_empty() {
+        name
+    } else if flags.is_empty() {
+        "default".into()
+    } else {
+        flags.join(" ")
+    };
+    (name, flags)
 }
 
 struct Row {
@@ -112,6 +152,25 @@ fn reference_psnr(bundle: &Path) -> Option<f64> {
 pub fn bench_invert(a: BenchInvertArgs) -> Result<()> {
     let exe = std::env::current_exe()?;
     std::fs::create_dir_all(&a.work)?;
+    if let Some(dir) = &a.validation {
+        let v = crate::bench_relight::load_validation(dir)?;
+        for &budget in &a.budgets {
+            crate::bench_relight::bench_relight(
+                &v,
+                &crate::bench_relight::RelightRun {
+                    exe: &exe,
+                    budget,
+                    variants: a.variants.iter().map(|x| parse_variant(x)).collect(),
+                    spp: a.relight_spp,
+                    complete: a.complete.clone(),
+                    halves: a.halves.clone(),
+                    only: a.scenes.clone(),
+                    work: &a.work,
+                },
+            )?;
+        }
+        return Ok(());
+    }
     outln!(
         "bench invert: {} thread(s); each row is one child `matflow invert` run; rerender = \
          independent render of the recovered scene vs the input (sRGB γ 2.2)",
@@ -230,4 +289,22 @@ pub fn bench_invert(a: BenchInvertArgs) -> Result<()> {
         );
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::parse_variant;
+
+    #[test]
+    fn variants_are_named_flags() {
+        assert_eq!(parse_variant(""), ("default".into(), vec![]));
+        assert_eq!(
+            parse_variant("--delta 0.5"),
+            ("--delta 0.5".into(), vec!["--delta".into(), "0.5".into()])
+        );
+        assert_eq!(
+            parse_variant("strong prior=--delta 0.5"),
+            ("strong prior".into(), vec!["--delta".into(), "0.5".into()])
+        );
+    }
 }

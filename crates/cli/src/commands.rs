@@ -45,11 +45,14 @@ pub struct RenderArgs {
     /// Mesh boundary angle threshold in degrees.
     #[arg(long, default_value_t = 6.0)]
     pub mesh_angle: f64,
-    /// Extend the view's bounding planes (floor, ceiling, walls) past the
-    /// frame before rendering (matflow_geom::complete), so that unseen
-    /// parts of the room block and reflect light.
-    #[arg(long)]
-    pub complete: bool,
+    /// Complete the geometry past the frame before rendering
+    /// (matflow_geom::complete), so that unseen parts of the room block
+    /// and reflect light: `room` (the default when the flag is given
+    /// alone) extends the view's floor, walls and ceiling and closes the
+    /// room with assumed ones where the view shows a room; `planes` only
+    /// extends the planes seen.
+    #[arg(long, num_args = 0..=1, default_missing_value = "room")]
+    pub complete: Option<CompleteMode>,
     /// Reproduce the reference renderer's sampling-frame defect and its
     /// optimisation-time envmap layout (for comparing with its stored
     /// renders; physically incorrect).
@@ -117,10 +120,9 @@ pub struct MeshArgs {
     /// Boundary angle threshold in degrees (the reference's code uses 6).
     #[arg(long, default_value_t = 6.0)]
     pub angle: f64,
-    /// Also extend the view's bounding planes (floor, ceiling, walls) past
-    /// the frame (matflow_geom::complete; not yet used by rendering).
-    #[arg(long)]
-    pub complete: bool,
+    /// Also complete the geometry past the frame (see `render --complete`).
+    #[arg(long, num_args = 0..=1, default_missing_value = "room")]
+    pub complete: Option<CompleteMode>,
     #[arg(long)]
     pub out: PathBuf,
 }
@@ -158,40 +160,90 @@ pub struct LoadedScene {
     pub seconds: f64,
 }
 
-/// The view's bounding planes extended past the frame
-/// (`matflow_geom::complete`), each as an object with the mean material
-/// of the pixels seen on it.
-pub fn completion_objects(
-    depth: &matflow_scene::GrayImage,
-    cam: &matflow_scene::Camera,
-    maps: &matflow_scene::MaterialMaps,
-) -> Vec<matflow_render::SceneObject> {
-    let (exts, _) = matflow_geom::extensions(depth, cam, &matflow_geom::CompleteParams::default());
-    exts.into_iter()
-        .map(|e| {
-            let n = e.pixels.len().max(1) as f64;
-            let (mut a, mut r, mut m) = (glam::DVec3::ZERO, 0f64, 0f64);
-            for &i in &e.pixels {
-                let i = i as usize;
-                a += maps.albedo.data[i].as_dvec3();
-                r += maps.roughness.data[i] as f64;
-                m += maps.metallic.data[i] as f64;
+/// How `--complete` completes the geometry past the frame.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum CompleteMode {
+    /// The depth mesh alone.
+    None,
+    /// Extend the floor, walls and ceiling the view shows, and fill them
+    /// in behind what hides them in view.
+    Planes,
+    /// As `planes`, and close the room with an assumed ceiling and walls,
+    /// each assumed wall with a typical window left open (light from
+    /// openings the view does not show).
+    Room,
+    /// As `room`, the assumed walls without windows.
+    Closed,
+}
+
+impl CompleteMode {
+    pub fn name(self) -> &'static str {
+        match self {
+            CompleteMode::None => "none",
+            CompleteMode::Planes => "planes",
+            CompleteMode::Room => "room",
+            CompleteMode::Closed => "closed",
+        }
+    }
+
+    pub fn parse(name: &str) -> Option<CompleteMode> {
+        [
+            CompleteMode::None,
+            CompleteMode::Planes,
+            CompleteMode::Room,
+            CompleteMode::Closed,
+        ]
+        .into_iter()
+        .find(|m| m.name() == name)
+    }
+
+    pub fn params(self) -> Option<matflow_geom::CompleteParams> {
+        let d = matflow_geom::CompleteParams::default();
+        match self {
+            CompleteMode::None => None,
+            CompleteMode::Planes => Some(matflow_geom::CompleteParams { close: false, ..d }),
+            CompleteMode::Room => Some(matflow_geom::CompleteParams { close: true, ..d }),
+            CompleteMode::Closed => Some(matflow_geom::CompleteParams {
+                close: true,
+                assumed_opening: 0.0,
+                ..d
+            }),
+        }
+    }
+}
+
+/// The completion a render uses: the one asked for; else, for the maps
+/// `matflow invert` wrote, the one it recovered them with (`summary.json`'s
+/// `options.complete`); else none. Also says why.
+pub fn render_completion(
+    bundle: &Path,
+    materials: MaterialSource,
+    asked: Option<CompleteMode>,
+) -> Result<(CompleteMode, &'static str)> {
+    if let Some(m) = asked {
+        return Ok((m, "as asked"));
+    }
+    if materials == MaterialSource::BestResults {
+        let path = bundle.join("summary.json");
+        if let Ok(text) = std::fs::read_to_string(&path) {
+            let v: serde_json::Value = serde_json::from_str(&text)
+                .with_context(|| format!("{}: not JSON", path.display()))?;
+            if let Some(name) = v
+                .get("options")
+                .and_then(|o| o.get("complete"))
+                .and_then(|f| f.as_str())
+            {
+                let m = CompleteMode::parse(name).with_context(|| {
+                    format!(
+                        "{}: options.complete: unknown mode `{name}`",
+                        path.display()
+                    )
+                })?;
+                return Ok((m, "the one matflow invert recovered these maps with"));
             }
-            let material = matflow_render::Material {
-                albedo: (a / n).as_vec3(),
-                roughness: (r / n) as f32,
-                metallic: (m / n) as f32,
-            };
-            let normals = vec![e.fit.plane.n; e.mesh.positions.len()];
-            matflow_render::SceneObject {
-                mesh: e.mesh,
-                normals,
-                surface: matflow_render::Surface::Principled(material),
-                uvs: Vec::new(),
-                texture: None,
-            }
-        })
-        .collect()
+        }
+    }
+    Ok((CompleteMode::None, "the default"))
 }
 
 /// Builds mesh, BVH, materials and envmap for a bundle.
@@ -201,7 +253,7 @@ pub fn load_scene(
     envmap: Option<&Path>,
     mesh_angle: f64,
     reference_compat: bool,
-    complete: bool,
+    complete: Option<CompleteMode>,
 ) -> Result<LoadedScene> {
     let bundle = Bundle::open(bundle_dir)?;
     let depth = bundle.load_depth()?;
@@ -221,17 +273,10 @@ pub fn load_scene(
     }
     let env = EnvMap::new(&env_img).with_context(|| format!("{}", env_path.display()))?;
     let t0 = Instant::now();
-    let scene = if complete {
-        let (cam, m) = mesh_for_view(&depth, mesh_angle)
-            .with_context(|| format!("{}: meshing", bundle_dir.display()))?;
-        let objects = completion_objects(&depth, &cam, &maps);
-        RenderScene::with_objects(cam, m.mesh, &maps, env.clone(), &objects)
-            .with_context(|| format!("{}: building the scene", bundle_dir.display()))?
-    } else {
-        scene_from_depth(&depth, &maps, env.clone(), mesh_angle)
-            .with_context(|| format!("{}: building the scene", bundle_dir.display()))?
-            .0
-    };
+    let params = complete.and_then(|m| m.params());
+    let scene = scene_from_depth(&depth, &maps, env.clone(), mesh_angle, params.as_ref())
+        .with_context(|| format!("{}: building the scene", bundle_dir.display()))?
+        .0;
     Ok(LoadedScene {
         scene,
         maps,
@@ -311,13 +356,14 @@ pub fn render_filter(
 pub fn render(a: RenderArgs) -> Result<()> {
     let t_all = Instant::now();
     let (filter, why) = render_filter(&a.bundle, a.materials, a.filter)?;
+    let (complete, why_complete) = render_completion(&a.bundle, a.materials, a.complete)?;
     let loaded = load_scene(
         &a.bundle,
         a.materials,
         a.envmap.as_deref(),
         a.mesh_angle,
         a.reference_compat,
-        a.complete,
+        Some(complete),
     )?;
     let opts = RenderOptions {
         spp: a.spp,
@@ -355,12 +401,13 @@ pub fn render(a: RenderArgs) -> Result<()> {
     let png = write_outputs(&a.out, &out.image)?;
     let s = out.stats;
     outln!(
-        "rendered {}x{} at {} spp, depth {}, {} filter ({why}) in {:.2} s (mesh and BVH {:.2} s, total {:.2} s): {:.1} M rays, {:.2} Mrays/s -> {}, {}",
+        "rendered {}x{} at {} spp, depth {}, {} filter ({why}), completion {} ({why_complete}) in {:.2} s (mesh and BVH {:.2} s, total {:.2} s): {:.1} M rays, {:.2} Mrays/s -> {}, {}",
         loaded.scene.camera.width,
         loaded.scene.camera.height,
         a.spp,
         a.depth,
         filter.name(),
+        complete.name(),
         seconds,
         loaded.seconds,
         t_all.elapsed().as_secs_f64(),
@@ -468,13 +515,8 @@ pub fn mesh(a: MeshArgs) -> Result<()> {
     let depth = bundle.load_depth()?;
     let t0 = Instant::now();
     let (cam, mut m) = mesh_for_view(&depth, a.angle)?;
-    if a.complete {
-        let c = matflow_geom::complete_beyond_frame(
-            &mut m.mesh,
-            &depth,
-            &cam,
-            &matflow_geom::CompleteParams::default(),
-        );
+    if let Some(params) = a.complete.and_then(|m| m.params()) {
+        let c = matflow_geom::complete_beyond_frame(&mut m.mesh, &depth, &cam, &params);
         for f in &c.extended {
             outln!(
                 "extended {:?} n=({:.3}, {:.3}, {:.3}) d={:.3}: {:.1} % of the view, reaches {:?} (left, right, top, bottom)",
@@ -530,7 +572,7 @@ pub fn synth(a: SynthArgs) -> Result<()> {
     bundle.write_materials("ground_truth", &s.maps)?;
     io::write_hdr(&bundle.path("ground_truth/envmap.hdr"), &s.envmap)?;
     // Render the input photo with the true materials and lighting.
-    let loaded = load_scene(&a.out, MaterialSource::GroundTruth, None, 6.0, false, false)?;
+    let loaded = load_scene(&a.out, MaterialSource::GroundTruth, None, 6.0, false, None)?;
     let opts = RenderOptions {
         spp: a.spp,
         seed: a.seed,
@@ -551,7 +593,7 @@ pub fn synth(a: SynthArgs) -> Result<()> {
             Some(&env_path),
             6.0,
             false,
-            false,
+            None,
         )?;
         let opts = RenderOptions {
             spp: a.relight_spp,

@@ -66,6 +66,11 @@ pub struct InvertArgs {
     /// Mesh boundary angle threshold in degrees.
     #[arg(long, default_value_t = 6.0)]
     pub mesh_angle: f64,
+    /// Geometry past the frame (see `render --complete`): none, planes,
+    /// room or closed. `render` on the result uses the same unless told
+    /// otherwise.
+    #[arg(long, default_value = "none")]
+    pub complete: crate::commands::CompleteMode,
     /// À-trous denoising passes over the per-pixel tables (0: off).
     #[arg(long, default_value_t = 3)]
     pub denoise: usize,
@@ -112,7 +117,12 @@ pub struct InvertInput {
     pub scene: RenderScene,
 }
 
-pub fn load_input(dir: &Path, source: MaterialSource, mesh_angle: f64) -> Result<InvertInput> {
+pub fn load_input(
+    dir: &Path,
+    source: MaterialSource,
+    mesh_angle: f64,
+    complete: Option<&matflow_geom::CompleteParams>,
+) -> Result<InvertInput> {
     let bundle = Bundle::open(dir)?;
     let target = bundle.load_gt_image()?;
     let depth = bundle.load_depth()?;
@@ -130,7 +140,7 @@ pub fn load_input(dir: &Path, source: MaterialSource, mesh_angle: f64) -> Result
         );
     }
     let flat = Image::new(32, 16, Vec3::ONE);
-    let (scene, _) = scene_from_depth(&depth, &maps, EnvMap::new(&flat)?, mesh_angle)
+    let (scene, _) = scene_from_depth(&depth, &maps, EnvMap::new(&flat)?, mesh_angle, complete)
         .with_context(|| format!("{}: building the scene", dir.display()))?;
     Ok(InvertInput {
         depth,
@@ -264,7 +274,12 @@ pub fn write_bundle(
 
 pub fn invert_cmd(a: InvertArgs) -> Result<()> {
     let t0 = Instant::now();
-    let input = load_input(&a.bundle, a.materials, a.mesh_angle)?;
+    let input = load_input(
+        &a.bundle,
+        a.materials,
+        a.mesh_angle,
+        a.complete.params().as_ref(),
+    )?;
     let opts = options_from(&a);
     let InvertInput {
         depth,
@@ -290,6 +305,7 @@ pub fn invert_cmd(a: InvertArgs) -> Result<()> {
             "max_depth": opts.max_depth,
             "seed": opts.seed,
             "pixel_filter": matflow_inverse::invert::FIT_FILTER.name(),
+            "complete": a.complete.name(),
         },
         "plan": res.report.plan,
         "stages": stages_with_seconds(&res, &stage_seconds),

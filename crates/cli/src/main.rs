@@ -44,6 +44,7 @@ mod bench_insert;
 mod bench_invert;
 mod bench_matnet;
 mod bench_pipeline;
+mod bench_relight;
 mod bench_synthetic;
 mod cluster;
 mod commands;

@@ -19,8 +19,18 @@
 //!    bottom side of the frustum in turn (disjoint), fanned into
 //!    triangles facing the camera's side.
 //!
+//! Every bounding plane is also filled in view behind what hides it
+//! ([`fill_in_view`]: furniture and objects), so no light passes through
+//! the holes a depth mesh has there, while what the image shows (a
+//! window's sky included) stays open. With `close`, a room the view
+//! evidently shows is closed ([`closure`]: an assumed ceiling and walls),
+//! each assumed wall keeping a typical window open (`assumed_opening`).
+//!
 //! Planes inside the scene (a cabinet's front) fail the bounding test and
-//! are left alone; a view without such planes is unchanged.
+//! are left alone; a view without such planes is unchanged. Everything is
+//! computed from the depth alone, so the same depth always gives the same
+//! completion (and [`complete_beyond_frame`] names, per added triangle,
+//! the pixel of its plane whose material it takes).
 
 use glam::{Vec2, Vec3};
 use matflow_scene::{Camera, GrayImage};
@@ -36,6 +46,20 @@ pub struct CompleteParams {
     /// Smallest share of the seen geometry on a plane's camera side (within
     /// the plane tolerance) for it to count as bounding the scene.
     pub support: f64,
+    /// Close the room where the view evidently shows one (a floor and a
+    /// wall or ceiling): a ceiling and the walls the view does not show
+    /// are assumed (see [`closure`]).
+    pub close: bool,
+    /// Assumed ceiling height, in camera heights above the floor (rooms:
+    /// 2.4–3 m ceilings over a camera held at 1.3–1.7 m), or just above
+    /// the highest point seen when that is higher.
+    pub ceiling_ratio: f32,
+    /// Smallest distance of an assumed wall from the camera, in camera
+    /// heights (a wall behind the photographer).
+    pub wall_ratio: f32,
+    /// Width of the window left open in each assumed wall, as a share of
+    /// the wall (over [`WINDOW_BAND`] of the room's height); 0 closes them.
+    pub assumed_opening: f32,
 }
 
 impl Default for CompleteParams {
@@ -44,6 +68,10 @@ impl Default for CompleteParams {
             planes: PlaneParams::default(),
             extent: 4.0,
             support: 0.98,
+            close: false,
+            ceiling_ratio: 1.8,
+            wall_ratio: 0.5,
+            assumed_opening: 0.4,
         }
     }
 }
@@ -68,6 +96,81 @@ pub struct Extension {
     pub fit: PlaneFit,
     pub mesh: TriMesh,
     pub pixels: Vec<u32>,
+    /// An assumed plane of the closed room (no pixel shows it).
+    pub assumed: bool,
+}
+
+/// The planes that close a room the view shows only part of: with a floor
+/// in view (its normal is "up", its distance the camera's height h) and a
+/// wall or ceiling, the room is taken as a box aligned with the largest
+/// wall seen (else with the view direction). A ceiling not in view is put
+/// `ceiling_ratio`·h above the floor (or just above the highest point
+/// seen); of the box's four wall directions, each with no wall seen within
+/// 30° gets a wall just beyond the farthest point seen that way, and at
+/// least `wall_ratio`·h from the camera. Nothing when the view shows no
+/// room (no floor, or a floor alone: the scene may be outdoors).
+fn closure(bounding: &[PlaneFit], points: &[(Vec3, f32)], p: &CompleteParams) -> Vec<PlaneFit> {
+    let by_fraction = |a: &&PlaneFit, b: &&PlaneFit| a.fraction.total_cmp(&b.fraction);
+    let Some(floor) = bounding
+        .iter()
+        .filter(|f| f.kind == PlaneKind::Floor)
+        .max_by(by_fraction)
+    else {
+        return Vec::new();
+    };
+    let walls: Vec<&PlaneFit> = bounding
+        .iter()
+        .filter(|f| f.kind == PlaneKind::Wall)
+        .collect();
+    let has_ceiling = bounding.iter().any(|f| f.kind == PlaneKind::Ceiling);
+    let (up, h) = (floor.plane.n, floor.plane.d);
+    if (walls.is_empty() && !has_ceiling) || !(h > 0.0) || points.is_empty() {
+        return Vec::new();
+    }
+    let horizontal = |v: Vec3| (v - up * up.dot(v)).normalize_or_zero();
+    let a0 = walls
+        .iter()
+        .max_by(|a, b| a.fraction.total_cmp(&b.fraction))
+        .map(|w| horizontal(-w.plane.n))
+        .filter(|a| *a != Vec3::ZERO)
+        .unwrap_or_else(|| horizontal(Vec3::NEG_Z));
+    if a0 == Vec3::ZERO {
+        return Vec::new();
+    }
+    let a1 = up.cross(a0).normalize_or_zero();
+    let margin = 0.05 * h;
+    let assumed = |n: Vec3, d: f32, kind: PlaneKind| PlaneFit {
+        plane: Plane { n, d },
+        kind,
+        fraction: 0.0,
+        rms: 0.0,
+        reaches: [true; 4],
+    };
+    let mut out = Vec::new();
+    if !has_ceiling {
+        let top = points
+            .iter()
+            .map(|(q, _)| up.dot(*q) + h)
+            .fold(0.0f32, f32::max);
+        let height = (top + margin).max(p.ceiling_ratio * h);
+        out.push(assumed(-up, height - h, PlaneKind::Ceiling));
+    }
+    let cos30 = 30f32.to_radians().cos();
+    for a in [a0, a1, -a0, -a1] {
+        if walls.iter().any(|w| horizontal(-w.plane.n).dot(a) > cos30) {
+            continue;
+        }
+        let far = points
+            .iter()
+            .map(|(q, _)| a.dot(*q))
+            .fold(f32::NEG_INFINITY, f32::max);
+        out.push(assumed(
+            -a,
+            (far + margin).max(p.wall_ratio * h),
+            PlaneKind::Wall,
+        ));
+    }
+    out
 }
 
 /// Keeps the part of convex polygon `poly` where `n·p + d ≥ 0`.
@@ -156,8 +259,13 @@ pub fn extensions(z: &GrayImage, cam: &Camera, p: &CompleteParams) -> (Vec<Exten
     let Some(zmax) = points.iter().map(|&(_, z)| z).reduce(f32::max) else {
         return (out, 0);
     };
-    let (bounding, inside): (Vec<PlaneFit>, Vec<PlaneFit>) =
+    let (mut bounding, inside): (Vec<PlaneFit>, Vec<PlaneFit>) =
         fits.into_iter().partition(|f| bounds_scene(f, &points, p));
+    let seen = bounding.len();
+    if p.close {
+        let extra = closure(&bounding, &points, p);
+        bounding.extend(extra);
+    }
     let mut kept_in = inside.len();
     let sides = frustum_sides(cam);
     let r = p.extent * zmax;
@@ -165,23 +273,43 @@ pub fn extensions(z: &GrayImage, cam: &Camera, p: &CompleteParams) -> (Vec<Exten
     // be open to the sky): walls then stop at the highest point seen on
     // them, measured along "up" (the floor's normal, else the camera's y).
     let has_ceiling = bounding.iter().any(|f| f.kind == PlaneKind::Ceiling);
-    let up = bounding
+    let floor = bounding
         .iter()
         .find(|f| f.kind == PlaneKind::Floor)
-        .map(|f| f.plane.n)
-        .unwrap_or(Vec3::Y);
+        .map(|f| f.plane);
+    let up = floor.map(|f| f.n).unwrap_or(Vec3::Y);
+    // The ceiling's height above the floor (for openings in assumed walls).
+    let ceiling_height = floor.and_then(|fl| {
+        bounding
+            .iter()
+            .filter(|f| f.kind == PlaneKind::Ceiling)
+            .map(|c| c.plane.d + fl.d)
+            .reduce(f32::max)
+    });
     let tol = p.planes.tolerance as f32;
     for (k, f) in bounding.iter().enumerate() {
+        let Plane { n, d } = f.plane;
+        let others: Vec<Plane> = bounding
+            .iter()
+            .enumerate()
+            .filter(|&(j, _)| j != k)
+            .map(|(_, o)| o.plane)
+            .collect();
+        let mut mesh = fill_in_view(&f.plane, &others, z, cam, tol);
         // Only a plane that runs out of the frame continues beyond it; the
         // others still close the room (they clip the extensions).
-        if !f.reaches.iter().any(|&r| r) {
+        if !f.reaches.iter().any(|&r| r) && mesh.indices.is_empty() {
             kept_in += 1;
             continue;
         }
-        let Plane { n, d } = f.plane;
-        let on: Vec<usize> = (0..points.len())
-            .filter(|&j| f.plane.distance(points[j].0).abs() <= tol * points[j].1)
-            .collect();
+        let assumed = k >= seen;
+        let on: Vec<usize> = if assumed {
+            Vec::new()
+        } else {
+            (0..points.len())
+                .filter(|&j| f.plane.distance(points[j].0).abs() <= tol * points[j].1)
+                .collect()
+        };
         let foot = -n * d;
         let u = n.any_orthonormal_vector();
         let v = n.cross(u);
@@ -201,30 +329,15 @@ pub fn extensions(z: &GrayImage, cam: &Camera, p: &CompleteParams) -> (Vec<Exten
                 poly = clip(&poly, -up, top);
             }
         }
-        let mut mesh = TriMesh::default();
-        let mut inner = poly;
-        for s in sides {
-            if inner.len() < 3 {
-                break;
-            }
-            let outside = clip(&inner, -s, 0.0);
-            inner = clip(&inner, s, 0.0);
-            if outside.len() < 3 {
-                continue;
-            }
-            let base = mesh.positions.len() as u32;
-            mesh.positions.extend_from_slice(&outside);
-            for t in 1..outside.len() - 1 {
-                let (a, b, c) = (outside[0], outside[t], outside[t + 1]);
-                if (b - a).cross(c - a).length_squared() <= 1e-12 * r * r {
-                    continue;
-                }
-                mesh.indices.push(if (b - a).cross(c - a).dot(n) >= 0.0 {
-                    [base, base + t as u32, base + t as u32 + 1]
-                } else {
-                    [base, base + t as u32 + 1, base + t as u32]
-                });
-            }
+        let pieces = if !f.reaches.iter().any(|&r| r) {
+            Vec::new()
+        } else if assumed && f.kind == PlaneKind::Wall && p.assumed_opening > 0.0 {
+            with_opening(&poly, n, floor, ceiling_height, p.assumed_opening)
+        } else {
+            vec![poly]
+        };
+        for piece in pieces {
+            outside_view(&mut mesh, piece, &sides, n, r);
         }
         if mesh.indices.is_empty() {
             kept_in += 1;
@@ -234,9 +347,172 @@ pub fn extensions(z: &GrayImage, cam: &Camera, p: &CompleteParams) -> (Vec<Exten
             fit: f.clone(),
             mesh,
             pixels: on.iter().map(|&j| valid[j] as u32).collect(),
+            assumed,
         });
     }
     (out, kept_in)
+}
+
+/// Adds the part of convex polygon `poly` (on the plane of normal `n`)
+/// outside the view to `mesh`: split into convex pieces outside the left,
+/// right, top and bottom side of the frustum in turn (disjoint), fanned
+/// into triangles facing the camera's side.
+fn outside_view(mesh: &mut TriMesh, poly: Vec<Vec3>, sides: &[Vec3; 4], n: Vec3, r: f32) {
+    let mut inner = poly;
+    for &s in sides {
+        if inner.len() < 3 {
+            break;
+        }
+        let outside = clip(&inner, -s, 0.0);
+        inner = clip(&inner, s, 0.0);
+        if outside.len() < 3 {
+            continue;
+        }
+        let base = mesh.positions.len() as u32;
+        mesh.positions.extend_from_slice(&outside);
+        for t in 1..outside.len() - 1 {
+            let (a, b, c) = (outside[0], outside[t], outside[t + 1]);
+            if (b - a).cross(c - a).length_squared() <= 1e-12 * r * r {
+                continue;
+            }
+            mesh.indices.push(if (b - a).cross(c - a).dot(n) >= 0.0 {
+                [base, base + t as u32, base + t as u32 + 1]
+            } else {
+                [base, base + t as u32 + 1, base + t as u32]
+            });
+        }
+    }
+}
+
+/// Share of an assumed wall's height range (from its foot) that a typical
+/// window spans: from sill to lintel, as fractions of the ceiling height.
+const WINDOW_BAND: (f32, f32) = (0.3, 0.85);
+
+/// Convex polygon `poly` of an assumed wall (normal `n`) less a window: the
+/// central `width` share of the wall's horizontal extent over the
+/// [`WINDOW_BAND`] of the room's height, as four convex pieces (below,
+/// above, left and right of it). Without a floor (no "up") or a ceiling
+/// height, the wall is kept whole.
+fn with_opening(
+    poly: &[Vec3],
+    n: Vec3,
+    floor: Option<Plane>,
+    ceiling_height: Option<f32>,
+    width: f32,
+) -> Vec<Vec<Vec3>> {
+    let (Some(fl), Some(height)) = (floor, ceiling_height) else {
+        return vec![poly.to_vec()];
+    };
+    let up = fl.n;
+    let along = up.cross(n).normalize_or_zero();
+    if poly.len() < 3 || along == Vec3::ZERO || !(height > 0.0) {
+        return vec![poly.to_vec()];
+    }
+    let (s0, s1) = poly
+        .iter()
+        .map(|q| along.dot(*q))
+        .fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), s| {
+            (a.min(s), b.max(s))
+        });
+    let (c, half) = (0.5 * (s0 + s1), 0.5 * width.clamp(0.0, 1.0) * (s1 - s0));
+    // Height above the floor: up·q + fl.d.
+    let (t0, t1) = (WINDOW_BAND.0 * height, WINDOW_BAND.1 * height);
+    let below = clip(poly, -up, t0 - fl.d);
+    let above = clip(poly, up, fl.d - t1);
+    let band = clip(&clip(poly, up, fl.d - t0), -up, t1 - fl.d);
+    let left = clip(&band, -along, c - half);
+    let right = clip(&band, along, -(c + half));
+    [below, above, left, right]
+        .into_iter()
+        .filter(|q| q.len() >= 3)
+        .collect()
+}
+
+/// The part of plane `f` that the view shows hidden behind nearer
+/// geometry, as triangles over the pixel-centre grid (facing the camera's
+/// side): a pixel whose point lies in front of the plane (by more than
+/// `tol`·z) is *occluded*, one on it (within `tol`·z) is *covered* by the
+/// depth mesh, one behind it or showing nothing (a window's sky) is *open*.
+/// Every grid quad of occluded or covered pixels, one at least occluded,
+/// whose plane points are in front of the camera and on the camera's side
+/// of the `others`, is filled: the plane then continues behind furniture
+/// and objects, so no light passes through where the view cannot see,
+/// while what the image shows (openings included) is left as it is.
+fn fill_in_view(f: &Plane, others: &[Plane], z: &GrayImage, cam: &Camera, tol: f32) -> TriMesh {
+    let (w, h) = (z.width, z.height);
+    const OPEN: u8 = 0;
+    const COVERED: u8 = 1;
+    const OCCLUDED: u8 = 2;
+    let mut state = vec![OPEN; w * h];
+    let mut point = vec![Vec3::ZERO; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let i = y * w + x;
+            let zi = z.data[i];
+            if !(zi > 0.0 && zi.is_finite()) {
+                continue;
+            }
+            let dist = f.distance(cam.backproject(x as f32, y as f32, zi));
+            let st = if dist.abs() <= tol * zi {
+                COVERED
+            } else if dist > 0.0 {
+                OCCLUDED
+            } else {
+                continue;
+            };
+            // Where the pixel's ray meets the plane.
+            let dir = cam.backproject(x as f32, y as f32, 1.0);
+            let den = f.n.dot(dir);
+            if den.abs() < 1e-9 {
+                continue;
+            }
+            let s = -f.d / den;
+            let q = dir * s;
+            // A hidden point must be well inside the room (not on a crease
+            // with another of its planes); a covered one may be on it.
+            let inside = if st == OCCLUDED { tol * s } else { -tol * s };
+            if !(s > 0.0 && s.is_finite()) || others.iter().any(|o| o.distance(q) < inside) {
+                continue;
+            }
+            state[i] = st;
+            point[i] = q;
+        }
+    }
+    let mut mesh = TriMesh::default();
+    let mut index = vec![u32::MAX; w * h];
+    for y in 0..h.saturating_sub(1) {
+        for x in 0..w.saturating_sub(1) {
+            let q = [
+                y * w + x,
+                y * w + x + 1,
+                (y + 1) * w + x + 1,
+                (y + 1) * w + x,
+            ];
+            if q.iter().any(|&i| state[i] == OPEN) || !q.iter().any(|&i| state[i] == OCCLUDED) {
+                continue;
+            }
+            let v = q.map(|i| {
+                if index[i] == u32::MAX {
+                    index[i] = mesh.positions.len() as u32;
+                    mesh.positions.push(point[i]);
+                }
+                index[i]
+            });
+            for t in [[v[0], v[1], v[2]], [v[0], v[2], v[3]]] {
+                let [a, b, c] = t.map(|k| mesh.positions[k as usize]);
+                let nrm = (b - a).cross(c - a);
+                if nrm.length_squared() <= 0.0 {
+                    continue;
+                }
+                mesh.indices.push(if nrm.dot(f.n) >= 0.0 {
+                    t
+                } else {
+                    [t[0], t[2], t[1]]
+                });
+            }
+        }
+    }
+    mesh
 }
 
 /// Extends the bounding planes of depth map `z` past the frame, appending
@@ -250,20 +526,63 @@ pub fn complete_beyond_frame(
     p: &CompleteParams,
 ) -> Completion {
     let (exts, kept_in) = extensions(z, cam, p);
-    let (w, h) = (z.width as f32, z.height as f32);
+    let (w, h) = (z.width, z.height);
     let mut done = Completion {
         kept_in,
         ..Completion::default()
     };
+    if exts.is_empty() {
+        return done;
+    }
+    // Assumed planes continue the walls seen (else the whole view).
+    let mut walls: Vec<u32> = exts
+        .iter()
+        .filter(|e| !e.assumed && e.fit.kind == PlaneKind::Wall)
+        .flat_map(|e| e.pixels.iter().copied())
+        .collect();
+    let all: Vec<u32> = (0..w * h)
+        .filter(|&i| z.data[i] > 0.0 && z.data[i].is_finite())
+        .map(|i| i as u32)
+        .collect();
+    if walls.is_empty() {
+        walls = all.clone();
+    }
+    mesh.material_pixel
+        .resize(mesh.indices.len(), crate::mesh::PROJECTED);
     for e in exts {
+        let seeds = if e.assumed {
+            &walls
+        } else if e.pixels.is_empty() {
+            &all
+        } else {
+            &e.pixels
+        };
+        let nearest = nearest_seed_map(w, h, seeds);
+        let centre = nearest[(h / 2) * w + w / 2];
         let base = mesh.positions.len() as u32;
         mesh.positions.extend_from_slice(&e.mesh.positions);
         if !mesh.film.is_empty() {
             mesh.film.extend(e.mesh.positions.iter().map(|&q| {
                 cam.project(q)
-                    .map(|f| f.clamp(Vec2::ZERO, Vec2::new(w, h)))
+                    .map(|f| f.clamp(Vec2::ZERO, Vec2::new(w as f32, h as f32)))
                     .unwrap_or(Vec2::ZERO)
             }));
+        }
+        for t in &e.mesh.indices {
+            let c = t
+                .iter()
+                .map(|&k| e.mesh.positions[k as usize])
+                .sum::<Vec3>()
+                / 3.0;
+            let q = match cam.project(c) {
+                Some(f) => {
+                    let x = (f.x.floor().max(0.0) as usize).min(w - 1);
+                    let y = (f.y.floor().max(0.0) as usize).min(h - 1);
+                    nearest[y * w + x]
+                }
+                None => centre,
+            };
+            mesh.material_pixel.push(q);
         }
         mesh.indices
             .extend(e.mesh.indices.iter().map(|t| t.map(|k| k + base)));
@@ -271,6 +590,70 @@ pub fn complete_beyond_frame(
         done.extended.push(e.fit);
     }
     done
+}
+
+/// For every pixel of a `w`×`h` image, the nearest of the `seeds` (pixel
+/// indices; [`crate::mesh::PROJECTED`] everywhere when there are none):
+/// the seeds propagated by two raster passes over the 8-neighbourhood
+/// (the usual distance-transform approximation: within a pixel or so of
+/// the true nearest seed, deterministic).
+fn nearest_seed_map(w: usize, h: usize, seeds: &[u32]) -> Vec<u32> {
+    let mut near = vec![crate::mesh::PROJECTED; w * h];
+    for &s in seeds {
+        if (s as usize) < w * h {
+            near[s as usize] = s;
+        }
+    }
+    let d2 = |i: usize, s: u32| -> i64 {
+        let (dx, dy) = (
+            (i % w) as i64 - (s as usize % w) as i64,
+            (i / w) as i64 - (s as usize / w) as i64,
+        );
+        dx * dx + dy * dy
+    };
+    let mut relax = |i: usize, j: usize| {
+        let s = near[j];
+        if s != crate::mesh::PROJECTED
+            && (near[i] == crate::mesh::PROJECTED || d2(i, s) < d2(i, near[i]))
+        {
+            near[i] = s;
+        }
+    };
+    for y in 0..h {
+        for x in 0..w {
+            let i = y * w + x;
+            if x > 0 {
+                relax(i, i - 1);
+            }
+            if y > 0 {
+                relax(i, i - w);
+                if x > 0 {
+                    relax(i, i - w - 1);
+                }
+                if x + 1 < w {
+                    relax(i, i - w + 1);
+                }
+            }
+        }
+    }
+    for y in (0..h).rev() {
+        for x in (0..w).rev() {
+            let i = y * w + x;
+            if x + 1 < w {
+                relax(i, i + 1);
+            }
+            if y + 1 < h {
+                relax(i, i + w);
+                if x + 1 < w {
+                    relax(i, i + w + 1);
+                }
+                if x > 0 {
+                    relax(i, i + w - 1);
+                }
+            }
+        }
+    }
+    near
 }
 
 #[cfg(test)]
@@ -378,6 +761,106 @@ mod tests {
         assert_eq!(c.kept_in, 1, "{c:?}");
         assert_eq!(c.extended.len(), 1, "{c:?}");
         assert!((c.extended[0].plane.d - 8.0).abs() < 1e-3);
+    }
+
+    #[test]
+    fn hidden_parts_of_a_wall_are_filled_and_what_the_view_shows_is_kept() {
+        let cam = Camera::new(96, 72);
+        let mut z = render_planes(&cam, &ROOM);
+        // A cabinet front at depth 3 in front of the back wall, and a
+        // window in the back wall showing the sky (no depth).
+        let (cabinet, window) = ((44..52, 32..40), (10..16, 20..26));
+        for y in cabinet.1.clone() {
+            for x in cabinet.0.clone() {
+                z.data[y * 96 + x] = 3.0;
+            }
+        }
+        for y in window.1.clone() {
+            for x in window.0.clone() {
+                z.data[y * 96 + x] = 0.0;
+            }
+        }
+        let (exts, _) = extensions(&z, &cam, &CompleteParams::default());
+        let back = exts
+            .iter()
+            .find(|e| (e.fit.plane.d - 8.0).abs() < 1e-2 && e.fit.plane.n.z > 0.99)
+            .expect("the back wall is filled behind the cabinet");
+        let dir = |x: usize, y: usize| cam.backproject(x as f32, y as f32, 1.0).normalize();
+        // Behind the cabinet, the wall is there at its own depth.
+        let d = dir(47, 36);
+        let t = hit(&back.mesh, 0, d).expect("wall behind the cabinet");
+        assert!((t * -d.z - 8.0).abs() < 1e-2, "{}", t * -d.z);
+        // The window and the wall the view shows are left alone.
+        for (x, y) in [(12, 22), (11, 21), (80, 60), (30, 50)] {
+            assert!(hit(&back.mesh, 0, dir(x, y)).is_none(), "{x},{y}");
+        }
+    }
+
+    /// Floor 0.9 below the camera and a front wall 8 ahead, nothing else.
+    const FLOOR_AND_WALL: [(Vec3, f32); 2] = [(Vec3::Y, 0.9), (Vec3::Z, 8.0)];
+
+    #[test]
+    fn a_room_is_closed_with_a_ceiling_and_walls_where_the_view_shows_one() {
+        let cam = Camera::new(96, 72);
+        let z = render_planes(&cam, &FLOOR_AND_WALL);
+        let closed = CompleteParams {
+            close: true,
+            assumed_opening: 0.0,
+            ..CompleteParams::default()
+        };
+        let mut mesh = TriMesh::default();
+        let c = complete_beyond_frame(&mut mesh, &z, &cam, &closed);
+        // Floor and wall seen; ceiling and three walls assumed.
+        assert_eq!(c.extended.len(), 6, "{c:?}");
+        // The ceiling is just above the highest point seen (the wall's top
+        // edge, higher than 1.8 camera heights here).
+        let top = (z.height as f32 - 1.0) * 0.5 / cam.focal() * 8.0;
+        let up = hit(&mesh, 0, Vec3::Y).expect("a ceiling");
+        assert!((up - (top + 0.05 * 0.9)).abs() < 0.02, "{up} vs {top}");
+        // Behind the camera, a wall half a camera height away; to the
+        // sides, walls just beyond the floor seen.
+        let back = hit(&mesh, 0, Vec3::Z).expect("a wall behind");
+        assert!((back - 0.45).abs() < 1e-3, "{back}");
+        for side in [Vec3::X, Vec3::NEG_X] {
+            assert!(hit(&mesh, 0, side).is_some(), "{side}");
+        }
+        // Still nothing in view.
+        for y in (0..72).step_by(5) {
+            for x in (0..96).step_by(5) {
+                let dir = cam.backproject(x as f32, y as f32, 1.0).normalize();
+                assert!(hit(&mesh, 0, dir).is_none(), "pixel {x},{y}");
+            }
+        }
+        // With the default typical window in each assumed wall, light
+        // comes in straight from behind at the camera's height, not from
+        // low down nor through the ceiling.
+        let mut open = TriMesh::default();
+        complete_beyond_frame(
+            &mut open,
+            &z,
+            &cam,
+            &CompleteParams {
+                close: true,
+                ..CompleteParams::default()
+            },
+        );
+        assert!(hit(&open, 0, Vec3::Z).is_none());
+        assert!(hit(&open, 0, Vec3::new(0.0, -1.0, 0.3).normalize()).is_some());
+        assert!(hit(&open, 0, Vec3::Y).is_some());
+    }
+
+    #[test]
+    fn a_floor_alone_is_not_closed() {
+        let cam = Camera::new(96, 72);
+        let z = render_planes(&cam, &[(Vec3::Y, 0.9)]);
+        let p = CompleteParams {
+            close: true,
+            ..CompleteParams::default()
+        };
+        let mut mesh = TriMesh::default();
+        let c = complete_beyond_frame(&mut mesh, &z, &cam, &p);
+        assert_eq!(c.extended.len(), 1, "{c:?}");
+        assert!(hit(&mesh, 0, Vec3::Y).is_none() && hit(&mesh, 0, Vec3::Z).is_none());
     }
 
     #[test]

@@ -354,6 +354,7 @@ pub fn mesh_from_depth(
             positions,
             indices,
             film,
+            material_pixel: Vec::new(),
         },
         depth: GrayImage::from_vec(w, h, znew),
         stats,

@@ -17,5 +17,5 @@ pub use complete::{complete_beyond_frame, extensions, CompleteParams, Completion
 pub use depth_mesh::{
     mesh_for_view, mesh_from_depth, vertex_normals, DepthMesh, MeshError, MeshParams, MeshStats,
 };
-pub use mesh::TriMesh;
+pub use mesh::{TriMesh, PROJECTED};
 pub use planes::{fit_planes, Plane, PlaneFit, PlaneKind, PlaneParams};

@@ -33,9 +33,29 @@ pub struct TriMesh {
     /// image point the vertex was made from; empty for meshes not made from
     /// an image.
     pub film: Vec<Vec2>,
+    /// Per triangle, the pixel whose (screen-space) material it takes, or
+    /// [`PROJECTED`] for the pixel its points project into (the depth
+    /// mesh's own triangles); empty when every triangle is projected.
+    /// Geometry completed past the frame names a pixel of the surface it
+    /// continues (see `complete`).
+    pub material_pixel: Vec<u32>,
 }
 
+/// A triangle whose points take the material of the pixel they project
+/// into (see [`TriMesh::material_pixel`]).
+pub const PROJECTED: u32 = u32::MAX;
+
 impl TriMesh {
+    /// The pixel triangle `prim` takes its material from, when it names
+    /// one rather than projecting.
+    #[inline]
+    pub fn material_pixel_of(&self, prim: usize) -> Option<u32> {
+        self.material_pixel
+            .get(prim)
+            .copied()
+            .filter(|&q| q != PROJECTED)
+    }
+
     pub fn vertex_count(&self) -> usize {
         self.positions.len()
     }
@@ -62,6 +82,9 @@ impl TriMesh {
         }
         if !self.film.is_empty() {
             self.film.resize(self.positions.len(), Vec2::ZERO);
+        }
+        if !self.material_pixel.is_empty() {
+            self.material_pixel.resize(self.indices.len(), PROJECTED);
         }
     }
 

@@ -133,6 +133,16 @@ pub fn encode_mesh(width: usize, height: usize, m: &TriMesh) -> Vec<u8> {
         2,
         m.film.iter().flat_map(|p| [p.x, p.y]).collect(),
     );
+    // Only meshes completed past the frame name material pixels (so a
+    // plain depth mesh encodes as it always did).
+    if !m.material_pixel.is_empty() {
+        a.put_u32(
+            "material_pixel",
+            m.material_pixel.len() as u32,
+            1,
+            m.material_pixel.clone(),
+        );
+    }
     a.encode()
 }
 
@@ -164,12 +174,21 @@ pub fn decode_mesh(b: &[u8]) -> Result<(Camera, TriMesh), NodeError> {
         .chunks_exact(2)
         .map(|c| Vec2::new(c[0], c[1]))
         .collect();
+    let material_pixel = if a.has("material_pixel") {
+        a.u32_list("material_pixel", 1)?.to_vec()
+    } else {
+        Vec::new()
+    };
+    if !material_pixel.is_empty() && material_pixel.len() != indices.len() {
+        return Err(err("mesh artifact: material_pixel is not one per triangle"));
+    }
     Ok((
         Camera::new(cam[0] as usize, cam[1] as usize),
         TriMesh {
             positions,
             indices,
             film,
+            material_pixel,
         },
     ))
 }
@@ -632,5 +651,35 @@ mod cost_tests {
         assert_eq!(render_seconds(None, 64, 4), 0.0);
         // The example is days, not minutes.
         assert!(render_seconds(Some((4096, 4096)), 65536, 4) > 86400.0);
+    }
+}
+
+#[cfg(test)]
+mod mesh_tests {
+    use super::{decode_mesh, encode_mesh};
+    use glam::Vec3;
+    use matflow_geom::{TriMesh, PROJECTED};
+
+    #[test]
+    fn a_mesh_keeps_its_material_pixels_and_a_plain_one_encodes_as_before() {
+        let mut m = TriMesh::default();
+        m.add_box(Vec3::splat(-1.0), Vec3::ONE);
+        let plain = encode_mesh(4, 3, &m);
+        let (_, back) = decode_mesh(&plain).unwrap();
+        assert_eq!(back, m);
+        m.material_pixel = (0..m.triangle_count() as u32)
+            .map(|k| if k % 2 == 0 { PROJECTED } else { k % 12 })
+            .collect();
+        let named = encode_mesh(4, 3, &m);
+        assert_ne!(named, plain);
+        let (cam, back) = decode_mesh(&named).unwrap();
+        assert_eq!((cam.width, cam.height), (4, 3));
+        assert_eq!(back, m);
+        assert_eq!(back.material_pixel_of(1), Some(1));
+        assert_eq!(back.material_pixel_of(0), None);
+        // One entry per triangle, or the artifact is refused.
+        m.material_pixel.pop();
+        let e = decode_mesh(&encode_mesh(4, 3, &m)).unwrap_err().to_string();
+        assert!(e.contains("material_pixel"), "{e}");
     }
 }

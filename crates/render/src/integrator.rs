@@ -1246,6 +1246,46 @@ mod tests {
         }
     }
 
+    /// Triangles that name a material pixel (geometry completed past the
+    /// frame) take that pixel's material wherever they are hit; the depth
+    /// mesh's own take the pixel they project into; a pixel outside the
+    /// image is refused when the scene is built.
+    #[test]
+    fn named_material_pixels_override_the_projection() {
+        let n = 8;
+        let cam = Camera::new(n, n);
+        let depth = GrayImage::new(n, n, 5.0);
+        let mut mesh = mesh_from_depth(&depth, &cam, &MeshParams::default())
+            .unwrap()
+            .mesh;
+        let own = mesh.triangle_count();
+        // A floor quad below the camera, named after pixel 42.
+        let base = mesh.positions.len() as u32;
+        mesh.positions.extend([
+            Vec3::new(-5.0, -1.0, 1.0),
+            Vec3::new(5.0, -1.0, 1.0),
+            Vec3::new(5.0, -1.0, -4.0),
+            Vec3::new(-5.0, -1.0, -4.0),
+        ]);
+        mesh.indices
+            .extend([[base, base + 1, base + 2], [base, base + 2, base + 3]]);
+        mesh.material_pixel = vec![matflow_geom::PROJECTED; own];
+        mesh.material_pixel.extend([42, 42]);
+        let maps = MaterialMaps::uniform(n, n, Vec3::splat(0.5), 0.5, 0.0);
+        let env = EnvMap::new(&sky()).unwrap();
+        let scene = RenderScene::new(cam, mesh.clone(), &maps, env.clone()).unwrap();
+        let p = Vec3::new(0.3, -1.0, 0.5);
+        assert_eq!(scene.vertex_material(own as u32, p), Some(42));
+        assert_eq!(scene.vertex_material(own as u32 + 1, p), Some(42));
+        let q = Vec3::new(0.0, 0.0, -5.0);
+        assert_eq!(scene.vertex_material(0, q), scene.material_index(q));
+        mesh.material_pixel[own] = (n * n) as u32;
+        assert!(matches!(
+            RenderScene::new(cam, mesh, &maps, env),
+            Err(crate::RenderError::MaterialPixel { .. })
+        ));
+    }
+
     /// A cropped render is that window of the full render, bit for bit,
     /// away from the filter radius of its edges.
     #[test]

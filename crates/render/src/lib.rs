@@ -38,4 +38,6 @@ pub enum RenderError {
     EnvmapNotFinite { count: usize },
     #[error("meshing the depth map")]
     Mesh(#[from] matflow_geom::MeshError),
+    #[error("the mesh names a material pixel outside the {pixels} pixels of the image")]
+    MaterialPixel { pixels: usize },
 }

@@ -2,7 +2,10 @@
 //! and the environment map.
 
 use glam::{Vec2, Vec3};
-use matflow_geom::{mesh_for_view, vertex_normals, Bvh, DepthMesh, MeshStats, TriMesh};
+use matflow_geom::{
+    complete_beyond_frame, mesh_for_view, vertex_normals, Bvh, CompleteParams, DepthMesh,
+    MeshStats, TriMesh,
+};
 use matflow_scene::{Camera, GrayImage, MaterialMaps};
 
 use crate::bsdf::Material;
@@ -30,14 +33,26 @@ pub fn materials_from_maps(maps: &MaterialMaps) -> Vec<Material> {
 /// (`mesh_angle_deg`, the reference's angle test), its BVH, the
 /// screen-space materials and the envmap. The one way the CLI and the
 /// pipeline nodes turn a bundle's depth into something to render; the
-/// mesh's statistics come back too.
+/// mesh's statistics come back too. With `complete`, the geometry is
+/// completed past the frame ([`matflow_geom::complete_beyond_frame`]: the
+/// room's planes extended and, if asked, the room closed), the added
+/// triangles taking the materials of the pixels they continue.
 pub fn scene_from_depth(
     depth: &GrayImage,
     maps: &MaterialMaps,
     env: EnvMap,
     mesh_angle_deg: f64,
+    complete: Option<&CompleteParams>,
 ) -> Result<(RenderScene, MeshStats), RenderError> {
-    let (cam, DepthMesh { mesh, stats, .. }) = mesh_for_view(depth, mesh_angle_deg)?;
+    let (
+        cam,
+        DepthMesh {
+            mut mesh, stats, ..
+        },
+    ) = mesh_for_view(depth, mesh_angle_deg)?;
+    if let Some(p) = complete {
+        complete_beyond_frame(&mut mesh, depth, &cam, p);
+    }
     Ok((RenderScene::new(cam, mesh, maps, env)?, stats))
 }
 
@@ -217,6 +232,17 @@ impl RenderScene {
         }
         let screen_prims = mesh.triangle_count();
         let screen_vertices = mesh.vertex_count();
+        let npix = (camera.width * camera.height) as u32;
+        if mesh
+            .material_pixel
+            .iter()
+            .any(|&q| q != matflow_geom::PROJECTED && q >= npix)
+        {
+            return Err(RenderError::MaterialPixel {
+                pixels: npix as usize,
+            });
+        }
+        mesh.material_pixel.truncate(screen_prims);
         let mut prim_object = Vec::new();
         for (k, o) in objects.iter().enumerate() {
             let base = mesh.positions.len() as u32;
@@ -305,13 +331,18 @@ impl RenderScene {
     }
 
     /// The material index of a vertex at `p` on triangle `prim`: the pixel
-    /// `p` projects into for the depth mesh ([`Self::material_index`]),
-    /// `width·height + k` on object `k`.
+    /// `p` projects into for the depth mesh ([`Self::material_index`]) —
+    /// or the pixel the triangle names, for geometry completed past the
+    /// frame ([`TriMesh::material_pixel`]) — and `width·height + k` on
+    /// object `k`.
     #[inline]
     pub fn vertex_material(&self, prim: u32, p: Vec3) -> Option<usize> {
         let prim = prim as usize;
         if prim < self.screen_prims {
-            self.material_index(p)
+            match self.mesh.material_pixel_of(prim) {
+                Some(q) => Some(q as usize),
+                None => self.material_index(p),
+            }
         } else {
             let k = self.prim_object[prim - self.screen_prims] as usize;
             Some(self.camera.width * self.camera.height + k)
