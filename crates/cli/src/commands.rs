@@ -212,6 +212,29 @@ impl CompleteMode {
     }
 }
 
+/// `options.KEY` of the `summary.json` that `matflow invert` wrote beside
+/// `best_results/` (nothing for other maps, or without a summary), and
+/// the summary's path for messages.
+fn invert_option(
+    bundle: &Path,
+    materials: MaterialSource,
+    key: &str,
+) -> Result<Option<(String, PathBuf)>> {
+    if materials != MaterialSource::BestResults {
+        return Ok(None);
+    }
+    let path = bundle.join("summary.json");
+    let Ok(text) = std::fs::read_to_string(&path) else {
+        return Ok(None);
+    };
+    let v: serde_json::Value =
+        serde_json::from_str(&text).with_context(|| format!("{}: not JSON", path.display()))?;
+    Ok(v.get("options")
+        .and_then(|o| o.get(key))
+        .and_then(|f| f.as_str())
+        .map(|f| (f.to_string(), path)))
+}
+
 /// The completion a render uses: the one asked for; else, for the maps
 /// `matflow invert` wrote, the one it recovered them with (`summary.json`'s
 /// `options.complete`); else none. Also says why.
@@ -223,25 +246,14 @@ pub fn render_completion(
     if let Some(m) = asked {
         return Ok((m, "as asked"));
     }
-    if materials == MaterialSource::BestResults {
-        let path = bundle.join("summary.json");
-        if let Ok(text) = std::fs::read_to_string(&path) {
-            let v: serde_json::Value = serde_json::from_str(&text)
-                .with_context(|| format!("{}: not JSON", path.display()))?;
-            if let Some(name) = v
-                .get("options")
-                .and_then(|o| o.get("complete"))
-                .and_then(|f| f.as_str())
-            {
-                let m = CompleteMode::parse(name).with_context(|| {
-                    format!(
-                        "{}: options.complete: unknown mode `{name}`",
-                        path.display()
-                    )
-                })?;
-                return Ok((m, "the one matflow invert recovered these maps with"));
-            }
-        }
+    if let Some((name, path)) = invert_option(bundle, materials, "complete")? {
+        let m = CompleteMode::parse(&name).with_context(|| {
+            format!(
+                "{}: options.complete: unknown mode `{name}`",
+                path.display()
+            )
+        })?;
+        return Ok((m, "the one matflow invert recovered these maps with"));
     }
     Ok((CompleteMode::None, "the default"))
 }
@@ -333,22 +345,11 @@ pub fn render_filter(
     if let Some(f) = asked {
         return Ok((f, "as asked"));
     }
-    if materials == MaterialSource::BestResults {
-        let path = bundle.join("summary.json");
-        if let Ok(text) = std::fs::read_to_string(&path) {
-            let v: serde_json::Value = serde_json::from_str(&text)
-                .with_context(|| format!("{}: not JSON", path.display()))?;
-            if let Some(name) = v
-                .get("options")
-                .and_then(|o| o.get("pixel_filter"))
-                .and_then(|f| f.as_str())
-            {
-                let f = name.parse::<PixelFilter>().map_err(|e| {
-                    anyhow::anyhow!("{}: options.pixel_filter: {e}", path.display())
-                })?;
-                return Ok((f, "the one matflow invert fitted these maps with"));
-            }
-        }
+    if let Some((name, path)) = invert_option(bundle, materials, "pixel_filter")? {
+        let f = name
+            .parse::<PixelFilter>()
+            .map_err(|e| anyhow::anyhow!("{}: options.pixel_filter: {e}", path.display()))?;
+        return Ok((f, "the one matflow invert fitted these maps with"));
     }
     Ok((PixelFilter::default(), "the default"))
 }
