@@ -103,11 +103,23 @@ impl Target {
         }
     }
 
-    /// Sum over pixels and channels of the linear target, in a fixed order.
-    pub fn linear_sum(&self) -> f64 {
-        self.linear
-            .iter()
-            .map(|v| v.x as f64 + v.y as f64 + v.z as f64)
+    /// Pixel `p`'s part of an exposure sum for the linear values `i`: the
+    /// channels where the target is not saturated. The exposure ratio is
+    /// taken only where the loss measures anything: a linear (HDR) input
+    /// showing sky far above 1 through a window would otherwise dominate
+    /// the target's sum while the loss, one-sided there, leaves the render
+    /// near 1, and the ratio would brighten everything else.
+    #[inline]
+    pub fn exposure_part(&self, p: usize, i: Vec3) -> f64 {
+        let s = self.saturated[p];
+        (0..3).filter(|&c| !s[c]).map(|c| i[c] as f64).sum()
+    }
+
+    /// The target's own exposure sum ([`Target::exposure_part`] of its
+    /// linear values, pixels in order).
+    pub fn exposure_sum(&self) -> f64 {
+        (0..self.linear.len())
+            .map(|p| self.exposure_part(p, self.linear[p]))
             .sum()
     }
 }
@@ -203,6 +215,24 @@ mod tests {
             let y = gamma(x).0;
             assert!((gamma_inv(y) - x).abs() <= 1e-4 * x.max(1e-3), "{x}");
         }
+    }
+
+    #[test]
+    fn exposure_sums_skip_the_targets_saturated_channels() {
+        // A dim room pixel and a window's sky far above 1 (linear HDR
+        // input), green channel of the first one saturated too.
+        let t = Target::new(
+            2,
+            1,
+            &[Vec3::new(0.2, 1.5, 0.3), Vec3::new(40.0, 50.0, 60.0)],
+        );
+        assert!((t.exposure_sum() - 0.5).abs() < 1e-6);
+        let render = Vec3::new(0.1, 0.9, 0.15);
+        assert!((t.exposure_part(0, render) - 0.25).abs() < 1e-6);
+        assert_eq!(t.exposure_part(1, Vec3::splat(1.0)), 0.0);
+        // So the ratio is the room's, not the sky's.
+        let k = exposure_ratio(t.exposure_sum(), t.exposure_part(0, render)).unwrap();
+        assert!((k - 2.0).abs() < 1e-5, "{k}");
     }
 
     #[test]

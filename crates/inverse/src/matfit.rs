@@ -224,13 +224,8 @@ fn pixel_terms(
         m.metallic = start.metallic;
     }
     let e = table.eval(&m);
-    s.render = e.i.element_sum() as f64;
-    let tl = target.linear[p];
-    s.target = if tl.is_finite() {
-        tl.max(Vec3::ZERO).element_sum() as f64
-    } else {
-        0.0
-    };
+    s.render = target.exposure_part(p, e.i);
+    s.target = target.exposure_part(p, target.linear[p]);
     let (l1, l2, di) = pixel_loss(e.i * k, target.gamma[p], target.saturated[p]);
     s.l1 = l1 as f64;
     s.l2 = l2 as f64;
@@ -317,7 +312,7 @@ pub fn fit_pixels(
     progress: &(dyn Fn(usize, f64) + Sync),
 ) -> MatFit {
     let n = tables.len();
-    let target_sum: f64 = target.linear_sum();
+    let target_sum: f64 = target.exposure_sum();
     // k lags one step behind the render it normalises (one pass per step).
     let mut k = 1f32;
     let zeta = opts.zeta.max(1e-3);
@@ -550,13 +545,16 @@ impl MatMlp {
                 .map(|(c, ms)| {
                     ms.iter()
                         .enumerate()
-                        .map(|(j, m)| tables[c * chunk + j].eval(m).i.element_sum() as f64)
+                        .map(|(j, m)| {
+                            let p = c * chunk + j;
+                            target.exposure_part(p, tables[p].eval(m).i)
+                        })
                         .sum::<f64>()
                 })
                 .collect::<Vec<f64>>()
                 .iter()
                 .sum();
-            exposure_ratio(target.linear_sum(), render).unwrap_or(1.0)
+            exposure_ratio(target.exposure_sum(), render).unwrap_or(1.0)
         } else {
             1.0
         };

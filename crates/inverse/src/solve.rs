@@ -275,7 +275,7 @@ pub fn solve_pixels(
     progress: &(dyn Fn(usize, f64) + Sync),
 ) -> MatFit {
     let n = tables.len();
-    let target_sum = target.linear_sum();
+    let target_sum = target.exposure_sum();
     let mut k = 1f32;
     let mut mats: Vec<Material> = start.iter().map(|m| m.sanitized()).collect();
     let mut trace = FitTrace::default();
@@ -290,7 +290,7 @@ pub fn solve_pixels(
                 for (j, m) in ms.iter().enumerate() {
                     let p = c * 4096 + j;
                     let i = tables[p].eval(m).i;
-                    s += i.element_sum() as f64;
+                    s += target.exposure_part(p, i);
                     let (l1, l2, _) = pixel_loss(i * k, target.gamma[p], target.saturated[p]);
                     a += l1 as f64;
                     b += l2 as f64;
