@@ -287,7 +287,7 @@ def draw_sky(rng, kind):
 
 
 def envmap_directions(w, h):
-    """World... here camera-frame directions of matflow's lat-long texels:
+    """Directions (in the map's own frame) of matflow's lat-long texels:
     column j at u = (j + 0.5) / w, row i at theta = pi i / (h - 1);
     u = atan2(d.x, -d.z) / 2 pi, v = acos(d.y) / pi (Mitsuba's layout)."""
     u = (np.arange(w) + 0.5) / w
@@ -599,7 +599,7 @@ def build_scene(mi, shapes, env_path, lamps, w2c, size, spp):
     return mi.load_dict(d, optimize=False)
 
 
-def render(mi, dr, scene, spp, pass_spp, seed):
+def render(mi, scene, spp, pass_spp, seed):
     """The image at `spp` samples, rendered in passes, and the two halves
     (even and odd passes) for the noise estimate."""
     passes = max(2, math.ceil(spp / pass_spp))
@@ -735,7 +735,7 @@ def make_bundle(mi, dr, k, a, out_dir):
     truth = pixel_truth(mi, dr, scene, mats, a.size)
     if not truth["valid"].any() or truth["z"][truth["valid"]].max() <= truth["z"][truth["valid"]].min():
         raise RuntimeError(f"scene {k}: no usable geometry in view")
-    img, ha, hb = render(mi, dr, scene, a.spp, a.pass_spp, ((a.seed % 1000) * 1000 + k) * 10)
+    img, ha, hb = render(mi, scene, a.spp, a.pass_spp, ((a.seed % 1000) * 1000 + k) * 10)
     exposure = P["exposure_target_mean"] / level(img, truth["valid"])
     P["exposure"] = exposure
     P["noise_floor_psnr"] = [noise_floor_psnr(ha, hb, exposure)]
@@ -750,7 +750,7 @@ def make_bundle(mi, dr, k, a, out_dir):
         rpath = os.path.join(tmp, "mitsuba", f"relight_sky{suffix}.exr")
         write_exr(mi, rpath, renv)
         rscene = build_scene(mi, shapes, rpath, [], w2c, a.size, a.pass_spp)
-        rimg, ha, hb = render(mi, dr, rscene, a.spp, a.pass_spp, ((a.seed % 1000) * 1000 + k) * 10 + j + 1)
+        rimg, ha, hb = render(mi, rscene, a.spp, a.pass_spp, ((a.seed % 1000) * 1000 + k) * 10 + j + 1)
         scale = P["relit_target_means"][j] / level(rimg, truth["valid"])
         P["noise_floor_psnr"].append(noise_floor_psnr(ha, hb, scale))
         P["relight_scales"].append(scale)

@@ -64,11 +64,13 @@ fn synth_then_render_writes_exr_png_and_summary() {
         assert!(b.join(f).is_file(), "missing {f}");
     }
     let out = dir.path().join("r.exr");
-    let text = ok(&matflow(
+    let render = |bundle: &Path, extra: &[&str]| {
+        let args = [&["render", "--bundle", s(bundle), "--out", s(&out)], extra].concat();
+        ok(&matflow(&args, None))
+    };
+    let text = render(
+        &b,
         &[
-            "render",
-            "--bundle",
-            s(&b),
             "--materials",
             "ground_truth",
             "--spp",
@@ -77,11 +79,8 @@ fn synth_then_render_writes_exr_png_and_summary() {
             "3",
             "--compare",
             s(&b.join("gt_image.exr")),
-            "--out",
-            s(&out),
         ],
-        None,
-    ));
+    );
     assert!(text.contains("rendered 48x48 at 8 spp, depth 3"), "{text}");
     assert!(text.contains("Mrays/s"), "{text}");
     assert!(out.is_file() && dir.path().join("r.png").is_file());
@@ -120,21 +119,10 @@ fn synth_then_render_writes_exr_png_and_summary() {
     let (_, more) =
         matflow_geom::mesh::read_ply_positions_faces(&std::fs::read(&ply).unwrap()).unwrap();
     assert!(more.len() >= faces.len(), "{text}");
-    ok(&matflow(
-        &[
-            "render",
-            "--bundle",
-            s(&b),
-            "--materials",
-            "ground_truth",
-            "--spp",
-            "2",
-            "--complete",
-            "--out",
-            s(&out),
-        ],
-        None,
-    ));
+    render(
+        &b,
+        &["--materials", "ground_truth", "--spp", "2", "--complete"],
+    );
     let inv = dir.path().join("inv-room");
     ok(&matflow(
         &[
@@ -151,18 +139,7 @@ fn synth_then_render_writes_exr_png_and_summary() {
         ],
         None,
     ));
-    let text = ok(&matflow(
-        &[
-            "render",
-            "--bundle",
-            s(&inv),
-            "--spp",
-            "2",
-            "--out",
-            s(&out),
-        ],
-        None,
-    ));
+    let text = render(&inv, &["--spp", "2"]);
     assert!(
         text.contains("completion room (the one matflow invert recovered these maps with)"),
         "{text}"

@@ -1,9 +1,9 @@
 //! `matflow bench …`: benchmarks that print numbers (never timed tests).
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use glam::{Vec2, Vec3};
 use matflow_geom::Bvh;
@@ -16,6 +16,29 @@ use rayon::prelude::*;
 
 use crate::bench_pipeline::median;
 use crate::commands::load_scene;
+
+/// Runs this binary as a child `matflow ARGS` (its stdout shown or
+/// discarded); an error names the command and how it ended.
+pub(crate) fn child(exe: &Path, args: &[impl AsRef<str>], show_stdout: bool) -> Result<()> {
+    let args: Vec<&str> = args.iter().map(|a| a.as_ref()).collect();
+    let mut cmd = std::process::Command::new(exe);
+    cmd.args(&args);
+    if !show_stdout {
+        cmd.stdout(std::process::Stdio::null());
+    }
+    let status = cmd
+        .status()
+        .with_context(|| format!("running {}", exe.display()))?;
+    if !status.success() {
+        anyhow::bail!("`matflow {}` failed ({status})", args.join(" "));
+    }
+    Ok(())
+}
+
+/// A path as a child's argument.
+pub(crate) fn path_arg(p: &Path) -> String {
+    p.display().to_string()
+}
 
 #[derive(Subcommand)]
 pub enum BenchCmd {

@@ -26,12 +26,12 @@
 //! printed beside each scene.
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
 use anyhow::{bail, Context, Result};
 use matflow_scene::metrics::psnr_gamma;
 use matflow_scene::{io, Bundle, MaterialSource, RgbImage};
 
+use crate::bench::{child, path_arg as s};
 use crate::bench_pipeline::median;
 use crate::commands::CompleteMode;
 
@@ -106,22 +106,6 @@ struct SceneRow {
     noise_floor: Vec<f64>,
 }
 
-fn s(p: &Path) -> String {
-    p.display().to_string()
-}
-
-fn child(exe: &Path, args: &[String]) -> Result<()> {
-    let status = Command::new(exe)
-        .args(args)
-        .stdout(std::process::Stdio::null())
-        .status()
-        .with_context(|| format!("running {}", exe.display()))?;
-    if !status.success() {
-        bail!("`matflow {}` failed ({status})", args.join(" "));
-    }
-    Ok(())
-}
-
 /// Renders `bundle` with `materials` under `envmap` into `out` (kept when
 /// it exists: the true-map renders are shared by every configuration).
 fn render(
@@ -155,7 +139,7 @@ fn render(
         .map(|x| x.to_string())
         .collect();
         args.extend(["--complete".into(), complete.name().into()]);
-        child(r.exe, &args)?;
+        child(r.exe, &args, false)?;
     }
     Ok(io::read_exr_rgb(out)?)
 }
@@ -254,7 +238,7 @@ fn measure(
         complete.name().into(),
     ];
     args.extend(variant.1.iter().cloned());
-    child(r.exe, &args)?;
+    child(r.exe, &args, false)?;
     let sp = out.join("summary.json");
     let sum: serde_json::Value = serde_json::from_slice(
         &std::fs::read(&sp).with_context(|| format!("reading {}", s(&sp)))?,

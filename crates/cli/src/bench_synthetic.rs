@@ -13,14 +13,14 @@
 //!   (Table 3's setting).
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result};
 use clap::Args;
 use matflow_inverse::routes::{Side, ENV_ROUTE_NAMES, MAT_ROUTE_NAMES};
 use matflow_scene::metrics::{mse_linear, psnr_from_mse, psnr_gamma, sh_error, ssim_linear};
 use matflow_scene::{io, Bundle, MaterialSource};
 
+use crate::bench::{child, path_arg as s};
 use crate::routes::route_parser;
 
 #[derive(Args)]
@@ -78,25 +78,10 @@ struct Row {
     metal_mae: f64,
 }
 
-fn run(exe: &Path, args: &[&str]) -> Result<()> {
-    let status = Command::new(exe)
-        .args(args)
-        .status()
-        .with_context(|| format!("running {}", exe.display()))?;
-    if !status.success() {
-        bail!("`matflow {}` failed ({status})", args.join(" "));
-    }
-    Ok(())
-}
-
-fn s(p: &Path) -> String {
-    p.display().to_string()
-}
-
 fn scene(exe: &Path, a: &BenchSyntheticArgs, seed: u64) -> Result<PathBuf> {
     let dir = a.work.join(format!("scene-{seed}-{}-{}", a.size, a.gt_spp));
     if !dir.join("ground_truth/relit_image.exr").exists() {
-        run(
+        child(
             exe,
             &[
                 "synth",
@@ -112,6 +97,7 @@ fn scene(exe: &Path, a: &BenchSyntheticArgs, seed: u64) -> Result<PathBuf> {
                 "--out",
                 &s(&dir),
             ],
+            true,
         )?;
     }
     Ok(dir)
@@ -146,7 +132,7 @@ fn measure(
         "--quiet".into(),
     ];
     args.extend(flags.iter().map(|f| f.to_string()));
-    run(exe, &args.iter().map(|x| x.as_str()).collect::<Vec<_>>())?;
+    child(exe, &args, true)?;
     let p = out.join("summary.json");
     let sum: serde_json::Value =
         serde_json::from_slice(&std::fs::read(&p).with_context(|| format!("reading {}", s(&p)))?)?;
@@ -159,7 +145,7 @@ fn measure(
     let mg = got.load_materials(MaterialSource::BestResults)?;
     // Relight: the recovered scene under the new sky.
     let relit = out.join("relit.exr");
-    run(
+    child(
         exe,
         &[
             "render",
@@ -174,6 +160,7 @@ fn measure(
             "--out",
             &s(&relit),
         ],
+        true,
     )?;
     let relit_gt = io::read_exr_rgb(&truth.path("ground_truth/relit_image.exr"))?;
     let relit = io::read_exr_rgb(&relit)?;

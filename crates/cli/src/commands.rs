@@ -161,9 +161,10 @@ pub struct LoadedScene {
 }
 
 /// How `--complete` completes the geometry past the frame.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
 pub enum CompleteMode {
     /// The depth mesh alone.
+    #[default]
     None,
     /// Extend the floor, walls and ceiling the view shows, and fill them
     /// in behind what hides them in view.
@@ -186,17 +187,6 @@ impl CompleteMode {
         }
     }
 
-    pub fn parse(name: &str) -> Option<CompleteMode> {
-        [
-            CompleteMode::None,
-            CompleteMode::Planes,
-            CompleteMode::Room,
-            CompleteMode::Closed,
-        ]
-        .into_iter()
-        .find(|m| m.name() == name)
-    }
-
     pub fn params(self) -> Option<matflow_geom::CompleteParams> {
         let d = matflow_geom::CompleteParams::default();
         match self {
@@ -212,27 +202,37 @@ impl CompleteMode {
     }
 }
 
-/// `options.KEY` of the `summary.json` that `matflow invert` wrote beside
-/// `best_results/` (nothing for other maps, or without a summary), and
-/// the summary's path for messages.
-fn invert_option(
+/// The setting a render uses: the one `asked` for; else, for the maps
+/// `matflow invert` wrote beside its `summary.json`, `options.KEY` there
+/// (parsed by `parse`; `why` says so); else the default. Also says why.
+fn from_invert<T: Default>(
     bundle: &Path,
     materials: MaterialSource,
+    asked: Option<T>,
     key: &str,
-) -> Result<Option<(String, PathBuf)>> {
-    if materials != MaterialSource::BestResults {
-        return Ok(None);
+    why: &'static str,
+    parse: impl Fn(&str) -> Result<T, String>,
+) -> Result<(T, &'static str)> {
+    if let Some(v) = asked {
+        return Ok((v, "as asked"));
     }
-    let path = bundle.join("summary.json");
-    let Ok(text) = std::fs::read_to_string(&path) else {
-        return Ok(None);
-    };
-    let v: serde_json::Value =
-        serde_json::from_str(&text).with_context(|| format!("{}: not JSON", path.display()))?;
-    Ok(v.get("options")
-        .and_then(|o| o.get(key))
-        .and_then(|f| f.as_str())
-        .map(|f| (f.to_string(), path)))
+    if materials == MaterialSource::BestResults {
+        let path = bundle.join("summary.json");
+        if let Ok(text) = std::fs::read_to_string(&path) {
+            let v: serde_json::Value = serde_json::from_str(&text)
+                .with_context(|| format!("{}: not JSON", path.display()))?;
+            if let Some(name) = v
+                .get("options")
+                .and_then(|o| o.get(key))
+                .and_then(|f| f.as_str())
+            {
+                let got = parse(name)
+                    .map_err(|e| anyhow::anyhow!("{}: options.{key}: {e}", path.display()))?;
+                return Ok((got, why));
+            }
+        }
+    }
+    Ok((T::default(), "the default"))
 }
 
 /// The completion a render uses: the one asked for; else, for the maps
@@ -243,19 +243,14 @@ pub fn render_completion(
     materials: MaterialSource,
     asked: Option<CompleteMode>,
 ) -> Result<(CompleteMode, &'static str)> {
-    if let Some(m) = asked {
-        return Ok((m, "as asked"));
-    }
-    if let Some((name, path)) = invert_option(bundle, materials, "complete")? {
-        let m = CompleteMode::parse(&name).with_context(|| {
-            format!(
-                "{}: options.complete: unknown mode `{name}`",
-                path.display()
-            )
-        })?;
-        return Ok((m, "the one matflow invert recovered these maps with"));
-    }
-    Ok((CompleteMode::None, "the default"))
+    from_invert(
+        bundle,
+        materials,
+        asked,
+        "complete",
+        "the one matflow invert recovered these maps with",
+        |name| <CompleteMode as clap::ValueEnum>::from_str(name, false),
+    )
 }
 
 /// Builds mesh, BVH, materials and envmap for a bundle.
@@ -342,16 +337,14 @@ pub fn render_filter(
     materials: MaterialSource,
     asked: Option<PixelFilter>,
 ) -> Result<(PixelFilter, &'static str)> {
-    if let Some(f) = asked {
-        return Ok((f, "as asked"));
-    }
-    if let Some((name, path)) = invert_option(bundle, materials, "pixel_filter")? {
-        let f = name
-            .parse::<PixelFilter>()
-            .map_err(|e| anyhow::anyhow!("{}: options.pixel_filter: {e}", path.display()))?;
-        return Ok((f, "the one matflow invert fitted these maps with"));
-    }
-    Ok((PixelFilter::default(), "the default"))
+    from_invert(
+        bundle,
+        materials,
+        asked,
+        "pixel_filter",
+        "the one matflow invert fitted these maps with",
+        |name| name.parse::<PixelFilter>().map_err(|e| e.to_string()),
+    )
 }
 
 pub fn render(a: RenderArgs) -> Result<()> {

@@ -452,7 +452,9 @@ fn fill_in_view(f: &Plane, others: &[Plane], z: &GrayImage, cam: &Camera, tol: f
             if !(zi > 0.0 && zi.is_finite()) {
                 continue;
             }
-            let dist = f.distance(cam.backproject(x as f32, y as f32, zi));
+            // The pixel's ray (z = −1) and its point at the pixel's depth.
+            let dir = cam.backproject(x as f32, y as f32, 1.0);
+            let dist = f.distance(dir * zi);
             let st = if dist.abs() <= tol * zi {
                 COVERED
             } else if dist > 0.0 {
@@ -461,7 +463,6 @@ fn fill_in_view(f: &Plane, others: &[Plane], z: &GrayImage, cam: &Camera, tol: f
                 continue;
             };
             // Where the pixel's ray meets the plane.
-            let dir = cam.backproject(x as f32, y as f32, 1.0);
             let den = f.n.dot(dir);
             if den.abs() < 1e-9 {
                 continue;
@@ -549,15 +550,16 @@ pub fn complete_beyond_frame(
     }
     mesh.material_pixel
         .resize(mesh.indices.len(), crate::mesh::PROJECTED);
+    // Every assumed plane continues the same pixels: one map for them all.
+    let mut assumed_map: Option<Vec<u32>> = None;
     for e in exts {
-        let seeds = if e.assumed {
-            &walls
-        } else if e.pixels.is_empty() {
-            &all
+        let own;
+        let nearest: &[u32] = if e.assumed {
+            assumed_map.get_or_insert_with(|| nearest_seed_map(w, h, &walls))
         } else {
-            &e.pixels
+            own = nearest_seed_map(w, h, if e.pixels.is_empty() { &all } else { &e.pixels });
+            &own
         };
-        let nearest = nearest_seed_map(w, h, seeds);
         let centre = nearest[(h / 2) * w + w / 2];
         let base = mesh.positions.len() as u32;
         mesh.positions.extend_from_slice(&e.mesh.positions);
