@@ -524,10 +524,12 @@ pub fn mesh(a: MeshArgs) -> Result<()> {
             );
         }
         outln!(
-            "completion: {} plane(s) extended ({} triangles), {} found but not extended",
+            "completion: {} plane(s) extended ({} triangles), {} found but not extended; \
+             {} triangles continue objects cut by the border",
             c.extended.len(),
-            c.triangles,
-            c.kept_in
+            c.triangles - c.border_triangles,
+            c.kept_in,
+            c.border_triangles
         );
     }
     let secs = t0.elapsed().as_secs_f64();

@@ -60,6 +60,10 @@ pub struct CompleteParams {
     /// Width of the window left open in each assumed wall, as a share of
     /// the wall (over [`WINDOW_BAND`] of the room's height); 0 closes them.
     pub assumed_opening: f32,
+    /// How far objects cut by the frame border are continued past it
+    /// ([`border_margins`]), as a share of the image's larger side; 0
+    /// turns it off.
+    pub border_margin: f32,
 }
 
 impl Default for CompleteParams {
@@ -72,6 +76,7 @@ impl Default for CompleteParams {
             ceiling_ratio: 1.8,
             wall_ratio: 0.5,
             assumed_opening: 0.4,
+            border_margin: 0.1,
         }
     }
 }
@@ -85,6 +90,8 @@ pub struct Completion {
     /// border, or slanted).
     pub kept_in: usize,
     pub triangles: usize,
+    /// Of those, the ones continuing objects cut by the border.
+    pub border_triangles: usize,
 }
 
 /// One extended plane: its fit, the triangles added beyond the frame
@@ -550,6 +557,12 @@ pub fn complete_beyond_frame(
     }
     mesh.material_pixel
         .resize(mesh.indices.len(), crate::mesh::PROJECTED);
+    let mut on_plane = vec![false; w * h];
+    for e in exts.iter().filter(|e| !e.assumed) {
+        for &i in &e.pixels {
+            on_plane[i as usize] = true;
+        }
+    }
     // Every assumed plane continues the same pixels: one map for them all.
     let mut assumed_map: Option<Vec<u32>> = None;
     for e in exts {
@@ -591,7 +604,157 @@ pub fn complete_beyond_frame(
         done.triangles += e.mesh.indices.len();
         done.extended.push(e.fit);
     }
+    // Objects cut by the border continue past it (what lies on an
+    // extended plane is already continued by its extension).
+    let margin = (p.border_margin.max(0.0) * w.max(h) as f32).round() as usize;
+    if margin > 0 {
+        let extra = border_margins(z, cam, &on_plane, margin);
+        let base = mesh.positions.len() as u32;
+        mesh.positions.extend_from_slice(&extra.positions);
+        if !mesh.film.is_empty() {
+            mesh.film.extend(
+                extra
+                    .film
+                    .iter()
+                    .map(|f| f.clamp(Vec2::ZERO, Vec2::new(w as f32, h as f32))),
+            );
+        }
+        mesh.indices
+            .extend(extra.indices.iter().map(|t| t.map(|k| k + base)));
+        mesh.material_pixel.extend_from_slice(&extra.material_pixel);
+        done.triangles += extra.indices.len();
+        done.border_triangles = extra.indices.len();
+    }
     done
+}
+
+/// Inward pixels whose inverse depth is fitted to continue a surface past
+/// the border.
+const BORDER_RUN: usize = 6;
+/// Largest relative change of inverse depth between neighbours of such a
+/// run (more is an occluding edge, not one surface).
+const BORDER_JUMP: f32 = 0.05;
+/// How far a continued surface may recede or approach: its depth stays
+/// within this factor of the border pixel's.
+const BORDER_RANGE: f32 = 2.0;
+
+/// Surfaces cut by the frame border, continued `margin` pixels past it:
+/// along each border pixel's row (left and right borders) or column (top
+/// and bottom), the inverse depth of the last [`BORDER_RUN`] pixels is
+/// fitted by a line in the pixel coordinate and extrapolated (exact for
+/// a plane, whose inverse depth is affine in the film position; a first
+/// order continuation of a curved one). A run that is not one surface
+/// (an occluding edge, sky, a pixel flagged in `skip`) is not continued,
+/// nor is the part of a continuation whose depth leaves
+/// [`BORDER_RANGE`] of the border pixel's. The continuation is meshed
+/// like the view (pixel-centre grid, same cuts at discontinuities) on a
+/// camera with the same focal length widened by the margin; each added
+/// triangle takes the material of the border pixel it continues. The
+/// result's film positions lie outside the frame (unclamped).
+pub fn border_margins(z: &GrayImage, cam: &Camera, skip: &[bool], margin: usize) -> TriMesh {
+    let (w, h) = (z.width, z.height);
+    let mut out = TriMesh::default();
+    if w < BORDER_RUN || h < BORDER_RUN || margin == 0 || skip.len() != w * h {
+        return out;
+    }
+    let (pw, ph) = (w + 2 * margin, h + 2 * margin);
+    let mut padded = GrayImage::new(pw, ph, 0.0);
+    let at = |x: isize, y: isize| -> Option<usize> {
+        (x >= 0 && y >= 0 && (x as usize) < w && (y as usize) < h)
+            .then(|| y as usize * w + x as usize)
+    };
+    // The original's border strips (for the seam) ...
+    for y in 0..h {
+        for x in 0..w {
+            if x < BORDER_RUN || y < BORDER_RUN || x + BORDER_RUN >= w || y + BORDER_RUN >= h {
+                padded.data[(y + margin) * pw + x + margin] = z.data[y * w + x];
+            }
+        }
+    }
+    // ... and each side's continuation: (start pixel, inward step).
+    let mut starts: Vec<((isize, isize), (isize, isize))> = Vec::new();
+    for y in 0..h as isize {
+        starts.push(((0, y), (1, 0)));
+        starts.push(((w as isize - 1, y), (-1, 0)));
+    }
+    for x in 0..w as isize {
+        starts.push(((x, 0), (0, 1)));
+        starts.push(((x, h as isize - 1), (0, -1)));
+    }
+    for ((x0, y0), (dx, dy)) in starts {
+        let mut inv = [0.0f32; BORDER_RUN];
+        let mut ok = true;
+        for (k, v) in inv.iter_mut().enumerate() {
+            let k = k as isize;
+            match at(x0 + k * dx, y0 + k * dy) {
+                Some(i) if z.data[i] > 0.0 && z.data[i].is_finite() && !skip[i] => {
+                    *v = 1.0 / z.data[i];
+                }
+                _ => ok = false,
+            }
+        }
+        if !ok
+            || inv
+                .windows(2)
+                .any(|p| (p[1] - p[0]).abs() > BORDER_JUMP * p[0].max(p[1]))
+        {
+            continue;
+        }
+        // Least squares line through (k, inv[k]).
+        let n = BORDER_RUN as f64;
+        let mk = (n - 1.0) / 2.0;
+        let mv = inv.iter().map(|&v| v as f64).sum::<f64>() / n;
+        let (mut sxy, mut sxx) = (0.0f64, 0.0f64);
+        for (k, &v) in inv.iter().enumerate() {
+            let dk = k as f64 - mk;
+            sxy += dk * (v as f64 - mv);
+            sxx += dk * dk;
+        }
+        let slope = if sxx > 0.0 { sxy / sxx } else { 0.0 };
+        let s0 = inv[0] as f64;
+        for t in 1..=margin as isize {
+            let s = mv + slope * (-(t as f64) - mk);
+            if !(s > s0 / BORDER_RANGE as f64 && s < s0 * BORDER_RANGE as f64) {
+                break;
+            }
+            let (px, py) = (x0 - t * dx + margin as isize, y0 - t * dy + margin as isize);
+            padded.data[py as usize * pw + px as usize] = (1.0 / s) as f32;
+        }
+    }
+    // Same focal length, principal point shifted by the margin.
+    let fov = (2.0 * ((pw as f64 * 0.5) / cam.focal() as f64).atan()).to_degrees() as f32;
+    let wide = Camera {
+        width: pw,
+        height: ph,
+        fov_x_deg: fov,
+    };
+    let Ok(dm) = crate::depth_mesh::mesh_from_depth(&padded, &wide, &Default::default()) else {
+        return out;
+    };
+    let m = margin as f32;
+    let inside = |f: Vec2| f.x > m && f.y > m && f.x < m + w as f32 && f.y < m + h as f32;
+    let mut remap = vec![u32::MAX; dm.mesh.positions.len()];
+    for tri in &dm.mesh.indices {
+        let films = tri.map(|k| dm.mesh.film[k as usize]);
+        if films.iter().all(|&f| inside(f)) {
+            continue;
+        }
+        let idx = tri.map(|k| {
+            let k = k as usize;
+            if remap[k] == u32::MAX {
+                remap[k] = out.positions.len() as u32;
+                out.positions.push(dm.mesh.positions[k]);
+                out.film.push(dm.mesh.film[k] - Vec2::splat(m));
+            }
+            remap[k]
+        });
+        let c = (films[0] + films[1] + films[2]) / 3.0 - Vec2::splat(m);
+        let x = (c.x.floor().max(0.0) as usize).min(w - 1);
+        let y = (c.y.floor().max(0.0) as usize).min(h - 1);
+        out.indices.push(idx);
+        out.material_pixel.push((y * w + x) as u32);
+    }
+    out
 }
 
 /// For every pixel of a `w`×`h` image, the nearest of the `seeds` (pixel
@@ -849,6 +1012,71 @@ mod tests {
         assert!(hit(&open, 0, Vec3::Z).is_none());
         assert!(hit(&open, 0, Vec3::new(0.0, -1.0, 0.3).normalize()).is_some());
         assert!(hit(&open, 0, Vec3::Y).is_some());
+    }
+
+    #[test]
+    fn an_object_cut_by_the_border_continues_past_it_on_its_own_surface() {
+        let cam = Camera::new(96, 72);
+        let mut z = render_planes(&cam, &ROOM);
+        // A slanted cabinet front (normal turned 25° to the right) at
+        // about depth 3, over the left border in rows 30..50.
+        let (n, d) = (Vec3::new(0.42, 0.0, 0.9).normalize(), 3.0);
+        let (rows, cols) = (30..50, 0..20);
+        for y in rows.clone() {
+            for x in cols.clone() {
+                let dir = cam.backproject(x as f32, y as f32, 1.0);
+                z.data[y * 96 + x] = -d / n.dot(dir);
+            }
+        }
+        let mut mesh = TriMesh::default();
+        let c = complete_beyond_frame(&mut mesh, &z, &cam, &CompleteParams::default());
+        assert!(c.border_triangles > 0, "{c:?}");
+        let first = c.triangles - c.border_triangles;
+        let added = &mesh.indices[first..];
+        let mut beyond = 0;
+        for (t, tri) in added.iter().enumerate() {
+            for &k in tri {
+                // At most the margin past the left border, within the
+                // cabinet's rows; on the cabinet's plane (room planes are
+                // continued by their own extensions) but in its edge rows,
+                // which the mesher pushes back to the wall behind, in view
+                // and beyond alike.
+                let q = mesh.positions[k as usize];
+                let f = cam.project(q).unwrap();
+                if f.y > 32.0 && f.y < 48.0 {
+                    assert!((n.dot(q) + d).abs() < 2e-3 * q.length(), "{q} at {f}");
+                }
+                assert!(f.x > -10.0 - 1e-2 && f.x < 1.0, "{f}");
+                assert!(f.y > 29.0 && f.y < 51.0, "{f}");
+                beyond += (f.x < 0.0) as usize;
+            }
+            // It takes the material of the cabinet's border pixel.
+            let px = mesh.material_pixel[first + t] as usize;
+            assert!(px % 96 == 0 && rows.contains(&(px / 96)), "{px}");
+        }
+        assert!(beyond > 0);
+        // Off, nothing of the kind is added.
+        let mut plain = TriMesh::default();
+        let off = complete_beyond_frame(
+            &mut plain,
+            &z,
+            &cam,
+            &CompleteParams {
+                border_margin: 0.0,
+                ..CompleteParams::default()
+            },
+        );
+        assert_eq!(off.border_triangles, 0);
+        assert_eq!(off.triangles, c.triangles - c.border_triangles);
+        // The room alone has nothing cut by the border but its planes.
+        let room = render_planes(&cam, &ROOM);
+        let c = complete_beyond_frame(
+            &mut TriMesh::default(),
+            &room,
+            &cam,
+            &CompleteParams::default(),
+        );
+        assert_eq!(c.border_triangles, 0, "{c:?}");
     }
 
     #[test]
