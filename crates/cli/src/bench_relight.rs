@@ -33,7 +33,7 @@ use matflow_scene::{io, Bundle, MaterialSource, RgbImage};
 
 use crate::bench::{child, path_arg as s};
 use crate::bench_pipeline::median;
-use crate::commands::CompleteMode;
+use crate::commands::{CompleteMode, COMPLETE_LIGHT};
 
 /// The validation set's index (`validation.json`).
 pub struct Validation {
@@ -108,9 +108,13 @@ struct SceneRow {
 
 /// Renders `bundle` with `materials` under `envmap` into `out` (kept when
 /// it exists: the true-map renders are shared by every configuration).
+/// How a render completes the geometry: the mode, and for `lit` the light
+/// its openings follow (else the bundle's own).
+type Geometry<'a> = (CompleteMode, Option<&'a Path>);
+
 fn render(
     r: &RelightRun,
-    complete: CompleteMode,
+    (complete, light): Geometry,
     bundle: &Path,
     materials: &str,
     envmap: &Path,
@@ -139,6 +143,9 @@ fn render(
         .map(|x| x.to_string())
         .collect();
         args.extend(["--complete".into(), complete.name().into()]);
+        if let Some(l) = light {
+            args.extend(["--complete-light".into(), s(l)]);
+        }
         child(r.exe, &args, false)?;
     }
     Ok(io::read_exr_rgb(out)?)
@@ -261,11 +268,17 @@ fn measure(
         ..Default::default()
     };
     let c = format!("-complete-{}", complete.name());
-    let shared = r.work.join(format!("{name}-truth-{}spp{c}", r.spp));
+    // The true maps on matflow's mesh; with `lit` that mesh depends on the
+    // light this inversion fitted, so those renders are its own.
+    let light = (complete == CompleteMode::Lit).then(|| out.join(COMPLETE_LIGHT));
+    let shared = match &light {
+        Some(_) => out.join(format!("truth-{}spp", r.spp)),
+        None => r.work.join(format!("{name}-truth-{}spp{c}", r.spp)),
+    };
     std::fs::create_dir_all(&shared)?;
     let cap = render(
         r,
-        complete,
+        (complete, light.as_deref()),
         scene,
         "ground_truth",
         &scene.join("ground_truth/envmap.exr"),
@@ -279,7 +292,7 @@ fn measure(
         let env = scene.join(env);
         let t = render(
             r,
-            complete,
+            (complete, light.as_deref()),
             scene,
             "ground_truth",
             &env,
@@ -288,7 +301,7 @@ fn measure(
         )?;
         let g = render(
             r,
-            complete,
+            (complete, None),
             &out,
             "best_results",
             &env,

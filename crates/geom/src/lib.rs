@@ -13,7 +13,10 @@ pub mod refraction;
 pub mod shapes;
 
 pub use bvh::{Bvh, Hit, PACKET};
-pub use complete::{complete_beyond_frame, extensions, CompleteParams, Completion, Extension};
+pub use complete::{
+    complete_beyond_frame, complete_beyond_frame_with, extensions, extensions_with, CompleteParams,
+    Completion, Extension, LightFrom, COMPLETE_MODES,
+};
 pub use depth_mesh::{
     mesh_for_view, mesh_from_depth, vertex_normals, DepthMesh, MeshError, MeshParams, MeshStats,
 };

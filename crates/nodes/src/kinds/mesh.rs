@@ -4,6 +4,9 @@ use std::collections::BTreeMap;
 
 use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
 
+use matflow_geom::{complete_beyond_frame, CompleteParams, COMPLETE_MODES};
+use matflow_scene::Camera;
+
 use crate::data::{encode_mesh, mesh_of, SceneData};
 
 pub struct MeshNode;
@@ -12,7 +15,8 @@ const MESH_INFO: NodeInfo = NodeInfo {
     kind: "mesh",
     version: 1,
     doc: "The triangle mesh of a scene's depth map (one vertex per pixel, cut at depth \
-         discontinuities found by the reference's angle test).",
+         discontinuities found by the reference's angle test), optionally completed past the \
+         frame.",
     params: &[
         ParamSpec {
             name: "scene",
@@ -31,6 +35,16 @@ const MESH_INFO: NodeInfo = NodeInfo {
             unit: "degrees",
             doc: "boundary threshold: triangles seen more obliquely than this are cut",
         },
+        ParamSpec {
+            name: "complete",
+            ty: ParamType::Choice(&COMPLETE_MODES),
+            default: Some("none"),
+            unit: "",
+            doc: "geometry past the frame: none; planes (the floor, walls and ceiling seen, \
+                  extended and filled behind what hides them, and objects cut by the border \
+                  continued); room (also a room the view shows closed, each assumed wall with a \
+                  typical window); closed (assumed walls without windows)",
+        },
     ],
     outputs: &[OutputSpec {
         name: "mesh",
@@ -45,11 +59,69 @@ impl Node for MeshNode {
     }
     fn run(&self, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
         let s = SceneData::decode(ctx.input("scene")?)?;
-        let tri = mesh_of(&s.depth, ctx.params.f64("angle"))?;
+        let mut tri = mesh_of(&s.depth, ctx.params.f64("angle"))?;
+        if let Some(p) = CompleteParams::for_mode(ctx.params.str("complete")) {
+            let cam = Camera::new(s.depth.width, s.depth.height);
+            complete_beyond_frame(&mut tri, &s.depth, &cam, &p);
+        }
         Ok([(
             "mesh".to_string(),
             encode_mesh(s.depth.width, s.depth.height, &tri),
         )]
         .into())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::data::decode_mesh;
+    use crate::testutil::params_of;
+    use matflow_engine::Value;
+    use matflow_geom::TriMesh;
+
+    fn mesh_with(complete: &str) -> TriMesh {
+        let s = matflow_scene::synthetic::generate(3, 48, 48);
+        let scene = SceneData {
+            depth: s.depth,
+            target: None,
+            pred: s.maps,
+        }
+        .encode();
+        let p = params_of(&MESH_INFO, &[("complete", Value::Str(complete.into()))]);
+        let out = MeshNode
+            .run(&RunContext {
+                stage: "m",
+                params: &p,
+                inputs: [("scene".to_string(), std::sync::Arc::new(scene))].into(),
+                seed: 1,
+                progress: &|_, _| {},
+            })
+            .unwrap();
+        let (cam, tri) = decode_mesh(&out["mesh"]).unwrap();
+        assert_eq!((cam.width, cam.height), (48, 48));
+        tri
+    }
+
+    #[test]
+    fn the_mesh_stage_completes_the_room_past_the_frame_only_when_asked() {
+        let plain = mesh_with("none");
+        assert!(plain.material_pixel.is_empty());
+        let s = matflow_scene::synthetic::generate(3, 48, 48);
+        assert_eq!(plain, mesh_of(&s.depth, 6.0).unwrap());
+        for mode in ["planes", "room"] {
+            let done = mesh_with(mode);
+            // The view's own mesh first, then what continues it, each
+            // added triangle naming a pixel of the view for its material.
+            assert!(done.indices.len() > plain.indices.len(), "{mode}");
+            assert_eq!(done.indices[..plain.indices.len()], plain.indices[..]);
+            assert_eq!(done.material_pixel.len(), done.indices.len());
+            assert!(done.material_pixel[plain.indices.len()..]
+                .iter()
+                .all(|&p| (p as usize) < 48 * 48));
+            assert!(done.positions.iter().all(|p| p.is_finite()));
+        }
+        // The same depth completes the same way every time.
+        assert_eq!(mesh_with("room"), mesh_with("room"));
     }
 }
