@@ -128,6 +128,10 @@ pub struct MeshArgs {
     /// Also complete the geometry past the frame (see `render --complete`).
     #[arg(long, num_args = 0..=1, default_missing_value = "room")]
     pub complete: Option<CompleteMode>,
+    /// With `--complete lit`: the envmap whose brightest directions the
+    /// openings follow.
+    #[arg(long)]
+    pub complete_light: Option<PathBuf>,
     #[arg(long)]
     pub out: PathBuf,
 }
@@ -542,7 +546,24 @@ pub fn mesh(a: MeshArgs) -> Result<()> {
     let t0 = Instant::now();
     let (cam, mut m) = mesh_for_view(&depth, a.angle)?;
     if let Some(params) = a.complete.and_then(|m| m.params()) {
-        let c = matflow_geom::complete_beyond_frame(&mut m.mesh, &depth, &cam, &params);
+        let c = match (a.complete, &a.complete_light) {
+            (Some(CompleteMode::Lit), Some(path)) => {
+                let light = complete_light_of(path)?;
+                let open = |d: glam::Vec3| light.open(d);
+                matflow_geom::complete_beyond_frame_with(
+                    &mut m.mesh,
+                    &depth,
+                    &cam,
+                    &params,
+                    Some(&open),
+                )
+            }
+            (Some(CompleteMode::Lit), None) => bail!(
+                "--complete lit needs the light its openings follow: pass --complete-light FILE \
+                 (e.g. the {COMPLETE_LIGHT} that `matflow invert --complete lit` wrote)"
+            ),
+            _ => matflow_geom::complete_beyond_frame(&mut m.mesh, &depth, &cam, &params),
+        };
         for f in &c.extended {
             outln!(
                 "extended {:?} n=({:.3}, {:.3}, {:.3}) d={:.3}: {:.1} % of the view, reaches {:?} (left, right, top, bottom)",
