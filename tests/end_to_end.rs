@@ -144,64 +144,6 @@ fn synth_then_render_writes_exr_png_and_summary() {
         text.contains("completion room (the one matflow invert recovered these maps with)"),
         "{text}"
     );
-    // Openings where the light comes from: the inversion writes the light
-    // it cut them by, and a render of its result cuts the same ones; a
-    // render asking for them without that light says what is missing.
-    let lit = dir.path().join("inv-lit");
-    ok(&matflow(
-        &[
-            "invert",
-            "--bundle",
-            s(&b),
-            "--out",
-            s(&lit),
-            "--budget-seconds",
-            "3",
-            "--complete",
-            "lit",
-            "--quiet",
-        ],
-        None,
-    ));
-    assert!(lit.join("complete_light.exr").is_file());
-    let text = render(&lit, &["--spp", "2"]);
-    assert!(text.contains("completion lit"), "{text}");
-    let o = matflow(
-        &[
-            "render",
-            "--bundle",
-            s(&b),
-            "--materials",
-            "ground_truth",
-            "--out",
-            s(&out),
-            "--spp",
-            "2",
-            "--complete",
-            "lit",
-        ],
-        None,
-    );
-    assert!(!o.status.success());
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(
-        err.contains("complete_light.exr") && err.contains("--complete-light"),
-        "{err}"
-    );
-    let text = render(
-        &b,
-        &[
-            "--materials",
-            "ground_truth",
-            "--spp",
-            "2",
-            "--complete",
-            "lit",
-            "--complete-light",
-            s(&lit.join("complete_light.exr")),
-        ],
-    );
-    assert!(text.contains("completion lit"), "{text}");
 }
 
 #[test]

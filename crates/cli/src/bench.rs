@@ -132,15 +132,7 @@ pub fn run(b: BenchCmd) -> Result<()> {
 fn bench_render(a: BenchRenderArgs) -> Result<()> {
     let runs = a.runs.max(1);
     let threads = rayon::current_num_threads();
-    let loaded = load_scene(
-        &a.bundle,
-        a.materials,
-        None,
-        6.0,
-        a.reference_compat,
-        None,
-        None,
-    )?;
+    let loaded = load_scene(&a.bundle, a.materials, None, 6.0, a.reference_compat, None)?;
     let scene = &loaded.scene;
     let cam = scene.camera;
     outln!(

@@ -33,7 +33,7 @@ use matflow_scene::{io, Bundle, MaterialSource, RgbImage};
 
 use crate::bench::{child, path_arg as s};
 use crate::bench_pipeline::median;
-use crate::commands::{CompleteMode, COMPLETE_LIGHT};
+use crate::commands::CompleteMode;
 
 /// The validation set's index (`validation.json`).
 pub struct Validation {
@@ -108,13 +108,9 @@ struct SceneRow {
 
 /// Renders `bundle` with `materials` under `envmap` into `out` (kept when
 /// it exists: the true-map renders are shared by every configuration).
-/// How a render completes the geometry: the mode, and for `lit` the light
-/// its openings follow (else the bundle's own).
-type Geometry<'a> = (CompleteMode, Option<&'a Path>);
-
 fn render(
     r: &RelightRun,
-    (complete, light): Geometry,
+    complete: CompleteMode,
     bundle: &Path,
     materials: &str,
     envmap: &Path,
@@ -143,9 +139,6 @@ fn render(
         .map(|x| x.to_string())
         .collect();
         args.extend(["--complete".into(), complete.name().into()]);
-        if let Some(l) = light {
-            args.extend(["--complete-light".into(), s(l)]);
-        }
         child(r.exe, &args, false)?;
     }
     Ok(io::read_exr_rgb(out)?)
@@ -268,17 +261,11 @@ fn measure(
         ..Default::default()
     };
     let c = format!("-complete-{}", complete.name());
-    // The true maps on matflow's mesh; with `lit` that mesh depends on the
-    // light this inversion fitted, so those renders are its own.
-    let light = (complete == CompleteMode::Lit).then(|| out.join(COMPLETE_LIGHT));
-    let shared = match &light {
-        Some(_) => out.join(format!("truth-{}spp", r.spp)),
-        None => r.work.join(format!("{name}-truth-{}spp{c}", r.spp)),
-    };
+    let shared = r.work.join(format!("{name}-truth-{}spp{c}", r.spp));
     std::fs::create_dir_all(&shared)?;
     let cap = render(
         r,
-        (complete, light.as_deref()),
+        complete,
         scene,
         "ground_truth",
         &scene.join("ground_truth/envmap.exr"),
@@ -292,7 +279,7 @@ fn measure(
         let env = scene.join(env);
         let t = render(
             r,
-            (complete, light.as_deref()),
+            complete,
             scene,
             "ground_truth",
             &env,
@@ -301,7 +288,7 @@ fn measure(
         )?;
         let g = render(
             r,
-            (complete, None),
+            complete,
             &out,
             "best_results",
             &env,

@@ -6,8 +6,8 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use matflow_geom::mesh_for_view;
 use matflow_render::{
-    render as render_scene, scene_from_depth, scene_from_depth_lit, EnvMap, LightOpenings,
-    PixelFilter, RenderOptions, RenderOutput, RenderScene,
+    render as render_scene, scene_from_depth, EnvMap, PixelFilter, RenderOptions, RenderOutput,
+    RenderScene,
 };
 use matflow_scene::metrics::psnr_gamma;
 use matflow_scene::{io, Bundle, MaterialSource, RgbImage};
@@ -53,11 +53,6 @@ pub struct RenderArgs {
     /// extends the planes seen.
     #[arg(long, num_args = 0..=1, default_missing_value = "room")]
     pub complete: Option<CompleteMode>,
-    /// With `--complete lit`: the envmap whose brightest directions the
-    /// openings follow. Default: the bundle's complete_light.exr (what
-    /// `matflow invert --complete lit` wrote).
-    #[arg(long)]
-    pub complete_light: Option<PathBuf>,
     /// Reproduce the reference renderer's sampling-frame defect and its
     /// optimisation-time envmap layout (for comparing with its stored
     /// renders; physically incorrect).
@@ -128,10 +123,6 @@ pub struct MeshArgs {
     /// Also complete the geometry past the frame (see `render --complete`).
     #[arg(long, num_args = 0..=1, default_missing_value = "room")]
     pub complete: Option<CompleteMode>,
-    /// With `--complete lit`: the envmap whose brightest directions the
-    /// openings follow.
-    #[arg(long)]
-    pub complete_light: Option<PathBuf>,
     #[arg(long)]
     pub out: PathBuf,
 }
@@ -184,17 +175,7 @@ pub enum CompleteMode {
     Room,
     /// As `room`, the assumed walls without windows.
     Closed,
-    /// As `room`, but the walls and ceiling past the frame open where
-    /// light comes from instead of typical windows: towards the brightest
-    /// directions of an envmap fitted to the view with the room open
-    /// (`invert` fits it first and writes it as `complete_light.exr`; a
-    /// render of its result reuses it, or takes `--complete-light`).
-    Lit,
 }
-
-/// The file `invert --complete lit` writes the light its openings follow
-/// to, in its output bundle.
-pub const COMPLETE_LIGHT: &str = "complete_light.exr";
 
 impl CompleteMode {
     pub fn name(self) -> &'static str {
@@ -203,15 +184,11 @@ impl CompleteMode {
             CompleteMode::Planes => "planes",
             CompleteMode::Room => "room",
             CompleteMode::Closed => "closed",
-            CompleteMode::Lit => "lit",
         }
     }
 
     pub fn params(self) -> Option<matflow_geom::CompleteParams> {
-        match self {
-            CompleteMode::Lit => matflow_geom::CompleteParams::for_mode("room"),
-            m => matflow_geom::CompleteParams::for_mode(m.name()),
-        }
+        matflow_geom::CompleteParams::for_mode(self.name())
     }
 }
 
@@ -266,18 +243,6 @@ pub fn render_completion(
     )
 }
 
-/// The openings `--complete lit` cuts, from the envmap at `path`.
-pub fn complete_light_of(path: &Path) -> Result<LightOpenings> {
-    let img = io::read_envmap(path).with_context(|| {
-        format!(
-            "{}: --complete lit needs the light its openings follow (what `matflow invert \
-             --complete lit` writes as {COMPLETE_LIGHT}; or pass --complete-light FILE)",
-            path.display()
-        )
-    })?;
-    LightOpenings::new(&img, LightOpenings::SHARE).with_context(|| format!("{}", path.display()))
-}
-
 /// Builds mesh, BVH, materials and envmap for a bundle.
 pub fn load_scene(
     bundle_dir: &Path,
@@ -286,7 +251,6 @@ pub fn load_scene(
     mesh_angle: f64,
     reference_compat: bool,
     complete: Option<CompleteMode>,
-    complete_light: Option<&Path>,
 ) -> Result<LoadedScene> {
     let bundle = Bundle::open(bundle_dir)?;
     let depth = bundle.load_depth()?;
@@ -307,18 +271,9 @@ pub fn load_scene(
     let env = EnvMap::new(&env_img).with_context(|| format!("{}", env_path.display()))?;
     let t0 = Instant::now();
     let params = complete.and_then(|m| m.params());
-    let scene = match (complete, params) {
-        (Some(CompleteMode::Lit), Some(p)) => {
-            let path = complete_light
-                .map(Path::to_path_buf)
-                .unwrap_or_else(|| bundle_dir.join(COMPLETE_LIGHT));
-            let light = complete_light_of(&path)?;
-            scene_from_depth_lit(&depth, &maps, env.clone(), mesh_angle, &p, &light)
-        }
-        (_, p) => scene_from_depth(&depth, &maps, env.clone(), mesh_angle, p.as_ref()),
-    }
-    .with_context(|| format!("{}: building the scene", bundle_dir.display()))?
-    .0;
+    let scene = scene_from_depth(&depth, &maps, env.clone(), mesh_angle, params.as_ref())
+        .with_context(|| format!("{}: building the scene", bundle_dir.display()))?
+        .0;
     Ok(LoadedScene {
         scene,
         maps,
@@ -393,7 +348,6 @@ pub fn render(a: RenderArgs) -> Result<()> {
         a.mesh_angle,
         a.reference_compat,
         Some(complete),
-        a.complete_light.as_deref(),
     )?;
     let opts = RenderOptions {
         spp: a.spp,
@@ -546,24 +500,7 @@ pub fn mesh(a: MeshArgs) -> Result<()> {
     let t0 = Instant::now();
     let (cam, mut m) = mesh_for_view(&depth, a.angle)?;
     if let Some(params) = a.complete.and_then(|m| m.params()) {
-        let c = match (a.complete, &a.complete_light) {
-            (Some(CompleteMode::Lit), Some(path)) => {
-                let light = complete_light_of(path)?;
-                let open = |d: glam::Vec3| light.open(d);
-                matflow_geom::complete_beyond_frame_with(
-                    &mut m.mesh,
-                    &depth,
-                    &cam,
-                    &params,
-                    Some(&open),
-                )
-            }
-            (Some(CompleteMode::Lit), None) => bail!(
-                "--complete lit needs the light its openings follow: pass --complete-light FILE \
-                 (e.g. the {COMPLETE_LIGHT} that `matflow invert --complete lit` wrote)"
-            ),
-            _ => matflow_geom::complete_beyond_frame(&mut m.mesh, &depth, &cam, &params),
-        };
+        let c = matflow_geom::complete_beyond_frame(&mut m.mesh, &depth, &cam, &params);
         for f in &c.extended {
             outln!(
                 "extended {:?} n=({:.3}, {:.3}, {:.3}) d={:.3}: {:.1} % of the view, reaches {:?} (left, right, top, bottom)",
@@ -621,15 +558,7 @@ pub fn synth(a: SynthArgs) -> Result<()> {
     bundle.write_materials("ground_truth", &s.maps)?;
     io::write_hdr(&bundle.path("ground_truth/envmap.hdr"), &s.envmap)?;
     // Render the input photo with the true materials and lighting.
-    let loaded = load_scene(
-        &a.out,
-        MaterialSource::GroundTruth,
-        None,
-        6.0,
-        false,
-        None,
-        None,
-    )?;
+    let loaded = load_scene(&a.out, MaterialSource::GroundTruth, None, 6.0, false, None)?;
     let opts = RenderOptions {
         spp: a.spp,
         seed: a.seed,
@@ -650,7 +579,6 @@ pub fn synth(a: SynthArgs) -> Result<()> {
             Some(&env_path),
             6.0,
             false,
-            None,
             None,
         )?;
         let opts = RenderOptions {

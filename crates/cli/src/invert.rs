@@ -9,11 +9,10 @@ use clap::Args;
 use glam::Vec3;
 use indicatif::{ProgressBar, ProgressStyle};
 use matflow_inverse::invert::{invert, materials_to_maps, Event, InvertOptions, InvertResult};
-use matflow_render::{scene_from_depth, EnvMap, LightOpenings, RenderScene};
+use matflow_render::{scene_from_depth, EnvMap, RenderScene};
 use matflow_scene::metrics::{mse_gamma, psnr_gamma, ssim_gamma};
 use matflow_scene::{io, Bundle, Image, MaterialMaps, MaterialSource, RgbImage};
 
-use crate::commands::{CompleteMode, COMPLETE_LIGHT};
 use crate::routes::RouteArgs;
 
 #[derive(Args, Clone)]
@@ -123,7 +122,6 @@ pub fn load_input(
     source: MaterialSource,
     mesh_angle: f64,
     complete: Option<&matflow_geom::CompleteParams>,
-    light: Option<&matflow_render::LightOpenings>,
 ) -> Result<InvertInput> {
     let bundle = Bundle::open(dir)?;
     let target = bundle.load_gt_image()?;
@@ -142,14 +140,8 @@ pub fn load_input(
         );
     }
     let flat = Image::new(32, 16, Vec3::ONE);
-    let env = EnvMap::new(&flat)?;
-    let (scene, _) = match (complete, light) {
-        (Some(p), Some(l)) => {
-            matflow_render::scene_from_depth_lit(&depth, &maps, env, mesh_angle, p, l)
-        }
-        _ => scene_from_depth(&depth, &maps, env, mesh_angle, complete),
-    }
-    .with_context(|| format!("{}: building the scene", dir.display()))?;
+    let (scene, _) = scene_from_depth(&depth, &maps, EnvMap::new(&flat)?, mesh_angle, complete)
+        .with_context(|| format!("{}: building the scene", dir.display()))?;
     Ok(InvertInput {
         depth,
         maps,
@@ -280,57 +272,15 @@ pub fn write_bundle(
     Ok(())
 }
 
-/// Share of the budget `--complete lit` spends on the light its openings
-/// follow (an envmap-only inversion with the room open).
-pub const LIT_SCOUT_SHARE: f64 = 0.15;
-
-/// For `--complete lit`: the envmap an envmap-only inversion fits with the
-/// room open (its planes extended, no closure), on its share of the
-/// budget. The room is then closed except towards its brightest
-/// directions.
-fn light_of_open_room(a: &InvertArgs, opts: &InvertOptions) -> Result<RgbImage> {
-    let open = load_input(
-        &a.bundle,
-        a.materials,
-        a.mesh_angle,
-        CompleteMode::Planes.params().as_ref(),
-        None,
-    )?;
-    let scout = InvertOptions {
-        budget_seconds: opts.budget_seconds * LIT_SCOUT_SHARE,
-        env_only: true,
-        init_env: None,
-        ..opts.clone()
-    };
-    let (res, _) = run_invert(open.scene, &open.target, &open.maps, &scout, a.quiet)
-        .context("fitting the light of the open room (--complete lit)")?;
-    Ok(res.envmap)
-}
-
 pub fn invert_cmd(a: InvertArgs) -> Result<()> {
     let t0 = Instant::now();
-    let mut opts = options_from(&a);
-    let light_env = if a.complete == CompleteMode::Lit {
-        let env = light_of_open_room(&a, &opts)?;
-        opts.budget_seconds *= 1.0 - LIT_SCOUT_SHARE;
-        if opts.env_route.build().takes_start_envmap() {
-            opts.init_env = Some(env.clone());
-        }
-        Some(env)
-    } else {
-        None
-    };
-    let light = light_env
-        .as_ref()
-        .map(|e| LightOpenings::new(e, LightOpenings::SHARE))
-        .transpose()?;
     let input = load_input(
         &a.bundle,
         a.materials,
         a.mesh_angle,
         a.complete.params().as_ref(),
-        light.as_ref(),
     )?;
+    let opts = options_from(&a);
     let InvertInput {
         depth,
         maps,
@@ -344,7 +294,7 @@ pub fn invert_cmd(a: InvertArgs) -> Result<()> {
     let summary = serde_json::json!({
         "input": a.bundle.display().to_string(),
         "options": {
-            "budget_seconds": a.budget_seconds,
+            "budget_seconds": opts.budget_seconds,
             "env_route": format!("{:?}", opts.env_route),
             "mat_route": format!("{:?}", opts.mat_route),
             "trust_rm": opts.trust_rm,
@@ -356,7 +306,6 @@ pub fn invert_cmd(a: InvertArgs) -> Result<()> {
             "seed": opts.seed,
             "pixel_filter": matflow_inverse::invert::FIT_FILTER.name(),
             "complete": a.complete.name(),
-            "complete_light_share": light_env.as_ref().map(|_| LIT_SCOUT_SHARE),
         },
         "plan": res.report.plan,
         "stages": stages_with_seconds(&res, &stage_seconds),
@@ -368,9 +317,6 @@ pub fn invert_cmd(a: InvertArgs) -> Result<()> {
         "peak_memory_bytes": peak_memory_bytes(),
     });
     write_bundle(&a.out, &res, depth, pred, target, &summary)?;
-    if let Some(env) = &light_env {
-        io::write_exr_rgb(&a.out.join(COMPLETE_LIGHT), env)?;
-    }
     outln!(
         "inverted {} in {:.1} s: rerender PSNR {:.2} dB, SSIM {:.4}, MSE {:.5} (sRGB, gamma 2.2; frozen-path fit {:.2} dB); peak memory {:.0} MB -> {}",
         a.bundle.display(),

@@ -32,7 +32,7 @@
 //! completion (and [`complete_beyond_frame`] names, per added triangle,
 //! the pixel of its plane whose material it takes).
 
-use glam::{DVec3, Vec2, Vec3};
+use glam::{Vec2, Vec3};
 use matflow_scene::{Camera, GrayImage};
 
 use crate::mesh::TriMesh;
@@ -83,8 +83,9 @@ impl Default for CompleteParams {
 
 /// The ways of completing a view, by name (the CLI's `--complete` and the
 /// pipeline's `mesh.complete`): the depth mesh alone; bounding planes
-/// extended and filled; also a room the view shows closed, each assumed
-/// wall keeping a typical window; closed without windows.
+/// extended and filled (and objects cut by the border continued); also a
+/// room the view shows closed, each assumed wall keeping a typical
+/// window; closed without windows.
 pub const COMPLETE_MODES: [&str; 4] = ["none", "planes", "room", "closed"];
 
 impl CompleteParams {
@@ -272,23 +273,6 @@ fn bounds_scene(f: &PlaneFit, points: &[(Vec3, f32)], p: &CompleteParams) -> boo
 /// The extensions of the bounding planes of depth map `z` past the frame,
 /// and how many planes were found but not extended.
 pub fn extensions(z: &GrayImage, cam: &Camera, p: &CompleteParams) -> (Vec<Extension>, usize) {
-    extensions_with(z, cam, p, None)
-}
-
-/// Which directions light enters the room from (camera space, unit, from
-/// the middle of what the view shows): the walls and ceiling past the
-/// frame are opened there ([`carved`]).
-pub type LightFrom<'a> = &'a (dyn Fn(Vec3) -> bool + Sync);
-
-/// [`extensions`], with the walls and ceiling past the frame opened where
-/// `light` says light comes from (instead of a typical window in each
-/// assumed wall).
-pub fn extensions_with(
-    z: &GrayImage,
-    cam: &Camera,
-    p: &CompleteParams,
-    light: Option<LightFrom>,
-) -> (Vec<Extension>, usize) {
     let fits = fit_planes(z, cam, &p.planes);
     let (w, h) = (z.width, z.height);
     let valid: Vec<usize> = (0..w * h)
@@ -335,15 +319,6 @@ pub fn extensions_with(
             .reduce(f32::max)
     });
     let tol = p.planes.tolerance as f32;
-    // Openings are cut in cells of a third of the camera's height (else of
-    // a tenth of the largest depth), seen from the middle of the view.
-    let carve_cell = floor.map(|f| f.d / 3.0).unwrap_or(zmax / 10.0).max(1e-3);
-    let middle = {
-        let s = points
-            .iter()
-            .fold(DVec3::ZERO, |a, (q, _)| a + q.as_dvec3());
-        (s / points.len().max(1) as f64).as_vec3()
-    };
     for (k, f) in bounding.iter().enumerate() {
         let Plane { n, d } = f.plane;
         let others: Vec<Plane> = bounding
@@ -386,11 +361,8 @@ pub fn extensions_with(
                 poly = clip(&poly, -up, top);
             }
         }
-        let carve = light.filter(|_| matches!(f.kind, PlaneKind::Wall | PlaneKind::Ceiling));
         let pieces = if !f.reaches.iter().any(|&r| r) {
             Vec::new()
-        } else if let Some(light) = carve {
-            carved(&poly, n, up, middle, carve_cell, light)
         } else if assumed && f.kind == PlaneKind::Wall && p.assumed_opening > 0.0 {
             with_opening(&poly, n, floor, ceiling_height, p.assumed_opening)
         } else {
@@ -487,70 +459,6 @@ fn with_opening(
         .filter(|q| q.len() >= 3)
         .collect()
 }
-
-/// Convex polygon `poly` (on the plane of normal `n`) cut into square
-/// cells of side `cell` (aligned with `up` on a wall), less the cells that
-/// `light` says light comes through: those whose centre is seen from
-/// `middle` in a direction light comes from. At most [`MAX_CELLS`] cells
-/// a side (larger polygons get larger cells).
-fn carved(
-    poly: &[Vec3],
-    n: Vec3,
-    up: Vec3,
-    middle: Vec3,
-    cell: f32,
-    light: LightFrom,
-) -> Vec<Vec<Vec3>> {
-    if poly.len() < 3 {
-        return Vec::new();
-    }
-    let mut a = up.cross(n).normalize_or_zero();
-    if a == Vec3::ZERO {
-        a = n.any_orthonormal_vector();
-    }
-    let b = n.cross(a);
-    let range = |e: Vec3| {
-        poly.iter()
-            .map(|q| e.dot(*q))
-            .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), s| {
-                (lo.min(s), hi.max(s))
-            })
-    };
-    let ((a0, a1), (b0, b1)) = (range(a), range(b));
-    let span = (a1 - a0).max(b1 - b0);
-    if !span.is_finite() {
-        return vec![poly.to_vec()];
-    }
-    let cell = cell.max(span / MAX_CELLS as f32);
-    let (na, nb) = (
-        ((a1 - a0) / cell).ceil().max(1.0) as usize,
-        ((b1 - b0) / cell).ceil().max(1.0) as usize,
-    );
-    let mut out = Vec::new();
-    for i in 0..na {
-        let (s0, s1) = (a0 + i as f32 * cell, a0 + (i + 1) as f32 * cell);
-        let column = clip(&clip(poly, a, -s0), -a, s1);
-        if column.len() < 3 {
-            continue;
-        }
-        for j in 0..nb {
-            let (t0, t1) = (b0 + j as f32 * cell, b0 + (j + 1) as f32 * cell);
-            let piece = clip(&clip(&column, b, -t0), -b, t1);
-            if piece.len() < 3 {
-                continue;
-            }
-            let c = piece.iter().sum::<Vec3>() / piece.len() as f32;
-            let d = (c - middle).normalize_or_zero();
-            if d == Vec3::ZERO || !light(d) {
-                out.push(piece);
-            }
-        }
-    }
-    out
-}
-
-/// Most cells a carved polygon is cut into along a side.
-const MAX_CELLS: usize = 64;
 
 /// The part of plane `f` that the view shows hidden behind nearer
 /// geometry, as triangles over the pixel-centre grid (facing the camera's
@@ -650,19 +558,7 @@ pub fn complete_beyond_frame(
     cam: &Camera,
     p: &CompleteParams,
 ) -> Completion {
-    complete_beyond_frame_with(mesh, z, cam, p, None)
-}
-
-/// [`complete_beyond_frame`], with the walls and ceiling past the frame
-/// opened where `light` says light comes from ([`extensions_with`]).
-pub fn complete_beyond_frame_with(
-    mesh: &mut TriMesh,
-    z: &GrayImage,
-    cam: &Camera,
-    p: &CompleteParams,
-    light: Option<LightFrom>,
-) -> Completion {
-    let (exts, kept_in) = extensions_with(z, cam, p, light);
+    let (exts, kept_in) = extensions(z, cam, p);
     let (w, h) = (z.width, z.height);
     let mut done = Completion {
         kept_in,
@@ -1206,51 +1102,6 @@ mod tests {
             &CompleteParams::default(),
         );
         assert_eq!(c.border_triangles, 0, "{c:?}");
-    }
-
-    #[test]
-    fn walls_and_ceiling_past_the_frame_open_where_light_comes_from() {
-        let cam = Camera::new(96, 72);
-        let z = render_planes(&cam, &FLOOR_AND_WALL);
-        let closed = CompleteParams {
-            close: true,
-            ..CompleteParams::default()
-        };
-        // No light from anywhere: closed all round (no typical windows).
-        let mut shut = TriMesh::default();
-        complete_beyond_frame_with(&mut shut, &z, &cam, &closed, Some(&|_| false));
-        for dir in [Vec3::Z, Vec3::X, Vec3::NEG_X, Vec3::Y] {
-            assert!(hit(&shut, 0, dir).is_some(), "{dir}");
-        }
-        // Light from behind the camera (seen from the middle of the view):
-        // the wall behind opens there, the others stay shut.
-        let from_behind = |d: Vec3| d.z > 0.985;
-        let mut lit = TriMesh::default();
-        complete_beyond_frame_with(&mut lit, &z, &cam, &closed, Some(&from_behind));
-        assert!(hit(&lit, 0, Vec3::Z).is_none());
-        for dir in [
-            Vec3::X,
-            Vec3::NEG_X,
-            Vec3::Y,
-            Vec3::new(0.0, 1.0, 0.1).normalize(),
-        ] {
-            assert!(hit(&lit, 0, dir).is_some(), "{dir}");
-        }
-        // The view itself is never covered.
-        for y in (0..72).step_by(5) {
-            for x in (0..96).step_by(5) {
-                let dir = cam.backproject(x as f32, y as f32, 1.0).normalize();
-                assert!(hit(&lit, 0, dir).is_none(), "pixel {x},{y}");
-            }
-        }
-        // Light from everywhere: the walls and ceiling past the frame are
-        // gone, the floor stays.
-        let mut open = TriMesh::default();
-        complete_beyond_frame_with(&mut open, &z, &cam, &closed, Some(&|_| true));
-        for dir in [Vec3::Z, Vec3::X, Vec3::NEG_X, Vec3::Y] {
-            assert!(hit(&open, 0, dir).is_none(), "{dir}");
-        }
-        assert!(hit(&open, 0, Vec3::new(0.0, -1.0, 0.5).normalize()).is_some());
     }
 
     #[test]

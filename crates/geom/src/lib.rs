@@ -14,8 +14,7 @@ pub mod shapes;
 
 pub use bvh::{Bvh, Hit, PACKET};
 pub use complete::{
-    complete_beyond_frame, complete_beyond_frame_with, extensions, extensions_with, CompleteParams,
-    Completion, Extension, LightFrom, COMPLETE_MODES,
+    complete_beyond_frame, extensions, CompleteParams, Completion, Extension, COMPLETE_MODES,
 };
 pub use depth_mesh::{
     mesh_for_view, mesh_from_depth, vertex_normals, DepthMesh, MeshError, MeshParams, MeshStats,

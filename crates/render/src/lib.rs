@@ -21,10 +21,7 @@ pub use dielectric::Dielectric;
 pub use envmap::EnvMap;
 pub use filter::PixelFilter;
 pub use integrator::{render, Crop, RenderOptions, RenderOutput, RenderStats};
-pub use scene::{
-    scene_from_depth, scene_from_depth_lit, texture_at, LightOpenings, RenderScene, SceneObject,
-    Surface,
-};
+pub use scene::{scene_from_depth, texture_at, RenderScene, SceneObject, Surface};
 
 #[derive(Debug, thiserror::Error)]
 pub enum RenderError {

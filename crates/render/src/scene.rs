@@ -3,8 +3,8 @@
 
 use glam::{Vec2, Vec3};
 use matflow_geom::{
-    complete_beyond_frame, complete_beyond_frame_with, mesh_for_view, vertex_normals, Bvh,
-    CompleteParams, DepthMesh, MeshStats, TriMesh,
+    complete_beyond_frame, mesh_for_view, vertex_normals, Bvh, CompleteParams, DepthMesh,
+    MeshStats, TriMesh,
 };
 use matflow_scene::{Camera, GrayImage, MaterialMaps};
 
@@ -54,79 +54,6 @@ pub fn scene_from_depth(
         complete_beyond_frame(&mut mesh, depth, &cam, p);
     }
     Ok((RenderScene::new(cam, mesh, maps, env)?, stats))
-}
-
-/// [`scene_from_depth`], the walls and ceiling past the frame opened where
-/// `light` says light comes from (instead of typical windows).
-pub fn scene_from_depth_lit(
-    depth: &GrayImage,
-    maps: &MaterialMaps,
-    env: EnvMap,
-    mesh_angle_deg: f64,
-    complete: &CompleteParams,
-    light: &LightOpenings,
-) -> Result<(RenderScene, MeshStats), RenderError> {
-    let (
-        cam,
-        DepthMesh {
-            mut mesh, stats, ..
-        },
-    ) = mesh_for_view(depth, mesh_angle_deg)?;
-    let open = |d: Vec3| light.open(d);
-    complete_beyond_frame_with(&mut mesh, depth, &cam, complete, Some(&open));
-    Ok((RenderScene::new(cam, mesh, maps, env)?, stats))
-}
-
-/// Where light enters a room completed past the frame, read off an
-/// envmap fitted to the view with the room left open: the directions
-/// whose luminance is among the brightest `share` of the sphere (by solid
-/// angle, on an equal-area grid of directions). The room's walls and
-/// ceiling past the frame are opened towards them, and closed elsewhere,
-/// so that light comes in where the view needs it and a new sky only
-/// there.
-pub struct LightOpenings {
-    env: EnvMap,
-    threshold: f32,
-}
-
-/// Grid of equal-area directions (u, cos θ) the luminance quantile is
-/// taken over.
-const OPENING_GRID: (usize, usize) = (128, 64);
-
-#[inline]
-fn luminance(c: Vec3) -> f32 {
-    0.2126 * c.x + 0.7152 * c.y + 0.0722 * c.z
-}
-
-impl LightOpenings {
-    /// The share of the sphere left open by default: about what a room's
-    /// windows and doors subtend from its middle.
-    pub const SHARE: f32 = 0.15;
-
-    pub fn new(env: &matflow_scene::RgbImage, share: f32) -> Result<LightOpenings, RenderError> {
-        let env = EnvMap::new(env)?;
-        let (nu, nv) = OPENING_GRID;
-        let mut lum: Vec<f32> = Vec::with_capacity(nu * nv);
-        for i in 0..nv {
-            let cos_t = 1.0 - 2.0 * (i as f32 + 0.5) / nv as f32;
-            let sin_t = (1.0 - cos_t * cos_t).max(0.0).sqrt();
-            for j in 0..nu {
-                let phi = std::f32::consts::TAU * (j as f32 + 0.5) / nu as f32;
-                let d = Vec3::new(sin_t * phi.sin(), cos_t, -sin_t * phi.cos());
-                let l = luminance(env.eval(d));
-                lum.push(if l.is_finite() { l } else { 0.0 });
-            }
-        }
-        lum.sort_by(f32::total_cmp);
-        let k = ((1.0 - share.clamp(0.0, 1.0)) * lum.len() as f32) as usize;
-        let threshold = lum[k.min(lum.len() - 1)];
-        Ok(LightOpenings { env, threshold })
-    }
-
-    /// Whether light comes from direction `d` (camera space).
-    pub fn open(&self, d: Vec3) -> bool {
-        luminance(self.env.eval(d)) >= self.threshold
-    }
 }
 
 /// The material of an inserted object's surface. Unlike the screen-space
