@@ -166,8 +166,9 @@ pub enum CompleteMode {
     /// The depth mesh alone.
     #[default]
     None,
-    /// Extend the floor, walls and ceiling the view shows, and fill them
-    /// in behind what hides them in view.
+    /// Extend the floor, walls and ceiling the view shows, fill them in
+    /// behind what hides them in view, and continue objects cut by the
+    /// frame border.
     Planes,
     /// As `planes`, and close the room with an assumed ceiling and walls,
     /// each assumed wall with a typical window left open (light from

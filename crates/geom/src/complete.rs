@@ -599,33 +599,21 @@ pub fn complete_beyond_frame(
             &own
         };
         let centre = nearest[(h / 2) * w + w / 2];
-        let base = mesh.positions.len() as u32;
-        mesh.positions.extend_from_slice(&e.mesh.positions);
-        if !mesh.film.is_empty() {
-            mesh.film.extend(e.mesh.positions.iter().map(|&q| {
-                cam.project(q)
-                    .map(|f| f.clamp(Vec2::ZERO, Vec2::new(w as f32, h as f32)))
-                    .unwrap_or(Vec2::ZERO)
-            }));
-        }
-        for t in &e.mesh.indices {
+        let film = e
+            .mesh
+            .positions
+            .iter()
+            .map(|&q| cam.project(q).unwrap_or(Vec2::ZERO));
+        let pixels = e.mesh.indices.iter().map(|t| {
             let c = t
                 .iter()
                 .map(|&k| e.mesh.positions[k as usize])
                 .sum::<Vec3>()
                 / 3.0;
-            let q = match cam.project(c) {
-                Some(f) => {
-                    let x = (f.x.floor().max(0.0) as usize).min(w - 1);
-                    let y = (f.y.floor().max(0.0) as usize).min(h - 1);
-                    nearest[y * w + x]
-                }
-                None => centre,
-            };
-            mesh.material_pixel.push(q);
-        }
-        mesh.indices
-            .extend(e.mesh.indices.iter().map(|t| t.map(|k| k + base)));
+            cam.project(c)
+                .map_or(centre, |f| nearest[pixel_at(f, w, h)])
+        });
+        append(mesh, &e.mesh, film, pixels, w, h);
         done.triangles += e.mesh.indices.len();
         done.extended.push(e.fit);
     }
@@ -634,23 +622,48 @@ pub fn complete_beyond_frame(
     let margin = (p.border_margin.max(0.0) * w.max(h) as f32).round() as usize;
     if margin > 0 {
         let extra = border_margins(z, cam, &on_plane, margin);
-        let base = mesh.positions.len() as u32;
-        mesh.positions.extend_from_slice(&extra.positions);
-        if !mesh.film.is_empty() {
-            mesh.film.extend(
-                extra
-                    .film
-                    .iter()
-                    .map(|f| f.clamp(Vec2::ZERO, Vec2::new(w as f32, h as f32))),
-            );
-        }
-        mesh.indices
-            .extend(extra.indices.iter().map(|t| t.map(|k| k + base)));
-        mesh.material_pixel.extend_from_slice(&extra.material_pixel);
+        append(
+            mesh,
+            &extra,
+            extra.film.iter().copied(),
+            extra.material_pixel.iter().copied(),
+            w,
+            h,
+        );
         done.triangles += extra.indices.len();
         done.border_triangles = extra.indices.len();
     }
     done
+}
+
+/// The pixel of a `w`×`h` image a film position falls in, clamped to the
+/// frame (row-major index).
+fn pixel_at(f: Vec2, w: usize, h: usize) -> usize {
+    let x = (f.x.floor().max(0.0) as usize).min(w - 1);
+    let y = (f.y.floor().max(0.0) as usize).min(h - 1);
+    y * w + x
+}
+
+/// Appends `part`'s triangles to `mesh`, each taking the material of the
+/// matching pixel of `pixels`; when `mesh` keeps film positions, `film`
+/// gives `part`'s (clamped to the `w`×`h` frame).
+fn append(
+    mesh: &mut TriMesh,
+    part: &TriMesh,
+    film: impl Iterator<Item = Vec2>,
+    pixels: impl Iterator<Item = u32>,
+    w: usize,
+    h: usize,
+) {
+    let base = mesh.positions.len() as u32;
+    mesh.positions.extend_from_slice(&part.positions);
+    if !mesh.film.is_empty() {
+        let frame = Vec2::new(w as f32, h as f32);
+        mesh.film.extend(film.map(|f| f.clamp(Vec2::ZERO, frame)));
+    }
+    mesh.material_pixel.extend(pixels);
+    mesh.indices
+        .extend(part.indices.iter().map(|t| t.map(|k| k + base)));
 }
 
 /// Inward pixels whose inverse depth is fitted to continue a surface past
@@ -774,10 +787,8 @@ pub fn border_margins(z: &GrayImage, cam: &Camera, skip: &[bool], margin: usize)
             remap[k]
         });
         let c = (films[0] + films[1] + films[2]) / 3.0 - Vec2::splat(m);
-        let x = (c.x.floor().max(0.0) as usize).min(w - 1);
-        let y = (c.y.floor().max(0.0) as usize).min(h - 1);
         out.indices.push(idx);
-        out.material_pixel.push((y * w + x) as u32);
+        out.material_pixel.push(pixel_at(c, w, h) as u32);
     }
     out
 }
