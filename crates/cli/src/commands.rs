@@ -75,6 +75,38 @@ pub struct RenderArgs {
     /// Glass surfaces a path may pass or reflect off beyond --depth.
     #[arg(long, default_value_t = matflow_render::integrator::DEFAULT_GLASS_DEPTH)]
     pub glass_depth: u32,
+    /// Guide light samples by what each region of the scene sees of the
+    /// sky (on), or sample the envmap by radiance alone (off). Either
+    /// converges to the same image; on is less noisy where walls block
+    /// most of the sky.
+    #[arg(long, default_value = "on")]
+    pub light_guide: OnOff,
+}
+
+/// What a render says of its light sampling.
+pub fn light_guide_note(scene: &RenderScene) -> String {
+    match &scene.light_visibility {
+        Some(v) => format!(
+            "light guided by visibility in {} of {} regions (the scene sees {:.0} % of the sky)",
+            scene.env.guided_clusters(),
+            v.clusters(),
+            100.0 * v.open_fraction()
+        ),
+        None => "light sampled by radiance".into(),
+    }
+}
+
+/// A switch given as `on` or `off`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum OnOff {
+    On,
+    Off,
+}
+
+impl OnOff {
+    pub fn on(self) -> bool {
+        self == OnOff::On
+    }
 }
 
 #[derive(Args)]
@@ -342,7 +374,7 @@ pub fn render(a: RenderArgs) -> Result<()> {
     let t_all = Instant::now();
     let (filter, why) = render_filter(&a.bundle, a.materials, a.filter)?;
     let (complete, why_complete) = render_completion(&a.bundle, a.materials, a.complete)?;
-    let loaded = load_scene(
+    let mut loaded = load_scene(
         &a.bundle,
         a.materials,
         a.envmap.as_deref(),
@@ -350,6 +382,9 @@ pub fn render(a: RenderArgs) -> Result<()> {
         a.reference_compat,
         Some(complete),
     )?;
+    if !a.light_guide.on() {
+        loaded.scene.set_light_guide(None);
+    }
     let opts = RenderOptions {
         spp: a.spp,
         max_depth: a.depth,
@@ -386,13 +421,14 @@ pub fn render(a: RenderArgs) -> Result<()> {
     let png = write_outputs(&a.out, &out.image)?;
     let s = out.stats;
     outln!(
-        "rendered {}x{} at {} spp, depth {}, {} filter ({why}), completion {} ({why_complete}) in {:.2} s (mesh and BVH {:.2} s, total {:.2} s): {:.1} M rays, {:.2} Mrays/s -> {}, {}",
+        "rendered {}x{} at {} spp, depth {}, {} filter ({why}), completion {} ({why_complete}), {} in {:.2} s (mesh and BVH {:.2} s, total {:.2} s): {:.1} M rays, {:.2} Mrays/s -> {}, {}",
         loaded.scene.camera.width,
         loaded.scene.camera.height,
         a.spp,
         a.depth,
         filter.name(),
         complete.name(),
+        light_guide_note(&loaded.scene),
         seconds,
         loaded.seconds,
         t_all.elapsed().as_secs_f64(),

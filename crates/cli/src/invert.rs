@@ -77,6 +77,10 @@ pub struct InvertArgs {
     /// Do not normalise the render's mean in material stages.
     #[arg(long)]
     pub no_rescale: bool,
+    /// Guide light samples by what each region of the scene sees of the
+    /// sky (on), or sample the envmap by radiance alone (off).
+    #[arg(long, default_value = "on")]
+    pub light_guide: crate::commands::OnOff,
     /// Disable early stopping (run every stage for its full step count).
     #[arg(long)]
     pub no_early_stop: bool,
@@ -168,6 +172,7 @@ pub fn options_from(a: &InvertArgs) -> InvertOptions {
         denoise: a.denoise,
         rescale: !a.no_rescale,
         env_only: a.env_only,
+        light_guide: a.light_guide.on(),
         ..Default::default()
     }
 }

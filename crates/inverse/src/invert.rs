@@ -78,6 +78,10 @@ pub struct InvertOptions {
     /// A starting envmap (`env_width`×`env_height`, e.g. from an earlier
     /// envmap-only recovery); it replaces the scout's envmap stage.
     pub init_env: Option<RgbImage>,
+    /// Guide the frozen paths' light samples by what each region of the
+    /// scene sees of the sky ([`matflow_render::guide`]); off samples the
+    /// envmap by radiance alone.
+    pub light_guide: bool,
 }
 
 impl Default for InvertOptions {
@@ -108,6 +112,7 @@ impl Default for InvertOptions {
             rescale: true,
             denoise: 3,
             env_only: false,
+            light_guide: true,
             init_env: None,
         }
     }
@@ -292,12 +297,13 @@ impl Run<'_> {
     fn set_scene(&mut self, mats: &[Material], env: &[Vec3]) -> Result<(), InvertError> {
         let (ew, eh) = (self.opts.env_width, self.opts.env_height);
         self.scene.materials = mats.iter().map(|m| m.sanitized()).collect();
-        self.scene.env = EnvMap::new(&Image::from_vec(ew, eh, env.to_vec())).map_err(|source| {
+        let env = EnvMap::new(&Image::from_vec(ew, eh, env.to_vec())).map_err(|source| {
             InvertError::Render {
                 what: "envmap",
                 source,
             }
         })?;
+        self.scene.set_env(env);
         Ok(())
     }
 
@@ -351,7 +357,7 @@ impl Run<'_> {
 /// materials and envmap are replaced); `target` is the linear input image;
 /// `pred` the predicted materials.
 pub fn invert(
-    scene: RenderScene,
+    mut scene: RenderScene,
     target_linear: &RgbImage,
     pred: &[Material],
     opts: &InvertOptions,
@@ -367,6 +373,11 @@ pub fn invert(
             width: w,
             height: h,
         });
+    }
+    if !opts.light_guide {
+        scene.set_light_guide(None);
+    } else if scene.light_visibility.is_none() {
+        scene.set_light_guide(Some(&Default::default()));
     }
     let env_route = opts.env_route.build();
     let mat_route = opts.mat_route.build();

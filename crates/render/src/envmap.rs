@@ -18,8 +18,21 @@ use glam::Vec3;
 use matflow_scene::color::luminance;
 use matflow_scene::{Image, RgbImage};
 
+use std::sync::Arc;
+
 use crate::fmath;
+use crate::guide::{Guide, Visibility, NO_CLUSTER};
 use crate::RenderError;
+
+/// The sampling cell (row, column) at (u, v).
+#[inline]
+fn cell_at(width: usize, height: usize, u: f32, v: f32) -> (usize, usize) {
+    let (r, c, _, _) = cell_of_uv(width, height, u, v);
+    (r, c)
+}
+
+/// The largest f32 below 1.
+const ONE_BELOW: f32 = 1.0 - f32::EPSILON / 2.0;
 
 /// Values are clamped to this magnitude so no sum can overflow f32.
 pub const MAX_RADIANCE: f32 = 1e18;
@@ -40,6 +53,9 @@ pub struct EnvMap {
     /// cos θ of each row boundary (H values), as [`EnvMap::sample`] needs.
     row_cos: Vec<f32>,
     total_weight: f64,
+    /// Visibility-guided sampling for points in the scene it was measured
+    /// in ([`EnvMap::guided`]); `None` samples by radiance alone.
+    guide: Option<Arc<Guide>>,
 }
 
 /// Direction → (u, v) in [0, 1)².
@@ -73,6 +89,12 @@ pub fn uv_to_dir(u: f32, v: f32) -> Vec3 {
 #[inline]
 pub fn locate_cell(width: usize, height: usize, d: Vec3) -> (usize, usize, f32, f32) {
     let (u, v) = dir_to_uv(d);
+    cell_of_uv(width, height, u, v)
+}
+
+/// [`locate_cell`] of the direction at (u, v) ([`dir_to_uv`]).
+#[inline]
+pub fn cell_of_uv(width: usize, height: usize, u: f32, v: f32) -> (usize, usize, f32, f32) {
     let x = u * width as f32 - 0.5;
     let xf = fmath::floor(x);
     let fx = x - xf;
@@ -161,7 +183,52 @@ impl EnvMap {
             row_solid_angle,
             row_cos,
             total_weight: total,
+            guide: None,
         })
+    }
+
+    /// The map sampling by what each region of the scene `vis` was
+    /// measured in sees ([`crate::guide`]): [`EnvMap::sample_in`] and
+    /// [`EnvMap::eval_pdf_in`] then draw a point's light samples mostly
+    /// from the directions its cluster sees. A black map stays unguided.
+    pub fn guided(mut self, vis: Arc<Visibility>) -> EnvMap {
+        self.guide = (self.can_sample() && vis.clusters() > 0).then(|| {
+            Arc::new(Guide::bind(
+                vis,
+                self.width,
+                self.height,
+                &self.cell_prob,
+                &self.row_solid_angle,
+            ))
+        });
+        self
+    }
+
+    /// The same map sampling by radiance alone.
+    pub fn unguided(mut self) -> EnvMap {
+        self.guide = None;
+        self
+    }
+
+    /// How many of the guide's clusters sample by visibility (0 when
+    /// unguided).
+    pub fn guided_clusters(&self) -> usize {
+        self.guide.as_ref().map_or(0, |g| g.active_clusters())
+    }
+
+    /// The visibility the map is guided by, if any.
+    pub fn visibility(&self) -> Option<&Arc<Visibility>> {
+        self.guide.as_ref().map(|g| &g.vis)
+    }
+
+    /// The cluster whose light samples a vertex at `p` draws
+    /// ([`EnvMap::sample_in`]); [`NO_CLUSTER`] for an unguided map.
+    #[inline]
+    pub fn cluster(&self, p: Vec3) -> u32 {
+        match &self.guide {
+            Some(g) => g.vis.cluster_of(p),
+            None => NO_CLUSTER,
+        }
     }
 
     pub fn width(&self) -> usize {
@@ -229,17 +296,81 @@ impl EnvMap {
         self.cell_prob[r * self.width + c] / omega
     }
 
-    /// Samples a direction; returns (direction, radiance, pdf) or `None`
-    /// for a black map.
+    /// Samples a direction by radiance alone; returns (direction,
+    /// radiance, pdf) or `None` for a black map.
     #[inline]
     pub fn sample(&self, u1: f32, u2: f32) -> Option<(Vec3, Vec3, f32)> {
         if !self.can_sample() {
             return None;
         }
-        let rows = self.height - 1;
         let (r, ur) = sample_cdf(&self.row_cdf, u1 as f64);
         let w = self.width;
         let (c, uc) = sample_cdf(&self.col_cdf[r * (w + 1)..(r + 1) * (w + 1)], u2 as f64);
+        self.in_cell(r, c, ur, uc)
+    }
+
+    /// Samples a direction for a vertex in cluster `cluster`
+    /// ([`EnvMap::cluster`]): by radiance alone for an unguided map or a
+    /// point in no guided cluster; otherwise from the guide's defensive
+    /// mixture (`u1` also chooses the component). Returns (direction,
+    /// radiance, pdf), the pdf being [`EnvMap::eval_pdf_in`]'s.
+    #[inline]
+    pub fn sample_in(&self, cluster: u32, u1: f32, u2: f32) -> Option<(Vec3, Vec3, f32)> {
+        let Some(g) = self.guide.as_ref().filter(|g| g.active(cluster)) else {
+            return self.sample(u1, u2);
+        };
+        let b = g.defensive();
+        let (d, le, u, v) = if u1 < b {
+            let u1 = (u1 / b).min(ONE_BELOW);
+            let (r, ur) = sample_cdf(&self.row_cdf, u1 as f64);
+            let w = self.width;
+            let (c, uc) = sample_cdf(&self.col_cdf[r * (w + 1)..(r + 1) * (w + 1)], u2 as f64);
+            self.in_cell_uv(r, c, ur, uc)?
+        } else {
+            let u = ((u1 - b) / (1.0 - b)).clamp(0.0, ONE_BELOW);
+            match g.sample(cluster, u as f64, u2 as f64)? {
+                Ok((k, r1, r2)) => self.in_cell_uv(k / self.width, k % self.width, r1, r2)?,
+                Err((d, u, v)) => (d, self.eval(d), u, v),
+            }
+        };
+        let (r, c) = cell_at(self.width, self.height, u, v);
+        let pdf = g.pdf(cluster, u, v, r * self.width + c, self.cell_pdf(r, c));
+        (pdf > 0.0 && pdf.is_finite()).then_some((d, le, pdf))
+    }
+
+    /// [`EnvMap::eval_pdf`] for a vertex in cluster `cluster`: the density
+    /// [`EnvMap::sample_in`] draws `d` with.
+    #[inline]
+    pub fn eval_pdf_in(&self, cluster: u32, d: Vec3) -> (Vec3, f32) {
+        let Some(g) = self.guide.as_ref().filter(|g| g.active(cluster)) else {
+            return self.eval_pdf(d);
+        };
+        let (u, v) = dir_to_uv(d);
+        let (r, c, fx, fy) = cell_of_uv(self.width, self.height, u, v);
+        let c1 = (c + 1) % self.width;
+        let a = self.texel(c, r) * (1.0 - fx) + self.texel(c1, r) * fx;
+        let b = self.texel(c, r + 1) * (1.0 - fx) + self.texel(c1, r + 1) * fx;
+        let pdf = g.pdf(cluster, u, v, r * self.width + c, self.cell_pdf(r, c));
+        (a * (1.0 - fy) + b * fy, pdf)
+    }
+
+    /// [`EnvMap::in_cell`] with the direction's (u, v).
+    #[inline]
+    fn in_cell_uv(&self, r: usize, c: usize, ur: f64, uc: f64) -> Option<(Vec3, Vec3, f32, f32)> {
+        let (d, le, _) = self.in_cell(r, c, ur, uc)?;
+        let u = (c as f32 + 0.5 + ur as f32) / self.width as f32;
+        let u = if u >= 1.0 { u - 1.0 } else { u };
+        let v = d.y.clamp(-1.0, 1.0).acos() / PI;
+        Some((d, le, u.min(ONE_BELOW), v))
+    }
+
+    /// A direction uniform in solid angle inside cell (r, c), at `ur`
+    /// across its columns and `uc` across its rows, with its radiance and
+    /// the plain density; `None` for a cell that is never drawn.
+    #[inline]
+    fn in_cell(&self, r: usize, c: usize, ur: f64, uc: f64) -> Option<(Vec3, Vec3, f32)> {
+        let rows = self.height - 1;
+        let w = self.width;
         let p = self.cell_prob[r * w + c];
         if p <= 0.0 {
             return None;
@@ -268,7 +399,7 @@ impl EnvMap {
 /// Inverts a CDF table (`cdf[0] = 0`, last = 1); returns the bin and the
 /// position of `u` inside it, in [0, 1).
 #[inline]
-fn sample_cdf(cdf: &[f64], u: f64) -> (usize, f64) {
+pub(crate) fn sample_cdf(cdf: &[f64], u: f64) -> (usize, f64) {
     let n = cdf.len() - 1;
     // First index with cdf[i+1] > u: the number of bin ends ≤ u (the
     // ends are non-decreasing). A branch-free halving narrows the range

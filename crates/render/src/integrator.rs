@@ -265,6 +265,10 @@ struct Path {
     tex: Vec3,
     light: Option<LightSample>,
     next: Option<Continuation>,
+    /// The envmap's sampling cluster of the vertex being shaded
+    /// ([`crate::EnvMap::cluster`]): its light sample and a BSDF sample
+    /// that reaches the sky are weighted with that cluster's density.
+    cluster: u32,
 }
 
 impl Path {
@@ -300,6 +304,7 @@ impl Path {
             },
             light: None,
             next: None,
+            cluster: crate::guide::NO_CLUSTER,
         }
     }
 }
@@ -702,7 +707,7 @@ impl Wavefront {
                 continue;
             };
             let Some(h) = *hit else {
-                let (le, pdf_e) = scene.env.eval_pdf(path.dir);
+                let (le, pdf_e) = scene.env.eval_pdf_in(path.cluster, path.dir);
                 let w = if c.delta {
                     1.0
                 } else {
@@ -764,10 +769,11 @@ fn sample_light(
 ) {
     let (ue1, ue2) = path.rng.next_2d_with(key);
     path.light = None;
+    path.cluster = scene.env.cluster(path.p);
     if !enabled {
         return;
     }
-    if let Some((wl, le, pdf_e)) = scene.env.sample(ue1, ue2) {
+    if let Some((wl, le, pdf_e)) = scene.env.sample_in(path.cluster, ue1, ue2) {
         if accept(wl) && pdf_e > 0.0 {
             st.shadow_rays += 1;
             path.light = Some(LightSample {

@@ -10,6 +10,7 @@ pub mod dielectric;
 pub mod envmap;
 pub mod filter;
 pub mod fmath;
+pub mod guide;
 pub mod integrator;
 pub mod rng;
 pub mod rooms;

@@ -199,7 +199,14 @@ pub struct RenderScene {
     /// background seen through pixel `p` uses material index
     /// `width·height + objects + p`.
     pub screen_glass: Option<ScreenGlass>,
+    /// The envmap lit by; guided by [`RenderScene::light_visibility`] when
+    /// the scene has one (set it with [`RenderScene::set_env`] to keep the
+    /// guide).
     pub env: EnvMap,
+    /// What each region of the scene sees of the sky, measured once for
+    /// the geometry ([`crate::guide`]); `None` samples light by radiance
+    /// alone.
+    pub light_visibility: Option<std::sync::Arc<crate::guide::Visibility>>,
     focal: f32,
     principal: Vec2,
 }
@@ -283,7 +290,7 @@ impl RenderScene {
             .transparency
             .as_ref()
             .map(|t| screen_glass(&camera, &bvh, screen_prims, maps, t));
-        Ok(RenderScene {
+        let mut scene = RenderScene {
             textures: objects
                 .iter()
                 .map(|o| {
@@ -307,7 +314,74 @@ impl RenderScene {
             vertex_normals,
             materials,
             env,
-        })
+            light_visibility: None,
+        };
+        scene.set_light_guide(Some(&crate::guide::GuideParams::default()));
+        Ok(scene)
+    }
+
+    /// Measures what each region of the scene sees of the sky and, if the
+    /// scene is enclosed enough to gain from it
+    /// ([`crate::guide::GuideParams::enclosed_below`]), guides the
+    /// envmap's light samples by it from now on ([`crate::guide`]; every
+    /// scene starts with the default parameters). `None` returns to
+    /// sampling by radiance alone. Returns whether the scene is guided.
+    pub fn set_light_guide(&mut self, params: Option<&crate::guide::GuideParams>) -> bool {
+        self.light_visibility = params.and_then(|p| {
+            // A coarse probe first (a fraction of the rays): open scenes
+            // stop here.
+            let probe = crate::guide::GuideParams {
+                points: 2,
+                walks: p.walks / 4,
+                dir_width: 16,
+                dir_height: 8,
+                ..*p
+            };
+            let build = |q: &crate::guide::GuideParams| {
+                crate::guide::Visibility::build(
+                    &self.face_normals,
+                    self.screen_prims,
+                    &self.bvh,
+                    &self.primary_grid(q.walks),
+                    q,
+                )
+            };
+            if !(build(&probe).open_fraction() < p.enclosed_below) {
+                return None;
+            }
+            Some(std::sync::Arc::new(build(p)))
+        });
+        let env = self.env.clone();
+        self.set_env(env);
+        self.light_visibility.is_some()
+    }
+
+    /// Camera ray directions through a grid of about `n` points spread
+    /// evenly over the film.
+    fn primary_grid(&self, n: usize) -> Vec<Vec3> {
+        let (w, h) = (self.camera.width as f64, self.camera.height as f64);
+        let gw = ((n as f64 * w / h).sqrt().round() as usize).max(1);
+        let gh = (n / gw).max(1);
+        (0..gh)
+            .flat_map(|j| {
+                (0..gw).map(move |i| {
+                    let film = Vec2::new(
+                        ((i as f64 + 0.5) / gw as f64 * w) as f32,
+                        ((j as f64 + 0.5) / gh as f64 * h) as f32,
+                    );
+                    self.camera_ray(film)
+                })
+            })
+            .collect()
+    }
+
+    /// Lights the scene with `env`, guided by the scene's visibility when
+    /// it has one.
+    pub fn set_env(&mut self, env: EnvMap) {
+        self.env = match &self.light_visibility {
+            Some(v) => env.guided(v.clone()),
+            None => env.unguided(),
+        };
     }
 
     /// Index of the pixel a camera-space point projects into (nearest, as
