@@ -34,7 +34,7 @@ fn write_pair(path: &Path, img: &matflow_scene::RgbImage) -> Result<Vec<PathBuf>
 
 const RENDER_INFO: NodeInfo = NodeInfo {
     kind: "render",
-    version: 1,
+    version: 2,
     doc: "Path-traces the mesh with the given materials under the given envmap (unidirectional, \
          next-event estimation with MIS, GGX + Lambert as the reference). Writes an EXR \
          (linear) and a PNG (γ 2.2) when `output` is set.",

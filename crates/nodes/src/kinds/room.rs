@@ -23,7 +23,7 @@ pub struct RoomSampleNode;
 
 const ROOM_INFO: NodeInfo = NodeInfo {
     kind: "room_sample",
-    version: 1,
+    version: 2,
     doc: "One synthetic interior of the `rooms` dataset (varied room shapes, furniture, matte, \
          glossy and metal materials, camera placement, sky or room lighting), path-traced, with \
          its ground truth in the reference bundle's files (`matflow dataset` makes these).",

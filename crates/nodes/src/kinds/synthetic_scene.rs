@@ -14,7 +14,7 @@ pub struct SyntheticSceneNode;
 
 const SYNTHETIC_SCENE_INFO: NodeInfo = NodeInfo {
     kind: "synthetic_scene",
-    version: 1,
+    version: 2,
     doc: "A procedural room (floor, walls, a few objects with varied albedo, roughness and \
          metallic) under a procedural sky, its input image rendered by matflow's path tracer, \
          and predictions made by degrading the truth (blur, noise, bias, wrong R/M).",

@@ -40,7 +40,7 @@ pub struct TransparencyNode;
 
 const TRANSPARENCY_INFO: NodeInfo = NodeInfo {
     kind: "transparency",
-    version: 1,
+    version: 2,
     doc: "Makes a region of the photo transparent (the paper's single-view transparency, eqs. \
          22–23): its surface becomes glass (ior, transmission T, roughness, tint); a refracted \
          path goes d1 into it, leaves through a back surface parallel to the front one and \
