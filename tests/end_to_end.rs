@@ -82,6 +82,8 @@ fn synth_then_render_writes_exr_png_and_summary() {
         ],
     );
     assert!(text.contains("rendered 48x48 at 8 spp, depth 3"), "{text}");
+    // The open depth mesh samples its light by radiance alone.
+    assert!(text.contains("light sampled by radiance"), "{text}");
     assert!(text.contains("Mrays/s"), "{text}");
     assert!(out.is_file() && dir.path().join("r.png").is_file());
     // Same scene, different seed and spp: close to the stored input image.
@@ -119,10 +121,27 @@ fn synth_then_render_writes_exr_png_and_summary() {
     let (_, more) =
         matflow_geom::mesh::read_ply_positions_faces(&std::fs::read(&ply).unwrap()).unwrap();
     assert!(more.len() >= faces.len(), "{text}");
-    render(
+    // The closed room guides its light samples by what its regions see,
+    // unless told not to.
+    let text = render(
         &b,
         &["--materials", "ground_truth", "--spp", "2", "--complete"],
     );
+    assert!(text.contains("light guided by visibility in "), "{text}");
+    let text = render(
+        &b,
+        &[
+            "--materials",
+            "ground_truth",
+            "--spp",
+            "2",
+            "--complete",
+            "room",
+            "--light-guide",
+            "off",
+        ],
+    );
+    assert!(text.contains("light sampled by radiance"), "{text}");
     let inv = dir.path().join("inv-room");
     ok(&matflow(
         &[
@@ -144,6 +163,11 @@ fn synth_then_render_writes_exr_png_and_summary() {
         text.contains("completion room (the one matflow invert recovered these maps with)"),
         "{text}"
     );
+    // The inversion's frozen paths were guided, and its summary says so.
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(inv.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["options"]["light_guide"], true, "{summary}");
+    assert_eq!(summary["light_guided"], true, "{summary}");
 }
 
 #[test]

@@ -292,6 +292,9 @@ pub fn invert_cmd(a: InvertArgs) -> Result<()> {
         target,
         scene,
     } = input;
+    // Whether the frozen paths' light samples are guided by visibility
+    // (asked for, and the scene enclosed enough).
+    let light_guided = opts.light_guide && scene.light_visibility.is_some();
     let (res, stage_seconds) = run_invert(scene, &target, &maps, &opts, a.quiet)?;
     let (depth, pred, target) = (&depth, &maps, &target);
     let rerender = image_metrics(&res.rendered, target);
@@ -311,7 +314,9 @@ pub fn invert_cmd(a: InvertArgs) -> Result<()> {
             "seed": opts.seed,
             "pixel_filter": matflow_inverse::invert::FIT_FILTER.name(),
             "complete": a.complete.name(),
+            "light_guide": opts.light_guide,
         },
+        "light_guided": light_guided,
         "plan": res.report.plan,
         "stages": stages_with_seconds(&res, &stage_seconds),
         "cache_bytes": res.report.cache_bytes,

@@ -405,7 +405,8 @@ pub fn invert(
     // Counts before the scout has measured the scene's rays per path;
     // only the scout's sample count and the envmap stages' settings
     // (which do not depend on the scene's rays) are taken from it.
-    let first = plan_for(SceneCost::default());
+    let guided = scene.light_visibility.is_some();
+    let first = plan_for(SceneCost::default().guided(guided));
     let pred = starting_materials(pred, opts);
     let mut mats = pred.clone();
     let mut run = Run {
@@ -423,7 +424,7 @@ pub fn invert(
     let scout = run.trace("trace scout", first.scout_spp, opts.seed ^ 0x5c0u64)?;
     let plan = Plan {
         scout_spp: first.scout_spp,
-        ..plan_for(SceneCost::of(&scout))
+        ..plan_for(SceneCost::of(&scout).guided(guided))
     };
     let exposure = {
         let tr = EnvTransport::build(&scout, &mats, run.pixels.clone());

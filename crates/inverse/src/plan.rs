@@ -37,6 +37,9 @@ pub struct SceneCost {
     /// Share of pixels whose paths start on a surface: only those have
     /// materials to solve (sky pixels cost next to nothing there).
     pub surface_fraction: f64,
+    /// Cost of a ray relative to the calibration scene's: 1, or
+    /// [`cost::GUIDED_RAY`] when light samples are guided by visibility.
+    pub ray_cost: f64,
 }
 
 impl Default for SceneCost {
@@ -45,6 +48,7 @@ impl Default for SceneCost {
         SceneCost {
             rays_per_sample: cost::RAYS_PER_SAMPLE,
             surface_fraction: 1.0,
+            ray_cost: 1.0,
         }
     }
 }
@@ -55,6 +59,16 @@ impl SceneCost {
         SceneCost {
             rays_per_sample: cache.stats.rays as f64 / (n * cache.spp.max(1) as f64),
             surface_fraction: cache.surface_pixels() as f64 / n,
+            ray_cost: 1.0,
+        }
+    }
+
+    /// The same scene with its light samples guided by visibility (or
+    /// not).
+    pub fn guided(self, guided: bool) -> SceneCost {
+        SceneCost {
+            ray_cost: if guided { cost::GUIDED_RAY } else { 1.0 },
+            ..self
         }
     }
 }
@@ -77,6 +91,11 @@ pub mod cost {
     pub const TABLE_PER_SAMPLE: f64 = 8.5e-8;
     /// One à-trous pass over a pixel's table.
     pub const DENOISE_PER_PASS: f64 = 9.0e-7;
+    /// A ray's cost when light samples are guided by visibility, relative
+    /// to sampling by radiance (its lookups; more of its shadow rays go
+    /// far): scene-00 of the validation set with the room completed,
+    /// 32 cached paths 1.19×, the final render 1.11× per ray.
+    pub const GUIDED_RAY: f64 = 1.2;
     /// Loading, meshing, BVH, guide, scout trace and two envmap stages of
     /// the texel route.
     pub const FIXED: f64 = 1.6e-5;
@@ -106,6 +125,7 @@ impl Plan {
         let b = budget.max(1.0);
         let finite_or = |x: f64, d: f64| if x.is_finite() { x } else { d };
         let rho = finite_or(scene.rays_per_sample, RAYS_PER_SAMPLE).clamp(1.0, 8.0);
+        let ray_cost = finite_or(scene.ray_cost, 1.0).clamp(1.0, 4.0);
         // Per-pixel material work scales with the surface pixels (at
         // least a tenth: loading and sweeping the tables is not free).
         let surf = finite_or(scene.surface_fraction, 1.0).clamp(0.1, 1.0);
@@ -133,7 +153,7 @@ impl Plan {
             let tables = (TABLE_PER_SAMPLE * s + DENOISE_PER_PASS * passes) * surf * n;
             env_stage + mat_route.loop_seconds(&inputs, tables, mat_steps, warm)
         };
-        let trace_spp = TRACE_PER_RAY * rho * n;
+        let trace_spp = TRACE_PER_RAY * ray_cost * rho * n;
         // ~40 % of the budget tracing the cache, capped at 32 paths.
         let spp = opts.spp.unwrap_or(
             ((0.4 * avail / (trace_spp + loop_cost(0.0, false) / 32.0)) as u32).clamp(2, 32),
@@ -152,7 +172,7 @@ impl Plan {
         let left = (avail - spp as f64 * trace_spp - spent).max(0.0);
         let final_spp = opts
             .final_spp
-            .unwrap_or(((left / (RENDER_PER_RAY * rho * n)) as u32).clamp(2, 256));
+            .unwrap_or(((left / (RENDER_PER_RAY * ray_cost * rho * n)) as u32).clamp(2, 256));
         let scout_spp = (spp / 8).clamp(1, 4);
         Plan {
             scout_spp,
@@ -165,6 +185,7 @@ impl Plan {
             scene: SceneCost {
                 rays_per_sample: rho,
                 surface_fraction: surf,
+                ray_cost,
             },
         }
     }
@@ -199,6 +220,7 @@ mod tests {
             SceneCost {
                 rays_per_sample: 1.6,
                 surface_fraction: 0.5,
+                ray_cost: 1.0,
             },
             &o,
         );
@@ -223,9 +245,13 @@ mod tests {
         let nan = SceneCost {
             rays_per_sample: f64::NAN,
             surface_fraction: f64::INFINITY,
+            ray_cost: f64::NAN,
         };
         let p = plan(60.0, nan, &o);
         assert_eq!(p.final_spp, base.final_spp);
+        // Guided light samples cost more per ray: fewer samples.
+        let guided = plan(60.0, SceneCost::default().guided(true), &o);
+        assert!(guided.final_spp < base.final_spp && guided.spp <= base.spp);
         // Dearer routes buy fewer loops (and the MLP fewer steps) from the
         // same budget.
         let route = |m: &str, e: &str| InvertOptions {
