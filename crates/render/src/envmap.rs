@@ -486,7 +486,7 @@ pub fn rotated(env: &RgbImage, to_env: glam::Mat3) -> RgbImage {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
     #[test]
@@ -598,7 +598,7 @@ mod tests {
     }
 
     /// Midpoint rule over the sphere on an n×n (u, cos θ) grid.
-    fn sphere_integral(n: usize, f: impl Fn(Vec3) -> f64) -> f64 {
+    pub(crate) fn sphere_integral(n: usize, f: impl Fn(Vec3) -> f64) -> f64 {
         let mut acc = 0.0f64;
         for i in 0..n {
             for j in 0..n {

@@ -697,6 +697,7 @@ const NO_ROW: u32 = u32::MAX;
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::envmap::tests::sphere_integral;
     use crate::envmap::EnvMap;
     use crate::rng::Pcg32;
     use matflow_scene::{Image, RgbImage};
@@ -771,20 +772,6 @@ mod tests {
             };
             Vec3::new(0.4, 0.6, 1.0) * (0.2 + d.y.max(0.0)) + Vec3::splat(sun)
         })
-    }
-
-    fn sphere_integral(n: usize, f: impl Fn(Vec3) -> f64) -> f64 {
-        let mut acc = 0.0f64;
-        for i in 0..n {
-            for j in 0..n {
-                let u = (i as f32 + 0.5) / n as f32;
-                let ct = 1.0 - 2.0 * (j as f32 + 0.5) / n as f32;
-                let st = (1.0 - ct * ct).sqrt();
-                let phi = 2.0 * PI * u;
-                acc += f(Vec3::new(st * phi.sin(), ct, -st * phi.cos()));
-            }
-        }
-        acc * 4.0 * std::f64::consts::PI / (n * n) as f64
     }
 
     #[test]
