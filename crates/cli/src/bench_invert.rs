@@ -52,9 +52,12 @@ pub struct BenchInvertArgs {
     /// With --validation: which halves (tuning, heldback).
     #[arg(long, num_args = 1.., default_values = ["tuning", "heldback"])]
     pub halves: Vec<String>,
-    /// With --validation: configurations, each a string of extra `invert`
-    /// flags ("" is the defaults), optionally named as `name=flags`.
-    #[arg(long, num_args = 1.., allow_hyphen_values = true, default_values = [""])]
+    /// With --validation: a configuration, a string of extra `invert`
+    /// flags ("" is the defaults), optionally named as `name=flags`. One
+    /// per `--variants`; repeat it for more (a value may start with `-`,
+    /// so one flag takes exactly one value and never swallows the
+    /// options after it).
+    #[arg(long, action = clap::ArgAction::Append, num_args = 1, allow_hyphen_values = true, default_values = [""])]
     pub variants: Vec<String>,
     /// With --validation: only these scenes (e.g. scene-03).
     #[arg(long, num_args = 1..)]
@@ -306,5 +309,34 @@ mod tests {
             parse_variant("strong prior=--delta 0.5"),
             ("strong prior".into(), vec!["--delta".into(), "0.5".into()])
         );
+    }
+
+    /// `--variants` takes one value each time, so the options after it
+    /// are the bench's own (it once swallowed `--relight-spp 16` as
+    /// variants).
+    #[test]
+    fn a_variant_takes_one_value_and_leaves_the_options_after_it() {
+        use clap::Parser;
+        #[derive(Parser)]
+        struct Cli {
+            #[command(flatten)]
+            a: super::BenchInvertArgs,
+        }
+        let c = Cli::try_parse_from([
+            "bench",
+            "--validation",
+            "v",
+            "--variants",
+            "",
+            "--variants",
+            "off=--light-guide off",
+            "--relight-spp",
+            "16",
+        ])
+        .unwrap();
+        assert_eq!(c.a.variants, ["", "off=--light-guide off"]);
+        assert_eq!(c.a.relight_spp, 16);
+        let c = Cli::try_parse_from(["bench", "--validation", "v"]).unwrap();
+        assert_eq!(c.a.variants, [""]);
     }
 }

@@ -49,10 +49,13 @@ pub struct BenchSyntheticArgs {
     /// Skip the envmap-only runs.
     #[arg(long)]
     pub no_env_only: bool,
-    /// Variants of the full recovery: each is a string of extra `invert`
-    /// flags (e.g. "--delta 0.5 --loops 2") run as its own configuration
-    /// next to the defaults ("" is the defaults themselves).
-    #[arg(long, num_args = 1.., allow_hyphen_values = true, default_values = [""])]
+    /// A variant of the full recovery: a string of extra `invert` flags
+    /// (e.g. "--delta 0.5 --loops 2") run as its own configuration next
+    /// to the defaults ("" is the defaults themselves). One per
+    /// `--variants`; repeat it for more (a value may start with `-`, so
+    /// one flag takes exactly one value and never swallows the options
+    /// after it).
+    #[arg(long, action = clap::ArgAction::Append, num_args = 1, allow_hyphen_values = true, default_values = [""])]
     pub variants: Vec<String>,
     /// Where scenes and runs are written (scenes are reused).
     #[arg(long, default_value = "target/bench-synthetic")]
