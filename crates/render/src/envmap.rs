@@ -21,7 +21,7 @@ use matflow_scene::{Image, RgbImage};
 use std::sync::Arc;
 
 use crate::fmath;
-use crate::guide::{Guide, Visibility, NO_CLUSTER};
+use crate::guide::{Draw, Guide, Visibility, NO_CLUSTER};
 use crate::RenderError;
 
 /// The sampling cell (row, column) at (u, v).
@@ -329,8 +329,8 @@ impl EnvMap {
         } else {
             let u = ((u1 - b) / (1.0 - b)).clamp(0.0, ONE_BELOW);
             match g.sample(cluster, u as f64, u2 as f64)? {
-                Ok((k, r1, r2)) => self.in_cell_uv(k / self.width, k % self.width, r1, r2)?,
-                Err((d, u, v)) => (d, self.eval(d), u, v),
+                Draw::Cell(k, r1, r2) => self.in_cell_uv(k / self.width, k % self.width, r1, r2)?,
+                Draw::Direction(d, u, v) => (d, self.eval(d), u, v),
             }
         };
         let (r, c) = cell_at(self.width, self.height, u, v);

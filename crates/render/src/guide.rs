@@ -92,7 +92,7 @@ impl Default for GuideParams {
             defensive: 0.2,
             enclosed_below: 0.2,
             open_above: 0.25,
-            seed: 0x6d61_7466_6c6f_77,
+            seed: 0x006d_6174_666c_6f77,
         }
     }
 }
@@ -544,7 +544,10 @@ impl Guide {
         let defensive = vis.defensive;
         // Per cluster: Z_c, then (if the cluster is guided) the factors
         // and the sparse CDF over the cells it draws from.
-        let per: Vec<(Vec<f32>, Vec<(u32, f64)>)> = (0..clusters)
+        // Per cluster its factors and (direction cell, CDF) pairs, empty
+        // for one that samples by radiance alone.
+        type Rows = (Vec<f32>, Vec<(u32, f64)>);
+        let per: Vec<Rows> = (0..clusters)
             .into_par_iter()
             .map(|c| {
                 let zc: f64 = (0..ndir)
@@ -649,16 +652,9 @@ impl Guide {
     }
 
     /// The visibility-restricted part for cluster `c` (active) from `u1`
-    /// (direction cell) and `u2`: either an envmap cell with the positions
-    /// left in each draw (`Ok`), or a direction and its (u, v) (`Err`);
-    /// `None` when nothing can be drawn.
+    /// (direction cell) and `u2`; `None` when nothing can be drawn.
     #[inline]
-    pub(crate) fn sample(
-        &self,
-        c: u32,
-        u1: f64,
-        u2: f64,
-    ) -> Option<Result<(usize, f64, f64), (Vec3, f32, f32)>> {
+    pub(crate) fn sample(&self, c: u32, u1: f64, u2: f64) -> Option<Draw> {
         let (s, e) = (
             self.start[c as usize] as usize,
             self.start[c as usize + 1] as usize,
@@ -681,14 +677,24 @@ impl Guide {
                     return None;
                 }
                 let (i, r2) = crate::envmap::sample_cdf(&member_cdf[s + j..e + j + 1], u2);
-                Some(Ok((members[s + i] as usize, r1, r2)))
+                Some(Draw::Cell(members[s + i] as usize, r1, r2))
             }
             Layout::Coarse { .. } => {
                 let (dw, dh) = self.vis.dir_cells();
-                Some(Err(cell_direction_uv(dw, dh, j, r1 as f32, u2 as f32)))
+                let (d, u, v) = cell_direction_uv(dw, dh, j, r1 as f32, u2 as f32);
+                Some(Draw::Direction(d, u, v))
             }
         }
     }
+}
+
+/// What [`Guide::sample`] drew.
+pub(crate) enum Draw {
+    /// An envmap cell, with the positions left in each draw (across its
+    /// columns, across its rows).
+    Cell(usize, f64, f64),
+    /// A direction and its (u, v).
+    Direction(Vec3, f32, f32),
 }
 
 /// [`Guide::row`] of a cluster that samples by radiance alone.
