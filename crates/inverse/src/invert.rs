@@ -374,10 +374,9 @@ pub fn invert(
             height: h,
         });
     }
+    // Every scene is built guided where it gains from it.
     if !opts.light_guide {
         scene.set_light_guide(None);
-    } else if scene.light_visibility.is_none() {
-        scene.set_light_guide(Some(&Default::default()));
     }
     let env_route = opts.env_route.build();
     let mat_route = opts.mat_route.build();

@@ -303,10 +303,19 @@ impl EnvMap {
         if !self.can_sample() {
             return None;
         }
+        let (r, c, ur, uc) = self.draw_cell(u1, u2);
+        let s = self.in_cell(r, c, ur, uc)?;
+        Some((s.dir, s.radiance, s.pdf))
+    }
+
+    /// The cell (row, column) the radiance-proportional density draws
+    /// from (u1, u2), and the positions left in each draw.
+    #[inline]
+    fn draw_cell(&self, u1: f32, u2: f32) -> (usize, usize, f64, f64) {
         let (r, ur) = sample_cdf(&self.row_cdf, u1 as f64);
         let w = self.width;
         let (c, uc) = sample_cdf(&self.col_cdf[r * (w + 1)..(r + 1) * (w + 1)], u2 as f64);
-        self.in_cell(r, c, ur, uc)
+        (r, c, ur, uc)
     }
 
     /// Samples a direction for a vertex in cluster `cluster`
@@ -320,16 +329,16 @@ impl EnvMap {
             return self.sample(u1, u2);
         };
         let b = g.defensive();
+        let in_cell = |(r, c, ur, uc)| {
+            self.in_cell(r, c, ur, uc)
+                .map(|s| (s.dir, s.radiance, s.u, s.v))
+        };
         let (d, le, u, v) = if u1 < b {
-            let u1 = (u1 / b).min(ONE_BELOW);
-            let (r, ur) = sample_cdf(&self.row_cdf, u1 as f64);
-            let w = self.width;
-            let (c, uc) = sample_cdf(&self.col_cdf[r * (w + 1)..(r + 1) * (w + 1)], u2 as f64);
-            self.in_cell_uv(r, c, ur, uc)?
+            in_cell(self.draw_cell((u1 / b).min(ONE_BELOW), u2))?
         } else {
             let u = ((u1 - b) / (1.0 - b)).clamp(0.0, ONE_BELOW);
             match g.sample(cluster, u as f64, u2 as f64)? {
-                Draw::Cell(k, r1, r2) => self.in_cell_uv(k / self.width, k % self.width, r1, r2)?,
+                Draw::Cell(k, r1, r2) => in_cell((k / self.width, k % self.width, r1, r2))?,
                 Draw::Direction(d, u, v) => (d, self.eval(d), u, v),
             }
         };
@@ -354,21 +363,12 @@ impl EnvMap {
         (a * (1.0 - fy) + b * fy, pdf)
     }
 
-    /// [`EnvMap::in_cell`] with the direction's (u, v).
-    #[inline]
-    fn in_cell_uv(&self, r: usize, c: usize, ur: f64, uc: f64) -> Option<(Vec3, Vec3, f32, f32)> {
-        let (d, le, _) = self.in_cell(r, c, ur, uc)?;
-        let u = (c as f32 + 0.5 + ur as f32) / self.width as f32;
-        let u = if u >= 1.0 { u - 1.0 } else { u };
-        let v = d.y.clamp(-1.0, 1.0).acos() / PI;
-        Some((d, le, u.min(ONE_BELOW), v))
-    }
-
     /// A direction uniform in solid angle inside cell (r, c), at `ur`
-    /// across its columns and `uc` across its rows, with its radiance and
-    /// the plain density; `None` for a cell that is never drawn.
+    /// across its columns and `uc` across its rows, with its radiance, the
+    /// plain density and its (u, v); `None` for a cell that is never
+    /// drawn.
     #[inline]
-    fn in_cell(&self, r: usize, c: usize, ur: f64, uc: f64) -> Option<(Vec3, Vec3, f32)> {
+    fn in_cell(&self, r: usize, c: usize, ur: f64, uc: f64) -> Option<CellSample> {
         let rows = self.height - 1;
         let w = self.width;
         let p = self.cell_prob[r * w + c];
@@ -388,12 +388,28 @@ impl EnvMap {
         let pdf = p / self.row_solid_angle[r];
         // Radiance by bilinear blend inside the known cell (no atan2/acos).
         let fx = ur as f32;
-        let fy = (cos_t.acos() / PI * rows as f32 - r as f32).clamp(0.0, 1.0);
+        let v = cos_t.acos() / PI;
+        let fy = (v * rows as f32 - r as f32).clamp(0.0, 1.0);
         let c1 = (c + 1) % w;
         let a = self.texel(c, r) * (1.0 - fx) + self.texel(c1, r) * fx;
         let b = self.texel(c, r + 1) * (1.0 - fx) + self.texel(c1, r + 1) * fx;
-        Some((d, a * (1.0 - fy) + b * fy, pdf))
+        Some(CellSample {
+            dir: d,
+            radiance: a * (1.0 - fy) + b * fy,
+            pdf,
+            u: u.min(ONE_BELOW),
+            v,
+        })
     }
+}
+
+/// What [`EnvMap::in_cell`] draws.
+struct CellSample {
+    dir: Vec3,
+    radiance: Vec3,
+    pdf: f32,
+    u: f32,
+    v: f32,
 }
 
 /// Inverts a CDF table (`cdf[0] = 0`, last = 1); returns the bin and the

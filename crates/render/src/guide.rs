@@ -100,9 +100,7 @@ impl Default for GuideParams {
 /// What each cluster of the scene sees of the sky.
 #[derive(Clone, Debug)]
 pub struct Visibility {
-    origin: Vec3,
-    inv_voxel: f32,
-    dims: [usize; 3],
+    grid: VoxelGrid,
     /// Per voxel (x fastest), its cluster or [`NO_CLUSTER`].
     voxel_cluster: Vec<u32>,
     clusters: usize,
@@ -115,6 +113,35 @@ pub struct Visibility {
     pub open_above: f32,
     /// Shadow rays traced to measure it.
     pub rays: u64,
+}
+
+/// The voxels the scene's bounding box is cut into.
+#[derive(Clone, Copy, Debug)]
+struct VoxelGrid {
+    origin: Vec3,
+    inv_voxel: f32,
+    dims: [usize; 3],
+}
+
+impl VoxelGrid {
+    /// The voxel (x fastest) of point `p`, or `None` outside the grid;
+    /// points a rounding error past its far faces belong to the last
+    /// voxel.
+    #[inline]
+    fn index(&self, p: Vec3) -> Option<usize> {
+        let g = (p - self.origin) * self.inv_voxel;
+        if !(g.min_element() >= 0.0) {
+            return None;
+        }
+        let d = self.dims;
+        let slack = |c: usize, n: usize| if c == n { n - 1 } else { c };
+        let (x, y, z) = (
+            slack(g.x as usize, d[0]),
+            slack(g.y as usize, d[1]),
+            slack(g.z as usize, d[2]),
+        );
+        (x < d[0] && y < d[1] && z < d[2]).then_some((z * d[1] + y) * d[0] + x)
+    }
 }
 
 /// Uniform in [0, 1) from a hash.
@@ -185,9 +212,11 @@ impl Visibility {
             hi = hi.max(e.1);
         }
         let empty = Visibility {
-            origin: Vec3::ZERO,
-            inv_voxel: 0.0,
-            dims: [0; 3],
+            grid: VoxelGrid {
+                origin: Vec3::ZERO,
+                inv_voxel: 0.0,
+                dims: [0; 3],
+            },
             voxel_cluster: Vec::new(),
             clusters: 0,
             dir_width: dw,
@@ -206,24 +235,18 @@ impl Visibility {
         let size = longest / res as f32;
         let dims =
             [extent.x, extent.y, extent.z].map(|e| ((e / size).ceil() as usize).clamp(1, res));
-        let inv_voxel = 1.0 / size;
-        let nvox = dims[0] * dims[1] * dims[2];
-        let voxel_of = |p: Vec3| -> Option<usize> {
-            let g = (p - lo) * inv_voxel;
-            if !(g.min_element() >= 0.0) {
-                return None;
-            }
-            let (x, y, z) = (g.x as usize, g.y as usize, g.z as usize);
-            // Points on the far faces of the box belong to the last voxel.
-            let (x, y, z) = (x.min(dims[0] - 1), y.min(dims[1] - 1), z.min(dims[2] - 1));
-            (g.max_element() <= res as f32 + 1.0).then_some((z * dims[1] + y) * dims[0] + x)
+        let grid = VoxelGrid {
+            origin: lo,
+            inv_voxel: 1.0 / size,
+            dims,
         };
+        let nvox = dims[0] * dims[1] * dims[2];
 
         // Per voxel the `points` walk vertices with the smallest hashes.
         let k = params.points.clamp(1, 64);
         let mut chosen: Vec<Vec<(u64, Vec3, Vec3)>> = vec![Vec::new(); nvox];
         for &(h, p, n) in &points {
-            let Some(v) = voxel_of(p) else {
+            let Some(v) = grid.index(p) else {
                 continue;
             };
             let list = &mut chosen[v];
@@ -287,9 +310,7 @@ impl Visibility {
             rays += r;
         }
         Visibility {
-            origin: lo,
-            inv_voxel,
-            dims,
+            grid,
             voxel_cluster,
             clusters: members.len(),
             dir_width: dw,
@@ -344,23 +365,10 @@ impl Visibility {
         if self.clusters == 0 {
             return NO_CLUSTER;
         }
-        let g = (p - self.origin) * self.inv_voxel;
-        if !(g.min_element() >= 0.0) {
-            return NO_CLUSTER;
+        match self.grid.index(p) {
+            Some(v) => self.voxel_cluster[v],
+            None => NO_CLUSTER,
         }
-        let (x, y, z) = (g.x as usize, g.y as usize, g.z as usize);
-        // Points a rounding error past the far faces belong to the last
-        // voxel, as in the build.
-        let slack = |c: usize, d: usize| if c == d { d - 1 } else { c };
-        let (x, y, z) = (
-            slack(x, self.dims[0]),
-            slack(y, self.dims[1]),
-            slack(z, self.dims[2]),
-        );
-        if x >= self.dims[0] || y >= self.dims[1] || z >= self.dims[2] {
-            return NO_CLUSTER;
-        }
-        self.voxel_cluster[(z * self.dims[1] + y) * self.dims[0] + x]
     }
 
     /// The fraction of cluster `c`'s points that see direction cell `cell`.
