@@ -132,31 +132,56 @@ pub struct Extension {
     pub assumed: bool,
 }
 
-/// The planes that close a room the view shows only part of: with a floor
-/// in view (its normal is "up", its distance the camera's height h) and a
-/// wall or ceiling, the room is taken as a box aligned with the largest
-/// wall seen (else with the view direction). A ceiling not in view is put
-/// `ceiling_ratio`·h above the floor (or just above the highest point
-/// seen); of the box's four wall directions, each with no wall seen within
-/// 30° gets a wall just beyond the farthest point seen that way, and at
-/// least `wall_ratio`·h from the camera. Nothing when the view shows no
-/// room (no floor, or a floor alone: the scene may be outdoors).
+/// The planes that close a room the view shows only part of. "Up" is the
+/// normal of the floor seen, else the opposite of the ceiling's, else the
+/// direction along which two walls seen at 30° or more to each other meet
+/// (a corner); the camera's height h above the floor is the floor's
+/// distance, or, with no floor in view, that of the lowest point seen (what
+/// stands in a room stands on its floor), where a floor is then assumed.
+/// The room is taken as a box aligned with the largest wall seen (else with
+/// the view direction). A ceiling not in view is put `ceiling_ratio`·h
+/// above the floor (or just above the highest point seen); of the box's
+/// four wall directions, each with no wall seen within 30° gets a wall just
+/// beyond the farthest point seen that way, and at least `wall_ratio`·h
+/// from the camera. Nothing when the view shows no room: a floor alone or
+/// a single wall alone (the scene may be outdoors), or no up at all.
 fn closure(bounding: &[PlaneFit], points: &[(Vec3, f32)], p: &CompleteParams) -> Vec<PlaneFit> {
     let by_fraction = |a: &&PlaneFit, b: &&PlaneFit| a.fraction.total_cmp(&b.fraction);
-    let Some(floor) = bounding
+    let floor = bounding
         .iter()
         .filter(|f| f.kind == PlaneKind::Floor)
-        .max_by(by_fraction)
-    else {
-        return Vec::new();
-    };
+        .max_by(by_fraction);
     let walls: Vec<&PlaneFit> = bounding
         .iter()
         .filter(|f| f.kind == PlaneKind::Wall)
         .collect();
-    let has_ceiling = bounding.iter().any(|f| f.kind == PlaneKind::Ceiling);
-    let (up, h) = (floor.plane.n, floor.plane.d);
-    if (walls.is_empty() && !has_ceiling) || !(h > 0.0) || points.is_empty() {
+    let ceiling = bounding
+        .iter()
+        .filter(|f| f.kind == PlaneKind::Ceiling)
+        .max_by(by_fraction);
+    let has_ceiling = ceiling.is_some();
+    if points.is_empty() {
+        return Vec::new();
+    }
+    let (up, h, floor_seen) = match floor {
+        Some(f) => {
+            if walls.is_empty() && !has_ceiling {
+                return Vec::new();
+            }
+            (f.plane.n, f.plane.d, true)
+        }
+        None => {
+            let Some(up) = ceiling.map(|c| -c.plane.n).or_else(|| corner_up(&walls)) else {
+                return Vec::new();
+            };
+            let low = points
+                .iter()
+                .map(|(q, _)| -up.dot(*q))
+                .fold(f32::NEG_INFINITY, f32::max);
+            (up, low * (1.0 + FLOOR_MARGIN), false)
+        }
+    };
+    if !(h > 0.0) || !h.is_finite() {
         return Vec::new();
     }
     let horizontal = |v: Vec3| (v - up * up.dot(v)).normalize_or_zero();
@@ -179,6 +204,9 @@ fn closure(bounding: &[PlaneFit], points: &[(Vec3, f32)], p: &CompleteParams) ->
         reaches: [true; 4],
     };
     let mut out = Vec::new();
+    if !floor_seen {
+        out.push(assumed(up, h, PlaneKind::Floor));
+    }
     if !has_ceiling {
         let top = points
             .iter()
@@ -203,6 +231,30 @@ fn closure(bounding: &[PlaneFit], points: &[(Vec3, f32)], p: &CompleteParams) ->
         ));
     }
     out
+}
+
+/// How far below the lowest point seen an assumed floor lies, as a share of
+/// that point's height below the camera.
+const FLOOR_MARGIN: f32 = 0.01;
+
+/// "Up" from walls alone: the direction along which the two walls seen at
+/// the widest angle (30° at least) meet, turned towards the camera's +y;
+/// None without such a pair, or when it leans more than 35° from +y (not
+/// a corner of upright walls).
+fn corner_up(walls: &[&PlaneFit]) -> Option<Vec3> {
+    let mut best: Option<(f32, Vec3)> = None;
+    for (i, a) in walls.iter().enumerate() {
+        for b in &walls[i + 1..] {
+            let c = a.plane.n.cross(b.plane.n);
+            let s = c.length();
+            if s >= 0.5 && best.is_none_or(|(t, _)| s > t) {
+                best = Some((s, c / s));
+            }
+        }
+    }
+    let (_, up) = best?;
+    let up = if up.y < 0.0 { -up } else { up };
+    (up.y >= 35f32.to_radians().cos()).then_some(up)
 }
 
 /// Keeps the part of convex polygon `poly` where `n·p + d ≥ 0`.
@@ -1147,5 +1199,73 @@ mod tests {
             &CompleteParams::default(),
         );
         assert_eq!((c.triangles, mesh == before), (0, true));
+    }
+
+    /// Two walls meeting in a corner 2.8 ahead fill the view; the floor,
+    /// 3 below, is out of it.
+    fn corner() -> (Camera, GrayImage) {
+        let cam = Camera::new(96, 72);
+        let walls = [
+            (Vec3::new(1.0, 0.0, 1.0).normalize(), 2.0),
+            (Vec3::new(-1.0, 0.0, 1.0).normalize(), 2.0),
+        ];
+        let z = render_planes(&cam, &walls);
+        (cam, z)
+    }
+
+    #[test]
+    fn a_corner_of_two_walls_is_closed_over_a_floor_under_the_lowest_point_seen() {
+        let (cam, z) = corner();
+        assert!(z.data.iter().all(|&d| d > 0.0));
+        let closed = CompleteParams {
+            close: true,
+            assumed_opening: 0.0,
+            ..CompleteParams::default()
+        };
+        let mut mesh = TriMesh::default();
+        let c = complete_beyond_frame(&mut mesh, &z, &cam, &closed);
+        // Two walls seen; a floor, a ceiling and the two walls behind
+        // assumed.
+        assert_eq!(c.extended.len(), 6, "{c:?}");
+        // The floor lies just under the lowest point seen (a bottom
+        // corner of the view), straight down from the camera.
+        let low = (0..z.data.len())
+            .map(|i| {
+                let q = cam.backproject((i % 96) as f32, (i / 96) as f32, z.data[i]);
+                -q.y
+            })
+            .fold(f32::NEG_INFINITY, f32::max);
+        let down = hit(&mesh, 0, Vec3::NEG_Y).expect("a floor");
+        assert!(
+            (down - low * (1.0 + FLOOR_MARGIN)).abs() < 1e-3 * low,
+            "{down} vs {low}"
+        );
+        assert!(hit(&mesh, 0, Vec3::Y).is_some(), "a ceiling");
+        for behind in [Vec3::Z, Vec3::X + Vec3::Z, Vec3::Z - Vec3::X] {
+            assert!(hit(&mesh, 0, behind.normalize()).is_some(), "{behind}");
+        }
+        // Nothing in view is covered.
+        for y in (0..72).step_by(5) {
+            for x in (0..96).step_by(5) {
+                let dir = cam.backproject(x as f32, y as f32, 1.0).normalize();
+                assert!(hit(&mesh, 0, dir).is_none(), "pixel {x},{y}");
+            }
+        }
+    }
+
+    #[test]
+    fn a_single_wall_alone_is_not_closed() {
+        let cam = Camera::new(96, 72);
+        let z = render_planes(&cam, &[(Vec3::Z, 4.0)]);
+        let p = CompleteParams {
+            close: true,
+            ..CompleteParams::default()
+        };
+        let mut mesh = TriMesh::default();
+        let c = complete_beyond_frame(&mut mesh, &z, &cam, &p);
+        assert_eq!(c.extended.len(), 1, "{c:?}");
+        for dir in [Vec3::Y, Vec3::NEG_Y, Vec3::Z, Vec3::X] {
+            assert!(hit(&mesh, 0, dir).is_none(), "{dir}");
+        }
     }
 }

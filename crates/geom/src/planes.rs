@@ -332,11 +332,33 @@ pub fn fit_planes(z: &GrayImage, cam: &Camera, p: &PlaneParams) -> Vec<PlaneFit>
     }
     // "Up" is the camera's +y, or the normal of the strongest plane
     // within 35° of it facing up from below (a floor seen by a tilted
-    // camera); every plane is classified against it.
+    // camera), else the line where the two strongest planes within 35° of
+    // upright that meet at 30° or more meet (a corner of two walls seen by
+    // a tilted camera, no floor in view); every plane is classified
+    // against it.
+    let near = 35f32.to_radians();
+    let upright: Vec<Vec3> = out
+        .iter()
+        .map(|f| f.plane.n)
+        .filter(|n| n.y.abs() <= near.sin())
+        .collect();
+    let corner = upright.iter().enumerate().find_map(|(i, a)| {
+        upright[i + 1..].iter().find_map(|b| {
+            let c = a.cross(*b);
+            let s = c.length();
+            let up = if c.y < 0.0 {
+                -c / s.max(1e-12)
+            } else {
+                c / s.max(1e-12)
+            };
+            (s >= 0.5 && up.y >= near.cos()).then_some(up)
+        })
+    });
     let world_up = out
         .iter()
         .find(|f| f.plane.n.y as f64 >= 35f64.to_radians().cos() && f.plane.d > 0.0)
         .map(|f| f.plane.n)
+        .or(corner)
         .unwrap_or(Vec3::Y);
     for f in &mut out {
         f.kind = classify(f.plane.n, f.plane.d, world_up, p.kind_tolerance_deg);
@@ -492,5 +514,27 @@ mod tests {
             };
             assert_eq!(f.kind, want, "{f:?}");
         }
+    }
+
+    /// A camera tilted down 25° at a corner of two walls, no floor in view:
+    /// "up" is where the walls meet, so both are walls (against the
+    /// camera's +y they lean 25°, past the tolerance).
+    #[test]
+    fn kinds_follow_a_corner_of_two_walls_under_a_tilted_camera() {
+        let cam = Camera::new(96, 72);
+        let r = glam::Mat3::from_rotation_x(25f32.to_radians());
+        let planes = [
+            (r * Vec3::new(1.0, 0.0, 1.0).normalize(), 2.0),
+            (r * Vec3::new(-1.0, 0.0, 1.0).normalize(), 2.0),
+        ];
+        let z = render_planes(&cam, &planes);
+        let fits = fit_planes(&z, &cam, &PlaneParams::default());
+        assert_eq!(fits.len(), 2, "{fits:?}");
+        assert!(fits.iter().all(|f| f.kind == PlaneKind::Wall), "{fits:?}");
+        // Without the corner they would not be.
+        let one = render_planes(&cam, &planes[..1]);
+        let fits = fit_planes(&one, &cam, &PlaneParams::default());
+        assert_eq!(fits.len(), 1, "{fits:?}");
+        assert_eq!(fits[0].kind, PlaneKind::Other, "{fits:?}");
     }
 }
