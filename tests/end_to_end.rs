@@ -154,6 +154,8 @@ fn synth_then_render_writes_exr_png_and_summary() {
             "3",
             "--complete",
             "room",
+            "--rm-search",
+            "on",
             "--quiet",
         ],
         None,
@@ -168,6 +170,21 @@ fn synth_then_render_writes_exr_png_and_summary() {
         serde_json::from_slice(&std::fs::read(inv.join("summary.json")).unwrap()).unwrap();
     assert_eq!(summary["options"]["light_guide"], true, "{summary}");
     assert_eq!(summary["light_guided"], true, "{summary}");
+    // Roughness and metallic were searched per segment first (asked
+    // for, R and M not trusted), and the summary counts it.
+    assert_eq!(summary["options"]["rm_search"], true, "{summary}");
+    assert!(
+        summary["rm_search"]["segments"].as_u64().unwrap() > 0,
+        "{summary}"
+    );
+    assert!(
+        summary["stages"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|st| st["name"] == "R/M per segment"),
+        "{summary}"
+    );
 }
 
 #[test]
@@ -214,6 +231,25 @@ fn bad_inputs_fail_with_messages_naming_the_problem() {
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("/nonexistent/bundle"), "{err}");
+    // A margin out of range is refused, naming the option.
+    let o = matflow(
+        &[
+            "invert",
+            "--bundle",
+            "/nonexistent/bundle",
+            "--out",
+            "/tmp/x",
+            "--rm-margin",
+            "1.5",
+        ],
+        None,
+    );
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("--rm-margin") && err.contains("not in [0, 1)"),
+        "{err}"
+    );
     // NaN inside a prediction file: named, with the pixel count.
     let b = synth(dir.path());
     let mut albedo = matflow_scene::io::read_exr_rgb(&b.join("albedoPred.exr")).unwrap();

@@ -81,6 +81,17 @@ pub struct InvertArgs {
     /// sky (on), or sample the envmap by radiance alone (off).
     #[arg(long, default_value = "on")]
     pub light_guide: crate::commands::OnOff,
+    /// Search roughness and metallic per segment (one albedo per segment
+    /// under a grid of R and M) before the per-pixel solve, moving the
+    /// anchor where that explains the photo clearly better (on); off (the
+    /// default) keeps the prediction's anchor. Only when R and M are not
+    /// trusted.
+    #[arg(long, default_value = "off")]
+    pub rm_search: crate::commands::OnOff,
+    /// How much better (relative loss) a segment's best (R, M) must
+    /// explain it than the prediction's for the anchor to move.
+    #[arg(long, default_value_t = 0.1, value_parser = margin_in_range)]
+    pub rm_margin: f64,
     /// Disable early stopping (run every stage for its full step count).
     #[arg(long)]
     pub no_early_stop: bool,
@@ -154,6 +165,15 @@ pub fn load_input(
     })
 }
 
+fn margin_in_range(s: &str) -> Result<f64, String> {
+    let v: f64 = s.parse().map_err(|e| format!("{e}"))?;
+    if (0.0..1.0).contains(&v) {
+        Ok(v)
+    } else {
+        Err(format!("{v} is not in [0, 1)"))
+    }
+}
+
 pub fn options_from(a: &InvertArgs) -> InvertOptions {
     InvertOptions {
         budget_seconds: a.budget_seconds,
@@ -173,6 +193,8 @@ pub fn options_from(a: &InvertArgs) -> InvertOptions {
         rescale: !a.no_rescale,
         env_only: a.env_only,
         light_guide: a.light_guide.on(),
+        rm_search: a.rm_search.on(),
+        rm_margin: a.rm_margin,
         ..Default::default()
     }
 }
@@ -315,8 +337,11 @@ pub fn invert_cmd(a: InvertArgs) -> Result<()> {
             "pixel_filter": matflow_inverse::invert::FIT_FILTER.name(),
             "complete": a.complete.name(),
             "light_guide": opts.light_guide,
+            "rm_search": opts.rm_search,
+            "rm_margin": opts.rm_margin,
         },
         "light_guided": light_guided,
+        "rm_search": res.report.rm_search,
         "plan": res.report.plan,
         "stages": stages_with_seconds(&res, &stage_seconds),
         "cache_bytes": res.report.cache_bytes,

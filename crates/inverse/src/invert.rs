@@ -5,7 +5,10 @@
 //!
 //! 1. scout: a few paths per pixel, envmap fitted from a constant start
 //!    (gives the main trace a sensible envmap to importance-sample);
-//! 2. main trace with the scout envmap and the starting materials;
+//! 2. main trace with the scout envmap and the starting materials; then,
+//!    when asked and R and M are not trusted, roughness and metallic per segment
+//!    ([`crate::segments`]): where one albedo under another (R, M) explains
+//!    a segment clearly better, the anchor of the per-pixel solve moves;
 //! 3. `loops` × [envmap stage, the material route's stages (e.g.
 //!    roughness+metallic, then albedo)], each material stage on freshly
 //!    built per-pixel tables (the light reaching primary vertices from
@@ -35,9 +38,11 @@ use crate::paths::{CacheError, CacheOptions, PathCache};
 pub const FIT_FILTER: PixelFilter = PixelFilter::Box;
 
 pub use crate::plan::{Plan, SceneCost};
+use crate::routes::mat_solve::resolvable_roughness;
 use crate::routes::{
     self, Chosen, EnvFitter, EnvRoute, EnvStage, EnvStart, MatRoute, MatStage, MatStart,
 };
+use crate::segments::{apply, search_rm, segment, SearchParams, SegmentParams};
 use crate::tables::build_tables_with_variance;
 use crate::transport;
 
@@ -82,6 +87,15 @@ pub struct InvertOptions {
     /// scene sees of the sky ([`matflow_render::guide`]); off samples the
     /// envmap by radiance alone.
     pub light_guide: bool,
+    /// Search roughness and metallic per segment before the first
+    /// material stage ([`crate::segments`]; only when R and M are not
+    /// trusted and materials are recovered). Off by default: on the
+    /// validation set's tuning half it recovers metals but does not
+    /// improve relighting (README, *Relighting on unseen scenes*).
+    pub rm_search: bool,
+    /// How much better (relative loss) a segment's best (R, M) must
+    /// explain it than its anchor for the anchor to move.
+    pub rm_margin: f64,
 }
 
 impl Default for InvertOptions {
@@ -113,6 +127,8 @@ impl Default for InvertOptions {
             denoise: 3,
             env_only: false,
             light_guide: true,
+            rm_search: false,
+            rm_margin: 0.1,
             init_env: None,
         }
     }
@@ -160,6 +176,21 @@ pub struct InvertReport {
     pub cache_rays: u64,
     /// Loss of the frozen estimator's image for the final parameters.
     pub fit_loss: f64,
+    /// What the search of R and M per segment did, when it ran.
+    pub rm_search: Option<RmSearchReport>,
+}
+
+/// The search of roughness and metallic per segment ([`crate::segments`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
+pub struct RmSearchReport {
+    pub segments: usize,
+    /// Segments large enough to be scored.
+    pub scored: usize,
+    /// Segments whose anchor moved, and their pixels.
+    pub moved: usize,
+    pub moved_pixels: usize,
+    /// Of the moved pixels, those anchored as metal.
+    pub metal_pixels: usize,
 }
 
 pub struct InvertResult {
@@ -449,9 +480,52 @@ pub fn invert(
     // 2. Main trace.
     run.set_scene(&mats, &env)?;
     let cache = run.trace("trace", plan.spp, opts.seed)?;
+    let guide = Guide::build(&run.scene);
+
+    // R and M per segment: moves the anchor (and the start) of segments
+    // that one albedo under another (R, M) explains clearly better.
+    let mut pred = pred;
+    let mut rm_search = None;
+    if opts.rm_search && !opts.env_only && !opts.trust_rm {
+        let name = "R/M per segment";
+        run.begin(name, 1);
+        let (mut tabs, var, valid) = build_tables_with_variance(&cache, &mats, &env);
+        if opts.denoise > 0 {
+            denoise_tables(&mut tabs, &var, &valid, &guide, opts.denoise);
+        }
+        drop(var);
+        let dist = run.scene.primary_distances();
+        let albedo: Vec<Vec3> = pred.iter().map(|m| m.albedo).collect();
+        let (labels, count) = segment(&albedo, &dist, w, h, &SegmentParams::default());
+        let choices = search_rm(
+            &tabs,
+            &run.target,
+            &labels,
+            count,
+            &pred,
+            1.0,
+            &SearchParams {
+                margin: opts.rm_margin,
+                ..SearchParams::new(resolvable_roughness(ew, eh))
+            },
+        );
+        let moved_pixels = apply(&choices, &labels, &mut pred, &mut mats);
+        let metal = choices
+            .iter()
+            .filter(|c| c.moved && c.metallic > 0.5)
+            .map(|c| c.pixels)
+            .sum();
+        rm_search = Some(RmSearchReport {
+            segments: count,
+            scored: choices.len(),
+            moved: choices.iter().filter(|c| c.moved).count(),
+            moved_pixels,
+            metal_pixels: metal,
+        });
+        run.end(StageReport::plain(name, choices.len()));
+    }
 
     // 3. Alternation.
-    let guide = Guide::build(&run.scene);
     let mut mat_fit = (!opts.env_only).then(|| {
         mat_route.start(&MatStart {
             width: w,
@@ -545,6 +619,7 @@ pub fn invert(
             cache_bytes,
             cache_rays,
             fit_loss: fit_loss.total(),
+            rm_search,
         },
     })
 }

@@ -27,6 +27,7 @@ pub mod optim;
 pub mod paths;
 pub mod plan;
 pub mod routes;
+pub mod segments;
 pub mod solve;
 pub mod tables;
 pub mod transport;

@@ -96,6 +96,10 @@ pub mod cost {
     /// far): scene-00 of the validation set with the room completed,
     /// 32 cached paths 1.19×, the final render 1.11× per ray.
     pub const GUIDED_RAY: f64 = 1.2;
+    /// The search of R and M per segment (`crate::segments`), per surface
+    /// pixel, besides its tables: primary rays, segments and the scores
+    /// of a grid of 13 materials.
+    pub const RM_SEARCH: f64 = 4.0e-6;
     /// Loading, meshing, BVH, guide, scout trace and two envmap stages of
     /// the texel route.
     pub const FIXED: f64 = 1.6e-5;
@@ -158,6 +162,13 @@ impl Plan {
         let spp = opts.spp.unwrap_or(
             ((0.4 * avail / (trace_spp + loop_cost(0.0, false) / 32.0)) as u32).clamp(2, 32),
         );
+        // The search of R and M per segment builds tables once more.
+        let search = if opts.rm_search && !opts.trust_rm && !opts.env_only {
+            (TABLE_PER_SAMPLE * spp as f64 + DENOISE_PER_PASS * passes + RM_SEARCH) * surf * n
+        } else {
+            0.0
+        };
+        let avail = (avail - search).max(0.0);
         let rest = (avail - spp as f64 * trace_spp - loop_cost(spp as f64, false)).max(0.0);
         let warm = loop_cost(spp as f64, true);
         let max_loops = if opts.trust_rm {
@@ -252,6 +263,25 @@ mod tests {
         // Guided light samples cost more per ray: fewer samples.
         let guided = plan(60.0, SceneCost::default().guided(true), &o);
         assert!(guided.final_spp < base.final_spp && guided.spp <= base.spp);
+        // The search of R and M per segment is paid for (when it runs:
+        // not with trusted R and M).
+        let searched = InvertOptions {
+            rm_search: true,
+            ..o.clone()
+        };
+        let with = plan(60.0, SceneCost::default(), &searched);
+        assert!(with.final_spp < base.final_spp || with.loops < base.loops);
+        assert!(with.loops <= base.loops && with.spp <= base.spp);
+        let t = |rm_search| InvertOptions {
+            trust_rm: true,
+            rm_search,
+            ..o.clone()
+        };
+        let (a, b) = (
+            plan(60.0, SceneCost::default(), &t(true)),
+            plan(60.0, SceneCost::default(), &t(false)),
+        );
+        assert_eq!((a.spp, a.loops, a.final_spp), (b.spp, b.loops, b.final_spp));
         // Dearer routes buy fewer loops (and the MLP fewer steps) from the
         // same budget.
         let route = |m: &str, e: &str| InvertOptions {

@@ -68,7 +68,7 @@ fn bounds(pred: f32, zeta: f32, lo: f32) -> (f32, f32) {
 /// h(e) = |e| + c·e² for one channel, one-sided where the target is
 /// saturated.
 #[inline]
-fn channel_loss(i: f32, t: f32, sat: bool, c2: f32) -> f32 {
+pub(crate) fn channel_loss(i: f32, t: f32, sat: bool, c2: f32) -> f32 {
     let mut e = gamma(i).0 - t;
     if sat && e > 0.0 {
         e = 0.0;
@@ -80,7 +80,7 @@ const GOLDEN: f32 = 0.618_034;
 
 /// Minimises a function that is unimodal on [a, b] (golden section),
 /// returning the best of the search and the two ends.
-fn golden(mut a: f32, mut b: f32, iters: usize, f: impl Fn(f32) -> f32) -> f32 {
+pub(crate) fn golden(mut a: f32, mut b: f32, iters: usize, f: impl Fn(f32) -> f32) -> f32 {
     let (a0, b0) = (a, b);
     let mut c = b - GOLDEN * (b - a);
     let mut d = a + GOLDEN * (b - a);

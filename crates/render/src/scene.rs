@@ -467,6 +467,25 @@ impl RenderScene {
         self.object_surface(q).is_some_and(Surface::is_glass) || self.glass_pixel(q).is_some()
     }
 
+    /// Per pixel (row-major), the distance along the ray through the
+    /// pixel's centre to the first hit, or infinity where it sees nothing
+    /// (the sky).
+    pub fn primary_distances(&self) -> Vec<f32> {
+        use rayon::prelude::*;
+        let (w, h) = (self.camera.width, self.camera.height);
+        (0..w * h)
+            .into_par_iter()
+            .with_min_len(256)
+            .map(|k| {
+                let film = Vec2::new((k % w) as f32 + 0.5, (k / w) as f32 + 0.5);
+                let d = self.camera_ray(film);
+                self.bvh
+                    .intersect(Vec3::ZERO, d, 0.0, f32::INFINITY)
+                    .map_or(f32::INFINITY, |hit| hit.t)
+            })
+            .collect()
+    }
+
     /// Per pixel (row-major), the fraction of an `n`×`n` grid of camera
     /// rays through the pixel whose first hit is an object: where an
     /// inserted object covers the image (the compositing matte).
