@@ -939,6 +939,17 @@ mod tests {
         best
     }
 
+    /// No ray through every `step`-th pixel centre of a 96×72 view meets
+    /// `mesh` (the completion covers nothing the image shows).
+    fn assert_view_open(mesh: &TriMesh, cam: &Camera, step: usize) {
+        for y in (0..72).step_by(step) {
+            for x in (0..96).step_by(step) {
+                let dir = cam.backproject(x as f32, y as f32, 1.0).normalize();
+                assert!(hit(mesh, 0, dir).is_none(), "pixel {x},{y}");
+            }
+        }
+    }
+
     const ROOM: [(Vec3, f32); 5] = [
         (Vec3::Y, 0.9),
         (Vec3::NEG_Y, 0.8),
@@ -990,12 +1001,7 @@ mod tests {
         // seen there).
         assert!(hit(&mesh, 0, Vec3::Z).is_none());
         // No ray through a pixel centre meets the extension.
-        for y in (0..72).step_by(7) {
-            for x in (0..96).step_by(7) {
-                let dir = cam.backproject(x as f32, y as f32, 1.0).normalize();
-                assert!(hit(&mesh, 0, dir).is_none(), "pixel {x},{y}");
-            }
-        }
+        assert_view_open(&mesh, &cam, 7);
     }
 
     #[test]
@@ -1078,12 +1084,7 @@ mod tests {
             assert!(hit(&mesh, 0, side).is_some(), "{side}");
         }
         // Still nothing in view.
-        for y in (0..72).step_by(5) {
-            for x in (0..96).step_by(5) {
-                let dir = cam.backproject(x as f32, y as f32, 1.0).normalize();
-                assert!(hit(&mesh, 0, dir).is_none(), "pixel {x},{y}");
-            }
-        }
+        assert_view_open(&mesh, &cam, 5);
         // With the default typical window in each assumed wall, light
         // comes in straight from behind at the camera's height, not from
         // low down nor through the ceiling.
@@ -1245,12 +1246,7 @@ mod tests {
             assert!(hit(&mesh, 0, behind.normalize()).is_some(), "{behind}");
         }
         // Nothing in view is covered.
-        for y in (0..72).step_by(5) {
-            for x in (0..96).step_by(5) {
-                let dir = cam.backproject(x as f32, y as f32, 1.0).normalize();
-                assert!(hit(&mesh, 0, dir).is_none(), "pixel {x},{y}");
-            }
-        }
+        assert_view_open(&mesh, &cam, 5);
     }
 
     #[test]
