@@ -939,6 +939,19 @@ mod tests {
         best
     }
 
+    /// The completion alone (no depth mesh) of `z` with the room closed
+    /// and no windows in the assumed walls.
+    fn closed_without_windows(z: &GrayImage, cam: &Camera) -> (TriMesh, Completion) {
+        let closed = CompleteParams {
+            close: true,
+            assumed_opening: 0.0,
+            ..CompleteParams::default()
+        };
+        let mut mesh = TriMesh::default();
+        let c = complete_beyond_frame(&mut mesh, z, cam, &closed);
+        (mesh, c)
+    }
+
     /// No ray through every `step`-th pixel centre of a 96×72 view meets
     /// `mesh` (the completion covers nothing the image shows).
     fn assert_view_open(mesh: &TriMesh, cam: &Camera, step: usize) {
@@ -1062,13 +1075,7 @@ mod tests {
     fn a_room_is_closed_with_a_ceiling_and_walls_where_the_view_shows_one() {
         let cam = Camera::new(96, 72);
         let z = render_planes(&cam, &FLOOR_AND_WALL);
-        let closed = CompleteParams {
-            close: true,
-            assumed_opening: 0.0,
-            ..CompleteParams::default()
-        };
-        let mut mesh = TriMesh::default();
-        let c = complete_beyond_frame(&mut mesh, &z, &cam, &closed);
+        let (mesh, c) = closed_without_windows(&z, &cam);
         // Floor and wall seen; ceiling and three walls assumed.
         assert_eq!(c.extended.len(), 6, "{c:?}");
         // The ceiling is just above the highest point seen (the wall's top
@@ -1204,13 +1211,7 @@ mod tests {
     fn a_corner_of_two_walls_is_closed_over_a_floor_under_the_lowest_point_seen() {
         let (cam, z) = corner();
         assert!(z.data.iter().all(|&d| d > 0.0));
-        let closed = CompleteParams {
-            close: true,
-            assumed_opening: 0.0,
-            ..CompleteParams::default()
-        };
-        let mut mesh = TriMesh::default();
-        let c = complete_beyond_frame(&mut mesh, &z, &cam, &closed);
+        let (mesh, c) = closed_without_windows(&z, &cam);
         // Two walls seen; a floor, a ceiling and the two walls behind
         // assumed.
         assert_eq!(c.extended.len(), 6, "{c:?}");
