@@ -36,7 +36,7 @@ use glam::{Vec2, Vec3};
 use matflow_scene::{Camera, GrayImage};
 
 use crate::mesh::TriMesh;
-use crate::planes::{fit_planes, Plane, PlaneFit, PlaneKind, PlaneParams};
+use crate::planes::{corner_up, fit_planes, Plane, PlaneFit, PlaneKind, PlaneParams};
 
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct CompleteParams {
@@ -171,7 +171,7 @@ fn closure(bounding: &[PlaneFit], points: &[(Vec3, f32)], p: &CompleteParams) ->
             (f.plane.n, f.plane.d, true)
         }
         None => {
-            let Some(up) = ceiling.map(|c| -c.plane.n).or_else(|| corner_up(&walls)) else {
+            let Some(up) = ceiling.map(|c| -c.plane.n).or_else(|| walls_up(&walls)) else {
                 return Vec::new();
             };
             let low = points
@@ -241,19 +241,18 @@ const FLOOR_MARGIN: f32 = 0.01;
 /// the widest angle (30° at least) meet, turned towards the camera's +y;
 /// None without such a pair, or when it leans more than 35° from +y (not
 /// a corner of upright walls).
-fn corner_up(walls: &[&PlaneFit]) -> Option<Vec3> {
+fn walls_up(walls: &[&PlaneFit]) -> Option<Vec3> {
     let mut best: Option<(f32, Vec3)> = None;
     for (i, a) in walls.iter().enumerate() {
         for b in &walls[i + 1..] {
-            let c = a.plane.n.cross(b.plane.n);
-            let s = c.length();
-            if s >= 0.5 && best.is_none_or(|(t, _)| s > t) {
-                best = Some((s, c / s));
+            if let Some((s, up)) = corner_up(a.plane.n, b.plane.n) {
+                if best.is_none_or(|(t, _)| s > t) {
+                    best = Some((s, up));
+                }
             }
         }
     }
     let (_, up) = best?;
-    let up = if up.y < 0.0 { -up } else { up };
     (up.y >= 35f32.to_radians().cos()).then_some(up)
 }
 

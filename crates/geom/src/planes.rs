@@ -163,6 +163,16 @@ fn through(a: DVec3, b: DVec3, c: DVec3) -> Option<(DVec3, f64)> {
     Some(if d < 0.0 { (-n, -d) } else { (n, d) })
 }
 
+/// Where two planes of normals `a` and `b` meeting at 30° or more meet:
+/// the sine of their angle and the unit direction of their common line,
+/// turned towards the camera's +y (for walls, "up"); `None` for planes
+/// nearer parallel.
+pub(crate) fn corner_up(a: Vec3, b: Vec3) -> Option<(f32, Vec3)> {
+    let c = a.cross(b);
+    let s = c.length();
+    (s >= 0.5).then(|| (s, if c.y < 0.0 { -c / s } else { c / s }))
+}
+
 /// The dominant planes of depth map `z` (0 = no geometry), strongest
 /// first.
 pub fn fit_planes(z: &GrayImage, cam: &Camera, p: &PlaneParams) -> Vec<PlaneFit> {
@@ -343,16 +353,10 @@ pub fn fit_planes(z: &GrayImage, cam: &Camera, p: &PlaneParams) -> Vec<PlaneFit>
         .filter(|n| n.y.abs() <= near.sin())
         .collect();
     let corner = upright.iter().enumerate().find_map(|(i, a)| {
-        upright[i + 1..].iter().find_map(|b| {
-            let c = a.cross(*b);
-            let s = c.length();
-            let up = if c.y < 0.0 {
-                -c / s.max(1e-12)
-            } else {
-                c / s.max(1e-12)
-            };
-            (s >= 0.5 && up.y >= near.cos()).then_some(up)
-        })
+        upright[i + 1..]
+            .iter()
+            .find_map(|b| corner_up(*a, *b).filter(|&(_, up)| up.y >= near.cos()))
+            .map(|(_, up)| up)
     });
     let world_up = out
         .iter()

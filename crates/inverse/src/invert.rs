@@ -43,7 +43,7 @@ use crate::routes::{
     self, Chosen, EnvFitter, EnvRoute, EnvStage, EnvStart, MatRoute, MatStage, MatStart,
 };
 use crate::segments::{apply, search_rm, segment, SearchParams, SegmentParams};
-use crate::tables::build_tables_with_variance;
+use crate::tables::{build_tables_with_variance, PixelTable};
 use crate::transport;
 
 #[derive(Clone, Debug)]
@@ -96,6 +96,30 @@ pub struct InvertOptions {
     /// How much better (relative loss) a segment's best (R, M) must
     /// explain it than its anchor for the anchor to move.
     pub rm_margin: f64,
+}
+
+impl InvertOptions {
+    /// Whether roughness and metallic are searched per segment: asked
+    /// for, and materials recovered with R and M not trusted.
+    pub fn searches_rm(&self) -> bool {
+        self.rm_search && !self.env_only && !self.trust_rm
+    }
+}
+
+/// The per-pixel tables of the frozen paths for materials `mats` under
+/// `env`, denoised by `passes` à-trous passes guided by `guide`.
+fn fresh_tables(
+    cache: &PathCache,
+    mats: &[Material],
+    env: &[Vec3],
+    guide: &Guide,
+    passes: usize,
+) -> Vec<PixelTable> {
+    let (mut tabs, var, valid) = build_tables_with_variance(cache, mats, env);
+    if passes > 0 {
+        denoise_tables(&mut tabs, &var, &valid, guide, passes);
+    }
+    tabs
 }
 
 impl Default for InvertOptions {
@@ -486,14 +510,10 @@ pub fn invert(
     // that one albedo under another (R, M) explains clearly better.
     let mut pred = pred;
     let mut rm_search = None;
-    if opts.rm_search && !opts.env_only && !opts.trust_rm {
+    if opts.searches_rm() {
         let name = "R/M per segment";
         run.begin(name, 1);
-        let (mut tabs, var, valid) = build_tables_with_variance(&cache, &mats, &env);
-        if opts.denoise > 0 {
-            denoise_tables(&mut tabs, &var, &valid, &guide, opts.denoise);
-        }
-        drop(var);
+        let tabs = fresh_tables(&cache, &mats, &env, &guide, opts.denoise);
         let dist = run.scene.primary_distances();
         let albedo: Vec<Vec3> = pred.iter().map(|m| m.albedo).collect();
         let (labels, count) = segment(&albedo, &dist, w, h, &SegmentParams::default());
@@ -546,11 +566,7 @@ pub fn invert(
         for &parts in mat_route.stages() {
             let name = format!("materials {} {}", parts.name(), l + 1);
             run.begin(&name, plan.mat_steps);
-            let (mut tabs, var, valid) = build_tables_with_variance(&cache, &mats, &env);
-            if opts.denoise > 0 {
-                denoise_tables(&mut tabs, &var, &valid, &guide, opts.denoise);
-            }
-            drop(var);
+            let tabs = fresh_tables(&cache, &mats, &env, &guide, opts.denoise);
             let fit = mat_fit.fit(
                 &tabs,
                 &run.target,

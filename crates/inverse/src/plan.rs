@@ -163,7 +163,7 @@ impl Plan {
             ((0.4 * avail / (trace_spp + loop_cost(0.0, false) / 32.0)) as u32).clamp(2, 32),
         );
         // The search of R and M per segment builds tables once more.
-        let search = if opts.rm_search && !opts.trust_rm && !opts.env_only {
+        let search = if opts.searches_rm() {
             (TABLE_PER_SAMPLE * spp as f64 + DENOISE_PER_PASS * passes + RM_SEARCH) * surf * n
         } else {
             0.0
