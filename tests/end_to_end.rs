@@ -156,6 +156,8 @@ fn synth_then_render_writes_exr_png_and_summary() {
             "room",
             "--rm-search",
             "on",
+            "--albedo-level",
+            "pred",
             "--quiet",
         ],
         None,
@@ -170,6 +172,17 @@ fn synth_then_render_writes_exr_png_and_summary() {
         serde_json::from_slice(&std::fs::read(inv.join("summary.json")).unwrap()).unwrap();
     assert_eq!(summary["options"]["light_guide"], true, "{summary}");
     assert_eq!(summary["light_guided"], true, "{summary}");
+    // The albedo's level was held at the prediction's: the summary says
+    // so, and what gain the light took.
+    assert_eq!(summary["options"]["albedo_level"], "pred", "{summary}");
+    let gain = summary["level_gain"].as_array().expect("level_gain");
+    assert!(
+        gain.len() == 3
+            && gain
+                .iter()
+                .all(|g| g.as_f64().is_some_and(|g| g.is_finite() && g > 0.0)),
+        "{summary}"
+    );
     // Roughness and metallic were searched per segment first (asked
     // for, R and M not trusted), and the summary counts it.
     assert_eq!(summary["options"]["rm_search"], true, "{summary}");
@@ -248,6 +261,24 @@ fn bad_inputs_fail_with_messages_naming_the_problem() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(
         err.contains("--rm-margin") && err.contains("not in [0, 1)"),
+        "{err}"
+    );
+    let o = matflow(
+        &[
+            "invert",
+            "--bundle",
+            "/nonexistent/bundle",
+            "--out",
+            "/tmp/x",
+            "--albedo-level-band",
+            "0.99",
+        ],
+        None,
+    );
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("--albedo-level-band") && err.contains("not in [0, 0.95)"),
         "{err}"
     );
     // NaN inside a prediction file: named, with the pixel count.

@@ -92,12 +92,33 @@ pub struct InvertArgs {
     /// explain it than the prediction's for the anchor to move.
     #[arg(long, default_value_t = 0.1, value_parser = margin_in_range)]
     pub rm_margin: f64,
+    /// The albedo's level and colour (its mean per channel over the
+    /// surfaces in view): `free` leaves them to the fit; `pred` holds
+    /// them at the prediction's after each albedo stage, the light taking
+    /// the gain (one image cannot tell a brighter light from a brighter
+    /// albedo).
+    #[arg(long, value_enum, default_value = "free")]
+    pub albedo_level: AlbedoLevel,
+    /// With `--albedo-level pred`: how far (a share, per channel) the
+    /// albedo's mean may move from the prediction's before it is held
+    /// (0: held exactly).
+    #[arg(long, default_value_t = 0.0, value_parser = band_in_range)]
+    pub albedo_level_band: f32,
     /// Disable early stopping (run every stage for its full step count).
     #[arg(long)]
     pub no_early_stop: bool,
     /// Hide the progress bar.
     #[arg(long)]
     pub quiet: bool,
+}
+
+/// Who sets the albedo's level and colour (`--albedo-level`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum AlbedoLevel {
+    /// The fit.
+    Free,
+    /// The prediction.
+    Pred,
 }
 
 /// Metrics of an image against the input, in sRGB (γ 2.2, clipped).
@@ -174,6 +195,15 @@ fn margin_in_range(s: &str) -> Result<f64, String> {
     }
 }
 
+fn band_in_range(s: &str) -> Result<f32, String> {
+    let v: f32 = s.parse().map_err(|e| format!("{e}"))?;
+    if (0.0..0.95).contains(&v) {
+        Ok(v)
+    } else {
+        Err(format!("{v} is not in [0, 0.95)"))
+    }
+}
+
 pub fn options_from(a: &InvertArgs) -> InvertOptions {
     InvertOptions {
         budget_seconds: a.budget_seconds,
@@ -195,6 +225,8 @@ pub fn options_from(a: &InvertArgs) -> InvertOptions {
         light_guide: a.light_guide.on(),
         rm_search: a.rm_search.on(),
         rm_margin: a.rm_margin,
+        level_from_pred: a.albedo_level == AlbedoLevel::Pred,
+        level_band: a.albedo_level_band,
         ..Default::default()
     }
 }
@@ -339,9 +371,12 @@ pub fn invert_cmd(a: InvertArgs) -> Result<()> {
             "light_guide": opts.light_guide,
             "rm_search": opts.rm_search,
             "rm_margin": opts.rm_margin,
+            "albedo_level": if opts.level_from_pred { "pred" } else { "free" },
+            "albedo_level_band": opts.level_band,
         },
         "light_guided": light_guided,
         "rm_search": res.report.rm_search,
+        "level_gain": res.report.level_gain,
         "plan": res.report.plan,
         "stages": stages_with_seconds(&res, &stage_seconds),
         "cache_bytes": res.report.cache_bytes,

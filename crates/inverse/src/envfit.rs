@@ -379,7 +379,8 @@ pub fn exposure_scale(tr: &EnvTransport, target_linear: &[Vec3], init: &[Vec3]) 
 #[derive(Clone, Debug)]
 pub struct EnvMlp {
     pub net: crate::mlp::PosMlp,
-    pub scale: f32,
+    /// Per channel.
+    pub scale: Vec3,
     feats: Vec<f32>,
     width: usize,
     height: usize,
@@ -436,11 +437,11 @@ impl EnvMlp {
         let nf = crate::mlp::position_feature_count(o.multires) + 3;
         EnvMlp {
             net: crate::mlp::PosMlp::new(nf, o.width, o.depth, 3, &[1, 3], o.seed),
-            scale: if scale.is_finite() && scale > 0.0 {
+            scale: Vec3::splat(if scale.is_finite() && scale > 0.0 {
                 scale
             } else {
                 1.0
-            },
+            }),
             feats,
             width,
             height,
@@ -502,9 +503,9 @@ impl EnvMlp {
                 .zip(&g_env)
                 .flat_map(|(c, g)| {
                     [
-                        g.x * softplus(c[0]).1 * k,
-                        g.y * softplus(c[1]).1 * k,
-                        g.z * softplus(c[2]).1 * k,
+                        g.x * softplus(c[0]).1 * k.x,
+                        g.y * softplus(c[1]).1 * k.y,
+                        g.z * softplus(c[2]).1 * k.z,
                     ]
                 })
                 .collect();

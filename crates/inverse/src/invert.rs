@@ -96,6 +96,16 @@ pub struct InvertOptions {
     /// How much better (relative loss) a segment's best (R, M) must
     /// explain it than its anchor for the anchor to move.
     pub rm_margin: f64,
+    /// Hold the albedo's level and colour (its mean per channel over the
+    /// surfaces in view) at the prediction's, the light taking the
+    /// inverse gain ([`level_gain`]). One image cannot tell a brighter
+    /// light from a brighter albedo; free, the fit settles that trade
+    /// wherever its path ends.
+    pub level_from_pred: bool,
+    /// With the level held: how far (a share, per channel) the albedo's
+    /// mean may move from the prediction's before it is held; 0 holds it
+    /// exactly.
+    pub level_band: f32,
 }
 
 impl InvertOptions {
@@ -120,6 +130,29 @@ fn fresh_tables(
         denoise_tables(&mut tabs, &var, &valid, guide, passes);
     }
     tabs
+}
+
+/// Per channel, the mean albedo of `mats` over the pixels where `surface`
+/// holds, against that of `pred`: the gain that light and albedo trade
+/// freely (the envmap times g and the albedo divided by g leave every
+/// path of one bounce unchanged). `None` where it is not defined (no
+/// surface, a black prediction); each channel within [1/20, 20].
+pub fn level_gain(mats: &[Material], pred: &[Material], surface: &[bool]) -> Option<Vec3> {
+    let (mut a, mut p) = ([0f64; 3], [0f64; 3]);
+    let mut n = 0usize;
+    for ((m, q), _) in mats.iter().zip(pred).zip(surface).filter(|(_, s)| **s) {
+        for c in 0..3 {
+            a[c] += f64::from(m.albedo[c].max(0.0));
+            p[c] += f64::from(q.albedo[c].max(0.0));
+        }
+        n += 1;
+    }
+    let floor = 1e-4 * n as f64;
+    if n == 0 || p.iter().chain(&a).any(|v| !(*v > floor)) {
+        return None;
+    }
+    let g = |c: usize| ((a[c] / p[c]) as f32).clamp(0.05, 20.0);
+    Some(Vec3::new(g(0), g(1), g(2)))
 }
 
 impl Default for InvertOptions {
@@ -153,6 +186,8 @@ impl Default for InvertOptions {
             light_guide: true,
             rm_search: false,
             rm_margin: 0.1,
+            level_from_pred: false,
+            level_band: 0.0,
             init_env: None,
         }
     }
@@ -202,6 +237,9 @@ pub struct InvertReport {
     pub fit_loss: f64,
     /// What the search of R and M per segment did, when it ran.
     pub rm_search: Option<RmSearchReport>,
+    /// With the level held at the prediction's: the gain per channel the
+    /// light took from the albedo over the whole recovery.
+    pub level_gain: Option<[f32; 3]>,
 }
 
 /// The search of roughness and metallic per segment ([`crate::segments`]).
@@ -545,7 +583,19 @@ pub fn invert(
         run.end(StageReport::plain(name, choices.len()));
     }
 
-    // 3. Alternation.
+    // 3. Alternation. With the level held, after each stage that fits
+    // albedo its mean per channel goes back to the prediction's and the
+    // light takes the gain.
+    let mut level_total = (opts.level_from_pred && !opts.env_only).then_some(Vec3::ONE);
+    let surface: Vec<bool> = if level_total.is_some() {
+        run.scene
+            .primary_distances()
+            .iter()
+            .map(|d| d.is_finite())
+            .collect()
+    } else {
+        Vec::new()
+    };
     let mut mat_fit = (!opts.env_only).then(|| {
         mat_route.start(&MatStart {
             width: w,
@@ -587,7 +637,23 @@ pub fn invert(
             for e in env.iter_mut() {
                 *e *= fit.scale;
             }
-            env_fit.rescale(fit.scale);
+            env_fit.rescale(Vec3::splat(fit.scale));
+            if let Some(total) = level_total.as_mut().filter(|_| parts.albedo) {
+                let band = opts.level_band.clamp(0.0, 0.95);
+                let over = level_gain(&mats, &pred, &surface)
+                    .map(|g| g / g.clamp(Vec3::splat(1.0 - band), Vec3::splat(1.0 + band)))
+                    .filter(|g| *g != Vec3::ONE);
+                if let Some(g) = over {
+                    for m in mats.iter_mut() {
+                        m.albedo = (m.albedo / g).clamp(Vec3::ZERO, Vec3::ONE);
+                    }
+                    for e in env.iter_mut() {
+                        *e *= g;
+                    }
+                    env_fit.rescale(g);
+                    *total *= g;
+                }
+            }
             run.end(StageReport::fit(&name, &fit.trace));
         }
     }
@@ -636,6 +702,118 @@ pub fn invert(
             cache_rays,
             fit_loss: fit_loss.total(),
             rm_search,
+            level_gain: level_total.map(|g| g.to_array()),
         },
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::routes::{env_route, mat_route};
+    use crate::testutil::{materials_of, room};
+
+    fn with_albedo(m: &Material, a: Vec3) -> Material {
+        Material { albedo: a, ..*m }
+    }
+
+    #[test]
+    fn level_gain_is_the_ratio_of_channel_means_over_surfaces() {
+        let base = Material {
+            albedo: Vec3::splat(0.4),
+            roughness: 0.5,
+            metallic: 0.0,
+        };
+        let pred = vec![base; 4];
+        let mut mats: Vec<Material> = pred
+            .iter()
+            .map(|m| with_albedo(m, m.albedo * Vec3::new(2.0, 1.0, 0.5)))
+            .collect();
+        // A pixel without a surface (a window's sky) does not count.
+        mats[3].albedo = Vec3::ONE;
+        let surface = [true, true, true, false];
+        let g = level_gain(&mats, &pred, &surface).expect("defined");
+        assert!(
+            (g - Vec3::new(2.0, 1.0, 0.5)).abs().max_element() < 1e-6,
+            "{g}"
+        );
+        // Undefined without surfaces or with a black channel.
+        assert_eq!(level_gain(&mats, &pred, &[false; 4]), None);
+        let black: Vec<Material> = pred
+            .iter()
+            .map(|m| with_albedo(m, Vec3::new(0.4, 0.0, 0.4)))
+            .collect();
+        assert_eq!(level_gain(&mats, &black, &surface), None);
+    }
+
+    /// With the level held, the recovered albedo keeps the prediction's
+    /// mean per channel and the light takes the gain. The photo has a
+    /// shadow the mesh cannot cast (its left half at 30 % of the light, as
+    /// from an occluder out of view), which a free fit paints into the
+    /// albedo, darkening its level; held, the level stays the
+    /// prediction's and the photo is explained about as well. Within a
+    /// band wider than that drift, nothing is held.
+    #[test]
+    fn a_held_level_moves_the_gain_into_the_light() {
+        let n = 24;
+        let t = room(3, n);
+        let mut target = matflow_render::render(
+            &t.scene,
+            &RenderOptions {
+                spp: 16,
+                ..Default::default()
+            },
+            &|_, _| {},
+        )
+        .image;
+        for (p, v) in target.data.iter_mut().enumerate() {
+            if p % n < n / 2 {
+                *v *= 0.3;
+            }
+        }
+        let pred = materials_of(&t.maps);
+        let opts = |held, band| InvertOptions {
+            budget_seconds: 2.0,
+            env_route: env_route("texel", &[]).expect("env route"),
+            mat_route: mat_route("solve", &[]).expect("mat route"),
+            spp: Some(8),
+            final_spp: Some(8),
+            loops: Some(2),
+            env_steps: Some(60),
+            mat_steps: Some(60),
+            level_from_pred: held,
+            level_band: band,
+            ..Default::default()
+        };
+        let run = |held, band| {
+            invert(room(3, n).scene, &target, &pred, &opts(held, band), &|_| {}).expect("invert")
+        };
+        let (free, held) = (run(false, 0.0), run(true, 0.0));
+        assert_eq!(free.report.level_gain, None);
+        let g = Vec3::from(held.report.level_gain.expect("reported"));
+        assert!(g.is_finite() && g.min_element() > 0.0, "{g}");
+        let surface: Vec<bool> = t
+            .scene
+            .primary_distances()
+            .iter()
+            .map(|d| d.is_finite())
+            .collect();
+        let left = level_gain(&held.materials, &pred, &surface).expect("defined");
+        let drift = level_gain(&free.materials, &pred, &surface).expect("defined");
+        // Free, the fit darkens the level (else this test could not fail).
+        assert!(drift.max_element() < 0.93, "{drift}");
+        // Only albedos clamped at 1 keep it from being exactly 1.
+        assert!((left - Vec3::ONE).abs().max_element() < 0.02, "{left}");
+        // Within a band wider than the drift nothing is held: the same
+        // recovery as free, bit for bit.
+        let banded = run(true, 0.5);
+        assert_eq!(banded.materials, free.materials);
+        assert_eq!(banded.envmap.data, free.envmap.data);
+        assert!(
+            held.report.fit_loss < 1.25 * free.report.fit_loss,
+            "held {} free {}",
+            held.report.fit_loss,
+            free.report.fit_loss
+        );
+    }
 }

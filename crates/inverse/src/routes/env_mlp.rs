@@ -104,7 +104,7 @@ impl EnvFitter for MlpFit {
             progress,
         )
     }
-    fn rescale(&mut self, s: f32) {
+    fn rescale(&mut self, s: Vec3) {
         self.net.scale *= s;
     }
 }

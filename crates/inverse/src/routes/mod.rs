@@ -482,9 +482,10 @@ pub trait EnvFitter: Send {
         stage: &EnvStage,
         progress: &(dyn Fn(usize, f64) + Sync),
     ) -> (Vec<Vec3>, FitTrace);
-    /// A material stage rescaled the exposure by `s` (the orchestration
-    /// scales its copy of the envmap; a route with hidden state follows).
-    fn rescale(&mut self, _s: f32) {}
+    /// The orchestration scaled its copy of the envmap by `s` per channel
+    /// (a material stage's exposure ratio, or the albedo's level handed to
+    /// the light); a route with hidden state follows.
+    fn rescale(&mut self, _s: Vec3) {}
 }
 
 /// What a material fit starts from.
