@@ -244,43 +244,27 @@ fn bad_inputs_fail_with_messages_naming_the_problem() {
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("/nonexistent/bundle"), "{err}");
-    // A margin out of range is refused, naming the option.
-    let o = matflow(
-        &[
-            "invert",
-            "--bundle",
-            "/nonexistent/bundle",
-            "--out",
-            "/tmp/x",
-            "--rm-margin",
-            "1.5",
-        ],
-        None,
-    );
-    assert!(!o.status.success());
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(
-        err.contains("--rm-margin") && err.contains("not in [0, 1)"),
-        "{err}"
-    );
-    let o = matflow(
-        &[
-            "invert",
-            "--bundle",
-            "/nonexistent/bundle",
-            "--out",
-            "/tmp/x",
-            "--albedo-level-band",
-            "0.99",
-        ],
-        None,
-    );
-    assert!(!o.status.success());
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(
-        err.contains("--albedo-level-band") && err.contains("not in [0, 0.95)"),
-        "{err}"
-    );
+    // Values out of range are refused, naming the option and the range.
+    for (option, value, range) in [
+        ("--rm-margin", "1.5", "not in [0, 1)"),
+        ("--albedo-level-band", "0.99", "not in [0, 0.95)"),
+    ] {
+        let o = matflow(
+            &[
+                "invert",
+                "--bundle",
+                "/nonexistent/bundle",
+                "--out",
+                "/tmp/x",
+                option,
+                value,
+            ],
+            None,
+        );
+        assert!(!o.status.success());
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(err.contains(option) && err.contains(range), "{err}");
+    }
     // NaN inside a prediction file: named, with the pixel count.
     let b = synth(dir.path());
     let mut albedo = matflow_scene::io::read_exr_rgb(&b.join("albedoPred.exr")).unwrap();

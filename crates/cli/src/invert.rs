@@ -186,22 +186,22 @@ pub fn load_input(
     })
 }
 
-fn margin_in_range(s: &str) -> Result<f64, String> {
+/// A number in [0, `hi`), or a message saying it is not.
+fn below(s: &str, hi: f64) -> Result<f64, String> {
     let v: f64 = s.parse().map_err(|e| format!("{e}"))?;
-    if (0.0..1.0).contains(&v) {
+    if (0.0..hi).contains(&v) {
         Ok(v)
     } else {
-        Err(format!("{v} is not in [0, 1)"))
+        Err(format!("{v} is not in [0, {hi})"))
     }
 }
 
+fn margin_in_range(s: &str) -> Result<f64, String> {
+    below(s, 1.0)
+}
+
 fn band_in_range(s: &str) -> Result<f32, String> {
-    let v: f32 = s.parse().map_err(|e| format!("{e}"))?;
-    if (0.0..0.95).contains(&v) {
-        Ok(v)
-    } else {
-        Err(format!("{v} is not in [0, 0.95)"))
-    }
+    below(s, 0.95).map(|v| v as f32)
 }
 
 pub fn options_from(a: &InvertArgs) -> InvertOptions {
