@@ -132,6 +132,12 @@ fn fresh_tables(
     tabs
 }
 
+/// Per pixel, whether it sees a surface (a finite distance of
+/// [`RenderScene::primary_distances`]) rather than the sky.
+pub fn surface_pixels(dist: &[f32]) -> Vec<bool> {
+    dist.iter().map(|d| d.is_finite()).collect()
+}
+
 /// Per channel, the mean albedo of `mats` over the pixels where `surface`
 /// holds, against that of `pred`: the gain that light and albedo trade
 /// freely (the envmap times g and the albedo divided by g leave every
@@ -546,13 +552,21 @@ pub fn invert(
 
     // R and M per segment: moves the anchor (and the start) of segments
     // that one albedo under another (R, M) explains clearly better.
+    // With the level held (below), the light takes the albedo's gain.
+    let mut level_total = (opts.level_from_pred && !opts.env_only).then_some(Vec3::ONE);
+    // What each pixel sees first, for the segments and the level (traced
+    // once, only when either runs).
+    let dist = if opts.searches_rm() || level_total.is_some() {
+        run.scene.primary_distances()
+    } else {
+        Vec::new()
+    };
     let mut pred = pred;
     let mut rm_search = None;
     if opts.searches_rm() {
         let name = "R/M per segment";
         run.begin(name, 1);
         let tabs = fresh_tables(&cache, &mats, &env, &guide, opts.denoise);
-        let dist = run.scene.primary_distances();
         let albedo: Vec<Vec3> = pred.iter().map(|m| m.albedo).collect();
         let (labels, count) = segment(&albedo, &dist, w, h, &SegmentParams::default());
         let choices = search_rm(
@@ -584,18 +598,10 @@ pub fn invert(
     }
 
     // 3. Alternation. With the level held, after each stage that fits
-    // albedo its mean per channel goes back to the prediction's and the
-    // light takes the gain.
-    let mut level_total = (opts.level_from_pred && !opts.env_only).then_some(Vec3::ONE);
-    let surface: Vec<bool> = if level_total.is_some() {
-        run.scene
-            .primary_distances()
-            .iter()
-            .map(|d| d.is_finite())
-            .collect()
-    } else {
-        Vec::new()
-    };
+    // albedo its mean per channel goes back to the prediction's (past the
+    // band) and the light takes the gain.
+    let surface = surface_pixels(&dist);
+    let band = opts.level_band.clamp(0.0, 0.95);
     let mut mat_fit = (!opts.env_only).then(|| {
         mat_route.start(&MatStart {
             width: w,
@@ -639,7 +645,6 @@ pub fn invert(
             }
             env_fit.rescale(Vec3::splat(fit.scale));
             if let Some(total) = level_total.as_mut().filter(|_| parts.albedo) {
-                let band = opts.level_band.clamp(0.0, 0.95);
                 let over = level_gain(&mats, &pred, &surface)
                     .map(|g| g / g.clamp(Vec3::splat(1.0 - band), Vec3::splat(1.0 + band)))
                     .filter(|g| *g != Vec3::ONE);
@@ -792,12 +797,7 @@ mod tests {
         assert_eq!(free.report.level_gain, None);
         let g = Vec3::from(held.report.level_gain.expect("reported"));
         assert!(g.is_finite() && g.min_element() > 0.0, "{g}");
-        let surface: Vec<bool> = t
-            .scene
-            .primary_distances()
-            .iter()
-            .map(|d| d.is_finite())
-            .collect();
+        let surface = surface_pixels(&t.scene.primary_distances());
         let left = level_gain(&held.materials, &pred, &surface).expect("defined");
         let drift = level_gain(&free.materials, &pred, &surface).expect("defined");
         // Free, the fit darkens the level (else this test could not fail).
