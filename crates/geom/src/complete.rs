@@ -135,7 +135,8 @@ pub struct Extension {
 /// The planes that close a room the view shows only part of. "Up" is the
 /// normal of the floor seen, else the opposite of the ceiling's, else the
 /// direction along which two walls seen at 30° or more to each other meet
-/// (a corner); the camera's height h above the floor is the floor's
+/// (a corner), else the camera's up made parallel to the largest wall seen
+/// (walls stand upright); the camera's height h above the floor is the floor's
 /// distance, or, with no floor in view, that of the lowest point seen (what
 /// stands in a room stands on its floor), where a floor is then assumed.
 /// The room is taken as a box aligned with the largest wall seen (else with
@@ -143,8 +144,8 @@ pub struct Extension {
 /// above the floor (or just above the highest point seen); of the box's
 /// four wall directions, each with no wall seen within 30° gets a wall just
 /// beyond the farthest point seen that way, and at least `wall_ratio`·h
-/// from the camera. Nothing when the view shows no room: a floor alone or
-/// a single wall alone (the scene may be outdoors), or no up at all.
+/// from the camera. Nothing when the view shows no room: a floor alone (the
+/// scene may be outdoors: ground without walls), or no up at all.
 fn closure(bounding: &[PlaneFit], points: &[(Vec3, f32)], p: &CompleteParams) -> Vec<PlaneFit> {
     let by_fraction = |a: &&PlaneFit, b: &&PlaneFit| a.fraction.total_cmp(&b.fraction);
     let floor = bounding
@@ -171,7 +172,11 @@ fn closure(bounding: &[PlaneFit], points: &[(Vec3, f32)], p: &CompleteParams) ->
             (f.plane.n, f.plane.d, true)
         }
         None => {
-            let Some(up) = ceiling.map(|c| -c.plane.n).or_else(|| walls_up(&walls)) else {
+            let Some(up) = ceiling
+                .map(|c| -c.plane.n)
+                .or_else(|| walls_up(&walls))
+                .or_else(|| upright_wall_up(&walls))
+            else {
                 return Vec::new();
             };
             let low = points
@@ -253,6 +258,19 @@ fn walls_up(walls: &[&PlaneFit]) -> Option<Vec3> {
         }
     }
     let (_, up) = best?;
+    (up.y >= 35f32.to_radians().cos()).then_some(up)
+}
+
+/// "Up" from one wall: the camera's up (+y) made parallel to the largest
+/// wall seen, since walls stand upright; None without a wall, or when that
+/// leans more than 35° from +y (the camera looks along a slanted plane,
+/// not at a wall).
+fn upright_wall_up(walls: &[&PlaneFit]) -> Option<Vec3> {
+    let w = walls
+        .iter()
+        .max_by(|a, b| a.fraction.total_cmp(&b.fraction))?;
+    let n = w.plane.n;
+    let up = (Vec3::Y - n * n.dot(Vec3::Y)).normalize_or_zero();
     (up.y >= 35f32.to_radians().cos()).then_some(up)
 }
 
@@ -1236,24 +1254,52 @@ mod tests {
     }
 
     #[test]
-    fn a_floor_alone_or_a_single_wall_alone_is_not_closed() {
+    fn a_floor_alone_is_not_closed() {
         let cam = Camera::new(96, 72);
         let p = CompleteParams {
             close: true,
             ..CompleteParams::default()
         };
-        // The scene may be outdoors, or a facade.
-        for plane in [(Vec3::Y, 0.9), (Vec3::Z, 4.0)] {
-            let z = render_planes(&cam, &[plane]);
-            let mut mesh = TriMesh::default();
-            let c = complete_beyond_frame(&mut mesh, &z, &cam, &p);
-            assert_eq!(c.extended.len(), 1, "{c:?}");
-            for dir in [Vec3::Y, Vec3::NEG_Y, Vec3::Z, Vec3::X] {
-                if dir.dot(plane.0) < -0.5 {
-                    continue; // the plane itself
-                }
-                assert!(hit(&mesh, 0, dir).is_none(), "{plane:?}: {dir}");
-            }
+        // Ground without walls: the scene may be outdoors.
+        let z = render_planes(&cam, &[(Vec3::Y, 0.9)]);
+        let mut mesh = TriMesh::default();
+        let c = complete_beyond_frame(&mut mesh, &z, &cam, &p);
+        assert_eq!(c.extended.len(), 1, "{c:?}");
+        for dir in [Vec3::Y, Vec3::Z, Vec3::X, Vec3::NEG_X, Vec3::NEG_Z] {
+            assert!(hit(&mesh, 0, dir).is_none(), "{dir}");
         }
+    }
+
+    #[test]
+    fn a_single_wall_is_closed_upright_over_a_floor_under_the_lowest_point_seen() {
+        // A wall 4 ahead fills the view of a camera pitched 10° down
+        // (the wall's normal leans in camera space): walls stand upright,
+        // so "up" is the camera's up made parallel to the wall.
+        let cam = Camera::new(96, 72);
+        let pitch = 10f32.to_radians();
+        let n = Vec3::new(0.0, -pitch.sin(), pitch.cos());
+        let z = render_planes(&cam, &[(n, 4.0)]);
+        assert!(z.data.iter().all(|&d| d > 0.0));
+        let (mesh, c) = closed_without_windows(&z, &cam);
+        // The wall seen; a floor, a ceiling and three walls assumed.
+        assert_eq!(c.extended.len(), 6, "{c:?}");
+        let up = Vec3::new(0.0, pitch.cos(), pitch.sin());
+        let low = (0..z.data.len())
+            .map(|i| {
+                let q = cam.backproject((i % 96) as f32, (i / 96) as f32, z.data[i]);
+                -up.dot(q)
+            })
+            .fold(f32::NEG_INFINITY, f32::max);
+        let down = hit(&mesh, 0, -up).expect("a floor");
+        assert!(
+            (down - low * (1.0 + FLOOR_MARGIN)).abs() < 1e-3 * low,
+            "{down} vs {low}"
+        );
+        assert!(hit(&mesh, 0, up).is_some(), "a ceiling");
+        let fwd = up.cross(Vec3::X).normalize();
+        for d in [-fwd, Vec3::X, Vec3::NEG_X] {
+            assert!(hit(&mesh, 0, d).is_some(), "{d}");
+        }
+        assert_view_open(&mesh, &cam, 5);
     }
 }
