@@ -156,6 +156,7 @@ fn closure(bounding: &[PlaneFit], points: &[(Vec3, f32)], p: &CompleteParams) ->
         .iter()
         .filter(|f| f.kind == PlaneKind::Wall)
         .collect();
+    let largest_wall = walls.iter().copied().max_by(by_fraction);
     let ceiling = bounding
         .iter()
         .filter(|f| f.kind == PlaneKind::Ceiling)
@@ -175,7 +176,7 @@ fn closure(bounding: &[PlaneFit], points: &[(Vec3, f32)], p: &CompleteParams) ->
             let Some(up) = ceiling
                 .map(|c| -c.plane.n)
                 .or_else(|| walls_up(&walls))
-                .or_else(|| upright_wall_up(&walls))
+                .or_else(|| largest_wall.and_then(upright_wall_up))
             else {
                 return Vec::new();
             };
@@ -190,9 +191,7 @@ fn closure(bounding: &[PlaneFit], points: &[(Vec3, f32)], p: &CompleteParams) ->
         return Vec::new();
     }
     let horizontal = |v: Vec3| (v - up * up.dot(v)).normalize_or_zero();
-    let a0 = walls
-        .iter()
-        .max_by(|a, b| a.fraction.total_cmp(&b.fraction))
+    let a0 = largest_wall
         .map(|w| horizontal(-w.plane.n))
         .filter(|a| *a != Vec3::ZERO)
         .unwrap_or_else(|| horizontal(Vec3::NEG_Z));
@@ -257,20 +256,20 @@ fn walls_up(walls: &[&PlaneFit]) -> Option<Vec3> {
             }
         }
     }
-    let (_, up) = best?;
-    (up.y >= 35f32.to_radians().cos()).then_some(up)
+    upright(best?.1)
 }
 
-/// "Up" from one wall: the camera's up (+y) made parallel to the largest
-/// wall seen, since walls stand upright; None without a wall, or when that
-/// leans more than 35° from +y (the camera looks along a slanted plane,
-/// not at a wall).
-fn upright_wall_up(walls: &[&PlaneFit]) -> Option<Vec3> {
-    let w = walls
-        .iter()
-        .max_by(|a, b| a.fraction.total_cmp(&b.fraction))?;
-    let n = w.plane.n;
-    let up = (Vec3::Y - n * n.dot(Vec3::Y)).normalize_or_zero();
+/// "Up" from one wall: the camera's up (+y) made parallel to the wall,
+/// since walls stand upright; None when that leans more than 35° from +y
+/// (the camera looks along a slanted plane, not at a wall).
+fn upright_wall_up(wall: &PlaneFit) -> Option<Vec3> {
+    let n = wall.plane.n;
+    upright((Vec3::Y - n * n.dot(Vec3::Y)).normalize_or_zero())
+}
+
+/// `up` when it leans at most 35° from the camera's +y (a room's up as
+/// walls give it), else None.
+fn upright(up: Vec3) -> Option<Vec3> {
     (up.y >= 35f32.to_radians().cos()).then_some(up)
 }
 
