@@ -25,6 +25,9 @@
 //! window's sky included) stays open. With `close`, a room the view
 //! evidently shows is closed ([`closure`]: an assumed ceiling and walls),
 //! each assumed wall keeping a typical window open (`assumed_opening`).
+//! A floor alone is not a room (it may be ground outdoors) unless an
+//! upright wall bounding the scene shows as a strip too small for the
+//! plane fit's own threshold (`small_wall`: a camera pitched down).
 //!
 //! Planes inside the scene (a cabinet's front) fail the bounding test and
 //! are left alone; a view without such planes is unchanged. Everything is
@@ -64,6 +67,13 @@ pub struct CompleteParams {
     /// ([`border_margins`]), as a share of the image's larger side; 0
     /// turns it off.
     pub border_margin: f32,
+    /// With `close`, when the view's bounding planes are a floor alone:
+    /// the smallest share of the seen pixels an upright wall must hold to
+    /// show that the floor is a room's (below the plane fit's own
+    /// `min_fraction`: a camera pitched down may see its room's walls
+    /// only as strips along the top). Such a wall must bound the seen
+    /// scene like any other; 0 or `planes.min_fraction` turns it off.
+    pub small_wall: f64,
 }
 
 impl Default for CompleteParams {
@@ -77,6 +87,7 @@ impl Default for CompleteParams {
             wall_ratio: 0.5,
             assumed_opening: 0.4,
             border_margin: 0.1,
+            small_wall: 0.02,
         }
     }
 }
@@ -145,7 +156,9 @@ pub struct Extension {
 /// four wall directions, each with no wall seen within 30° gets a wall just
 /// beyond the farthest point seen that way, and at least `wall_ratio`·h
 /// from the camera. Nothing when the view shows no room: a floor alone (the
-/// scene may be outdoors: ground without walls), or no up at all.
+/// scene may be outdoors: ground without walls; [`extensions`] first looks
+/// for a strip of wall under the fit's threshold, `small_wall`), or no up
+/// at all.
 fn closure(bounding: &[PlaneFit], points: &[(Vec3, f32)], p: &CompleteParams) -> Vec<PlaneFit> {
     let by_fraction = |a: &&PlaneFit, b: &&PlaneFit| a.fraction.total_cmp(&b.fraction);
     let floor = bounding
@@ -236,6 +249,46 @@ fn closure(bounding: &[PlaneFit], points: &[(Vec3, f32)], p: &CompleteParams) ->
     }
     out
 }
+
+/// Whether the bounding planes are a floor with neither a wall nor a
+/// ceiling.
+fn floor_alone(bounding: &[PlaneFit]) -> bool {
+    bounding.iter().any(|f| f.kind == PlaneKind::Floor)
+        && !bounding
+            .iter()
+            .any(|f| matches!(f.kind, PlaneKind::Wall | PlaneKind::Ceiling))
+}
+
+/// The upright walls bounding the seen scene among the planes that hold
+/// less than the plane fit's `min_fraction` but at least `small_wall` of
+/// the seen pixels: the fit repeated with the lower threshold continues
+/// the same deterministic search past the `found` planes it had returned
+/// (which it finds again, in the same order), and classifies against the
+/// same floor.
+fn small_walls(
+    z: &GrayImage,
+    cam: &Camera,
+    p: &CompleteParams,
+    found: usize,
+    points: &[(Vec3, f32)],
+) -> Vec<PlaneFit> {
+    if !(p.small_wall > 0.0 && p.small_wall < p.planes.min_fraction) {
+        return Vec::new();
+    }
+    let lower = PlaneParams {
+        min_fraction: p.small_wall,
+        max_planes: p.planes.max_planes + SMALL_WALL_SEARCH,
+        ..p.planes
+    };
+    fit_planes(z, cam, &lower)
+        .into_iter()
+        .skip(found)
+        .filter(|f| f.kind == PlaneKind::Wall && bounds_scene(f, points, p))
+        .collect()
+}
+
+/// How many more planes [`small_walls`] looks at.
+const SMALL_WALL_SEARCH: usize = 4;
 
 /// How far below the lowest point seen an assumed floor lies, as a share of
 /// that point's height below the camera.
@@ -359,8 +412,12 @@ pub fn extensions(z: &GrayImage, cam: &Camera, p: &CompleteParams) -> (Vec<Exten
     let Some(zmax) = points.iter().map(|&(_, z)| z).reduce(f32::max) else {
         return (out, 0);
     };
+    let found = fits.len();
     let (mut bounding, inside): (Vec<PlaneFit>, Vec<PlaneFit>) =
         fits.into_iter().partition(|f| bounds_scene(f, &points, p));
+    if p.close && floor_alone(&bounding) {
+        bounding.extend(small_walls(z, cam, p, found, &points));
+    }
     let seen = bounding.len();
     if p.close {
         let extra = closure(&bounding, &points, p);
@@ -1267,6 +1324,51 @@ mod tests {
         for dir in [Vec3::Y, Vec3::Z, Vec3::X, Vec3::NEG_X, Vec3::NEG_Z] {
             assert!(hit(&mesh, 0, dir).is_none(), "{dir}");
         }
+    }
+
+    #[test]
+    fn a_floor_with_a_strip_of_wall_is_a_room_and_is_closed() {
+        // A camera pitched 30° down sees mostly floor and its room's back
+        // wall only as a strip along the top, under the plane fit's own
+        // threshold: an upright wall bounding the scene still shows the
+        // floor is a room's.
+        let cam = Camera::new(96, 72);
+        let pitch = 30f32.to_radians();
+        let up = Vec3::new(0.0, pitch.cos(), pitch.sin());
+        let back = Vec3::new(0.0, -pitch.sin(), pitch.cos());
+        let z = render_planes(&cam, &[(up, 1.2), (back, 3.5)]);
+        let p = CompleteParams::default();
+        let fits = fit_planes(&z, &cam, &p.planes);
+        assert!(fits.iter().all(|f| f.kind == PlaneKind::Floor), "{fits:?}");
+        let (mesh, c) = closed_without_windows(&z, &cam);
+        let wall = c
+            .extended
+            .iter()
+            .find(|f| f.kind == PlaneKind::Wall && f.fraction > 0.0)
+            .expect("the strip of wall found");
+        assert!(
+            wall.fraction >= p.small_wall && wall.fraction < p.planes.min_fraction,
+            "{wall:?}"
+        );
+        assert!((wall.plane.n - back).length() < 0.02, "{wall:?}");
+        // The floor seen, the wall; a ceiling and three walls assumed.
+        assert_eq!(c.extended.len(), 6, "{c:?}");
+        assert!(hit(&mesh, 0, up).is_some(), "a ceiling");
+        let fwd = -back;
+        for d in [-fwd, Vec3::X, Vec3::NEG_X] {
+            assert!(hit(&mesh, 0, d).is_some(), "{d}");
+        }
+        assert_view_open(&mesh, &cam, 5);
+        // Without the lower threshold the floor alone stays open.
+        let open = CompleteParams {
+            close: true,
+            small_wall: 0.0,
+            ..CompleteParams::default()
+        };
+        let mut mesh = TriMesh::default();
+        let c = complete_beyond_frame(&mut mesh, &z, &cam, &open);
+        assert_eq!(c.extended.len(), 1, "{c:?}");
+        assert!(hit(&mesh, 0, up).is_none());
     }
 
     #[test]

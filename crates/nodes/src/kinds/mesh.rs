@@ -13,7 +13,7 @@ pub struct MeshNode;
 
 const MESH_INFO: NodeInfo = NodeInfo {
     kind: "mesh",
-    version: 2,
+    version: 3,
     doc: "The triangle mesh of a scene's depth map (one vertex per pixel, cut at depth \
          discontinuities found by the reference's angle test), optionally completed past the \
          frame.",
