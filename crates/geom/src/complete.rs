@@ -63,6 +63,11 @@ pub struct CompleteParams {
     /// Width of the window left open in each assumed wall, as a share of
     /// the wall (over [`WINDOW_BAND`] of the room's height); 0 closes them.
     pub assumed_opening: f32,
+    /// Share of light that passes the rest of an assumed wall or ceiling
+    /// ([`TriMesh::openness`]): openings the view cannot show (windows,
+    /// skylights, a lamp's light standing in as the sky's) spread over the
+    /// surfaces that might hold them; 0 makes them solid.
+    pub assumed_openness: f32,
     /// How far objects cut by the frame border are continued past it
     /// ([`border_margins`]), as a share of the image's larger side; 0
     /// turns it off.
@@ -86,6 +91,7 @@ impl Default for CompleteParams {
             ceiling_ratio: 1.8,
             wall_ratio: 0.5,
             assumed_opening: 0.4,
+            assumed_openness: 0.0,
             border_margin: 0.1,
             small_wall: 0.02,
         }
@@ -738,7 +744,13 @@ pub fn complete_beyond_frame(
             cam.project(c)
                 .map_or(centre, |f| nearest[pixel_at(f, w, h)])
         });
+        let start = mesh.indices.len();
         append(mesh, &e.mesh, film, pixels, w, h);
+        let open = p.assumed_openness.clamp(0.0, 1.0);
+        if e.assumed && matches!(e.fit.kind, PlaneKind::Wall | PlaneKind::Ceiling) && open > 0.0 {
+            mesh.openness.resize(start, 0.0);
+            mesh.openness.resize(mesh.indices.len(), open);
+        }
         done.triangles += e.mesh.indices.len();
         done.extended.push(e.fit);
     }
@@ -757,6 +769,9 @@ pub fn complete_beyond_frame(
         );
         done.triangles += extra.indices.len();
         done.border_triangles = extra.indices.len();
+    }
+    if !mesh.openness.is_empty() {
+        mesh.openness.resize(mesh.indices.len(), 0.0);
     }
     done
 }
@@ -1307,6 +1322,52 @@ mod tests {
         }
         // Nothing in view is covered.
         assert_view_open(&mesh, &cam, 5);
+    }
+
+    #[test]
+    fn only_assumed_walls_and_ceilings_are_partly_open() {
+        // The box room without its ceiling: one is assumed.
+        let cam = Camera::new(96, 72);
+        let seen: Vec<(Vec3, f32)> = ROOM
+            .iter()
+            .copied()
+            .filter(|p| p.0 != Vec3::NEG_Y)
+            .collect();
+        let z = render_planes(&cam, &seen);
+        let (solid, _) = closed_without_windows(&z, &cam);
+        assert!(solid.openness.is_empty());
+        let p = CompleteParams {
+            close: true,
+            assumed_opening: 0.0,
+            assumed_openness: 0.25,
+            ..CompleteParams::default()
+        };
+        let mut mesh = TriMesh::default();
+        complete_beyond_frame(&mut mesh, &z, &cam, &p);
+        // The same triangles, now with a share per triangle.
+        assert_eq!(mesh.positions, solid.positions);
+        assert_eq!(mesh.openness.len(), mesh.triangle_count());
+        // Behind the camera and above: an assumed wall and ceiling, partly
+        // open; below (the floor seen) and the side walls seen: solid.
+        let prim = |dir: Vec3| {
+            let t = hit(&mesh, 0, dir).expect("a hit");
+            (0..mesh.triangle_count())
+                .find(|&k| {
+                    let one = TriMesh {
+                        positions: mesh.positions.clone(),
+                        indices: vec![mesh.indices[k]],
+                        ..TriMesh::default()
+                    };
+                    hit(&one, 0, dir).is_some_and(|u| (u - t).abs() < 1e-5)
+                })
+                .expect("the triangle hit")
+        };
+        for dir in [Vec3::Z, Vec3::Y] {
+            assert_eq!(mesh.openness_of(prim(dir)), 0.25, "{dir}");
+        }
+        for dir in [Vec3::NEG_Y, Vec3::X, Vec3::NEG_X] {
+            assert_eq!(mesh.openness_of(prim(dir)), 0.0, "{dir}");
+        }
     }
 
     #[test]

@@ -355,6 +355,7 @@ pub fn mesh_from_depth(
             indices,
             film,
             material_pixel: Vec::new(),
+            openness: Vec::new(),
         },
         depth: GrayImage::from_vec(w, h, znew),
         stats,

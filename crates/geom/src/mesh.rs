@@ -39,6 +39,12 @@ pub struct TriMesh {
     /// Geometry completed past the frame names a pixel of the surface it
     /// continues (see `complete`).
     pub material_pixel: Vec<u32>,
+    /// Per triangle, the share of light that passes through it, in
+    /// [0, 1]: 0 for a solid surface. Assumed walls and ceilings of a
+    /// completed room are partly open (their unseen windows, skylights and
+    /// lamps spread over them); light passing one reaches the sky, since
+    /// they bound the scene. Empty when every triangle is solid.
+    pub openness: Vec<f32>,
 }
 
 /// A triangle whose points take the material of the pixel they project
@@ -54,6 +60,12 @@ impl TriMesh {
             .get(prim)
             .copied()
             .filter(|&q| q != PROJECTED)
+    }
+
+    /// The share of light that passes through triangle `prim` (0: solid).
+    #[inline]
+    pub fn openness_of(&self, prim: usize) -> f32 {
+        self.openness.get(prim).copied().unwrap_or(0.0)
     }
 
     pub fn vertex_count(&self) -> usize {
@@ -85,6 +97,9 @@ impl TriMesh {
         }
         if !self.material_pixel.is_empty() {
             self.material_pixel.resize(self.indices.len(), PROJECTED);
+        }
+        if !self.openness.is_empty() {
+            self.openness.resize(self.indices.len(), 0.0);
         }
     }
 

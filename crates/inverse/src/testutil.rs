@@ -27,6 +27,28 @@ pub fn room(seed: u64, n: usize) -> TestScene {
     }
 }
 
+/// [`room`] completed past the frame and closed, its assumed walls and
+/// ceiling letting a share `open` of light through.
+pub fn partly_open_room(seed: u64, n: usize, open: f32) -> TestScene {
+    let s = synthetic::generate(seed, n, n);
+    let cam = Camera::new(n, n);
+    let mut mesh = mesh_from_depth(&s.depth, &cam, &MeshParams::default())
+        .expect("mesh")
+        .mesh;
+    let p = matflow_geom::CompleteParams {
+        assumed_openness: open,
+        ..matflow_geom::CompleteParams::for_mode("room").expect("room")
+    };
+    matflow_geom::complete_beyond_frame(&mut mesh, &s.depth, &cam, &p);
+    let scene =
+        RenderScene::new(cam, mesh, &s.maps, EnvMap::new(&s.envmap).expect("env")).expect("scene");
+    TestScene {
+        scene,
+        maps: s.maps,
+        env: s.envmap,
+    }
+}
+
 pub use matflow_render::scene::materials_from_maps as materials_of;
 
 /// A deterministic pseudo-random value in [0, 1) from an index.

@@ -429,7 +429,19 @@ mod tests {
     /// render of the forward integrator (box filter) at the same spp.
     #[test]
     fn frozen_estimator_matches_the_forward_renderer() {
-        let t = room(5, 16);
+        same_as_forward(room(5, 16));
+    }
+
+    /// Likewise in a closed room whose assumed walls and ceiling let part
+    /// of the light through (their share enters the recorded weights).
+    #[test]
+    fn frozen_estimator_matches_the_forward_renderer_through_partly_open_walls() {
+        let t = crate::testutil::partly_open_room(4, 16, 0.3);
+        assert!(t.scene.has_openness());
+        same_as_forward(t);
+    }
+
+    fn same_as_forward(t: crate::testutil::TestScene) {
         let opts = CacheOptions {
             spp: 256,
             ..Default::default()

@@ -143,6 +143,10 @@ pub fn encode_mesh(width: usize, height: usize, m: &TriMesh) -> Vec<u8> {
             m.material_pixel.clone(),
         );
     }
+    // Likewise only rooms closed with partly open assumed surfaces.
+    if !m.openness.is_empty() {
+        a.put_f32("openness", m.openness.len() as u32, 1, m.openness.clone());
+    }
     a.encode()
 }
 
@@ -182,6 +186,17 @@ pub fn decode_mesh(b: &[u8]) -> Result<(Camera, TriMesh), NodeError> {
     if !material_pixel.is_empty() && material_pixel.len() != indices.len() {
         return Err(err("mesh artifact: material_pixel is not one per triangle"));
     }
+    let openness = if a.has("openness") {
+        a.f32_list("openness", 1)?.to_vec()
+    } else {
+        Vec::new()
+    };
+    if !openness.is_empty() && openness.len() != indices.len() {
+        return Err(err("mesh artifact: openness is not one per triangle"));
+    }
+    if openness.iter().any(|o| !(0.0..=1.0).contains(o)) {
+        return Err(err("mesh artifact: openness outside [0, 1]"));
+    }
     Ok((
         Camera::new(cam[0] as usize, cam[1] as usize),
         TriMesh {
@@ -189,6 +204,7 @@ pub fn decode_mesh(b: &[u8]) -> Result<(Camera, TriMesh), NodeError> {
             indices,
             film,
             material_pixel,
+            openness,
         },
     ))
 }
@@ -681,5 +697,32 @@ mod mesh_tests {
         m.material_pixel.pop();
         let e = decode_mesh(&encode_mesh(4, 3, &m)).unwrap_err().to_string();
         assert!(e.contains("material_pixel"), "{e}");
+    }
+
+    #[test]
+    fn a_mesh_keeps_its_openness_which_must_be_a_share_per_triangle() {
+        let mut m = TriMesh::default();
+        m.add_box(Vec3::splat(-1.0), Vec3::ONE);
+        let plain = encode_mesh(4, 3, &m);
+        m.openness = (0..m.triangle_count()).map(|k| k as f32 / 12.0).collect();
+        let open = encode_mesh(4, 3, &m);
+        assert_ne!(open, plain);
+        let (_, back) = decode_mesh(&open).unwrap();
+        assert_eq!(back, m);
+        assert_eq!(back.openness_of(6), 0.5);
+        let mut bad = m.clone();
+        bad.openness.pop();
+        let e = decode_mesh(&encode_mesh(4, 3, &bad))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("openness is not one per triangle"), "{e}");
+        for x in [-0.1, 1.5, f32::NAN] {
+            let mut bad = m.clone();
+            bad.openness[3] = x;
+            let e = decode_mesh(&encode_mesh(4, 3, &bad))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("openness outside [0, 1]"), "{x}: {e}");
+        }
     }
 }

@@ -159,11 +159,14 @@ impl Visibility {
     /// tracer shades it. The first `one_sided` triangles (the depth mesh)
     /// keep their normal; the rest (objects, two-sided) face the path that
     /// reached them. A scene no walk hits gives a visibility with no
-    /// clusters (plain sampling).
+    /// clusters (plain sampling). A direction counts as much as its ray
+    /// carries: through a partly open triangle (`openness`, per triangle,
+    /// empty for none) its openness.
     pub fn build(
         face_normals: &[Vec3],
         one_sided: usize,
         bvh: &Bvh,
+        openness: &[f32],
         primary: &[Vec3],
         params: &GuideParams,
     ) -> Visibility {
@@ -290,12 +293,22 @@ impl Visibility {
                         }
                     }
                 }
-                let mut blocked = vec![false; rays.len()];
-                bvh.occluded_stream(&rays, 0.0, f32::INFINITY, &mut blocked);
                 let mut row = vec![0f32; ncells];
-                for (&cell, &b) in ray_cell.iter().zip(&blocked) {
-                    if !b {
-                        row[cell as usize] += 1.0;
+                if openness.is_empty() {
+                    let mut blocked = vec![false; rays.len()];
+                    bvh.occluded_stream(&rays, 0.0, f32::INFINITY, &mut blocked);
+                    for (&cell, &b) in ray_cell.iter().zip(&blocked) {
+                        if !b {
+                            row[cell as usize] += 1.0;
+                        }
+                    }
+                } else {
+                    let mut hits = vec![None; rays.len()];
+                    bvh.intersect_stream(&rays, 0.0, f32::INFINITY, &mut hits);
+                    for (&cell, h) in ray_cell.iter().zip(&hits) {
+                        row[cell as usize] += h.map_or(1.0, |h| {
+                            openness.get(h.prim as usize).copied().unwrap_or(0.0)
+                        });
                     }
                 }
                 let inv = 1.0 / pts.len() as f32;
@@ -770,6 +783,7 @@ mod tests {
             &normals,
             mesh.triangle_count(),
             &bvh,
+            &mesh.openness,
             &primaries(128),
             params,
         )
@@ -870,6 +884,7 @@ mod tests {
             &normals,
             mesh.triangle_count(),
             &bvh,
+            &mesh.openness,
             &primaries(128),
             &GuideParams::default(),
         ));

@@ -336,6 +336,9 @@ pub struct Wavefront {
     rays: Vec<(Vec3, Vec3)>,
     ray_path: Vec<u32>,
     blocked: Vec<bool>,
+    /// Per shadow ray, the share of the light it carries that arrives: 0
+    /// or 1, or a partly open surface's openness ([`RenderScene::openness`]).
+    transmit: Vec<f32>,
     hits: Vec<Option<Hit>>,
     dirs: Vec<Vec3>,
     /// Paths whose continuation went through a transparent region to a
@@ -579,13 +582,31 @@ impl Wavefront {
         }
     }
 
-    /// Traces the shadow rays.
+    /// Traces the shadow rays: what share of each one's light arrives.
+    /// With partly open surfaces the nearest hit decides (they bound the
+    /// scene: what passes one reaches the sky).
     fn shadows(&mut self, scene: &RenderScene) {
-        self.blocked.clear();
-        self.blocked.resize(self.rays.len(), false);
-        scene
-            .bvh
-            .occluded_stream(&self.rays, 0.0, f32::INFINITY, &mut self.blocked);
+        self.transmit.clear();
+        if scene.has_openness() {
+            self.hits.clear();
+            self.hits.resize(self.rays.len(), None);
+            scene
+                .bvh
+                .intersect_stream(&self.rays, 0.0, f32::INFINITY, &mut self.hits);
+            self.transmit.extend(
+                self.hits
+                    .iter()
+                    .map(|h| h.map_or(1.0, |h| scene.openness(h.prim))),
+            );
+        } else {
+            self.blocked.clear();
+            self.blocked.resize(self.rays.len(), false);
+            scene
+                .bvh
+                .occluded_stream(&self.rays, 0.0, f32::INFINITY, &mut self.blocked);
+            self.transmit
+                .extend(self.blocked.iter().map(|&b| if b { 0.0 } else { 1.0 }));
+        }
     }
 
     /// Adds the light of the unblocked envmap samples; traces the
@@ -605,7 +626,8 @@ impl Wavefront {
             let sink = &mut sinks[i as usize];
             let (n, v) = (path.n, -path.dir);
             if let Some(ls) = path.light {
-                if !self.blocked[ls.ray as usize] {
+                let t = self.transmit[ls.ray as usize];
+                if t > 0.0 {
                     let (f, pdf_b) = if path.obj == NO_OBJECT && path.glass_vertex {
                         // A transparent region reflects the light only.
                         let g = scene.glass_pixel(path.q).map(|g| g.interface);
@@ -619,7 +641,7 @@ impl Wavefront {
                         let s = scene.objects[path.obj as usize].textured(path.tex);
                         surface_eval_pdf(&s, n, v, ls.dir)
                     };
-                    let w = mis_power(ls.pdf, pdf_b) / ls.pdf;
+                    let w = mis_power(ls.pdf, pdf_b) / ls.pdf * t;
                     sink.emitter(n, v, ls.dir, w);
                     path.l += path.throughput * f * ls.le * w;
                 }
@@ -717,6 +739,26 @@ impl Wavefront {
                 path.l += path.throughput * le * w;
                 continue;
             };
+            // A partly open surface passes its share of the sky in the
+            // ray's direction (weighted as a BSDF sample that escaped; the
+            // envmap samples through it carry the same share) and is a
+            // vertex for the rest.
+            let open = scene.openness(h.prim);
+            let mut keep = 1.0;
+            if open > 0.0 {
+                let (le, pdf_e) = scene.env.eval_pdf_in(path.cluster, path.dir);
+                let w = if c.delta {
+                    1.0
+                } else {
+                    mis_power(c.pdf, pdf_e)
+                };
+                sink.bsdf_sky(path.dir, open * w / c.pdf);
+                path.l += path.throughput * le * (open * w);
+                if open >= 1.0 {
+                    continue;
+                }
+                keep = 1.0 - open;
+            }
             // The next vertex contributes only if it has a material and a
             // segment may still leave it.
             path.p += path.dir * h.t;
@@ -726,9 +768,10 @@ impl Wavefront {
             if !may_shade(scene, opts, path, q) {
                 continue;
             }
-            if !sink.bounce(1.0 / c.pdf) {
+            if !sink.bounce(keep / c.pdf) {
                 continue;
             }
+            path.throughput *= keep;
             path.hit = h;
             path.q = q;
             prefetch(&scene.face_normals, h.prim as usize);
@@ -1399,6 +1442,102 @@ mod tests {
             assert!(
                 (mean - quad).abs() < 4.0 * se + 1e-3 * quad,
                 "{mat:?}: MC {mean} ± {se} vs quadrature {quad}"
+            );
+        }
+    }
+
+    /// Known answer: the plane of [`plane_under_envmap_matches_quadrature`]
+    /// with a large surface behind the camera that lets a share `open` of
+    /// light through: the sky it covers reaches the plane scaled by that
+    /// share (direct light only, so the surface's own reflection does not
+    /// enter), against a quadrature that applies the share to the
+    /// directions meeting it. Fully open, it is as if it were not there.
+    #[test]
+    fn a_partly_open_surface_passes_its_share_of_the_sky() {
+        let mat = crate::Material {
+            albedo: Vec3::new(0.7, 0.5, 0.3),
+            roughness: 0.6,
+            metallic: 0.0,
+        };
+        let n = 8;
+        let cam = Camera::new(n, n);
+        let depth = GrayImage::new(n, n, 5.0);
+        let mut mesh = mesh_from_depth(&depth, &cam, &MeshParams::default())
+            .unwrap()
+            .mesh;
+        let own = mesh.triangle_count();
+        // A 12×12 square at z = +1 facing the plane.
+        let (z, r) = (1.0f32, 6.0f32);
+        let base = mesh.positions.len() as u32;
+        mesh.positions.extend([
+            Vec3::new(-r, -r, z),
+            Vec3::new(r, -r, z),
+            Vec3::new(r, r, z),
+            Vec3::new(-r, r, z),
+        ]);
+        mesh.film.resize(mesh.positions.len(), Vec2::ZERO);
+        mesh.indices
+            .extend([[base, base + 2, base + 1], [base, base + 3, base + 2]]);
+        mesh.material_pixel = vec![matflow_geom::PROJECTED; own];
+        mesh.material_pixel.extend([0, 0]);
+        let maps = MaterialMaps::uniform(n, n, mat.albedo, mat.roughness, mat.metallic);
+        let opts = RenderOptions {
+            max_depth: 2,
+            ..Default::default()
+        };
+        let film = Vec2::new(4.0, 4.0);
+        for open in [0.3f32, 1.0] {
+            let mut m = mesh.clone();
+            m.openness = vec![0.0; own];
+            m.openness.extend([open, open]);
+            let scene = RenderScene::new(cam, m, &maps, EnvMap::new(&sky()).unwrap()).unwrap();
+            assert!(scene.has_openness());
+            let d = scene.camera_ray(film);
+            let p = d * (5.0 / -d.z);
+            let v = -d;
+            let nrm = Vec3::Z;
+            let q = 1200;
+            let mut quad = 0.0f64;
+            for i in 0..q {
+                let ct = (i as f64 + 0.5) / q as f64;
+                let st = (1.0 - ct * ct).sqrt();
+                for j in 0..2 * q {
+                    let phi = std::f64::consts::PI * (j as f64 + 0.5) / q as f64;
+                    let l = Vec3::new((st * phi.cos()) as f32, (st * phi.sin()) as f32, ct as f32);
+                    let at = p + l * ((z - p.z) / l.z);
+                    let share = if at.x.abs() < r && at.y.abs() < r {
+                        open
+                    } else {
+                        1.0
+                    };
+                    let f = crate::bsdf::eval(&mat, nrm, v, l);
+                    quad += (f * scene.env.eval(l) * share).element_sum() as f64;
+                }
+            }
+            quad *= 2.0 * std::f64::consts::PI / (2 * q * q) as f64;
+            let m = 100_000;
+            let (mut s1, mut s2) = (0.0f64, 0.0f64);
+            let mut st = RenderStats::default();
+            let mut wave = Wavefront::default();
+            for k0 in (0..m).step_by(4096) {
+                let k1 = (k0 + 4096).min(m);
+                let samples = (k0..k1).map(|k| CameraSample {
+                    film,
+                    rng: Sampler::for_sample(9, 0, k, m),
+                });
+                let mut sinks = vec![(); (k1 - k0) as usize];
+                wave.trace(&scene, &opts, samples, 64, &mut st, &mut sinks);
+                for i in 0..wave.len() {
+                    let x = wave.result(i).1.element_sum() as f64;
+                    s1 += x;
+                    s2 += x * x;
+                }
+            }
+            let mean = s1 / m as f64;
+            let se = ((s2 / m as f64 - mean * mean) / m as f64).sqrt();
+            assert!(
+                (mean - quad).abs() < 4.0 * se + 1e-3 * quad,
+                "open {open}: MC {mean} ± {se} vs quadrature {quad}"
             );
         }
     }

@@ -250,6 +250,14 @@ impl RenderScene {
             });
         }
         mesh.material_pixel.truncate(screen_prims);
+        mesh.openness.truncate(screen_prims);
+        for o in &mut mesh.openness {
+            // NaN clamps to 0 (solid).
+            *o = if *o > 0.0 { o.min(1.0) } else { 0.0 };
+        }
+        if mesh.openness.iter().all(|&o| o == 0.0) {
+            mesh.openness.clear();
+        }
         let mut prim_object = Vec::new();
         for (k, o) in objects.iter().enumerate() {
             let base = mesh.positions.len() as u32;
@@ -342,6 +350,7 @@ impl RenderScene {
                     &self.face_normals,
                     self.screen_prims,
                     &self.bvh,
+                    &self.mesh.openness,
                     &self.primary_grid(q.walks),
                     q,
                 )
@@ -402,6 +411,19 @@ impl RenderScene {
         let x = (fmath::floor(fx).clamp(0.0, w as f32 - 1.0)) as usize;
         let y = (fmath::floor(fy).clamp(0.0, h as f32 - 1.0)) as usize;
         Some(y * w + x)
+    }
+
+    /// The share of light that passes through triangle `prim` (0: solid;
+    /// objects are solid): see [`TriMesh::openness`].
+    #[inline]
+    pub fn openness(&self, prim: u32) -> f32 {
+        self.mesh.openness_of(prim as usize)
+    }
+
+    /// Whether any triangle lets light through.
+    #[inline]
+    pub fn has_openness(&self) -> bool {
+        !self.mesh.openness.is_empty()
     }
 
     /// The material index of a vertex at `p` on triangle `prim`: the pixel
