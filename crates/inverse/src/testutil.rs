@@ -13,33 +13,28 @@ pub struct TestScene {
 
 /// A procedural room corner (floor, walls, objects) at `n`×`n`.
 pub fn room(seed: u64, n: usize) -> TestScene {
-    let s = synthetic::generate(seed, n, n);
-    let cam = Camera::new(n, n);
-    let mesh = mesh_from_depth(&s.depth, &cam, &MeshParams::default())
-        .expect("mesh")
-        .mesh;
-    let scene =
-        RenderScene::new(cam, mesh, &s.maps, EnvMap::new(&s.envmap).expect("env")).expect("scene");
-    TestScene {
-        scene,
-        maps: s.maps,
-        env: s.envmap,
-    }
+    room_with(seed, n, None)
 }
 
 /// [`room`] completed past the frame and closed, its assumed walls and
 /// ceiling letting a share `open` of light through.
 pub fn partly_open_room(seed: u64, n: usize, open: f32) -> TestScene {
+    room_with(seed, n, Some(open))
+}
+
+fn room_with(seed: u64, n: usize, closed_open: Option<f32>) -> TestScene {
     let s = synthetic::generate(seed, n, n);
     let cam = Camera::new(n, n);
     let mut mesh = mesh_from_depth(&s.depth, &cam, &MeshParams::default())
         .expect("mesh")
         .mesh;
-    let p = matflow_geom::CompleteParams {
-        assumed_openness: open,
-        ..matflow_geom::CompleteParams::for_mode("room").expect("room")
-    };
-    matflow_geom::complete_beyond_frame(&mut mesh, &s.depth, &cam, &p);
+    if let Some(open) = closed_open {
+        let p = matflow_geom::CompleteParams {
+            assumed_openness: open,
+            ..matflow_geom::CompleteParams::for_mode("room").expect("room")
+        };
+        matflow_geom::complete_beyond_frame(&mut mesh, &s.depth, &cam, &p);
+    }
     let scene =
         RenderScene::new(cam, mesh, &s.maps, EnvMap::new(&s.envmap).expect("env")).expect("scene");
     TestScene {

@@ -1241,7 +1241,7 @@ pub fn render_pixels(scene: &RenderScene, opts: &RenderOptions, pixels: &[u32]) 
 mod tests {
     use super::*;
     use crate::envmap::EnvMap;
-    use matflow_geom::{mesh_from_depth, MeshParams};
+    use matflow_geom::{mesh_from_depth, MeshParams, TriMesh};
     use matflow_scene::{Camera, GrayImage, MaterialMaps};
 
     fn sky() -> RgbImage {
@@ -1257,12 +1257,18 @@ mod tests {
         })
     }
 
-    fn plane_scene(n: usize, mat: crate::Material) -> RenderScene {
+    /// The depth mesh of a plane facing an `n`×`n` camera at depth 5.
+    fn plane_mesh(n: usize) -> (Camera, TriMesh) {
         let cam = Camera::new(n, n);
         let depth = GrayImage::new(n, n, 5.0);
         let mesh = mesh_from_depth(&depth, &cam, &MeshParams::default())
             .unwrap()
             .mesh;
+        (cam, mesh)
+    }
+
+    fn plane_scene(n: usize, mat: crate::Material) -> RenderScene {
+        let (cam, mesh) = plane_mesh(n);
         let maps = MaterialMaps::uniform(n, n, mat.albedo, mat.roughness, mat.metallic);
         RenderScene::new(cam, mesh, &maps, EnvMap::new(&sky()).unwrap()).unwrap()
     }
@@ -1302,11 +1308,7 @@ mod tests {
     #[test]
     fn named_material_pixels_override_the_projection() {
         let n = 8;
-        let cam = Camera::new(n, n);
-        let depth = GrayImage::new(n, n, 5.0);
-        let mut mesh = mesh_from_depth(&depth, &cam, &MeshParams::default())
-            .unwrap()
-            .mesh;
+        let (cam, mut mesh) = plane_mesh(n);
         let own = mesh.triangle_count();
         // A floor quad below the camera, named after pixel 42.
         let base = mesh.positions.len() as u32;
@@ -1403,47 +1405,62 @@ mod tests {
             };
             let film = Vec2::new(4.0, 4.0);
             let v = -scene.camera_ray(film);
-            let n = Vec3::Z;
-            // Quadrature over the hemisphere in (cos θ, φ), fine grid.
-            let q = 1500;
-            let mut quad = 0.0f64;
-            for i in 0..q {
-                let ct = (i as f64 + 0.5) / q as f64;
-                let st = (1.0 - ct * ct).sqrt();
-                for j in 0..2 * q {
-                    let phi = std::f64::consts::PI * (j as f64 + 0.5) / q as f64;
-                    let l = Vec3::new((st * phi.cos()) as f32, (st * phi.sin()) as f32, ct as f32);
-                    let f = crate::bsdf::eval(&mat, n, v, l);
-                    quad += (f * scene.env.eval(l)).element_sum() as f64;
-                }
-            }
-            quad *= 2.0 * std::f64::consts::PI / (2 * q * q) as f64;
-            // Monte Carlo with the renderer's own estimator.
-            let m = 200_000;
-            let (mut s1, mut s2) = (0.0f64, 0.0f64);
-            let mut st = RenderStats::default();
-            let mut wave = Wavefront::default();
-            for k0 in (0..m).step_by(4096) {
-                let k1 = (k0 + 4096).min(m);
-                let samples = (k0..k1).map(|k| CameraSample {
-                    film,
-                    rng: Sampler::for_sample(9, 0, k, m),
-                });
-                let mut sinks = vec![(); (k1 - k0) as usize];
-                wave.trace(&scene, &opts, samples, 64, &mut st, &mut sinks);
-                for i in 0..wave.len() {
-                    let x = wave.result(i).1.element_sum() as f64;
-                    s1 += x;
-                    s2 += x * x;
-                }
-            }
-            let mean = s1 / m as f64;
-            let se = ((s2 / m as f64 - mean * mean) / m as f64).sqrt();
+            let quad = hemisphere_quadrature(1500, |l| {
+                let f = crate::bsdf::eval(&mat, Vec3::Z, v, l);
+                (f * scene.env.eval(l)).element_sum() as f64
+            });
+            let (mean, se) = pixel_mean(&scene, &opts, film, 200_000);
             assert!(
                 (mean - quad).abs() < 4.0 * se + 1e-3 * quad,
                 "{mat:?}: MC {mean} ± {se} vs quadrature {quad}"
             );
         }
+    }
+
+    /// ∫ f(l) dl over the hemisphere around +z, on a midpoint grid of `q`
+    /// steps in cos θ and 2`q` in φ.
+    fn hemisphere_quadrature(q: usize, f: impl Fn(Vec3) -> f64) -> f64 {
+        let mut sum = 0.0f64;
+        for i in 0..q {
+            let ct = (i as f64 + 0.5) / q as f64;
+            let st = (1.0 - ct * ct).sqrt();
+            for j in 0..2 * q {
+                let phi = std::f64::consts::PI * (j as f64 + 0.5) / q as f64;
+                sum += f(Vec3::new(
+                    (st * phi.cos()) as f32,
+                    (st * phi.sin()) as f32,
+                    ct as f32,
+                ));
+            }
+        }
+        sum * 2.0 * std::f64::consts::PI / (2 * q * q) as f64
+    }
+
+    /// Mean and standard error of the channel sum of `m` samples of the
+    /// renderer's own estimator at film position `film`.
+    fn pixel_mean(scene: &RenderScene, opts: &RenderOptions, film: Vec2, m: u32) -> (f64, f64) {
+        let (mut s1, mut s2) = (0.0f64, 0.0f64);
+        let mut st = RenderStats::default();
+        let mut wave = Wavefront::default();
+        for k0 in (0..m).step_by(4096) {
+            let k1 = (k0 + 4096).min(m);
+            let samples = (k0..k1).map(|k| CameraSample {
+                film,
+                rng: Sampler::for_sample(9, 0, k, m),
+            });
+            let mut sinks = vec![(); (k1 - k0) as usize];
+            wave.trace(scene, opts, samples, 64, &mut st, &mut sinks);
+            for i in 0..wave.len() {
+                let x = wave.result(i).1.element_sum() as f64;
+                s1 += x;
+                s2 += x * x;
+            }
+        }
+        let mean = s1 / m as f64;
+        (
+            mean,
+            ((s2 / m as f64 - mean * mean) / m as f64).max(0.0).sqrt(),
+        )
     }
 
     /// Known answer: the plane of [`plane_under_envmap_matches_quadrature`]
@@ -1460,11 +1477,7 @@ mod tests {
             metallic: 0.0,
         };
         let n = 8;
-        let cam = Camera::new(n, n);
-        let depth = GrayImage::new(n, n, 5.0);
-        let mut mesh = mesh_from_depth(&depth, &cam, &MeshParams::default())
-            .unwrap()
-            .mesh;
+        let (cam, mut mesh) = plane_mesh(n);
         let own = mesh.triangle_count();
         // A 12×12 square at z = +1 facing the plane.
         let (z, r) = (1.0f32, 6.0f32);
@@ -1495,46 +1508,17 @@ mod tests {
             let d = scene.camera_ray(film);
             let p = d * (5.0 / -d.z);
             let v = -d;
-            let nrm = Vec3::Z;
-            let q = 1200;
-            let mut quad = 0.0f64;
-            for i in 0..q {
-                let ct = (i as f64 + 0.5) / q as f64;
-                let st = (1.0 - ct * ct).sqrt();
-                for j in 0..2 * q {
-                    let phi = std::f64::consts::PI * (j as f64 + 0.5) / q as f64;
-                    let l = Vec3::new((st * phi.cos()) as f32, (st * phi.sin()) as f32, ct as f32);
-                    let at = p + l * ((z - p.z) / l.z);
-                    let share = if at.x.abs() < r && at.y.abs() < r {
-                        open
-                    } else {
-                        1.0
-                    };
-                    let f = crate::bsdf::eval(&mat, nrm, v, l);
-                    quad += (f * scene.env.eval(l) * share).element_sum() as f64;
-                }
-            }
-            quad *= 2.0 * std::f64::consts::PI / (2 * q * q) as f64;
-            let m = 100_000;
-            let (mut s1, mut s2) = (0.0f64, 0.0f64);
-            let mut st = RenderStats::default();
-            let mut wave = Wavefront::default();
-            for k0 in (0..m).step_by(4096) {
-                let k1 = (k0 + 4096).min(m);
-                let samples = (k0..k1).map(|k| CameraSample {
-                    film,
-                    rng: Sampler::for_sample(9, 0, k, m),
-                });
-                let mut sinks = vec![(); (k1 - k0) as usize];
-                wave.trace(&scene, &opts, samples, 64, &mut st, &mut sinks);
-                for i in 0..wave.len() {
-                    let x = wave.result(i).1.element_sum() as f64;
-                    s1 += x;
-                    s2 += x * x;
-                }
-            }
-            let mean = s1 / m as f64;
-            let se = ((s2 / m as f64 - mean * mean) / m as f64).sqrt();
+            let quad = hemisphere_quadrature(1200, |l| {
+                let at = p + l * ((z - p.z) / l.z);
+                let share = if at.x.abs() < r && at.y.abs() < r {
+                    open
+                } else {
+                    1.0
+                };
+                let f = crate::bsdf::eval(&mat, Vec3::Z, v, l);
+                (f * scene.env.eval(l) * share).element_sum() as f64
+            });
+            let (mean, se) = pixel_mean(&scene, &opts, film, 100_000);
             assert!(
                 (mean - quad).abs() < 4.0 * se + 1e-3 * quad,
                 "open {open}: MC {mean} ± {se} vs quadrature {quad}"
