@@ -39,7 +39,9 @@ use glam::{Vec2, Vec3};
 use matflow_scene::{Camera, GrayImage};
 
 use crate::mesh::TriMesh;
-use crate::planes::{corner_up, fit_planes, Plane, PlaneFit, PlaneKind, PlaneParams};
+use crate::planes::{
+    corner_up, fit_planes_resumable, Plane, PlaneFit, PlaneKind, PlaneParams, PlaneSearch,
+};
 
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct CompleteParams {
@@ -267,30 +269,35 @@ fn floor_alone(bounding: &[PlaneFit]) -> bool {
 
 /// The upright walls bounding the seen scene among the planes that hold
 /// less than the plane fit's `min_fraction` but at least `small_wall` of
-/// the seen pixels: the fit repeated with the lower threshold continues
-/// the same deterministic search past the `found` planes it had returned
-/// (which it finds again, in the same order), and classifies against the
-/// same floor.
+/// the seen pixels: the plane fit's deterministic search continued with
+/// the lower threshold past the `found` planes it returned (up to
+/// [`SMALL_WALL_SEARCH`] more than it may return), classified against
+/// the same "up" `up`.
 fn small_walls(
-    z: &GrayImage,
-    cam: &Camera,
+    search: Option<PlaneSearch>,
+    up: Vec3,
     p: &CompleteParams,
     found: usize,
     points: &[(Vec3, f32)],
 ) -> Vec<PlaneFit> {
+    let Some(mut search) = search else {
+        return Vec::new();
+    };
     if !(p.small_wall > 0.0 && p.small_wall < p.planes.min_fraction) {
         return Vec::new();
     }
-    let lower = PlaneParams {
-        min_fraction: p.small_wall,
-        max_planes: p.planes.max_planes + SMALL_WALL_SEARCH,
-        ..p.planes
-    };
-    fit_planes(z, cam, &lower)
-        .into_iter()
-        .skip(found)
-        .filter(|f| f.kind == PlaneKind::Wall && bounds_scene(f, points, p))
-        .collect()
+    let more = (p.planes.max_planes + SMALL_WALL_SEARCH).saturating_sub(found);
+    let mut walls = Vec::new();
+    for _ in 0..more {
+        let Some(f) = search.next(p.small_wall) else {
+            break;
+        };
+        let f = search.classified(f, up);
+        if f.kind == PlaneKind::Wall && bounds_scene(&f, points, p) {
+            walls.push(f);
+        }
+    }
+    walls
 }
 
 /// How many more planes [`small_walls`] looks at.
@@ -400,7 +407,7 @@ fn bounds_scene(f: &PlaneFit, points: &[(Vec3, f32)], p: &CompleteParams) -> boo
 /// The extensions of the bounding planes of depth map `z` past the frame,
 /// and how many planes were found but not extended.
 pub fn extensions(z: &GrayImage, cam: &Camera, p: &CompleteParams) -> (Vec<Extension>, usize) {
-    let fits = fit_planes(z, cam, &p.planes);
+    let (fits, search, up) = fit_planes_resumable(z, cam, &p.planes);
     let (w, h) = (z.width, z.height);
     let valid: Vec<usize> = (0..w * h)
         .filter(|&i| z.data[i] > 0.0 && z.data[i].is_finite())
@@ -422,7 +429,7 @@ pub fn extensions(z: &GrayImage, cam: &Camera, p: &CompleteParams) -> (Vec<Exten
     let (mut bounding, inside): (Vec<PlaneFit>, Vec<PlaneFit>) =
         fits.into_iter().partition(|f| bounds_scene(f, &points, p));
     if p.close && floor_alone(&bounding) {
-        bounding.extend(small_walls(z, cam, p, found, &points));
+        bounding.extend(small_walls(search, up, p, found, &points));
     }
     let seen = bounding.len();
     if p.close {
@@ -1399,7 +1406,7 @@ mod tests {
         let back = Vec3::new(0.0, -pitch.sin(), pitch.cos());
         let z = render_planes(&cam, &[(up, 1.2), (back, 3.5)]);
         let p = CompleteParams::default();
-        let fits = fit_planes(&z, &cam, &p.planes);
+        let fits = crate::planes::fit_planes(&z, &cam, &p.planes);
         assert!(fits.iter().all(|f| f.kind == PlaneKind::Floor), "{fits:?}");
         let (mesh, c) = closed_without_windows(&z, &cam);
         let wall = c

@@ -176,176 +176,41 @@ pub(crate) fn corner_up(a: Vec3, b: Vec3) -> Option<(f32, Vec3)> {
 /// The dominant planes of depth map `z` (0 = no geometry), strongest
 /// first.
 pub fn fit_planes(z: &GrayImage, cam: &Camera, p: &PlaneParams) -> Vec<PlaneFit> {
-    let (w, h) = (z.width, z.height);
-    // Every pixel's point once (the search tests each many times).
-    let points: Vec<DVec3> = (0..w * h)
-        .map(|i| {
-            cam.backproject((i % w) as f32, (i / w) as f32, z.data[i])
-                .as_dvec3()
-        })
-        .collect();
-    let point = |i: usize| points[i];
-    let valid: Vec<usize> = (0..w * h)
-        .filter(|&i| z.data[i] > 0.0 && z.data[i].is_finite())
-        .collect();
-    if valid.len() < 16 {
-        return vec![];
-    }
-    let total = valid.len() as f64;
-    let mut remaining: Vec<bool> = vec![false; w * h];
-    for &i in &valid {
-        remaining[i] = true;
-    }
-    // Each pixel's normal: the four triangles it makes with the pixels
-    // `NORMAL_SPAN` away (right-down, down-left, left-up, up-right; far
-    // enough that depth noise tilts them little), averaged
-    // when they agree within the normal tolerance; None on a crease or
-    // where fewer than two can be formed (so the pixels along the edge of
-    // two planes join neither).
-    let cos_tol = p.normal_tolerance_deg.to_radians().cos();
-    let ok = |x: usize, y: usize| z.data[y * w + x] > 0.0 && z.data[y * w + x].is_finite();
-    let normals: Vec<Option<DVec3>> = (0..w * h)
-        .map(|i| {
-            let (x, y) = (i % w, i / w);
-            if !ok(x, y) {
-                return None;
-            }
-            let at = |dx: i64, dy: i64| -> Option<DVec3> {
-                let (nx, ny) = (x as i64 + dx, y as i64 + dy);
-                if nx < 0 || ny < 0 || nx >= w as i64 || ny >= h as i64 {
-                    return None;
-                }
-                let (nx, ny) = (nx as usize, ny as usize);
-                ok(nx, ny).then(|| point(ny * w + nx))
-            };
-            let c = point(i);
-            const S: i64 = NORMAL_SPAN as i64;
-            let around = [at(S, 0), at(0, S), at(-S, 0), at(0, -S)];
-            let mut tris = vec![];
-            for k in 0..4 {
-                if let (Some(a), Some(b)) = (around[k], around[(k + 1) % 4]) {
-                    if let Some(n) = (a - c).cross(b - c).try_normalize() {
-                        tris.push(n);
-                    }
-                }
-            }
-            if tris.len() < 2 {
-                return None;
-            }
-            let first = tris[0];
-            if tris.iter().any(|n| n.dot(first) < cos_tol) {
-                return None;
-            }
-            tris.iter().sum::<DVec3>().try_normalize()
-        })
-        .collect();
-    let step = p.step.max(1);
-    let inlier = |n: DVec3, d: f64, i: usize| -> bool {
-        let q = point(i);
-        (n.dot(q) + d).abs() <= p.tolerance * z.data[i] as f64
-            && normals[i].is_some_and(|m| m.dot(n).abs() >= cos_tol)
+    fit_planes_resumable(z, cam, p).0
+}
+
+/// [`fit_planes`], and the search as it stopped (None when the view has
+/// too little geometry), to be continued with a lower threshold
+/// ([`PlaneSearch::next`]); its planes are classified against the same
+/// "up" (the second value's third part).
+pub(crate) fn fit_planes_resumable(
+    z: &GrayImage,
+    cam: &Camera,
+    p: &PlaneParams,
+) -> (Vec<PlaneFit>, Option<PlaneSearch>, Vec3) {
+    let Some(mut search) = PlaneSearch::new(z, cam, p) else {
+        return (Vec::new(), None, Vec3::Y);
     };
-    let mut rng = SplitMix(0x5eed_01a7_e5f1_77ed);
     let mut out = Vec::new();
     while out.len() < p.max_planes {
-        let grid: Vec<usize> = (0..h)
-            .step_by(step)
-            .flat_map(|y| (0..w).step_by(step).map(move |x| y * w + x))
-            .filter(|&i| remaining[i])
-            .collect();
-        if grid.len() < 3 {
-            break;
+        match search.next(p.min_fraction) {
+            Some(f) => out.push(f),
+            None => break,
         }
-        let need_grid = p.min_fraction * total / (step * step) as f64;
-        if (grid.len() as f64) < need_grid {
-            break;
-        }
-        let mut best: Option<(DVec3, f64, usize)> = None;
-        for _ in 0..p.iterations {
-            let a = grid[rng.below(grid.len())];
-            let b = grid[rng.below(grid.len())];
-            let c = grid[rng.below(grid.len())];
-            let Some((n, d)) = through(point(a), point(b), point(c)) else {
-                continue;
-            };
-            let count = grid.iter().filter(|&&i| inlier(n, d, i)).count();
-            if best.is_none_or(|(_, _, k)| count > k) {
-                best = Some((n, d, count));
-            }
-        }
-        let Some((mut n, mut d, k)) = best else { break };
-        if (k as f64) < need_grid {
-            break;
-        }
-        // Refine on every remaining pixel, twice (the inliers of the
-        // refined plane, then its refinement).
-        let mut members: Vec<usize> = vec![];
-        for _ in 0..2 {
-            members = valid
-                .iter()
-                .copied()
-                .filter(|&i| remaining[i] && inlier(n, d, i))
-                .collect();
-            if members.len() < 3 {
-                break;
-            }
-            let m = members.len() as f64;
-            let centroid = members.iter().map(|&i| point(i)).sum::<DVec3>() / m;
-            let mut c = DMat3::ZERO;
-            for &i in &members {
-                let q = point(i) - centroid;
-                c += DMat3::from_cols(q * q.x, q * q.y, q * q.z);
-            }
-            let Some(v) = smallest_eigenvector(c / m, n) else {
-                break;
-            };
-            let dd = -v.dot(centroid);
-            (n, d) = if dd < 0.0 { (-v, -dd) } else { (v, dd) };
-        }
-        members = valid
-            .iter()
-            .copied()
-            .filter(|&i| remaining[i] && inlier(n, d, i))
-            .collect();
-        let fraction = members.len() as f64 / total;
-        if fraction < p.min_fraction {
-            break;
-        }
-        let rms = (members
-            .iter()
-            .map(|&i| (n.dot(point(i)) + d).powi(2))
-            .sum::<f64>()
-            / members.len() as f64)
-            .sqrt();
-        let mut reaches = [false; 4];
-        for &i in &members {
-            let (x, y) = (i % w, i / w);
-            // Within the normal span of a border: pixels nearer a border
-            // than that can be left out as crease pixels.
-            reaches[0] |= x <= NORMAL_SPAN;
-            reaches[1] |= x + 1 + NORMAL_SPAN >= w;
-            reaches[2] |= y <= NORMAL_SPAN;
-            reaches[3] |= y + 1 + NORMAL_SPAN >= h;
-            remaining[i] = false;
-        }
-        let plane = Plane {
-            n: n.as_vec3(),
-            d: d as f32,
-        };
-        out.push(PlaneFit {
-            plane,
-            kind: PlaneKind::Other,
-            fraction,
-            rms,
-            reaches,
-        });
     }
-    // "Up" is the camera's +y, or the normal of the strongest plane
-    // within 35° of it facing up from below (a floor seen by a tilted
-    // camera), else the line where the two strongest planes within 35° of
-    // upright that meet at 30° or more meet (a corner of two walls seen by
-    // a tilted camera, no floor in view); every plane is classified
-    // against it.
+    let up = world_up(&out);
+    for f in &mut out {
+        f.kind = classify(f.plane.n, f.plane.d, up, p.kind_tolerance_deg);
+    }
+    (out, Some(search), up)
+}
+
+/// "Up" is the camera's +y, or the normal of the strongest plane within
+/// 35° of it facing up from below (a floor seen by a tilted camera), else
+/// the line where the two strongest planes within 35° of upright that
+/// meet at 30° or more meet (a corner of two walls seen by a tilted
+/// camera, no floor in view); every plane is classified against it.
+fn world_up(out: &[PlaneFit]) -> Vec3 {
     let near = 35f32.to_radians();
     let upright: Vec<Vec3> = out
         .iter()
@@ -358,16 +223,231 @@ pub fn fit_planes(z: &GrayImage, cam: &Camera, p: &PlaneParams) -> Vec<PlaneFit>
             .find_map(|b| corner_up(*a, *b).filter(|&(_, up)| up.y >= near.cos()))
             .map(|(_, up)| up)
     });
-    let world_up = out
-        .iter()
+    out.iter()
         .find(|f| f.plane.n.y as f64 >= 35f64.to_radians().cos() && f.plane.d > 0.0)
         .map(|f| f.plane.n)
         .or(corner)
-        .unwrap_or(Vec3::Y);
-    for f in &mut out {
-        f.kind = classify(f.plane.n, f.plane.d, world_up, p.kind_tolerance_deg);
+        .unwrap_or(Vec3::Y)
+}
+
+/// The sequential RANSAC of [`fit_planes`], one plane at a time: the
+/// state between planes (pixels not yet taken, the random stream, and the
+/// best candidate of a search that fell short of its threshold, which a
+/// search with a lower one takes up as the same search repeated with that
+/// threshold would).
+pub(crate) struct PlaneSearch {
+    p: PlaneParams,
+    width: usize,
+    depth: Vec<f32>,
+    points: Vec<DVec3>,
+    normals: Vec<Option<DVec3>>,
+    valid: Vec<usize>,
+    remaining: Vec<bool>,
+    rng: SplitMix,
+    /// Cosine of `normal_tolerance_deg`.
+    cos_tol: f64,
+    /// The last search's best candidate when it fell short.
+    pending: Option<Option<(DVec3, f64, usize)>>,
+}
+
+impl PlaneSearch {
+    fn new(z: &GrayImage, cam: &Camera, p: &PlaneParams) -> Option<PlaneSearch> {
+        let (w, h) = (z.width, z.height);
+        // Every pixel's point once (the search tests each many times).
+        let points: Vec<DVec3> = (0..w * h)
+            .map(|i| {
+                cam.backproject((i % w) as f32, (i / w) as f32, z.data[i])
+                    .as_dvec3()
+            })
+            .collect();
+        let point = |i: usize| points[i];
+        let valid: Vec<usize> = (0..w * h)
+            .filter(|&i| z.data[i] > 0.0 && z.data[i].is_finite())
+            .collect();
+        if valid.len() < 16 {
+            return None;
+        }
+        let mut remaining: Vec<bool> = vec![false; w * h];
+        for &i in &valid {
+            remaining[i] = true;
+        }
+        // Each pixel's normal: the four triangles it makes with the pixels
+        // `NORMAL_SPAN` away (right-down, down-left, left-up, up-right; far
+        // enough that depth noise tilts them little), averaged
+        // when they agree within the normal tolerance; None on a crease or
+        // where fewer than two can be formed (so the pixels along the edge of
+        // two planes join neither).
+        let cos_tol = p.normal_tolerance_deg.to_radians().cos();
+        let ok = |x: usize, y: usize| z.data[y * w + x] > 0.0 && z.data[y * w + x].is_finite();
+        let normals: Vec<Option<DVec3>> = (0..w * h)
+            .map(|i| {
+                let (x, y) = (i % w, i / w);
+                if !ok(x, y) {
+                    return None;
+                }
+                let at = |dx: i64, dy: i64| -> Option<DVec3> {
+                    let (nx, ny) = (x as i64 + dx, y as i64 + dy);
+                    if nx < 0 || ny < 0 || nx >= w as i64 || ny >= h as i64 {
+                        return None;
+                    }
+                    let (nx, ny) = (nx as usize, ny as usize);
+                    ok(nx, ny).then(|| point(ny * w + nx))
+                };
+                let c = point(i);
+                const S: i64 = NORMAL_SPAN as i64;
+                let around = [at(S, 0), at(0, S), at(-S, 0), at(0, -S)];
+                let mut tris = vec![];
+                for k in 0..4 {
+                    if let (Some(a), Some(b)) = (around[k], around[(k + 1) % 4]) {
+                        if let Some(n) = (a - c).cross(b - c).try_normalize() {
+                            tris.push(n);
+                        }
+                    }
+                }
+                if tris.len() < 2 {
+                    return None;
+                }
+                let first = tris[0];
+                if tris.iter().any(|n| n.dot(first) < cos_tol) {
+                    return None;
+                }
+                tris.iter().sum::<DVec3>().try_normalize()
+            })
+            .collect();
+        Some(PlaneSearch {
+            p: *p,
+            width: w,
+            depth: z.data.clone(),
+            points,
+            normals,
+            valid,
+            remaining,
+            rng: SplitMix(0x5eed_01a7_e5f1_77ed),
+            cos_tol,
+            pending: None,
+        })
     }
-    out
+
+    #[inline]
+    fn inlier(&self, n: DVec3, d: f64, i: usize) -> bool {
+        (n.dot(self.points[i]) + d).abs() <= self.p.tolerance * self.depth[i] as f64
+            && self.normals[i].is_some_and(|m| m.dot(n).abs() >= self.cos_tol)
+    }
+
+    /// The next plane holding at least `min_fraction` of the pixels with
+    /// geometry (its inliers taken out), unclassified; None when none
+    /// does.
+    pub(crate) fn next(&mut self, min_fraction: f64) -> Option<PlaneFit> {
+        let (w, step) = (self.width, self.p.step.max(1));
+        let h = self.depth.len() / w;
+        let total = self.valid.len() as f64;
+        let grid: Vec<usize> = (0..h)
+            .step_by(step)
+            .flat_map(|y| (0..w).step_by(step).map(move |x| y * w + x))
+            .filter(|&i| self.remaining[i])
+            .collect();
+        if grid.len() < 3 {
+            return None;
+        }
+        let need_grid = min_fraction * total / (step * step) as f64;
+        if (grid.len() as f64) < need_grid {
+            return None;
+        }
+        let best = match self.pending.take() {
+            Some(b) => b,
+            None => {
+                let mut best: Option<(DVec3, f64, usize)> = None;
+                for _ in 0..self.p.iterations {
+                    let a = grid[self.rng.below(grid.len())];
+                    let b = grid[self.rng.below(grid.len())];
+                    let c = grid[self.rng.below(grid.len())];
+                    let Some((n, d)) = through(self.points[a], self.points[b], self.points[c])
+                    else {
+                        continue;
+                    };
+                    let count = grid.iter().filter(|&&i| self.inlier(n, d, i)).count();
+                    if best.is_none_or(|(_, _, k)| count > k) {
+                        best = Some((n, d, count));
+                    }
+                }
+                best
+            }
+        };
+        let Some((mut n, mut d, k)) = best else {
+            self.pending = Some(None);
+            return None;
+        };
+        if (k as f64) < need_grid {
+            self.pending = Some(best);
+            return None;
+        }
+        // Refine on every remaining pixel, twice (the inliers of the
+        // refined plane, then its refinement).
+        let members_of = |s: &PlaneSearch, n: DVec3, d: f64| -> Vec<usize> {
+            s.valid
+                .iter()
+                .copied()
+                .filter(|&i| s.remaining[i] && s.inlier(n, d, i))
+                .collect()
+        };
+        for _ in 0..2 {
+            let members = members_of(self, n, d);
+            if members.len() < 3 {
+                break;
+            }
+            let m = members.len() as f64;
+            let centroid = members.iter().map(|&i| self.points[i]).sum::<DVec3>() / m;
+            let mut c = DMat3::ZERO;
+            for &i in &members {
+                let q = self.points[i] - centroid;
+                c += DMat3::from_cols(q * q.x, q * q.y, q * q.z);
+            }
+            let Some(v) = smallest_eigenvector(c / m, n) else {
+                break;
+            };
+            let dd = -v.dot(centroid);
+            (n, d) = if dd < 0.0 { (-v, -dd) } else { (v, dd) };
+        }
+        let members = members_of(self, n, d);
+        let fraction = members.len() as f64 / total;
+        if fraction < min_fraction {
+            self.pending = Some(best);
+            return None;
+        }
+        let rms = (members
+            .iter()
+            .map(|&i| (n.dot(self.points[i]) + d).powi(2))
+            .sum::<f64>()
+            / members.len() as f64)
+            .sqrt();
+        let mut reaches = [false; 4];
+        for &i in &members {
+            let (x, y) = (i % w, i / w);
+            // Within the normal span of a border: pixels nearer a border
+            // than that can be left out as crease pixels.
+            reaches[0] |= x <= NORMAL_SPAN;
+            reaches[1] |= x + 1 + NORMAL_SPAN >= w;
+            reaches[2] |= y <= NORMAL_SPAN;
+            reaches[3] |= y + 1 + NORMAL_SPAN >= h;
+            self.remaining[i] = false;
+        }
+        Some(PlaneFit {
+            plane: Plane {
+                n: n.as_vec3(),
+                d: d as f32,
+            },
+            kind: PlaneKind::Other,
+            fraction,
+            rms,
+            reaches,
+        })
+    }
+
+    /// `f` classified against "up" `up` (see [`fit_planes_resumable`]).
+    pub(crate) fn classified(&self, mut f: PlaneFit, up: Vec3) -> PlaneFit {
+        f.kind = classify(f.plane.n, f.plane.d, up, self.p.kind_tolerance_deg);
+        f
+    }
 }
 
 /// Analytic depth maps for the tests here and in `complete`.

@@ -178,22 +178,9 @@ pub fn decode_mesh(b: &[u8]) -> Result<(Camera, TriMesh), NodeError> {
         .chunks_exact(2)
         .map(|c| Vec2::new(c[0], c[1]))
         .collect();
-    let material_pixel = if a.has("material_pixel") {
-        a.u32_list("material_pixel", 1)?.to_vec()
-    } else {
-        Vec::new()
-    };
-    if !material_pixel.is_empty() && material_pixel.len() != indices.len() {
-        return Err(err("mesh artifact: material_pixel is not one per triangle"));
-    }
-    let openness = if a.has("openness") {
-        a.f32_list("openness", 1)?.to_vec()
-    } else {
-        Vec::new()
-    };
-    if !openness.is_empty() && openness.len() != indices.len() {
-        return Err(err("mesh artifact: openness is not one per triangle"));
-    }
+    let material_pixel =
+        per_triangle(&a, "material_pixel", indices.len(), |a, n| a.u32_list(n, 1))?;
+    let openness = per_triangle(&a, "openness", indices.len(), |a, n| a.f32_list(n, 1))?;
     if openness.iter().any(|o| !(0.0..=1.0).contains(o)) {
         return Err(err("mesh artifact: openness outside [0, 1]"));
     }
@@ -207,6 +194,26 @@ pub fn decode_mesh(b: &[u8]) -> Result<(Camera, TriMesh), NodeError> {
             openness,
         },
     ))
+}
+
+/// A mesh artifact's optional per-triangle list `name` (empty when absent),
+/// refused unless it has one entry per triangle.
+fn per_triangle<'a, T: Copy + 'a>(
+    a: &'a Artifact,
+    name: &str,
+    triangles: usize,
+    list: impl Fn(&'a Artifact, &str) -> Result<&'a [T], NodeError>,
+) -> Result<Vec<T>, NodeError> {
+    if !a.has(name) {
+        return Ok(Vec::new());
+    }
+    let v = list(a, name)?;
+    if !v.is_empty() && v.len() != triangles {
+        return Err(err(format!(
+            "mesh artifact: {name} is not one per triangle"
+        )));
+    }
+    Ok(v.to_vec())
 }
 
 /// A renderable scene from a mesh artifact, materials and an envmap.

@@ -303,12 +303,16 @@ impl Visibility {
                         }
                     }
                 } else {
-                    let mut hits = vec![None; rays.len()];
-                    bvh.intersect_stream(&rays, 0.0, f32::INFINITY, &mut hits);
-                    for (&cell, h) in ray_cell.iter().zip(&hits) {
-                        row[cell as usize] += h.map_or(1.0, |h| {
-                            openness.get(h.prim as usize).copied().unwrap_or(0.0)
-                        });
+                    let (mut hits, mut through) = (Vec::new(), Vec::new());
+                    crate::scene::transmittance_stream(
+                        bvh,
+                        openness,
+                        &rays,
+                        &mut hits,
+                        &mut through,
+                    );
+                    for (&cell, &t) in ray_cell.iter().zip(&through) {
+                        row[cell as usize] += t;
                     }
                 }
                 let inv = 1.0 / pts.len() as f32;

@@ -336,8 +336,8 @@ pub struct Wavefront {
     rays: Vec<(Vec3, Vec3)>,
     ray_path: Vec<u32>,
     blocked: Vec<bool>,
-    /// Per shadow ray, the share of the light it carries that arrives: 0
-    /// or 1, or a partly open surface's openness ([`RenderScene::openness`]).
+    /// With partly open surfaces, per shadow ray the share of its light
+    /// that arrives (else empty, and `blocked` says).
     transmit: Vec<f32>,
     hits: Vec<Option<Hit>>,
     dirs: Vec<Vec3>,
@@ -582,21 +582,17 @@ impl Wavefront {
         }
     }
 
-    /// Traces the shadow rays: what share of each one's light arrives.
-    /// With partly open surfaces the nearest hit decides (they bound the
-    /// scene: what passes one reaches the sky).
+    /// Traces the shadow rays: occlusion, or with partly open surfaces what
+    /// share of each one's light arrives ([`arrives`]).
     fn shadows(&mut self, scene: &RenderScene) {
         self.transmit.clear();
         if scene.has_openness() {
-            self.hits.clear();
-            self.hits.resize(self.rays.len(), None);
-            scene
-                .bvh
-                .intersect_stream(&self.rays, 0.0, f32::INFINITY, &mut self.hits);
-            self.transmit.extend(
-                self.hits
-                    .iter()
-                    .map(|h| h.map_or(1.0, |h| scene.openness(h.prim))),
+            crate::scene::transmittance_stream(
+                &scene.bvh,
+                &scene.mesh.openness,
+                &self.rays,
+                &mut self.hits,
+                &mut self.transmit,
             );
         } else {
             self.blocked.clear();
@@ -604,8 +600,6 @@ impl Wavefront {
             scene
                 .bvh
                 .occluded_stream(&self.rays, 0.0, f32::INFINITY, &mut self.blocked);
-            self.transmit
-                .extend(self.blocked.iter().map(|&b| if b { 0.0 } else { 1.0 }));
         }
     }
 
@@ -626,7 +620,7 @@ impl Wavefront {
             let sink = &mut sinks[i as usize];
             let (n, v) = (path.n, -path.dir);
             if let Some(ls) = path.light {
-                let t = self.transmit[ls.ray as usize];
+                let t = arrives(&self.transmit, &self.blocked, ls.ray);
                 if t > 0.0 {
                     let (f, pdf_b) = if path.obj == NO_OBJECT && path.glass_vertex {
                         // A transparent region reflects the light only.
@@ -780,6 +774,18 @@ impl Wavefront {
         }
         self.next_active.extend_from_slice(&self.teleported);
         std::mem::swap(&mut self.active, &mut self.next_active);
+    }
+}
+
+/// The share of shadow ray `ray`'s light that arrives, from
+/// [`Wavefront::shadows`]: 0 or 1, or the openness of the partly open
+/// surface it meets.
+#[inline]
+fn arrives(transmit: &[f32], blocked: &[bool], ray: u32) -> f32 {
+    match transmit.get(ray as usize) {
+        Some(&t) => t,
+        None if blocked[ray as usize] => 0.0,
+        None => 1.0,
     }
 }
 

@@ -169,6 +169,28 @@ pub struct ScreenGlass {
     pub surface: Vec<(Vec3, u32)>,
 }
 
+/// What share of each ray's light arrives through `bvh`'s triangles when
+/// triangle `k` lets `openness[k]` through ([`TriMesh::openness`]):
+/// partly open surfaces bound the scene, so the nearest hit decides (1 for
+/// a miss, the hit triangle's openness otherwise). `hits` is scratch.
+pub(crate) fn transmittance_stream(
+    bvh: &Bvh,
+    openness: &[f32],
+    rays: &[(Vec3, Vec3)],
+    hits: &mut Vec<Option<matflow_geom::Hit>>,
+    out: &mut Vec<f32>,
+) {
+    hits.clear();
+    hits.resize(rays.len(), None);
+    bvh.intersect_stream(rays, 0.0, f32::INFINITY, hits);
+    out.clear();
+    out.extend(hits.iter().map(|h| {
+        h.map_or(1.0, |h| {
+            openness.get(h.prim as usize).copied().unwrap_or(0.0)
+        })
+    }));
+}
+
 /// [`ScreenGlass::surface`] of a pixel that sees the sky.
 pub const NO_SURFACE: u32 = u32::MAX;
 
