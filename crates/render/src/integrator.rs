@@ -483,7 +483,7 @@ impl Wavefront {
                 continue;
             };
             path.p = Vec3::ZERO + path.dir * hit.t;
-            let Some(q) = scene.vertex_material(hit.prim, path.p) else {
+            let Some(q) = scene.camera_vertex_material(hit.prim, path.p) else {
                 continue;
             };
             if !may_shade(scene, opts, path, q) {
@@ -1343,6 +1343,72 @@ mod tests {
         ));
     }
 
+    /// A triangle that names a material pixel (completion's fill behind an
+    /// occluder) shows a camera ray that reaches it through a crack of the
+    /// depth mesh the material of the pixel the ray passes through; to
+    /// every other ray it is the pixel it names.
+    #[test]
+    fn camera_rays_through_a_crack_see_their_own_pixel_behind_it() {
+        struct First(Option<usize>);
+        impl PathSink for First {
+            fn vertex(&mut self, q: usize, first: bool) {
+                if first {
+                    self.0 = Some(q);
+                }
+            }
+        }
+        let n = 8;
+        let (cam, mut mesh) = plane_mesh(n);
+        // A crack: the depth mesh's quad between pixel centres 3.5 and 4.5.
+        let crack = |f: Vec2| f.x > 3.5 && f.x < 4.5 && f.y > 3.5 && f.y < 4.5;
+        let film = mesh.film.clone();
+        mesh.indices
+            .retain(|t| !crack(t.iter().map(|&k| film[k as usize]).sum::<Vec2>() / 3.0));
+        let own = mesh.triangle_count();
+        // Behind it, at depth 6, a quad naming pixel 0.
+        let base = mesh.positions.len() as u32;
+        for (x, y) in [(3.0, 3.0), (5.0, 3.0), (5.0, 5.0), (3.0, 5.0)] {
+            mesh.positions.push(cam.backproject(x, y, 6.0));
+            mesh.film.push(Vec2::new(x, y));
+        }
+        mesh.indices
+            .extend([[base, base + 1, base + 2], [base, base + 2, base + 3]]);
+        let maps = MaterialMaps::uniform(n, n, Vec3::splat(0.5), 0.5, 0.0);
+        let env = EnvMap::new(&sky()).unwrap();
+        let opts = RenderOptions {
+            spp: 64,
+            max_depth: 2,
+            seed: 5,
+            ..Default::default()
+        };
+        mesh.material_pixel = vec![matflow_geom::PROJECTED; own];
+        mesh.material_pixel.extend([0, 0]);
+        let scene = RenderScene::new(cam, mesh, &maps, env).unwrap();
+        let p = cam.backproject(4.0, 4.0, 6.0);
+        assert_eq!(scene.vertex_material(own as u32, p), Some(0));
+        assert_eq!(
+            scene.camera_vertex_material(own as u32, p),
+            scene.material_index(p)
+        );
+        assert_ne!(scene.material_index(p), Some(0));
+        let pixels: Vec<u32> = (0..(n * n) as u32).collect();
+        let mut sinks: Vec<First> = (0..pixels.len() * 64).map(|_| First(None)).collect();
+        let mut wave = Wavefront::default();
+        let mut st = RenderStats::default();
+        wave.trace_pixels(&scene, &opts, &pixels, 64, &mut st, &mut sinks);
+        let mut through = 0;
+        for (i, sink) in sinks.iter().enumerate() {
+            let f = wave.result(i).0;
+            if crack(f) {
+                through += 1;
+                let pixel = f.y as usize * n + f.x as usize;
+                assert_eq!(sink.0, Some(pixel), "sample at {f}");
+            }
+        }
+        // A quarter of each of the four pixels around the crack.
+        assert!(through > 40, "{through} samples through the crack");
+    }
+
     /// A cropped render is that window of the full render, bit for bit,
     /// away from the filter radius of its edges.
     #[test]
@@ -1496,7 +1562,7 @@ mod tests {
         ]);
         mesh.film.resize(mesh.positions.len(), Vec2::ZERO);
         mesh.indices
-            .extend([[base, base + 2, base + 1], [base, base + 3, base + 2]]);
+            .extend([[base, base + 1, base + 2], [base, base + 2, base + 3]]);
         mesh.material_pixel = vec![matflow_geom::PROJECTED; own];
         mesh.material_pixel.extend([0, 0]);
         let maps = MaterialMaps::uniform(n, n, mat.albedo, mat.roughness, mat.metallic);

@@ -455,9 +455,28 @@ impl RenderScene {
     /// object `k`.
     #[inline]
     pub fn vertex_material(&self, prim: u32, p: Vec3) -> Option<usize> {
+        self.material_of(prim, p, self.mesh.material_pixel_of(prim as usize))
+    }
+
+    /// [`Self::vertex_material`] for a camera ray's first vertex: whatever
+    /// of the view's mesh a camera ray meets is what its pixel shows, so
+    /// it takes the material of the pixel it projects into, also on
+    /// geometry completed past the frame (a plane filled in behind an
+    /// occluder, reached through a crack of the depth mesh at a
+    /// silhouette; an extension within half a pixel of the border), whose
+    /// named pixel serves every other ray.
+    #[inline]
+    pub fn camera_vertex_material(&self, prim: u32, p: Vec3) -> Option<usize> {
+        self.material_of(prim, p, None)
+    }
+
+    /// The material index of a vertex at `p` on `prim`, whose named pixel
+    /// (if any) is `named`.
+    #[inline]
+    fn material_of(&self, prim: u32, p: Vec3, named: Option<u32>) -> Option<usize> {
         let prim = prim as usize;
         if prim < self.screen_prims {
-            match self.mesh.material_pixel_of(prim) {
+            match named {
                 Some(q) => Some(q as usize),
                 None => self.material_index(p),
             }
