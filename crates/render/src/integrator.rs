@@ -146,6 +146,11 @@ pub trait PathSink {
     /// towards the viewer `v`), estimator weight MIS/pdf.
     #[inline(always)]
     fn emitter(&mut self, _n: Vec3, _v: Vec3, _l: Vec3, _weight: f32) {}
+    /// An unoccluded sample of lamp `k` ([`crate::Lamp`]) in direction
+    /// `l` at the current vertex, estimator weight 1/(pmf·r²) (the lamp's
+    /// intensity times that, times f·cos, is its light).
+    #[inline(always)]
+    fn lamp(&mut self, _n: Vec3, _v: Vec3, _l: Vec3, _k: usize, _weight: f32) {}
     /// The BSDF sampled `l`, about to be traced; false ends the path here
     /// (for a recorder that cannot represent it).
     #[inline(always)]
@@ -207,6 +212,20 @@ struct LightSample {
     ray: u32,
 }
 
+/// A lamp towards which a shadow ray is traced: direction, which lamp,
+/// estimator weight 1/(pmf·r²) and the shadow ray's index.
+#[derive(Clone, Copy)]
+struct LampSample {
+    dir: Vec3,
+    index: u32,
+    weight: f32,
+    ray: u32,
+}
+
+/// The far end of a lamp's shadow ray, whose direction spans the segment
+/// to the lamp (t = 1 at the lamp).
+const LAMP_TMAX: f32 = 1.0 - 1e-4;
+
 /// The keys of a vertex's draws — envmap sample (2-D), lobe (1-D),
 /// direction (2-D) — for a sampler standing at the vertex's first
 /// dimension.
@@ -264,6 +283,10 @@ struct Path {
     /// An object's texture colour at the vertex (white otherwise).
     tex: Vec3,
     light: Option<LightSample>,
+    /// The vertex's lamp sample (scenes with lamps), and the number that
+    /// chooses it (drawn with the envmap sample).
+    lamp: Option<LampSample>,
+    u_lamp: f32,
     next: Option<Continuation>,
     /// The envmap's sampling cluster of the vertex being shaded
     /// ([`crate::EnvMap::cluster`]): its light sample and a BSDF sample
@@ -303,6 +326,8 @@ impl Path {
                 metallic: 0.0,
             },
             light: None,
+            lamp: None,
+            u_lamp: 0.0,
             next: None,
             cluster: crate::guide::NO_CLUSTER,
         }
@@ -339,6 +364,10 @@ pub struct Wavefront {
     /// With partly open surfaces, per shadow ray the share of its light
     /// that arrives (else empty, and `blocked` says).
     transmit: Vec<f32>,
+    /// Shadow rays towards lamps (origin, segment to the lamp) and their
+    /// occlusion.
+    lamp_rays: Vec<(Vec3, Vec3)>,
+    lamp_blocked: Vec<bool>,
     hits: Vec<Option<Hit>>,
     dirs: Vec<Vec3>,
     /// Paths whose continuation went through a transparent region to a
@@ -507,6 +536,7 @@ impl Wavefront {
         sinks: &mut [S],
     ) {
         self.rays.clear();
+        self.lamp_rays.clear();
         // The samples of a pixel stand at the same dimension of its
         // sampler: the keys of the vertex's draws are computed once.
         let mut keys: Option<(Sampler, VertexKeys)> = None;
@@ -528,10 +558,16 @@ impl Wavefront {
                 path.tex = scene.object_texture(obj, path.hit.prim, path.hit.u, path.hit.v);
                 let surface = surface.textured(path.tex);
                 shade_object(scene, path, surface, k, st, &mut self.rays);
+                if !path.glass_vertex {
+                    let (ng, n) = (path.ng, path.n);
+                    let facing = |l: Vec3| ng.dot(l) > 0.0 && n.dot(l) > 0.0;
+                    sample_lamp(scene, path, ng, facing, st, &mut self.lamp_rays);
+                }
                 continue;
             }
             if let Some(g) = scene.glass_pixel(path.q) {
                 shade_screen_glass(scene, path, *g, k, st, &mut self.rays);
+                path.lamp = None;
                 continue;
             }
             let n = scene.face_normals[path.hit.prim as usize];
@@ -553,6 +589,14 @@ impl Wavefront {
                 |wl| n.dot(wl) > 0.0,
                 st,
                 &mut self.rays,
+            );
+            sample_lamp(
+                scene,
+                path,
+                n,
+                |l| n.dot(l) > 0.0,
+                st,
+                &mut self.lamp_rays,
             );
 
             // The BSDF sample the path continues with.
@@ -601,6 +645,13 @@ impl Wavefront {
                 .bvh
                 .occluded_stream(&self.rays, 0.0, f32::INFINITY, &mut self.blocked);
         }
+        self.lamp_blocked.clear();
+        if !self.lamp_rays.is_empty() {
+            self.lamp_blocked.resize(self.lamp_rays.len(), false);
+            scene
+                .bvh
+                .occluded_stream(&self.lamp_rays, 0.0, LAMP_TMAX, &mut self.lamp_blocked);
+        }
     }
 
     /// Adds the light of the unblocked envmap samples; traces the
@@ -622,22 +673,18 @@ impl Wavefront {
             if let Some(ls) = path.light {
                 let t = arrives(&self.transmit, &self.blocked, ls.ray);
                 if t > 0.0 {
-                    let (f, pdf_b) = if path.obj == NO_OBJECT && path.glass_vertex {
-                        // A transparent region reflects the light only.
-                        let g = scene.glass_pixel(path.q).map(|g| g.interface);
-                        let fr = Frame::from_normal(n);
-                        g.map_or((Vec3::ZERO, 0.0), |g| {
-                            dielectric::eval_pdf(&g, fr.to_local(v), fr.to_local(ls.dir))
-                        })
-                    } else if path.obj == NO_OBJECT {
-                        bsdf::eval_pdf(&path.mat, n, v, ls.dir)
-                    } else {
-                        let s = scene.objects[path.obj as usize].textured(path.tex);
-                        surface_eval_pdf(&s, n, v, ls.dir)
-                    };
+                    let (f, pdf_b) = vertex_eval_pdf(scene, path, n, v, ls.dir);
                     let w = mis_power(ls.pdf, pdf_b) / ls.pdf * t;
                     sink.emitter(n, v, ls.dir, w);
                     path.l += path.throughput * f * ls.le * w;
+                }
+            }
+            if let Some(lp) = path.lamp {
+                if !self.lamp_blocked[lp.ray as usize] {
+                    let (f, _) = vertex_eval_pdf(scene, path, n, v, lp.dir);
+                    sink.lamp(n, v, lp.dir, lp.index as usize, lp.weight);
+                    let intensity = scene.lamps[lp.index as usize].intensity;
+                    path.l += path.throughput * f * intensity * lp.weight;
                 }
             }
             let Some(c) = path.next else {
@@ -818,6 +865,7 @@ fn sample_light(
 ) {
     let (ue1, ue2) = path.rng.next_2d_with(key);
     path.light = None;
+    path.u_lamp = ue2;
     path.cluster = scene.env.cluster(path.p);
     if !enabled {
         return;
@@ -833,6 +881,65 @@ fn sample_light(
             });
             rays.push((offset_origin(path.p, ng, wl), wl));
         }
+    }
+}
+
+/// Next-event estimation towards the scene's lamps (none: nothing): one
+/// lamp, chosen uniformly by the number drawn with the vertex's envmap
+/// sample (its own estimator, so sharing the number biases neither), and
+/// when `accept(direction)` a shadow ray queued in `rays` along the
+/// segment to it, leaving by the geometric normal `ng`.
+#[inline(always)]
+fn sample_lamp(
+    scene: &RenderScene,
+    path: &mut Path,
+    ng: Vec3,
+    accept: impl Fn(Vec3) -> bool,
+    st: &mut RenderStats,
+    rays: &mut Vec<(Vec3, Vec3)>,
+) {
+    path.lamp = None;
+    let count = scene.lamps.len();
+    if count == 0 {
+        return;
+    }
+    let k = ((path.u_lamp * count as f32) as usize).min(count - 1);
+    let d = scene.lamps[k].position - path.p;
+    let r2 = d.length_squared();
+    if !(r2 > 1e-12) || !r2.is_finite() {
+        return;
+    }
+    let dir = d / r2.sqrt();
+    if !accept(dir) {
+        return;
+    }
+    let origin = offset_origin(path.p, ng, dir);
+    st.shadow_rays += 1;
+    path.lamp = Some(LampSample {
+        dir,
+        index: k as u32,
+        weight: count as f32 / r2,
+        ray: rays.len() as u32,
+    });
+    rays.push((origin, scene.lamps[k].position - origin));
+}
+
+/// f·cos and pdf of the vertex being shaded (depth mesh, transparent
+/// region or object) for the outgoing direction `l`.
+#[inline]
+fn vertex_eval_pdf(scene: &RenderScene, path: &Path, n: Vec3, v: Vec3, l: Vec3) -> (Vec3, f32) {
+    if path.obj == NO_OBJECT && path.glass_vertex {
+        // A transparent region reflects the light only.
+        let g = scene.glass_pixel(path.q).map(|g| g.interface);
+        let fr = Frame::from_normal(n);
+        g.map_or((Vec3::ZERO, 0.0), |g| {
+            dielectric::eval_pdf(&g, fr.to_local(v), fr.to_local(l))
+        })
+    } else if path.obj == NO_OBJECT {
+        bsdf::eval_pdf(&path.mat, n, v, l)
+    } else {
+        let s = scene.objects[path.obj as usize].textured(path.tex);
+        surface_eval_pdf(&s, n, v, l)
     }
 }
 
@@ -1596,6 +1703,94 @@ mod tests {
                 "open {open}: MC {mean} ± {se} vs quadrature {quad}"
             );
         }
+    }
+
+    /// Known answer: the plane of [`plane_under_envmap_matches_quadrature`]
+    /// lit by the envmap and three lamps, one in front of it, one behind
+    /// it (its back faces the lamp: no light) and one hidden behind a small
+    /// square: the estimator's mean equals the envmap's quadrature (with
+    /// the square's solid angle taken out) plus f·cos·I/r² of the lamp in
+    /// front alone.
+    #[test]
+    fn lamps_add_their_inverse_square_light_where_they_are_seen() {
+        let mat = crate::Material {
+            albedo: Vec3::new(0.7, 0.5, 0.3),
+            roughness: 0.35,
+            metallic: 0.0,
+        };
+        let n = 8;
+        let (cam, mut mesh) = plane_mesh(n);
+        let own = mesh.triangle_count();
+        let p = Vec3::new(0.0, 0.0, -5.0);
+        let seen = Vec3::new(0.6, 0.4, -2.0);
+        let behind = Vec3::new(-0.5, 0.4, -7.0);
+        let hidden = Vec3::new(0.0, -0.6, -3.5);
+        // The square, half-size h, where the segment to the hidden lamp
+        // crosses z = zs.
+        let zs = -4.2f32;
+        let c = p + (hidden - p) * ((zs - p.z) / (hidden.z - p.z));
+        let h = 0.1f32;
+        let base = mesh.positions.len() as u32;
+        mesh.positions.extend([
+            Vec3::new(c.x - h, c.y - h, zs),
+            Vec3::new(c.x + h, c.y - h, zs),
+            Vec3::new(c.x + h, c.y + h, zs),
+            Vec3::new(c.x - h, c.y + h, zs),
+        ]);
+        mesh.film.resize(mesh.positions.len(), Vec2::ZERO);
+        mesh.indices
+            .extend([[base, base + 1, base + 2], [base, base + 2, base + 3]]);
+        mesh.material_pixel = vec![matflow_geom::PROJECTED; own];
+        mesh.material_pixel.extend([0, 0]);
+        let maps = MaterialMaps::uniform(n, n, mat.albedo, mat.roughness, mat.metallic);
+        let mut scene = RenderScene::new(cam, mesh, &maps, EnvMap::new(&sky()).unwrap()).unwrap();
+        let intensity = Vec3::new(2.0, 1.5, 1.0);
+        scene
+            .set_lamps(
+                [seen, behind, hidden]
+                    .map(|position| crate::Lamp {
+                        position,
+                        intensity,
+                    })
+                    .to_vec(),
+            )
+            .unwrap();
+        let opts = RenderOptions {
+            max_depth: 2,
+            ..Default::default()
+        };
+        let film = Vec2::new(4.0, 4.0);
+        let v = -scene.camera_ray(film);
+        let env = hemisphere_quadrature(1200, |l| {
+            let at = p + l * ((zs - p.z) / l.z);
+            if (at.x - c.x).abs() < h && (at.y - c.y).abs() < h {
+                return 0.0;
+            }
+            let f = crate::bsdf::eval(&mat, Vec3::Z, v, l);
+            (f * scene.env.eval(l)).element_sum() as f64
+        });
+        let d = seen - p;
+        let l = d.normalize();
+        let lamp =
+            (crate::bsdf::eval(&mat, Vec3::Z, v, l) * intensity / d.length_squared()).element_sum();
+        let expected = env + lamp as f64;
+        let (mean, se) = pixel_mean(&scene, &opts, film, 200_000);
+        assert!(
+            (mean - expected).abs() < 4.0 * se + 1e-3 * expected,
+            "MC {mean} ± {se} vs {expected} (envmap {env}, lamp {lamp})"
+        );
+        assert!(lamp > 0.05 * env as f32, "the lamp must matter: {lamp} vs {env}");
+        assert!(!crate::Lamp {
+            position: Vec3::ZERO,
+            intensity: Vec3::new(1.0, -1.0, 0.0),
+        }
+        .is_valid());
+        assert!(scene
+            .set_lamps(vec![crate::Lamp {
+                position: Vec3::NAN,
+                intensity: Vec3::ONE,
+            }])
+            .is_err());
     }
 
     #[test]

@@ -22,7 +22,7 @@ pub use dielectric::Dielectric;
 pub use envmap::EnvMap;
 pub use filter::PixelFilter;
 pub use integrator::{render, Crop, RenderOptions, RenderOutput, RenderStats};
-pub use scene::{scene_from_depth, texture_at, RenderScene, SceneObject, Surface};
+pub use scene::{scene_from_depth, texture_at, Lamp, RenderScene, SceneObject, Surface};
 
 #[derive(Debug, thiserror::Error)]
 pub enum RenderError {
@@ -39,6 +39,8 @@ pub enum RenderError {
     EnvmapNotFinite { count: usize },
     #[error("meshing the depth map")]
     Mesh(#[from] matflow_geom::MeshError),
+    #[error("lamp {index} has a non-finite position or a negative or non-finite intensity")]
+    Lamp { index: usize },
     #[error("the mesh names a material pixel outside the {pixels} pixels of the image")]
     MaterialPixel { pixels: usize },
 }

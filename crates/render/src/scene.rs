@@ -194,6 +194,26 @@ pub(crate) fn transmittance_stream(
 /// [`ScreenGlass::surface`] of a pixel that sees the sky.
 pub const NO_SURFACE: u32 = u32::MAX;
 
+/// An isotropic point light inside the scene: a lamp, which the camera
+/// never sees (it has no area) but whose light every surface it reaches
+/// receives, `intensity`·cos θ / r² (radiant intensity, per channel, in
+/// the envmap's radiance units times area).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Lamp {
+    /// Camera space.
+    pub position: Vec3,
+    pub intensity: Vec3,
+}
+
+impl Lamp {
+    /// Finite position, finite non-negative intensity.
+    pub fn is_valid(&self) -> bool {
+        self.position.is_finite()
+            && self.intensity.is_finite()
+            && self.intensity.min_element() >= 0.0
+    }
+}
+
 pub struct RenderScene {
     pub camera: Camera,
     /// The depth mesh's triangles first, then each object's.
@@ -229,6 +249,9 @@ pub struct RenderScene {
     /// the geometry ([`crate::guide`]); `None` samples light by radiance
     /// alone.
     pub light_visibility: Option<std::sync::Arc<crate::guide::Visibility>>,
+    /// Point lamps inside the scene ([`Lamp`]; none by default), set with
+    /// [`RenderScene::set_lamps`].
+    pub lamps: Vec<Lamp>,
     focal: f32,
     principal: Vec2,
 }
@@ -345,6 +368,7 @@ impl RenderScene {
             materials,
             env,
             light_visibility: None,
+            lamps: Vec::new(),
         };
         scene.set_light_guide(Some(&crate::guide::GuideParams::default()));
         Ok(scene)
@@ -404,6 +428,17 @@ impl RenderScene {
                 })
             })
             .collect()
+    }
+
+    /// Lights the scene with `lamps` besides its envmap (replacing any it
+    /// had). A lamp must have a finite position and a finite, non-negative
+    /// intensity.
+    pub fn set_lamps(&mut self, lamps: Vec<Lamp>) -> Result<(), RenderError> {
+        if let Some(k) = lamps.iter().position(|l| !l.is_valid()) {
+            return Err(RenderError::Lamp { index: k });
+        }
+        self.lamps = lamps;
+        Ok(())
     }
 
     /// Lights the scene with `env`, guided by the scene's visibility when
