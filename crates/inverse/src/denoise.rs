@@ -256,6 +256,7 @@ mod tests {
             seed,
             env_width: 32,
             env_height: 16,
+            lamp_scale: 1.0,
         };
         let noisy = PathCache::build(scene, &opts(4, 1), &|_, _| {}).unwrap();
         let truth = PathCache::build(scene, &opts(256, 2), &|_, _| {}).unwrap();

@@ -28,6 +28,8 @@ pub struct EnvTerm {
 pub struct EnvTransport {
     pub env_width: usize,
     pub env_height: usize,
+    /// Lamps after the envmap's texels ([`crate::paths::light_len`]).
+    pub lamps: usize,
     /// Selected pixel indices (row-major image index).
     pub pixels: Vec<u32>,
     /// Per selected pixel, start of its terms (len = pixels + 1).
@@ -112,6 +114,7 @@ impl EnvTransport {
         EnvTransport {
             env_width: cache.env_width,
             env_height: cache.env_height,
+            lamps: cache.lamps,
             pixels,
             start,
             terms,
@@ -137,7 +140,7 @@ impl EnvTransport {
     /// Transpose: ∂loss/∂env from ∂loss/∂I at the selected pixels.
     pub fn apply_t(&self, adj: &[Vec3]) -> Vec<Vec3> {
         let ew = self.env_width;
-        let ntex = self.env_width * self.env_height;
+        let ntex = crate::paths::light_len(self.env_width, self.env_height, self.lamps);
         let chunk = 2048;
         let parts: Vec<Vec<[f64; 3]>> = (0..self.pixels.len().div_ceil(chunk))
             .into_par_iter()
@@ -230,6 +233,37 @@ pub struct EnvFitOptions {
     /// their neighbours instead of fitting noise; a sun costs only its
     /// few edge pairs. 0 turns it off.
     pub smooth: f32,
+    /// Texel route with lamps: weight of a sparsity prior, the sum of the
+    /// lamps' entries over the envmap's mean texel at the start (per
+    /// channel, over 3): a lamp shines only where the envmap cannot
+    /// explain the light (lamps and sky openings both explain a lit room;
+    /// a lamp must earn its light).
+    pub lamp_sparsity: f32,
+}
+
+/// The sparsity prior on the lamps' entries `e[lamps]` (log
+/// parametrised, θ = ln e) and its gradient with respect to θ, added into
+/// `grad`; `reference` is the scale an entry is measured against.
+fn lamp_prior(
+    theta: &[f32],
+    lamps: std::ops::Range<usize>,
+    reference: f32,
+    weight: f32,
+    grad: &mut [f32],
+) -> f64 {
+    if weight <= 0.0 || lamps.is_empty() || !(reference > 0.0) {
+        return 0.0;
+    }
+    let norm = weight / (3.0 * reference);
+    let mut sum = 0f64;
+    for t in lamps {
+        for c in 0..3 {
+            let e = theta[3 * t + c].exp();
+            sum += (norm * e) as f64;
+            grad[3 * t + c] += norm * e;
+        }
+    }
+    sum
 }
 
 /// Neighbouring texel pairs of a `w`×`h` envmap: right neighbours (the
@@ -299,6 +333,17 @@ pub fn fit_texels(
             .collect()
     };
     let pairs = texel_pairs(tr.env_width, tr.env_height);
+    let ntex = tr.env_width * tr.env_height;
+    let lamps = ntex.min(n)..(ntex + tr.lamps).min(n);
+    let reference = (init[..ntex.min(n)]
+        .iter()
+        .map(|e| e.element_sum() as f64)
+        .sum::<f64>()
+        / (3 * ntex.max(1)) as f64) as f32;
+    let priors = |theta: &[f32], grad: &mut [f32]| {
+        smooth_prior(theta, &pairs, opts.smooth, grad)
+            + lamp_prior(theta, lamps.clone(), reference, opts.lamp_sparsity, grad)
+    };
     let mut adam = Adam::new(3 * n, opts.lr);
     let mut stop = EarlyStop::paper();
     let mut trace = FitTrace::default();
@@ -315,7 +360,7 @@ pub fn fit_texels(
                 [g.x * e.x, g.y * e.y, g.z * e.z]
             })
             .collect();
-        let loss = lv.total() + smooth_prior(&theta, &pairs, opts.smooth, &mut grad);
+        let loss = lv.total() + priors(&theta, &mut grad);
         trace.losses.push(loss);
         progress(step, loss);
         if loss < best.0 {
@@ -336,7 +381,7 @@ pub fn fit_texels(
     let img = tr.apply(&env);
     let (lv, _) = loss_and_grad(&img, target, Some(&tr.pixels));
     let mut scratch = vec![0f32; theta.len()];
-    let last = lv.total() + smooth_prior(&theta, &pairs, opts.smooth, &mut scratch);
+    let last = lv.total() + priors(&theta, &mut scratch);
     if last < best.0 {
         best = (last, theta);
     }
@@ -581,6 +626,7 @@ mod tests {
             lr,
             early_stop: false,
             smooth: 0.0,
+            lamp_sparsity: 0.0,
         }
     }
 

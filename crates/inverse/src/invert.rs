@@ -24,13 +24,15 @@
 //! stage is announced ([`Event::Stage`]) and closed ([`Event::StageDone`]).
 
 use glam::Vec3;
-use matflow_render::{EnvMap, Material, PixelFilter, RenderError, RenderOptions, RenderScene};
+use matflow_render::{
+    EnvMap, Lamp, Material, PixelFilter, RenderError, RenderOptions, RenderScene,
+};
 use matflow_scene::{Image, MaterialMaps, RgbImage};
 
 use crate::denoise::{denoise_tables, Guide};
 use crate::envfit::{exposure_scale, strided_pixels, EnvTransport, FitTrace};
 use crate::loss::{loss_and_grad, Target};
-use crate::paths::{CacheError, CacheOptions, PathCache};
+use crate::paths::{light_len, CacheError, CacheOptions, PathCache};
 
 /// The pixel filter the inversion fits and re-renders with (each sample in
 /// its own pixel, as the frozen paths are kept); `summary.json` records
@@ -106,6 +108,18 @@ pub struct InvertOptions {
     /// mean may move from the prediction's before it is held; 0 holds it
     /// exactly.
     pub level_band: f32,
+    /// Where lamps may hang (camera space; e.g. under the ceiling of a
+    /// closed room, [`matflow_geom::complete`]'s `lamp_sites`): each is a
+    /// point light whose intensity is fitted with the envmap (texel route
+    /// only; at most one per envmap column), under a sparsity prior. None:
+    /// the envmap alone lights the scene.
+    pub lamp_sites: Vec<Vec3>,
+    /// A length of the scene's (e.g. the room's height): a lamp's fitted
+    /// entry is its intensity over it squared ([`CacheOptions::lamp_scale`]).
+    pub lamp_scale: f32,
+    /// Weight of the lamps' sparsity prior
+    /// ([`crate::envfit::EnvFitOptions::lamp_sparsity`]).
+    pub lamp_sparsity: f32,
 }
 
 impl InvertOptions {
@@ -195,6 +209,9 @@ impl Default for InvertOptions {
             level_from_pred: false,
             level_band: 0.0,
             init_env: None,
+            lamp_sites: Vec::new(),
+            lamp_scale: 1.0,
+            lamp_sparsity: 0.003,
         }
     }
 }
@@ -264,6 +281,9 @@ pub struct RmSearchReport {
 pub struct InvertResult {
     pub materials: Vec<Material>,
     pub envmap: RgbImage,
+    /// The lamps fitted at [`InvertOptions::lamp_sites`] (one per site,
+    /// some possibly dark; none without sites).
+    pub lamps: Vec<Lamp>,
     /// The frozen estimator's image for the final parameters.
     pub fit_image: RgbImage,
     /// Independent re-render (new random numbers, box filter).
@@ -313,6 +333,12 @@ pub enum InvertError {
         width: usize,
         height: usize,
     },
+    #[error("{sites} lamp sites: the `{route}` envmap route fits no lamps")]
+    LampsNotFitted { sites: usize, route: &'static str },
+    #[error("{sites} lamp sites for a {width}-texel-wide envmap: at most one per column")]
+    TooManyLamps { sites: usize, width: usize },
+    #[error("lamp scale {0} is not a positive finite length")]
+    LampScale(f32),
     #[error("tracing the frozen light paths")]
     Cache(#[from] CacheError),
     #[error("building the {what}")]
@@ -373,6 +399,22 @@ fn start_envmap(e: &RgbImage, opts: &InvertOptions) -> Result<Vec<Vec3>, InvertE
         .collect())
 }
 
+/// The lamps at [`InvertOptions::lamp_sites`] lit as the light vector
+/// `env` says (its entries after the envmap's texels, times the lamp
+/// scale squared).
+fn lamps_of(env: &[Vec3], opts: &InvertOptions) -> Vec<Lamp> {
+    let base = opts.env_width * opts.env_height;
+    let area = opts.lamp_scale * opts.lamp_scale;
+    opts.lamp_sites
+        .iter()
+        .enumerate()
+        .map(|(k, &position)| Lamp {
+            position,
+            intensity: env.get(base + k).map_or(Vec3::ZERO, |e| *e * area),
+        })
+        .collect()
+}
+
 /// The state the stages share.
 struct Run<'a> {
     scene: RenderScene,
@@ -393,17 +435,25 @@ impl Run<'_> {
         (self.events)(Event::StageDone);
     }
 
+    /// Lights the scene with the light vector `env` (the envmap's texels,
+    /// then the lamps' entries) and shades it with `mats`.
     fn set_scene(&mut self, mats: &[Material], env: &[Vec3]) -> Result<(), InvertError> {
         let (ew, eh) = (self.opts.env_width, self.opts.env_height);
         self.scene.materials = mats.iter().map(|m| m.sanitized()).collect();
-        let env = EnvMap::new(&Image::from_vec(ew, eh, env.to_vec())).map_err(|source| {
-            InvertError::Render {
-                what: "envmap",
+        let map =
+            EnvMap::new(&Image::from_vec(ew, eh, env[..ew * eh].to_vec())).map_err(|source| {
+                InvertError::Render {
+                    what: "envmap",
+                    source,
+                }
+            })?;
+        self.scene.set_env(map);
+        self.scene
+            .set_lamps(lamps_of(env, self.opts))
+            .map_err(|source| InvertError::Render {
+                what: "lamps",
                 source,
-            }
-        })?;
-        self.scene.set_env(env);
-        Ok(())
+            })
     }
 
     /// Traces `spp` frozen paths per pixel through the current scene.
@@ -418,6 +468,7 @@ impl Run<'_> {
                 seed,
                 env_width: self.opts.env_width,
                 env_height: self.opts.env_height,
+                lamp_scale: self.opts.lamp_scale,
             },
             &|d, t| events(Event::Trace { done: d, total: t }),
         )?;
@@ -444,6 +495,7 @@ impl Run<'_> {
             &EnvStage {
                 steps,
                 early_stop: self.opts.early_stop,
+                lamp_sparsity: self.opts.lamp_sparsity,
             },
             &|step, loss| events(Event::Step { step, loss }),
         );
@@ -484,12 +536,37 @@ pub fn invert(
             route: opts.env_route.name(),
         });
     }
+    let (ew, eh) = (opts.env_width, opts.env_height);
+    let sites = opts.lamp_sites.len();
+    if sites > 0 {
+        if !env_route.fits_lamps() {
+            return Err(InvertError::LampsNotFitted {
+                sites,
+                route: opts.env_route.name(),
+            });
+        }
+        if sites > ew || light_len(ew, eh, sites) > 65535 {
+            return Err(InvertError::TooManyLamps { sites, width: ew });
+        }
+        if !(opts.lamp_scale > 0.0 && opts.lamp_scale.is_finite())
+            || opts.lamp_sites.iter().any(|p| !p.is_finite())
+        {
+            return Err(InvertError::LampScale(opts.lamp_scale));
+        }
+    }
+    // The light vector: the envmap's texels, then (with lamp sites) the
+    // lamps' entries and their padding (zero).
+    let lights = light_len(ew, eh, sites);
+    let with_lamps = |mut texels: Vec<Vec3>, lamp: Vec3| {
+        texels.resize(ew * eh, Vec3::ZERO);
+        texels.extend((0..lights - ew * eh).map(|k| if k < sites { lamp } else { Vec3::ZERO }));
+        texels
+    };
     let given_env = opts
         .init_env
         .as_ref()
         .map(|e| start_envmap(e, opts))
         .transpose()?;
-    let (ew, eh) = (opts.env_width, opts.env_height);
     let plan_for = |scene| {
         Plan::from_budget(
             opts.budget_seconds,
@@ -517,7 +594,7 @@ pub fn invert(
     };
 
     // 1. Scout.
-    let flat = vec![Vec3::ONE; ew * eh];
+    let flat = with_lamps(vec![Vec3::ONE; ew * eh], Vec3::ONE);
     run.set_scene(&mats, &flat)?;
     let scout = run.trace("trace scout", first.scout_spp, opts.seed ^ 0x5c0u64)?;
     let plan = Plan {
@@ -536,7 +613,7 @@ pub fn invert(
         trust_rm: opts.trust_rm,
     });
     let mut env = match given_env {
-        Some(e) => e,
+        Some(e) => with_lamps(e, Vec3::splat(exposure)),
         None => {
             let init: Vec<Vec3> = flat.iter().map(|e| *e * exposure).collect();
             let steps = plan.env_steps;
@@ -695,9 +772,12 @@ pub fn invert(
         &|d, t| events(Event::Trace { done: d, total: t }),
     );
     run.end(StageReport::plain("render", plan.final_spp as usize));
+    let lamps = lamps_of(&env, opts);
+    env.truncate(ew * eh);
     Ok(InvertResult {
         materials: mats,
         envmap: Image::from_vec(ew, eh, env),
+        lamps,
         fit_image: Image::from_vec(w, h, fit),
         rendered: out.image,
         report: InvertReport {
@@ -815,5 +895,102 @@ mod tests {
             held.report.fit_loss,
             free.report.fit_loss
         );
+    }
+
+    /// Lamps are fitted with the envmap: a room lit by its envmap and a
+    /// lamp at one of two sites is recovered (materials known) with the
+    /// lamp at about its intensity and the other site dark, explaining the
+    /// image better than the envmap alone can; lit by its envmap alone,
+    /// the sparsity prior keeps both sites dark.
+    #[test]
+    fn a_lamp_is_found_at_its_site_and_nowhere_else() {
+        let n = 24;
+        let t = room(3, n);
+        let depth = t.scene.mesh.positions.iter().map(|p| -p.z).sum::<f32>()
+            / t.scene.mesh.positions.len() as f32;
+        let sites = vec![
+            Vec3::new(0.3 * depth, 0.25 * depth, -0.5 * depth),
+            Vec3::new(-0.3 * depth, -0.2 * depth, -0.3 * depth),
+        ];
+        let truth = Vec3::new(1.5, 1.2, 0.8) * depth * depth;
+        let pred = materials_of(&t.maps);
+        let target_with = |lamp: bool| {
+            let mut scene = room(3, n).scene;
+            if lamp {
+                scene
+                    .set_lamps(vec![Lamp {
+                        position: sites[0],
+                        intensity: truth,
+                    }])
+                    .unwrap();
+            }
+            matflow_render::render(
+                &scene,
+                &RenderOptions {
+                    spp: 64,
+                    ..Default::default()
+                },
+                &|_, _| {},
+            )
+            .image
+        };
+        let opts = |sites: Vec<Vec3>| InvertOptions {
+            budget_seconds: 2.0,
+            env_route: env_route("texel", &[]).expect("env route"),
+            mat_route: mat_route("solve", &[]).expect("mat route"),
+            trust_rm: true,
+            env_only: true,
+            spp: Some(16),
+            final_spp: Some(8),
+            loops: Some(2),
+            env_steps: Some(150),
+            mat_steps: Some(10),
+            lamp_sites: sites,
+            lamp_scale: depth,
+            ..Default::default()
+        };
+        let run = |target: &RgbImage, sites: Vec<Vec3>| {
+            invert(room(3, n).scene, target, &pred, &opts(sites), &|_| {}).expect("invert")
+        };
+        let lit = target_with(true);
+        let with = run(&lit, sites.clone());
+        let without = run(&lit, Vec::new());
+        assert_eq!(with.lamps.len(), 2);
+        assert!(without.lamps.is_empty());
+        let ratio = with.lamps[0].intensity / truth;
+        assert!(
+            ratio.min_element() > 0.8 && ratio.max_element() < 1.2,
+            "found {} for {truth}",
+            with.lamps[0].intensity
+        );
+        assert!(
+            with.lamps[1].intensity.element_sum() < 0.05 * truth.element_sum(),
+            "the empty site lights: {}",
+            with.lamps[1].intensity
+        );
+        assert!(
+            with.report.fit_loss < 0.7 * without.report.fit_loss,
+            "with lamps {} without {}",
+            with.report.fit_loss,
+            without.report.fit_loss
+        );
+        // No lamp in the room: the sites stay dark.
+        let dark = run(&target_with(false), sites.clone());
+        for l in &dark.lamps {
+            assert!(
+                l.intensity.element_sum() < 0.1 * truth.element_sum(),
+                "a lamp where there is none: {}",
+                l.intensity
+            );
+        }
+        // Fitting lamps needs a route that fits them.
+        let mlp = InvertOptions {
+            env_route: env_route("mlp", &[]).expect("env route"),
+            ..opts(sites)
+        };
+        assert!(matches!(
+            invert(room(3, n).scene, &lit, &pred, &mlp, &|_| {}),
+            Err(InvertError::LampsNotFitted { .. })
+        ));
     }
 }

@@ -15,6 +15,14 @@
 //! wherever the integrand is, which holds for the BSDF mixture (its diffuse
 //! half covers the hemisphere) and for an envmap sampled with a floor.
 //!
+//! Lamps ([`matflow_render::Lamp`]) are light sources like the envmap's
+//! texels: a scene traced with `k` lamps records each unoccluded lamp
+//! sample as a sky record whose cell is texel `W·H + k` of the *light
+//! vector* (the W·H texels, then two rows of W: the lamps, padded so that
+//! a record's bilinear taps stay inside; [`light_len`]), with weights 0 on
+//! the other taps, and a lamp's entry is its intensity over
+//! `lamp_scale`². Every estimator is linear in the light vector alike.
+//!
 //! Layout: one [`RowPaths`] per image row (built in parallel, never
 //! concatenated); inside a row, per pixel, its paths' vertices in order,
 //! each vertex followed in the record array by its sky records and then, if
@@ -132,6 +140,11 @@ pub struct CacheOptions {
     /// Size of the envmap that will be optimised (the taps refer to it).
     pub env_width: usize,
     pub env_height: usize,
+    /// A lamp's entry in the light vector is its intensity over this,
+    /// squared (a length of the scene's: the entry is then the
+    /// irradiance the lamp gives at that distance, comparable with the
+    /// envmap's radiance).
+    pub lamp_scale: f32,
 }
 
 impl Default for CacheOptions {
@@ -142,8 +155,15 @@ impl Default for CacheOptions {
             seed: 0,
             env_width: 32,
             env_height: 16,
+            lamp_scale: 1.0,
         }
     }
+}
+
+/// Length of the light vector of a `w`×`h` envmap and `lamps` lamps (see
+/// the module documentation).
+pub fn light_len(w: usize, h: usize, lamps: usize) -> usize {
+    w * h + if lamps > 0 { 2 * w } else { 0 }
 }
 
 #[derive(Clone, Copy, Debug, Default, serde::Serialize)]
@@ -161,6 +181,10 @@ pub struct PathCache {
     pub max_depth: u32,
     pub env_width: usize,
     pub env_height: usize,
+    /// Lamps of the scene traced (their records' cells follow the
+    /// envmap's), and the scale of their entries.
+    pub lamps: usize,
+    pub lamp_scale: f32,
     pub rows: Vec<RowPaths>,
     pub stats: CacheStats,
 }
@@ -173,6 +197,10 @@ pub enum CacheError {
     Depth { got: u32, max: u32 },
     #[error("envmap size {width}x{height} unsupported (2x2 up to 65535 texels)")]
     EnvmapSize { width: usize, height: usize },
+    #[error("{lamps} lamps for a {width}-texel-wide envmap (at most one per column, and a 65535-texel light vector)")]
+    Lamps { lamps: usize, width: usize },
+    #[error("lamp scale {0} is not a positive finite length")]
+    LampScale(f32),
     #[error("row {row} holds more than 4 294 967 295 records; lower spp")]
     Overflow { row: usize },
     #[error("stored paths: {0}")]
@@ -205,6 +233,11 @@ impl PathCache {
         self.width * self.height
     }
 
+    /// Length of the light vector the records index ([`light_len`]).
+    pub fn light_len(&self) -> usize {
+        light_len(self.env_width, self.env_height, self.lamps)
+    }
+
     /// Traces `spp` paths per pixel through `scene`, whose materials and
     /// envmap define the sampling densities that are then frozen. Pixel
     /// footprints are box-filtered (each sample belongs to its own pixel).
@@ -228,6 +261,18 @@ impl PathCache {
                 width: opts.env_width,
                 height: opts.env_height,
             });
+        }
+        let lamps = scene.lamps.len();
+        if lamps > opts.env_width
+            || (lamps > 0 && light_len(opts.env_width, opts.env_height, lamps) > 65535)
+        {
+            return Err(CacheError::Lamps {
+                lamps,
+                width: opts.env_width,
+            });
+        }
+        if lamps > 0 && !(opts.lamp_scale > 0.0 && opts.lamp_scale.is_finite()) {
+            return Err(CacheError::LampScale(opts.lamp_scale));
         }
         let (w, h) = (scene.camera.width, scene.camera.height);
         let done = AtomicUsize::new(0);
@@ -260,6 +305,8 @@ impl PathCache {
             max_depth: opts.max_depth,
             env_width: opts.env_width,
             env_height: opts.env_height,
+            lamps,
+            lamp_scale: opts.lamp_scale,
             rows: out,
             stats,
         })
@@ -333,6 +380,10 @@ impl PathCache {
     }
 
     /// The paths as flat words (see [`PathWords`]).
+    ///
+    /// Paths traced with lamps are not stored (pipelines, which keep paths,
+    /// light scenes by their envmap alone): their count is not among the
+    /// words.
     pub fn to_words(&self) -> PathWords<'static> {
         let (mut vs, mut rs, mut counts) = (Vec::new(), Vec::new(), Vec::new());
         let (mut verts, mut recs) = (Vec::new(), Vec::new());
@@ -444,6 +495,8 @@ impl PathCache {
             max_depth,
             env_width: ew as usize,
             env_height: eh as usize,
+            lamps: 0,
+            lamp_scale: 1.0,
             rows,
             stats: CacheStats::default(),
         })
@@ -471,6 +524,8 @@ struct Recorder {
     records: Vec<Record>,
     ew: usize,
     eh: usize,
+    /// lamp_scale².
+    lamp_area: f32,
     /// Index of the current vertex in `vertices`.
     vi: usize,
     /// Cached angles of the BSDF sample being traced.
@@ -510,6 +565,22 @@ impl PathSink for Recorder {
         let geo = Geo::new(n, v, l);
         if geo.lit() {
             self.sky(geo, weight, l);
+        }
+    }
+
+    fn lamp(&mut self, n: Vec3, v: Vec3, l: Vec3, k: usize, weight: f32) {
+        let geo = Geo::new(n, v, l);
+        let w = weight * self.lamp_area;
+        if geo.lit() && w.is_finite() && w > 0.0 {
+            self.records.push(Record {
+                geo,
+                w,
+                cell: (self.ew * self.eh + k) as u16,
+                fx: 0,
+                fy: 0,
+                _pad: 0,
+            });
+            self.vertices[self.vi].n_env += 1;
         }
     }
 
@@ -585,6 +656,7 @@ fn trace_row(
         Recorder {
             ew: opts.env_width,
             eh: opts.env_height,
+            lamp_area: opts.lamp_scale * opts.lamp_scale,
             ..Default::default()
         };
         BATCH_PIXELS * spp
@@ -630,21 +702,45 @@ mod tests {
     /// recorded path with the materials and envmap it was traced with gives
     /// the radiance the forward renderer computes for that (pixel, sample),
     /// up to the recorder's 16-bit quantisation of angles and envmap taps.
+    /// With lamps too: their records index the light vector after the
+    /// envmap's texels, each entry the lamp's intensity over the lamp
+    /// scale squared.
     #[test]
     fn recorded_paths_replay_to_the_renderers_radiance() {
-        for seed in [3u64, 8] {
-            let t = room(seed, 40);
+        for (seed, lamps) in [(3u64, false), (8, false), (3, true)] {
+            let mut t = room(seed, 40);
             let (ew, eh) = (t.env.width, t.env.height);
+            let lamp_scale = 2.0f32;
+            let mut env = texels(&t.env);
+            if lamps {
+                let depth = t.scene.mesh.positions.iter().map(|p| -p.z).sum::<f32>()
+                    / t.scene.mesh.positions.len() as f32;
+                let sites = [
+                    (Vec3::new(0.2, 0.3, -0.4 * depth), Vec3::new(3.0, 2.0, 1.0)),
+                    (Vec3::new(-0.3, 0.1, -0.6 * depth), Vec3::new(0.5, 1.0, 2.0)),
+                ];
+                let lit: Vec<_> = sites
+                    .iter()
+                    .map(|&(position, i)| matflow_render::Lamp {
+                        position,
+                        intensity: i * depth * depth,
+                    })
+                    .collect();
+                t.scene.set_lamps(lit.clone()).unwrap();
+                env.extend(lit.iter().map(|l| l.intensity / (lamp_scale * lamp_scale)));
+                env.resize(light_len(ew, eh, lit.len()), Vec3::ZERO);
+            }
             let opts = CacheOptions {
                 spp: 1,
                 max_depth: 4,
                 seed: 11,
                 env_width: ew,
                 env_height: eh,
+                lamp_scale,
             };
             let cache = PathCache::build(&t.scene, &opts, &|_, _| {}).unwrap();
+            assert_eq!(cache.light_len(), env.len());
             let mats = materials_of(&t.maps);
-            let env = texels(&t.env);
             let ropts = RenderOptions {
                 spp: 1,
                 max_depth: 4,
@@ -667,7 +763,7 @@ mod tests {
                     lit += (a.max_element() > 0.0) as usize;
                     assert!(
                         err < 1e-2,
-                        "seed {seed} pixel ({x}, {y}): render {a} replay {b}"
+                        "seed {seed} (lamps {lamps}) pixel ({x}, {y}): render {a} replay {b}"
                     );
                     sum_diff += (a - b).abs().element_sum() as f64;
                     sum_abs += a.element_sum() as f64;

@@ -51,6 +51,7 @@ pub(crate) fn trace_kept(
             seed: 5,
             env_width: envmap.width,
             env_height: envmap.height,
+            lamp_scale: 1.0,
         },
         &|_, _| {},
     )

@@ -590,14 +590,7 @@ impl Wavefront {
                 st,
                 &mut self.rays,
             );
-            sample_lamp(
-                scene,
-                path,
-                n,
-                |l| n.dot(l) > 0.0,
-                st,
-                &mut self.lamp_rays,
-            );
+            sample_lamp(scene, path, n, |l| n.dot(l) > 0.0, st, &mut self.lamp_rays);
 
             // The BSDF sample the path continues with.
             let u_lobe = path.rng.next_f32_with(k.lobe);
@@ -1779,7 +1772,10 @@ mod tests {
             (mean - expected).abs() < 4.0 * se + 1e-3 * expected,
             "MC {mean} ± {se} vs {expected} (envmap {env}, lamp {lamp})"
         );
-        assert!(lamp > 0.05 * env as f32, "the lamp must matter: {lamp} vs {env}");
+        assert!(
+            lamp > 0.05 * env as f32,
+            "the lamp must matter: {lamp} vs {env}"
+        );
         assert!(!crate::Lamp {
             position: Vec3::ZERO,
             intensity: Vec3::new(1.0, -1.0, 0.0),

@@ -100,6 +100,7 @@ impl EnvFitter for MlpFit {
                 lr: self.lr,
                 early_stop: stage.early_stop,
                 smooth: 0.0,
+                lamp_sparsity: 0.0,
             },
             progress,
         )

@@ -79,6 +79,9 @@ impl EnvRoute for Texel {
     fn takes_start_envmap(&self) -> bool {
         true
     }
+    fn fits_lamps(&self) -> bool {
+        true
+    }
     fn start(&self, s: &EnvStart) -> Box<dyn EnvFitter> {
         let smooth = self
             .smooth
@@ -113,6 +116,7 @@ impl EnvFitter for TexelFit {
                 lr: self.lr,
                 early_stop: stage.early_stop,
                 smooth: self.smooth,
+                lamp_sparsity: stage.lamp_sparsity,
             },
             progress,
         )

@@ -455,6 +455,9 @@ pub struct EnvStart {
 pub struct EnvStage {
     pub steps: usize,
     pub early_stop: bool,
+    /// With lamps: the weight of their sparsity prior
+    /// ([`crate::envfit::EnvFitOptions::lamp_sparsity`]).
+    pub lamp_sparsity: f32,
 }
 
 /// An envmap route: how envmap stages are priced and fitted.
@@ -466,6 +469,11 @@ pub trait EnvRoute: Send + Sync {
     /// Whether a given starting envmap can seed it (free texels can; a
     /// network cannot be set to one).
     fn takes_start_envmap(&self) -> bool;
+    /// Whether it fits lamps after the envmap's texels
+    /// ([`crate::paths::light_len`]).
+    fn fits_lamps(&self) -> bool {
+        false
+    }
     /// A fitter holding the route's state across the stages of one run.
     fn start(&self, s: &EnvStart) -> Box<dyn EnvFitter>;
 }

@@ -176,6 +176,7 @@ impl Node for TraceNode {
                 seed: ctx.seed ^ 0x7a7a,
                 env_width: env.width,
                 env_height: env.height,
+                lamp_scale: 1.0,
             },
             &|d, t| (ctx.progress)((t + d) as u64, parts * t as u64),
         )
