@@ -158,6 +158,8 @@ fn synth_then_render_writes_exr_png_and_summary() {
             "on",
             "--albedo-level",
             "pred",
+            "--lamps",
+            "on",
             "--quiet",
         ],
         None,
@@ -167,6 +169,15 @@ fn synth_then_render_writes_exr_png_and_summary() {
         text.contains("completion room (the one matflow invert recovered these maps with)"),
         "{text}"
     );
+    // Lamps were fitted at the closed room's sites, and light its render
+    // unless told not to.
+    let lamps: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(inv.join("best_results/lamps.json")).unwrap())
+            .unwrap();
+    assert_eq!(lamps["lamps"].as_array().unwrap().len(), 9, "{lamps}");
+    assert!(text.contains(", 9 lamp(s), "), "{text}");
+    let text = render(&inv, &["--spp", "2", "--lamps", "off"]);
+    assert!(text.contains(", 0 lamp(s), "), "{text}");
     // The inversion's frozen paths were guided, and its summary says so.
     let summary: serde_json::Value =
         serde_json::from_slice(&std::fs::read(inv.join("summary.json")).unwrap()).unwrap();
@@ -185,6 +196,8 @@ fn synth_then_render_writes_exr_png_and_summary() {
     );
     // Roughness and metallic were searched per segment first (asked
     // for, R and M not trusted), and the summary counts it.
+    assert_eq!(summary["options"]["lamps"], true, "{summary}");
+    assert_eq!(summary["lamps"]["sites"], 9, "{summary}");
     assert_eq!(summary["options"]["rm_search"], true, "{summary}");
     assert!(
         summary["rm_search"]["segments"].as_u64().unwrap() > 0,

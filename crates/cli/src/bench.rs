@@ -132,7 +132,15 @@ pub fn run(b: BenchCmd) -> Result<()> {
 fn bench_render(a: BenchRenderArgs) -> Result<()> {
     let runs = a.runs.max(1);
     let threads = rayon::current_num_threads();
-    let loaded = load_scene(&a.bundle, a.materials, None, 6.0, a.reference_compat, None)?;
+    let loaded = load_scene(
+        &a.bundle,
+        a.materials,
+        None,
+        6.0,
+        a.reference_compat,
+        None,
+        false,
+    )?;
     let scene = &loaded.scene;
     let cam = scene.camera;
     outln!(

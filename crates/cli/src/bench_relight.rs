@@ -139,6 +139,9 @@ fn render(
         .map(|x| x.to_string())
         .collect();
         args.extend(["--complete".into(), complete.name().into()]);
+        // Relit truths have their lamps off: so have the recovered
+        // scene's (the fitted lamps light only the rerender).
+        args.extend(["--lamps".into(), "off".into()]);
         child(r.exe, &args, false)?;
     }
     Ok(io::read_exr_rgb(out)?)

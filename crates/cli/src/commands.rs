@@ -81,6 +81,11 @@ pub struct RenderArgs {
     /// most of the sky.
     #[arg(long, default_value = "on")]
     pub light_guide: OnOff,
+    /// Light the scene with the lamps `matflow invert` fitted with the
+    /// maps (best_results/lamps.json, with `--materials best_results`):
+    /// on, or off (e.g. to relight a room by a new envmap alone).
+    #[arg(long, default_value = "on")]
+    pub lamps: OnOff,
 }
 
 /// What a render says of its light sampling.
@@ -276,7 +281,9 @@ pub fn render_completion(
     )
 }
 
-/// Builds mesh, BVH, materials and envmap for a bundle.
+/// Builds mesh, BVH, materials and envmap for a bundle; with `lamps`,
+/// the lamps `matflow invert` fitted with its `best_results/` maps light
+/// them too (when those are the maps and it fitted any).
 pub fn load_scene(
     bundle_dir: &Path,
     materials: MaterialSource,
@@ -284,6 +291,7 @@ pub fn load_scene(
     mesh_angle: f64,
     reference_compat: bool,
     complete: Option<CompleteMode>,
+    lamps: bool,
 ) -> Result<LoadedScene> {
     let bundle = Bundle::open(bundle_dir)?;
     let depth = bundle.load_depth()?;
@@ -304,9 +312,14 @@ pub fn load_scene(
     let env = EnvMap::new(&env_img).with_context(|| format!("{}", env_path.display()))?;
     let t0 = Instant::now();
     let params = complete.and_then(|m| m.params());
-    let scene = scene_from_depth(&depth, &maps, env.clone(), mesh_angle, params.as_ref())
+    let mut scene = scene_from_depth(&depth, &maps, env.clone(), mesh_angle, params.as_ref())
         .with_context(|| format!("{}: building the scene", bundle_dir.display()))?
         .0;
+    if lamps && materials == MaterialSource::BestResults {
+        if let Some(l) = crate::lamps::bundle_lamps(bundle_dir)? {
+            scene.set_lamps(l)?;
+        }
+    }
     Ok(LoadedScene {
         scene,
         maps,
@@ -381,6 +394,7 @@ pub fn render(a: RenderArgs) -> Result<()> {
         a.mesh_angle,
         a.reference_compat,
         Some(complete),
+        a.lamps.on(),
     )?;
     if !a.light_guide.on() {
         loaded.scene.set_light_guide(None);
@@ -421,13 +435,14 @@ pub fn render(a: RenderArgs) -> Result<()> {
     let png = write_outputs(&a.out, &out.image)?;
     let s = out.stats;
     outln!(
-        "rendered {}x{} at {} spp, depth {}, {} filter ({why}), completion {} ({why_complete}), {} in {:.2} s (mesh and BVH {:.2} s, total {:.2} s): {:.1} M rays, {:.2} Mrays/s -> {}, {}",
+        "rendered {}x{} at {} spp, depth {}, {} filter ({why}), completion {} ({why_complete}), {} lamp(s), {} in {:.2} s (mesh and BVH {:.2} s, total {:.2} s): {:.1} M rays, {:.2} Mrays/s -> {}, {}",
         loaded.scene.camera.width,
         loaded.scene.camera.height,
         a.spp,
         a.depth,
         filter.name(),
         complete.name(),
+        loaded.scene.lamps.len(),
         light_guide_note(&loaded.scene),
         seconds,
         loaded.seconds,
@@ -595,7 +610,15 @@ pub fn synth(a: SynthArgs) -> Result<()> {
     bundle.write_materials("ground_truth", &s.maps)?;
     io::write_hdr(&bundle.path("ground_truth/envmap.hdr"), &s.envmap)?;
     // Render the input photo with the true materials and lighting.
-    let loaded = load_scene(&a.out, MaterialSource::GroundTruth, None, 6.0, false, None)?;
+    let loaded = load_scene(
+        &a.out,
+        MaterialSource::GroundTruth,
+        None,
+        6.0,
+        false,
+        None,
+        false,
+    )?;
     let opts = RenderOptions {
         spp: a.spp,
         seed: a.seed,
@@ -617,6 +640,7 @@ pub fn synth(a: SynthArgs) -> Result<()> {
             6.0,
             false,
             None,
+            false,
         )?;
         let opts = RenderOptions {
             spp: a.relight_spp,

@@ -104,6 +104,19 @@ pub struct InvertArgs {
     /// (0: held exactly).
     #[arg(long, default_value_t = 0.0, value_parser = band_in_range)]
     pub albedo_level_band: f32,
+    /// Lamps the view does not show, in a room the completion closed
+    /// (`--complete room` or `closed`): `on` fits point lights at a grid
+    /// of sites under its ceiling with the envmap (texel route; a
+    /// sparsity prior keeps the ones the photo does not need dark),
+    /// written to best_results/lamps.json; `off` lights the room by the
+    /// envmap alone.
+    #[arg(long, default_value = "off")]
+    pub lamps: crate::commands::OnOff,
+    /// With `--lamps on`: weight of the lamps' sparsity prior (their
+    /// entries' sum over the envmap's mean texel); 0 lets the photo alone
+    /// decide.
+    #[arg(long, default_value_t = 0.003)]
+    pub lamp_sparsity: f32,
     /// Disable early stopping (run every stage for its full step count).
     #[arg(long)]
     pub no_early_stop: bool,
@@ -151,6 +164,8 @@ pub struct InvertInput {
     pub maps: MaterialMaps,
     pub target: RgbImage,
     pub scene: RenderScene,
+    /// What the completion did (lamp sites, the room's height).
+    pub completion: matflow_geom::Completion,
 }
 
 pub fn load_input(
@@ -176,13 +191,15 @@ pub fn load_input(
         );
     }
     let flat = Image::new(32, 16, Vec3::ONE);
-    let (scene, _) = scene_from_depth(&depth, &maps, EnvMap::new(&flat)?, mesh_angle, complete)
-        .with_context(|| format!("{}: building the scene", dir.display()))?;
+    let (scene, _, completion) =
+        scene_from_depth(&depth, &maps, EnvMap::new(&flat)?, mesh_angle, complete)
+            .with_context(|| format!("{}: building the scene", dir.display()))?;
     Ok(InvertInput {
         depth,
         maps,
         target,
         scene,
+        completion,
     })
 }
 
@@ -319,6 +336,15 @@ pub fn write_bundle(
     maps.normal = pred.normal.clone();
     b.write_materials("best_results", &maps)?;
     io::write_hdr(&b.path("best_results/envmap.hdr"), &res.envmap)?;
+    let lamps = b.path(crate::lamps::LAMPS_FILE);
+    if res.lamps.is_empty() {
+        if lamps.exists() {
+            std::fs::remove_file(&lamps)
+                .with_context(|| format!("removing the stale {}", lamps.display()))?;
+        }
+    } else {
+        crate::lamps::write_lamps(&lamps, &res.lamps)?;
+    }
     io::write_exr_rgb(&b.path("best_results/rendered_img.exr"), &res.rendered)?;
     io::write_png_gamma(&b.path("best_results/rendered_img.png"), &res.rendered)?;
     // The frozen-path estimator's image for the recovered parameters (what
@@ -339,13 +365,19 @@ pub fn invert_cmd(a: InvertArgs) -> Result<()> {
         a.mesh_angle,
         a.complete.params().as_ref(),
     )?;
-    let opts = options_from(&a);
+    let mut opts = options_from(&a);
     let InvertInput {
         depth,
         maps,
         target,
         scene,
+        completion,
     } = input;
+    if a.lamps.on() && !completion.lamp_sites.is_empty() {
+        opts.lamp_sites = completion.lamp_sites.clone();
+        opts.lamp_scale = completion.room_height;
+        opts.lamp_sparsity = a.lamp_sparsity;
+    }
     // Whether the frozen paths' light samples are guided by visibility
     // (asked for, and the scene enclosed enough).
     let light_guided = opts.light_guide && scene.light_visibility.is_some();
@@ -373,6 +405,13 @@ pub fn invert_cmd(a: InvertArgs) -> Result<()> {
             "rm_margin": opts.rm_margin,
             "albedo_level": if opts.level_from_pred { "pred" } else { "free" },
             "albedo_level_band": opts.level_band,
+            "lamps": a.lamps.on(),
+            "lamp_sparsity": opts.lamp_sparsity,
+        },
+        "lamps": {
+            "sites": opts.lamp_sites.len(),
+            "room_height": completion.room_height,
+            "intensity_sum": res.lamps.iter().map(|l| l.intensity).sum::<Vec3>().to_array(),
         },
         "light_guided": light_guided,
         "rm_search": res.report.rm_search,

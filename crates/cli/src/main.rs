@@ -50,6 +50,7 @@ mod cluster;
 mod commands;
 mod dataset;
 mod invert;
+mod lamps;
 mod predict;
 mod routes;
 mod run;

@@ -136,6 +136,53 @@ pub struct Completion {
     pub triangles: usize,
     /// Of those, the ones continuing objects cut by the border.
     pub border_triangles: usize,
+    /// Where lamps may hang in a closed room (camera space; empty unless
+    /// a room was closed): a grid of [`LAMP_GRID`]² points under its
+    /// ceiling, [`LAMP_DROP`] of the room's height below it, over the
+    /// box the closure assumed. Lamps a view does not show are the other
+    /// light of a closed room; inverse rendering fits their intensity.
+    pub lamp_sites: Vec<Vec3>,
+    /// The closed room's height, floor to ceiling (0 if none).
+    pub room_height: f32,
+}
+
+/// Lamp sites per side of a closed room's box ([`Completion::lamp_sites`]).
+pub const LAMP_GRID: usize = 3;
+/// How far lamp sites hang under the ceiling, as a share of the room's
+/// height.
+pub const LAMP_DROP: f32 = 0.12;
+
+/// The box a closed room was taken as: "up", the camera's height above
+/// the floor, the ceiling's, the box's horizontal axes and its extent
+/// from the camera along a0, a1, −a0, −a1.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RoomBox {
+    pub up: Vec3,
+    pub camera_height: f32,
+    pub height: f32,
+    pub axes: [Vec3; 2],
+    pub extent: [f32; 4],
+}
+
+impl RoomBox {
+    /// A grid of [`LAMP_GRID`]² points [`LAMP_DROP`]·height under the
+    /// ceiling, at the centres of equal cells of the box's footprint.
+    pub fn lamp_sites(&self) -> Vec<Vec3> {
+        let y = self.height * (1.0 - LAMP_DROP) - self.camera_height;
+        let [a0, a1] = self.axes;
+        let [e0, e1, f0, f1] = self.extent;
+        let mut out = Vec::with_capacity(LAMP_GRID * LAMP_GRID);
+        for i in 0..LAMP_GRID {
+            let s = (i as f32 + 0.5) / LAMP_GRID as f32;
+            for j in 0..LAMP_GRID {
+                let t = (j as f32 + 0.5) / LAMP_GRID as f32;
+                let u = -f0 + s * (e0 + f0);
+                let v = -f1 + t * (e1 + f1);
+                out.push(self.up * y + a0 * u + a1 * v);
+            }
+        }
+        out
+    }
 }
 
 /// One extended plane: its fit, the triangles added beyond the frame
@@ -167,7 +214,11 @@ pub struct Extension {
 /// scene may be outdoors: ground without walls; [`extensions`] first looks
 /// for a strip of wall under the fit's threshold, `small_wall`), or no up
 /// at all.
-fn closure(bounding: &[PlaneFit], points: &[(Vec3, f32)], p: &CompleteParams) -> Vec<PlaneFit> {
+fn closure(
+    bounding: &[PlaneFit],
+    points: &[(Vec3, f32)],
+    p: &CompleteParams,
+) -> (Vec<PlaneFit>, Option<RoomBox>) {
     let by_fraction = |a: &&PlaneFit, b: &&PlaneFit| a.fraction.total_cmp(&b.fraction);
     let floor = bounding
         .iter()
@@ -184,12 +235,12 @@ fn closure(bounding: &[PlaneFit], points: &[(Vec3, f32)], p: &CompleteParams) ->
         .max_by(by_fraction);
     let has_ceiling = ceiling.is_some();
     if points.is_empty() {
-        return Vec::new();
+        return (Vec::new(), None);
     }
     let (up, h, floor_seen) = match floor {
         Some(f) => {
             if walls.is_empty() && !has_ceiling {
-                return Vec::new();
+                return (Vec::new(), None);
             }
             (f.plane.n, f.plane.d, true)
         }
@@ -199,7 +250,7 @@ fn closure(bounding: &[PlaneFit], points: &[(Vec3, f32)], p: &CompleteParams) ->
                 .or_else(|| walls_up(&walls))
                 .or_else(|| largest_wall.and_then(upright_wall_up))
             else {
-                return Vec::new();
+                return (Vec::new(), None);
             };
             let low = points
                 .iter()
@@ -209,7 +260,7 @@ fn closure(bounding: &[PlaneFit], points: &[(Vec3, f32)], p: &CompleteParams) ->
         }
     };
     if !(h > 0.0) || !h.is_finite() {
-        return Vec::new();
+        return (Vec::new(), None);
     }
     let horizontal = |v: Vec3| (v - up * up.dot(v)).normalize_or_zero();
     let a0 = largest_wall
@@ -217,7 +268,7 @@ fn closure(bounding: &[PlaneFit], points: &[(Vec3, f32)], p: &CompleteParams) ->
         .filter(|a| *a != Vec3::ZERO)
         .unwrap_or_else(|| horizontal(Vec3::NEG_Z));
     if a0 == Vec3::ZERO {
-        return Vec::new();
+        return (Vec::new(), None);
     }
     let a1 = up.cross(a0).normalize_or_zero();
     let margin = 0.05 * h;
@@ -232,30 +283,40 @@ fn closure(bounding: &[PlaneFit], points: &[(Vec3, f32)], p: &CompleteParams) ->
     if !floor_seen {
         out.push(assumed(up, h, PlaneKind::Floor));
     }
-    if !has_ceiling {
-        let top = points
-            .iter()
-            .map(|(q, _)| up.dot(*q) + h)
-            .fold(0.0f32, f32::max);
-        let height = (top + margin).max(p.ceiling_ratio * h);
-        out.push(assumed(-up, height - h, PlaneKind::Ceiling));
-    }
-    let cos30 = 30f32.to_radians().cos();
-    for a in [a0, a1, -a0, -a1] {
-        if walls.iter().any(|w| horizontal(-w.plane.n).dot(a) > cos30) {
-            continue;
+    let height = match ceiling {
+        Some(c) => c.plane.d + h,
+        None => {
+            let top = points
+                .iter()
+                .map(|(q, _)| up.dot(*q) + h)
+                .fold(0.0f32, f32::max);
+            let height = (top + margin).max(p.ceiling_ratio * h);
+            out.push(assumed(-up, height - h, PlaneKind::Ceiling));
+            height
         }
+    };
+    let mut extent = [0.0f32; 4];
+    let cos30 = 30f32.to_radians().cos();
+    for (k, a) in [a0, a1, -a0, -a1].into_iter().enumerate() {
         let far = points
             .iter()
             .map(|(q, _)| a.dot(*q))
             .fold(f32::NEG_INFINITY, f32::max);
-        out.push(assumed(
-            -a,
-            (far + margin).max(p.wall_ratio * h),
-            PlaneKind::Wall,
-        ));
+        let d = (far + margin).max(p.wall_ratio * h);
+        extent[k] = d;
+        if walls.iter().any(|w| horizontal(-w.plane.n).dot(a) > cos30) {
+            continue;
+        }
+        out.push(assumed(-a, d, PlaneKind::Wall));
     }
-    out
+    let room = (height > h && extent.iter().all(|e| e.is_finite())).then_some(RoomBox {
+        up,
+        camera_height: h,
+        height,
+        axes: [a0, a1],
+        extent,
+    });
+    (out, room)
 }
 
 /// Whether the bounding planes are a floor with neither a wall nor a
@@ -406,7 +467,12 @@ fn bounds_scene(f: &PlaneFit, points: &[(Vec3, f32)], p: &CompleteParams) -> boo
 
 /// The extensions of the bounding planes of depth map `z` past the frame,
 /// and how many planes were found but not extended.
-pub fn extensions(z: &GrayImage, cam: &Camera, p: &CompleteParams) -> (Vec<Extension>, usize) {
+/// With `close`, also the box of the room closed, if one was.
+pub fn extensions(
+    z: &GrayImage,
+    cam: &Camera,
+    p: &CompleteParams,
+) -> (Vec<Extension>, usize, Option<RoomBox>) {
     let (fits, search, up) = fit_planes_resumable(z, cam, &p.planes);
     let (w, h) = (z.width, z.height);
     let valid: Vec<usize> = (0..w * h)
@@ -423,7 +489,7 @@ pub fn extensions(z: &GrayImage, cam: &Camera, p: &CompleteParams) -> (Vec<Exten
         .collect();
     let mut out = Vec::new();
     let Some(zmax) = points.iter().map(|&(_, z)| z).reduce(f32::max) else {
-        return (out, 0);
+        return (out, 0, None);
     };
     let found = fits.len();
     let (mut bounding, inside): (Vec<PlaneFit>, Vec<PlaneFit>) =
@@ -432,9 +498,11 @@ pub fn extensions(z: &GrayImage, cam: &Camera, p: &CompleteParams) -> (Vec<Exten
         bounding.extend(small_walls(search, up, p, found, &points));
     }
     let seen = bounding.len();
+    let mut room = None;
     if p.close {
-        let extra = closure(&bounding, &points, p);
+        let (extra, r) = closure(&bounding, &points, p);
         bounding.extend(extra);
+        room = r;
     }
     let mut kept_in = inside.len();
     let sides = frustum_sides(cam);
@@ -520,7 +588,7 @@ pub fn extensions(z: &GrayImage, cam: &Camera, p: &CompleteParams) -> (Vec<Exten
             assumed,
         });
     }
-    (out, kept_in)
+    (out, kept_in, room)
 }
 
 /// Adds the part of convex polygon `poly` (on the plane of normal `n`)
@@ -696,10 +764,12 @@ pub fn complete_beyond_frame(
     cam: &Camera,
     p: &CompleteParams,
 ) -> Completion {
-    let (exts, kept_in) = extensions(z, cam, p);
+    let (exts, kept_in, room) = extensions(z, cam, p);
     let (w, h) = (z.width, z.height);
     let mut done = Completion {
         kept_in,
+        lamp_sites: room.map(|r| r.lamp_sites()).unwrap_or_default(),
+        room_height: room.map_or(0.0, |r| r.height),
         ..Completion::default()
     };
     if exts.is_empty() {
@@ -1013,9 +1083,18 @@ mod tests {
     /// The nearest hit of a ray from the origin on `mesh`'s triangles from
     /// index `from` on (Möller–Trumbore).
     fn hit(mesh: &TriMesh, from: usize, dir: Vec3) -> Option<f32> {
+        hit_at(mesh, from, Vec3::ZERO, dir)
+    }
+
+    /// [`hit`] from `origin`, over every triangle.
+    fn hit_from(mesh: &TriMesh, origin: Vec3, dir: Vec3) -> Option<f32> {
+        hit_at(mesh, 0, origin, dir)
+    }
+
+    fn hit_at(mesh: &TriMesh, from: usize, origin: Vec3, dir: Vec3) -> Option<f32> {
         let mut best: Option<f32> = None;
         for tri in &mesh.indices[from..] {
-            let [a, b, c] = tri.map(|k| mesh.positions[k as usize]);
+            let [a, b, c] = tri.map(|k| mesh.positions[k as usize] - origin);
             let (e1, e2) = (b - a, c - a);
             let pv = dir.cross(e2);
             let det = e1.dot(pv);
@@ -1147,7 +1226,7 @@ mod tests {
                 z.data[y * 96 + x] = 0.0;
             }
         }
-        let (exts, _) = extensions(&z, &cam, &CompleteParams::default());
+        let (exts, _, _) = extensions(&z, &cam, &CompleteParams::default());
         let back = exts
             .iter()
             .find(|e| (e.fit.plane.d - 8.0).abs() < 1e-2 && e.fit.plane.n.z > 0.99)
@@ -1187,6 +1266,26 @@ mod tests {
         }
         // Still nothing in view.
         assert_view_open(&mesh, &cam, 5);
+        // Lamp sites: a grid under the ceiling, each with the ceiling
+        // straight above it at the room's height times the drop, over the
+        // room from the wall behind the camera to the wall seen.
+        assert_eq!(c.lamp_sites.len(), LAMP_GRID * LAMP_GRID);
+        assert!(
+            (c.room_height - (up + 0.9)).abs() < 1e-3,
+            "{}",
+            c.room_height
+        );
+        for &q in &c.lamp_sites {
+            let over = hit_from(&mesh, q, Vec3::Y).expect("the ceiling above");
+            assert!(
+                (over - LAMP_DROP * c.room_height).abs() < 1e-3,
+                "{q}: {over}"
+            );
+            // Cell centres of [−0.45, 8.045] (the wall behind, the wall
+            // seen plus the margin) in thirds.
+            let cells = [0.966f32, 3.798, 6.629];
+            assert!(cells.iter().any(|d| (q.z + d).abs() < 1e-3), "{q}");
+        }
         // With the default typical window in each assumed wall, light
         // comes in straight from behind at the camera's height, not from
         // low down nor through the ceiling.
@@ -1389,6 +1488,7 @@ mod tests {
         let mut mesh = TriMesh::default();
         let c = complete_beyond_frame(&mut mesh, &z, &cam, &p);
         assert_eq!(c.extended.len(), 1, "{c:?}");
+        assert!(c.lamp_sites.is_empty());
         for dir in [Vec3::Y, Vec3::Z, Vec3::X, Vec3::NEG_X, Vec3::NEG_Z] {
             assert!(hit(&mesh, 0, dir).is_none(), "{dir}");
         }

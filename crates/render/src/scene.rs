@@ -3,8 +3,8 @@
 
 use glam::{Vec2, Vec3};
 use matflow_geom::{
-    complete_beyond_frame, mesh_for_view, vertex_normals, Bvh, CompleteParams, DepthMesh,
-    MeshStats, TriMesh,
+    complete_beyond_frame, mesh_for_view, vertex_normals, Bvh, CompleteParams, Completion,
+    DepthMesh, MeshStats, TriMesh,
 };
 use matflow_scene::{Camera, GrayImage, MaterialMaps};
 
@@ -36,24 +36,25 @@ pub fn materials_from_maps(maps: &MaterialMaps) -> Vec<Material> {
 /// mesh's statistics come back too. With `complete`, the geometry is
 /// completed past the frame ([`matflow_geom::complete_beyond_frame`]: the
 /// room's planes extended and, if asked, the room closed), the added
-/// triangles taking the materials of the pixels they continue.
+/// triangles taking the materials of the pixels they continue; what the
+/// completion did comes back too (the default without one).
 pub fn scene_from_depth(
     depth: &GrayImage,
     maps: &MaterialMaps,
     env: EnvMap,
     mesh_angle_deg: f64,
     complete: Option<&CompleteParams>,
-) -> Result<(RenderScene, MeshStats), RenderError> {
+) -> Result<(RenderScene, MeshStats, Completion), RenderError> {
     let (
         cam,
         DepthMesh {
             mut mesh, stats, ..
         },
     ) = mesh_for_view(depth, mesh_angle_deg)?;
-    if let Some(p) = complete {
-        complete_beyond_frame(&mut mesh, depth, &cam, p);
-    }
-    Ok((RenderScene::new(cam, mesh, maps, env)?, stats))
+    let completion = complete
+        .map(|p| complete_beyond_frame(&mut mesh, depth, &cam, p))
+        .unwrap_or_default();
+    Ok((RenderScene::new(cam, mesh, maps, env)?, stats, completion))
 }
 
 /// The material of an inserted object's surface. Unlike the screen-space

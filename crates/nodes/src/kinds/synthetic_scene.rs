@@ -92,7 +92,7 @@ impl Node for SyntheticSceneNode {
             s.maps.clone()
         };
         let env = EnvMap::new(&s.envmap).map_err(failed)?;
-        let (scene, _) = scene_from_depth(&s.depth, &s.maps, env, 6.0, None).map_err(failed)?;
+        let (scene, _, _) = scene_from_depth(&s.depth, &s.maps, env, 6.0, None).map_err(failed)?;
         let opts = RenderOptions {
             spp: p.i64("spp") as u32,
             seed,
