@@ -339,6 +339,8 @@ pub enum InvertError {
     TooManyLamps { sites: usize, width: usize },
     #[error("lamp scale {0} is not a positive finite length")]
     LampScale(f32),
+    #[error("lamp site {index} is not a finite point")]
+    LampSite { index: usize },
     #[error("tracing the frozen light paths")]
     Cache(#[from] CacheError),
     #[error("building the {what}")]
@@ -548,10 +550,11 @@ pub fn invert(
         if sites > ew || light_len(ew, eh, sites) > 65535 {
             return Err(InvertError::TooManyLamps { sites, width: ew });
         }
-        if !(opts.lamp_scale > 0.0 && opts.lamp_scale.is_finite())
-            || opts.lamp_sites.iter().any(|p| !p.is_finite())
-        {
+        if !(opts.lamp_scale > 0.0 && opts.lamp_scale.is_finite()) {
             return Err(InvertError::LampScale(opts.lamp_scale));
+        }
+        if let Some(index) = opts.lamp_sites.iter().position(|p| !p.is_finite()) {
+            return Err(InvertError::LampSite { index });
         }
     }
     // The light vector: the envmap's texels, then (with lamp sites) the
@@ -986,11 +989,33 @@ mod tests {
         // Fitting lamps needs a route that fits them.
         let mlp = InvertOptions {
             env_route: env_route("mlp", &[]).expect("env route"),
-            ..opts(sites)
+            ..opts(sites.clone())
         };
         assert!(matches!(
             invert(room(3, n).scene, &lit, &pred, &mlp, &|_| {}),
             Err(InvertError::LampsNotFitted { .. })
+        ));
+        // Sites and scale are checked before anything runs.
+        let bad = |o: InvertOptions| invert(room(3, n).scene, &lit, &pred, &o, &|_| {}).err();
+        let mut nan = sites.clone();
+        nan[1].y = f32::NAN;
+        assert!(matches!(
+            bad(opts(nan)),
+            Some(InvertError::LampSite { index: 1 })
+        ));
+        assert!(matches!(
+            bad(InvertOptions {
+                lamp_scale: 0.0,
+                ..opts(sites.clone())
+            }),
+            Some(InvertError::LampScale(_))
+        ));
+        assert!(matches!(
+            bad(opts(vec![sites[0]; 33])),
+            Some(InvertError::TooManyLamps {
+                sites: 33,
+                width: 32
+            })
         ));
     }
 }
