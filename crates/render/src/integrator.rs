@@ -1635,6 +1635,25 @@ mod tests {
         )
     }
 
+    /// Adds to the depth mesh of [`plane_mesh`] a square of half-size `r`
+    /// centred on (`c`, `z`) in the plane z = `z`, its two triangles
+    /// naming pixel 0 (the depth mesh's own are projected).
+    fn add_square(mesh: &mut TriMesh, c: Vec2, r: f32, z: f32) {
+        let own = mesh.triangle_count();
+        let base = mesh.positions.len() as u32;
+        mesh.positions.extend([
+            Vec3::new(c.x - r, c.y - r, z),
+            Vec3::new(c.x + r, c.y - r, z),
+            Vec3::new(c.x + r, c.y + r, z),
+            Vec3::new(c.x - r, c.y + r, z),
+        ]);
+        mesh.film.resize(mesh.positions.len(), Vec2::ZERO);
+        mesh.indices
+            .extend([[base, base + 1, base + 2], [base, base + 2, base + 3]]);
+        mesh.material_pixel = vec![matflow_geom::PROJECTED; own];
+        mesh.material_pixel.extend([0, 0]);
+    }
+
     /// Known answer: the plane of [`plane_under_envmap_matches_quadrature`]
     /// with a large surface behind the camera that lets a share `open` of
     /// light through: the sky it covers reaches the plane scaled by that
@@ -1653,18 +1672,7 @@ mod tests {
         let own = mesh.triangle_count();
         // A 12×12 square at z = +1 facing the plane.
         let (z, r) = (1.0f32, 6.0f32);
-        let base = mesh.positions.len() as u32;
-        mesh.positions.extend([
-            Vec3::new(-r, -r, z),
-            Vec3::new(r, -r, z),
-            Vec3::new(r, r, z),
-            Vec3::new(-r, r, z),
-        ]);
-        mesh.film.resize(mesh.positions.len(), Vec2::ZERO);
-        mesh.indices
-            .extend([[base, base + 1, base + 2], [base, base + 2, base + 3]]);
-        mesh.material_pixel = vec![matflow_geom::PROJECTED; own];
-        mesh.material_pixel.extend([0, 0]);
+        add_square(&mut mesh, Vec2::ZERO, r, z);
         let maps = MaterialMaps::uniform(n, n, mat.albedo, mat.roughness, mat.metallic);
         let opts = RenderOptions {
             max_depth: 2,
@@ -1713,7 +1721,6 @@ mod tests {
         };
         let n = 8;
         let (cam, mut mesh) = plane_mesh(n);
-        let own = mesh.triangle_count();
         let p = Vec3::new(0.0, 0.0, -5.0);
         let seen = Vec3::new(0.6, 0.4, -2.0);
         let behind = Vec3::new(-0.5, 0.4, -7.0);
@@ -1723,18 +1730,7 @@ mod tests {
         let zs = -4.2f32;
         let c = p + (hidden - p) * ((zs - p.z) / (hidden.z - p.z));
         let h = 0.1f32;
-        let base = mesh.positions.len() as u32;
-        mesh.positions.extend([
-            Vec3::new(c.x - h, c.y - h, zs),
-            Vec3::new(c.x + h, c.y - h, zs),
-            Vec3::new(c.x + h, c.y + h, zs),
-            Vec3::new(c.x - h, c.y + h, zs),
-        ]);
-        mesh.film.resize(mesh.positions.len(), Vec2::ZERO);
-        mesh.indices
-            .extend([[base, base + 1, base + 2], [base, base + 2, base + 3]]);
-        mesh.material_pixel = vec![matflow_geom::PROJECTED; own];
-        mesh.material_pixel.extend([0, 0]);
+        add_square(&mut mesh, Vec2::new(c.x, c.y), h, zs);
         let maps = MaterialMaps::uniform(n, n, mat.albedo, mat.roughness, mat.metallic);
         let mut scene = RenderScene::new(cam, mesh, &maps, EnvMap::new(&sky()).unwrap()).unwrap();
         let intensity = Vec3::new(2.0, 1.5, 1.0);
