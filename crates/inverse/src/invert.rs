@@ -32,7 +32,7 @@ use matflow_scene::{Image, MaterialMaps, RgbImage};
 use crate::denoise::{denoise_tables, Guide};
 use crate::envfit::{exposure_scale, strided_pixels, EnvTransport, FitTrace};
 use crate::loss::{loss_and_grad, Target};
-use crate::paths::{light_len, CacheError, CacheOptions, PathCache};
+use crate::paths::{check_lamps, light_len, CacheError, CacheOptions, PathCache};
 
 /// The pixel filter the inversion fits and re-renders with (each sample in
 /// its own pixel, as the frozen paths are kept); `summary.json` records
@@ -547,12 +547,12 @@ pub fn invert(
                 route: opts.env_route.name(),
             });
         }
-        if sites > ew || light_len(ew, eh, sites) > 65535 {
-            return Err(InvertError::TooManyLamps { sites, width: ew });
-        }
-        if !(opts.lamp_scale > 0.0 && opts.lamp_scale.is_finite()) {
-            return Err(InvertError::LampScale(opts.lamp_scale));
-        }
+        // The frozen paths' own limits, checked before anything runs.
+        check_lamps(sites, ew, eh, opts.lamp_scale).map_err(|e| match e {
+            CacheError::Lamps { .. } => InvertError::TooManyLamps { sites, width: ew },
+            CacheError::LampScale(s) => InvertError::LampScale(s),
+            e => InvertError::Cache(e),
+        })?;
         if let Some(index) = opts.lamp_sites.iter().position(|p| !p.is_finite()) {
             return Err(InvertError::LampSite { index });
         }

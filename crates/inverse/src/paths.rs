@@ -166,6 +166,22 @@ pub fn light_len(w: usize, h: usize, lamps: usize) -> usize {
     w * h + if lamps > 0 { 2 * w } else { 0 }
 }
 
+/// Whether `lamps` lamps fit the light vector of a `w`×`h` envmap (at
+/// most one per column, at most 65535 entries) with entries scaled by a
+/// positive finite `scale`; no lamps always do.
+pub fn check_lamps(lamps: usize, w: usize, h: usize, scale: f32) -> Result<(), CacheError> {
+    if lamps == 0 {
+        return Ok(());
+    }
+    if lamps > w || light_len(w, h, lamps) > 65535 {
+        return Err(CacheError::Lamps { lamps, width: w });
+    }
+    if !(scale > 0.0 && scale.is_finite()) {
+        return Err(CacheError::LampScale(scale));
+    }
+    Ok(())
+}
+
 #[derive(Clone, Copy, Debug, Default, serde::Serialize)]
 pub struct CacheStats {
     pub rays: u64,
@@ -263,17 +279,7 @@ impl PathCache {
             });
         }
         let lamps = scene.lamps.len();
-        if lamps > opts.env_width
-            || (lamps > 0 && light_len(opts.env_width, opts.env_height, lamps) > 65535)
-        {
-            return Err(CacheError::Lamps {
-                lamps,
-                width: opts.env_width,
-            });
-        }
-        if lamps > 0 && !(opts.lamp_scale > 0.0 && opts.lamp_scale.is_finite()) {
-            return Err(CacheError::LampScale(opts.lamp_scale));
-        }
+        check_lamps(lamps, opts.env_width, opts.env_height, opts.lamp_scale)?;
         let (w, h) = (scene.camera.width, scene.camera.height);
         let done = AtomicUsize::new(0);
         let rows: Vec<Result<(RowPaths, u64), CacheError>> = (0..h)

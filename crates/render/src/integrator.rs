@@ -557,17 +557,19 @@ impl Wavefront {
                 path.obj = obj as u32;
                 path.tex = scene.object_texture(obj, path.hit.prim, path.hit.u, path.hit.v);
                 let surface = surface.textured(path.tex);
-                shade_object(scene, path, surface, k, st, &mut self.rays);
-                if !path.glass_vertex {
-                    let (ng, n) = (path.ng, path.n);
-                    let facing = |l: Vec3| ng.dot(l) > 0.0 && n.dot(l) > 0.0;
-                    sample_lamp(scene, path, ng, facing, st, &mut self.lamp_rays);
-                }
+                shade_object(
+                    scene,
+                    path,
+                    surface,
+                    k,
+                    st,
+                    &mut self.rays,
+                    &mut self.lamp_rays,
+                );
                 continue;
             }
             if let Some(g) = scene.glass_pixel(path.q) {
                 shade_screen_glass(scene, path, *g, k, st, &mut self.rays);
-                path.lamp = None;
                 continue;
             }
             let n = scene.face_normals[path.hit.prim as usize];
@@ -858,6 +860,7 @@ fn sample_light(
 ) {
     let (ue1, ue2) = path.rng.next_2d_with(key);
     path.light = None;
+    path.lamp = None;
     path.u_lamp = ue2;
     path.cluster = scene.env.cluster(path.p);
     if !enabled {
@@ -877,11 +880,12 @@ fn sample_light(
     }
 }
 
-/// Next-event estimation towards the scene's lamps (none: nothing): one
-/// lamp, chosen uniformly by the number drawn with the vertex's envmap
-/// sample (its own estimator, so sharing the number biases neither), and
-/// when `accept(direction)` a shadow ray queued in `rays` along the
-/// segment to it, leaving by the geometric normal `ng`.
+/// Next-event estimation towards the scene's lamps (none: nothing), after
+/// [`sample_light`] (which clears the vertex's lamp sample and draws the
+/// number): one lamp, chosen uniformly by the number drawn with the
+/// vertex's envmap sample (its own estimator, so sharing the number
+/// biases neither), and when `accept(direction)` a shadow ray queued in
+/// `rays` along the segment to it, leaving by the geometric normal `ng`.
 #[inline(always)]
 fn sample_lamp(
     scene: &RenderScene,
@@ -891,7 +895,6 @@ fn sample_lamp(
     st: &mut RenderStats,
     rays: &mut Vec<(Vec3, Vec3)>,
 ) {
-    path.lamp = None;
     let count = scene.lamps.len();
     if count == 0 {
         return;
@@ -956,9 +959,10 @@ fn surface_eval_pdf(s: &Surface, n: Vec3, v: Vec3, l: Vec3) -> (Vec3, f32) {
     }
 }
 
-/// Shades a vertex on an object: its envmap sample (queued as a shadow
-/// ray in `rays`) and BSDF sample, drawing the same dimensions in the same
-/// order as a depth-mesh vertex.
+/// Shades a vertex on an object: its envmap and (opaque surfaces) lamp
+/// samples (queued as shadow rays in `rays` and `lamp_rays`) and BSDF
+/// sample, drawing the same dimensions in the same order as a depth-mesh
+/// vertex.
 #[inline(never)]
 fn shade_object(
     scene: &RenderScene,
@@ -967,6 +971,7 @@ fn shade_object(
     k: VertexKeys,
     st: &mut RenderStats,
     rays: &mut Vec<(Vec3, Vec3)>,
+    lamp_rays: &mut Vec<(Vec3, Vec3)>,
 ) {
     let v = -path.dir;
     let mut ng = scene.face_normals[path.hit.prim as usize];
@@ -992,6 +997,9 @@ fn shade_object(
     let smooth = glass.is_some_and(|g| g.is_smooth());
     let facing = |wl: Vec3| glass.is_some() || (ng.dot(wl) > 0.0 && n.dot(wl) > 0.0);
     sample_light(scene, path, k.light, !smooth, ng, facing, st, rays);
+    if glass.is_none() {
+        sample_lamp(scene, path, ng, facing, st, lamp_rays);
+    }
     let u_lobe = path.rng.next_f32_with(k.lobe);
     let (u1, u2) = path.rng.next_2d_with(k.direction);
     path.next = match surface {
