@@ -128,6 +128,26 @@ fn synth_then_render_writes_exr_png_and_summary() {
         &["--materials", "ground_truth", "--spp", "2", "--complete"],
     );
     assert!(text.contains("light guided by visibility in "), "{text}");
+    // Its light samples also aim at the windows of its assumed walls
+    // (portals), unless told not to.
+    let portals = |text: &str| -> usize {
+        let end = text.find(" portal(s)").expect("a portal count");
+        text[..end].rsplit(' ').next().unwrap().parse().unwrap()
+    };
+    assert!(portals(&text) > 0, "{text}");
+    let off = render(
+        &b,
+        &[
+            "--materials",
+            "ground_truth",
+            "--spp",
+            "2",
+            "--complete",
+            "--portals",
+            "off",
+        ],
+    );
+    assert_eq!(portals(&off), 0, "{off}");
     let text = render(
         &b,
         &[
@@ -183,6 +203,8 @@ fn synth_then_render_writes_exr_png_and_summary() {
         serde_json::from_slice(&std::fs::read(inv.join("summary.json")).unwrap()).unwrap();
     assert_eq!(summary["options"]["light_guide"], true, "{summary}");
     assert_eq!(summary["light_guided"], true, "{summary}");
+    assert_eq!(summary["options"]["portals"], true, "{summary}");
+    assert!(summary["portals"].as_u64().unwrap() > 0, "{summary}");
     // The albedo's level was held at the prediction's: the summary says
     // so, and what gain the light took.
     assert_eq!(summary["options"]["albedo_level"], "pred", "{summary}");

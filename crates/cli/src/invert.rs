@@ -81,6 +81,10 @@ pub struct InvertArgs {
     /// sky (on), or sample the envmap by radiance alone (off).
     #[arg(long, default_value = "on")]
     pub light_guide: crate::commands::OnOff,
+    /// Aim light samples at the windows of a closed room's assumed walls
+    /// too (portals; on), or follow the envmap's density alone (off).
+    #[arg(long, default_value = "on")]
+    pub portals: crate::commands::OnOff,
     /// Search roughness and metallic per segment (one albedo per segment
     /// under a grid of R and M) before the per-pixel solve, moving the
     /// anchor where that explains the photo clearly better (on); off (the
@@ -240,6 +244,7 @@ pub fn options_from(a: &InvertArgs) -> InvertOptions {
         rescale: !a.no_rescale,
         env_only: a.env_only,
         light_guide: a.light_guide.on(),
+        portals: a.portals.on(),
         rm_search: a.rm_search.on(),
         rm_margin: a.rm_margin,
         level_from_pred: a.albedo_level == AlbedoLevel::Pred,
@@ -381,6 +386,7 @@ pub fn invert_cmd(a: InvertArgs) -> Result<()> {
     // Whether the frozen paths' light samples are guided by visibility
     // (asked for, and the scene enclosed enough).
     let light_guided = opts.light_guide && scene.light_visibility.is_some();
+    let portals = if opts.portals { scene.portals.len() } else { 0 };
     let (res, stage_seconds) = run_invert(scene, &target, &maps, &opts, a.quiet)?;
     let (depth, pred, target) = (&depth, &maps, &target);
     let rerender = image_metrics(&res.rendered, target);
@@ -401,6 +407,7 @@ pub fn invert_cmd(a: InvertArgs) -> Result<()> {
             "pixel_filter": matflow_inverse::invert::FIT_FILTER.name(),
             "complete": a.complete.name(),
             "light_guide": opts.light_guide,
+            "portals": opts.portals,
             "rm_search": opts.rm_search,
             "rm_margin": opts.rm_margin,
             "albedo_level": if opts.level_from_pred { "pred" } else { "free" },
@@ -414,6 +421,7 @@ pub fn invert_cmd(a: InvertArgs) -> Result<()> {
             "intensity_sum": res.lamps.iter().map(|l| l.intensity).sum::<Vec3>().to_array(),
         },
         "light_guided": light_guided,
+        "portals": portals,
         "rm_search": res.report.rm_search,
         "level_gain": res.report.level_gain,
         "plan": res.report.plan,

@@ -38,7 +38,7 @@
 use glam::{Vec2, Vec3};
 use matflow_scene::{Camera, GrayImage};
 
-use crate::mesh::TriMesh;
+use crate::mesh::{Portal, TriMesh};
 use crate::planes::{
     corner_up, fit_planes_resumable, Plane, PlaneFit, PlaneKind, PlaneParams, PlaneSearch,
 };
@@ -144,6 +144,9 @@ pub struct Completion {
     pub lamp_sites: Vec<Vec3>,
     /// The closed room's height, floor to ceiling (0 if none).
     pub room_height: f32,
+    /// Windows left open in assumed walls, added to the mesh's
+    /// [`TriMesh::portals`].
+    pub portals: usize,
 }
 
 /// Lamp sites per side of a closed room's box ([`Completion::lamp_sites`]).
@@ -196,6 +199,17 @@ pub struct Extension {
     pub pixels: Vec<u32>,
     /// An assumed plane of the closed room (no pixel shows it).
     pub assumed: bool,
+}
+
+/// What [`extensions`] finds: the planes extended, how many were found
+/// but not extended, the box of a closed room and the windows left in
+/// its assumed walls.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Extensions {
+    pub planes: Vec<Extension>,
+    pub kept_in: usize,
+    pub room: Option<RoomBox>,
+    pub portals: Vec<Portal>,
 }
 
 /// The planes that close a room the view shows only part of. "Up" is the
@@ -466,13 +480,10 @@ fn bounds_scene(f: &PlaneFit, points: &[(Vec3, f32)], p: &CompleteParams) -> boo
 }
 
 /// The extensions of the bounding planes of depth map `z` past the frame,
-/// and how many planes were found but not extended.
-/// With `close`, also the box of the room closed, if one was.
-pub fn extensions(
-    z: &GrayImage,
-    cam: &Camera,
-    p: &CompleteParams,
-) -> (Vec<Extension>, usize, Option<RoomBox>) {
+/// and how many planes were found but not extended ([`Extensions`]).
+/// With `close`, also the box of the room closed, if one was, and the
+/// windows of its assumed walls.
+pub fn extensions(z: &GrayImage, cam: &Camera, p: &CompleteParams) -> Extensions {
     let (fits, search, up) = fit_planes_resumable(z, cam, &p.planes);
     let (w, h) = (z.width, z.height);
     let valid: Vec<usize> = (0..w * h)
@@ -489,7 +500,7 @@ pub fn extensions(
         .collect();
     let mut out = Vec::new();
     let Some(zmax) = points.iter().map(|&(_, z)| z).reduce(f32::max) else {
-        return (out, 0, None);
+        return Extensions::default();
     };
     let found = fits.len();
     let (mut bounding, inside): (Vec<PlaneFit>, Vec<PlaneFit>) =
@@ -525,6 +536,7 @@ pub fn extensions(
             .reduce(f32::max)
     });
     let tol = p.planes.tolerance as f32;
+    let mut portals = Vec::new();
     for (k, f) in bounding.iter().enumerate() {
         let Plane { n, d } = f.plane;
         let others: Vec<Plane> = bounding
@@ -570,7 +582,10 @@ pub fn extensions(
         let pieces = if !f.reaches.iter().any(|&r| r) {
             Vec::new()
         } else if assumed && f.kind == PlaneKind::Wall && p.assumed_opening > 0.0 {
-            with_opening(&poly, n, floor, ceiling_height, p.assumed_opening)
+            let (pieces, window) =
+                with_opening(&poly, f.plane, floor, ceiling_height, p.assumed_opening);
+            portals.extend(window);
+            pieces
         } else {
             vec![poly]
         };
@@ -588,7 +603,12 @@ pub fn extensions(
             assumed,
         });
     }
-    (out, kept_in, room)
+    Extensions {
+        planes: out,
+        kept_in,
+        room,
+        portals,
+    }
 }
 
 /// Adds the part of convex polygon `poly` (on the plane of normal `n`)
@@ -626,25 +646,28 @@ fn outside_view(mesh: &mut TriMesh, poly: Vec<Vec3>, sides: &[Vec3; 4], n: Vec3,
 /// window spans: from sill to lintel, as fractions of the ceiling height.
 const WINDOW_BAND: (f32, f32) = (0.3, 0.85);
 
-/// Convex polygon `poly` of an assumed wall (normal `n`) less a window: the
-/// central `width` share of the wall's horizontal extent over the
+/// Convex polygon `poly` of an assumed wall (plane `wall`) less a window:
+/// the central `width` share of the wall's horizontal extent over the
 /// [`WINDOW_BAND`] of the room's height, as four convex pieces (below,
-/// above, left and right of it). Without a floor (no "up") or a ceiling
-/// height, the wall is kept whole.
+/// above, left and right of it), and the window as a [`Portal`] (the
+/// rectangle of the wall's plane that bounds it, facing the camera's
+/// side). Without a floor (no "up") or a ceiling height, the wall is kept
+/// whole.
 fn with_opening(
     poly: &[Vec3],
-    n: Vec3,
+    wall: Plane,
     floor: Option<Plane>,
     ceiling_height: Option<f32>,
     width: f32,
-) -> Vec<Vec<Vec3>> {
+) -> (Vec<Vec<Vec3>>, Option<Portal>) {
+    let n = wall.n;
     let (Some(fl), Some(height)) = (floor, ceiling_height) else {
-        return vec![poly.to_vec()];
+        return (vec![poly.to_vec()], None);
     };
     let up = fl.n;
     let along = up.cross(n).normalize_or_zero();
     if poly.len() < 3 || along == Vec3::ZERO || !(height > 0.0) {
-        return vec![poly.to_vec()];
+        return (vec![poly.to_vec()], None);
     }
     let (s0, s1) = poly
         .iter()
@@ -660,10 +683,41 @@ fn with_opening(
     let band = clip(&clip(poly, up, fl.d - t0), -up, t1 - fl.d);
     let left = clip(&band, -along, c - half);
     let right = clip(&band, along, -(c + half));
-    [below, above, left, right]
+    let window = clip(&clip(&band, along, half - c), -along, c + half);
+    let pieces = [below, above, left, right]
         .into_iter()
         .filter(|q| q.len() >= 3)
-        .collect()
+        .collect();
+    (pieces, bounding_portal(&window, wall, along))
+}
+
+/// The rectangle of plane `wall` (axes `along`, which lies in it, and
+/// `wall.n × along`) that bounds convex polygon `window` on it, as a
+/// [`Portal`] facing the camera's side of the plane; `None` for a
+/// degenerate window.
+fn bounding_portal(window: &[Vec3], wall: Plane, along: Vec3) -> Option<Portal> {
+    if window.len() < 3 {
+        return None;
+    }
+    let across = wall.n.cross(along).normalize_or_zero();
+    let range = |a: Vec3| {
+        window
+            .iter()
+            .map(|q| a.dot(*q))
+            .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), s| {
+                (lo.min(s), hi.max(s))
+            })
+    };
+    let ((a0, a1), (b0, b1)) = (range(along), range(across));
+    let corner = -wall.n * wall.d + along * a0 + across * b0;
+    let (u, v) = (along * (a1 - a0), across * (b1 - b0));
+    // along × across = n: inward (towards the camera) when d > 0.
+    let portal = if wall.d >= 0.0 {
+        Portal { corner, u, v }
+    } else {
+        Portal { corner, u: v, v: u }
+    };
+    portal.is_valid().then_some(portal)
 }
 
 /// The part of plane `f` that the view shows hidden behind nearer
@@ -764,14 +818,22 @@ pub fn complete_beyond_frame(
     cam: &Camera,
     p: &CompleteParams,
 ) -> Completion {
-    let (exts, kept_in, room) = extensions(z, cam, p);
+    let Extensions {
+        planes: exts,
+        kept_in,
+        room,
+        portals,
+    } = extensions(z, cam, p);
     let (w, h) = (z.width, z.height);
     let mut done = Completion {
         kept_in,
         lamp_sites: room.map(|r| r.lamp_sites()).unwrap_or_default(),
         room_height: room.map_or(0.0, |r| r.height),
+        portals: portals.len(),
         ..Completion::default()
     };
+    // The assumed walls' windows, for renderers to sample as lights.
+    mesh.portals.extend(portals);
     if exts.is_empty() {
         return done;
     }
@@ -1226,7 +1288,7 @@ mod tests {
                 z.data[y * 96 + x] = 0.0;
             }
         }
-        let (exts, _, _) = extensions(&z, &cam, &CompleteParams::default());
+        let exts = extensions(&z, &cam, &CompleteParams::default()).planes;
         let back = exts
             .iter()
             .find(|e| (e.fit.plane.d - 8.0).abs() < 1e-2 && e.fit.plane.n.z > 0.99)
@@ -1302,6 +1364,51 @@ mod tests {
         assert!(hit(&open, 0, Vec3::Z).is_none());
         assert!(hit(&open, 0, Vec3::new(0.0, -1.0, 0.3).normalize()).is_some());
         assert!(hit(&open, 0, Vec3::Y).is_some());
+        // Each window is a portal: a rectangle on its assumed wall over
+        // the window band, facing the camera; the ray to its centre
+        // leaves the room, rays just beyond its edges meet the wall.
+        assert!(mesh.portals.is_empty(), "no windows, no portals");
+        let open_c = complete_beyond_frame(
+            &mut TriMesh::default(),
+            &z,
+            &cam,
+            &CompleteParams {
+                close: true,
+                ..CompleteParams::default()
+            },
+        );
+        assert_eq!(open.portals.len(), 3, "behind and either side");
+        assert_eq!(open_c.portals, 3);
+        let floor_y = -0.9;
+        for p in &open.portals {
+            assert!(p.is_valid(), "{p:?}");
+            let centre = p.corner + (p.u + p.v) * 0.5;
+            assert!(p.normal().dot(-centre) > 0.0, "{p:?} faces away");
+            // Upright, over [0.3, 0.85] of the room's height.
+            let (lo, hi) = [
+                p.corner,
+                p.corner + p.u,
+                p.corner + p.v,
+                p.corner + p.u + p.v,
+            ]
+            .iter()
+            .fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), q| {
+                (a.min(q.y), b.max(q.y))
+            });
+            let h = c.room_height;
+            assert!((lo - floor_y - 0.3 * h).abs() < 1e-3, "{lo}");
+            assert!((hi - floor_y - 0.85 * h).abs() < 1e-3, "{hi}");
+            assert!(hit(&open, 0, centre.normalize()).is_none(), "{p:?}");
+            for outside in [
+                p.corner + p.u * 0.5 - p.v * 0.05,
+                p.corner + p.u * 0.5 + p.v * 1.05,
+                p.corner - p.u * 0.05 + p.v * 0.5,
+                p.corner + p.u * 1.05 + p.v * 0.5,
+            ] {
+                let t = hit(&open, 0, outside.normalize()).expect("the wall around it");
+                assert!((t - outside.length()).abs() < 1e-3, "{outside}: {t}");
+            }
+        }
     }
 
     #[test]

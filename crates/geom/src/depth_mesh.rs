@@ -356,6 +356,7 @@ pub fn mesh_from_depth(
             film,
             material_pixel: Vec::new(),
             openness: Vec::new(),
+            portals: Vec::new(),
         },
         depth: GrayImage::from_vec(w, h, znew),
         stats,

@@ -14,10 +14,11 @@ pub mod shapes;
 
 pub use bvh::{Bvh, Hit, PACKET};
 pub use complete::{
-    complete_beyond_frame, extensions, CompleteParams, Completion, Extension, COMPLETE_MODES,
+    complete_beyond_frame, extensions, CompleteParams, Completion, Extension, Extensions,
+    COMPLETE_MODES,
 };
 pub use depth_mesh::{
     mesh_for_view, mesh_from_depth, vertex_normals, DepthMesh, MeshError, MeshParams, MeshStats,
 };
-pub use mesh::{TriMesh, PROJECTED};
+pub use mesh::{Portal, TriMesh, PROJECTED};
 pub use planes::{fit_planes, Plane, PlaneFit, PlaneKind, PlaneParams};

@@ -45,6 +45,42 @@ pub struct TriMesh {
     /// lamps spread over them); light passing one reaches the sky, since
     /// they bound the scene. Empty when every triangle is solid.
     pub openness: Vec<f32>,
+    /// Openings light is known to come in through (a completed room's
+    /// assumed windows): renderers may sample them as lights. They add no
+    /// geometry (the opening is a hole in the triangles); a portal larger
+    /// than its hole only wastes samples. Empty for most meshes.
+    pub portals: Vec<Portal>,
+}
+
+/// A rectangular opening of a mesh that the scene's light comes in
+/// through ([`TriMesh::portals`]): corner `corner`, perpendicular edges
+/// `u` and `v`, with `u × v` pointing into the scene (only points on that
+/// side see light through it).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Portal {
+    pub corner: Vec3,
+    pub u: Vec3,
+    pub v: Vec3,
+}
+
+impl Portal {
+    /// The inward unit normal (zero for a degenerate portal).
+    pub fn normal(&self) -> Vec3 {
+        self.u.cross(self.v).normalize_or_zero()
+    }
+
+    /// Finite, with edges of positive length meeting at a right angle
+    /// (within 1e-3 of the product of their lengths).
+    pub fn is_valid(&self) -> bool {
+        let (lu, lv) = (self.u.length(), self.v.length());
+        self.corner.is_finite()
+            && self.u.is_finite()
+            && self.v.is_finite()
+            && lu > 0.0
+            && lv > 0.0
+            && (lu * lv).is_finite()
+            && self.u.dot(self.v).abs() <= 1e-3 * lu * lv
+    }
 }
 
 /// A triangle whose points take the material of the pixel they project

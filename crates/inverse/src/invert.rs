@@ -89,6 +89,10 @@ pub struct InvertOptions {
     /// scene sees of the sky ([`matflow_render::guide`]); off samples the
     /// envmap by radiance alone.
     pub light_guide: bool,
+    /// Aim the light samples at the scene's portals too (a completed
+    /// room's windows, [`matflow_render::portal`]); off samples the
+    /// envmap's density alone.
+    pub portals: bool,
     /// Search roughness and metallic per segment before the first
     /// material stage ([`crate::segments`]; only when R and M are not
     /// trusted and materials are recovered). Off by default: on the
@@ -204,6 +208,7 @@ impl Default for InvertOptions {
             denoise: 3,
             env_only: false,
             light_guide: true,
+            portals: true,
             rm_search: false,
             rm_margin: 0.1,
             level_from_pred: false,
@@ -531,6 +536,9 @@ pub fn invert(
     if !opts.light_guide {
         scene.set_light_guide(None);
     }
+    if !opts.portals {
+        scene.portals = Default::default();
+    }
     let env_route = opts.env_route.build();
     let mat_route = opts.mat_route.build();
     if opts.init_env.is_some() && !env_route.takes_start_envmap() {
@@ -584,7 +592,8 @@ pub fn invert(
     // only the scout's sample count and the envmap stages' settings
     // (which do not depend on the scene's rays) are taken from it.
     let guided = scene.light_visibility.is_some();
-    let first = plan_for(SceneCost::default().guided(guided));
+    let portals = !scene.portals.is_empty();
+    let first = plan_for(SceneCost::default().guided(guided).with_portals(portals));
     let pred = starting_materials(pred, opts);
     let mut mats = pred.clone();
     let mut run = Run {
@@ -602,7 +611,7 @@ pub fn invert(
     let scout = run.trace("trace scout", first.scout_spp, opts.seed ^ 0x5c0u64)?;
     let plan = Plan {
         scout_spp: first.scout_spp,
-        ..plan_for(SceneCost::of(&scout).guided(guided))
+        ..plan_for(SceneCost::of(&scout).guided(guided).with_portals(portals))
     };
     let exposure = {
         let tr = EnvTransport::build(&scout, &mats, run.pixels.clone());

@@ -37,8 +37,9 @@ pub struct SceneCost {
     /// Share of pixels whose paths start on a surface: only those have
     /// materials to solve (sky pixels cost next to nothing there).
     pub surface_fraction: f64,
-    /// Cost of a ray relative to the calibration scene's: 1, or
-    /// [`cost::GUIDED_RAY`] when light samples are guided by visibility.
+    /// Cost of a ray relative to the calibration scene's: 1, times
+    /// [`cost::GUIDED_RAY`] when light samples are guided by visibility
+    /// and [`cost::PORTAL_RAY`] when they aim at portals.
     pub ray_cost: f64,
 }
 
@@ -71,6 +72,15 @@ impl SceneCost {
             ..self
         }
     }
+
+    /// The same scene with its light samples aiming at portals
+    /// ([`matflow_render::portal`]), after [`SceneCost::guided`].
+    pub fn with_portals(self, portals: bool) -> SceneCost {
+        SceneCost {
+            ray_cost: self.ray_cost * if portals { cost::PORTAL_RAY } else { 1.0 },
+            ..self
+        }
+    }
 }
 
 /// Cost model of the reference 2-core machine for what every route shares,
@@ -96,6 +106,11 @@ pub mod cost {
     /// far): scene-00 of the validation set with the room completed,
     /// 32 cached paths 1.19×, the final render 1.11× per ray.
     pub const GUIDED_RAY: f64 = 1.2;
+    /// A ray's cost, relative, when light samples also aim at portals
+    /// (choosing one and mapping its spherical rectangle; more shadow
+    /// rays cross the room): indoor closed as a room with three assumed
+    /// windows, 32 cached paths 1.15×, the final render 1.09× per ray.
+    pub const PORTAL_RAY: f64 = 1.12;
     /// The search of R and M per segment (`crate::segments`), per surface
     /// pixel, besides its tables: primary rays, segments and the scores
     /// of a grid of 13 materials.
@@ -263,6 +278,19 @@ mod tests {
         // Guided light samples cost more per ray: fewer samples.
         let guided = plan(60.0, SceneCost::default().guided(true), &o);
         assert!(guided.final_spp < base.final_spp && guided.spp <= base.spp);
+        // So do light samples aimed at portals.
+        let portals = plan(
+            60.0,
+            SceneCost::default().guided(true).with_portals(true),
+            &o,
+        );
+        assert!(portals.final_spp < guided.final_spp && portals.spp <= guided.spp);
+        let none = plan(
+            60.0,
+            SceneCost::default().guided(true).with_portals(false),
+            &o,
+        );
+        assert_eq!(none.final_spp, guided.final_spp);
         // The search of R and M per segment is paid for (when it runs:
         // not with trusted R and M).
         let searched = InvertOptions {

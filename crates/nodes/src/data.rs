@@ -5,7 +5,7 @@ use std::path::Path;
 
 use glam::{Vec2, Vec3};
 use matflow_engine::{NodeError, ParamSpec, ParamType};
-use matflow_geom::{mesh_for_view, TriMesh};
+use matflow_geom::{mesh_for_view, Portal, TriMesh};
 use matflow_inverse::paths::{PathCache, PathWords};
 use matflow_render::{EnvMap, PixelFilter, RenderOptions, RenderScene};
 use matflow_scene::{io, Camera, GrayImage, MaterialMaps, RgbImage};
@@ -147,6 +147,19 @@ pub fn encode_mesh(width: usize, height: usize, m: &TriMesh) -> Vec<u8> {
     if !m.openness.is_empty() {
         a.put_f32("openness", m.openness.len() as u32, 1, m.openness.clone());
     }
+    // And only closed rooms with windows have portals.
+    if !m.portals.is_empty() {
+        a.put_f32(
+            "portals",
+            m.portals.len() as u32,
+            9,
+            m.portals
+                .iter()
+                .flat_map(|p| [p.corner, p.u, p.v])
+                .flat_map(|v| v.to_array())
+                .collect(),
+        );
+    }
     a.encode()
 }
 
@@ -184,6 +197,23 @@ pub fn decode_mesh(b: &[u8]) -> Result<(Camera, TriMesh), NodeError> {
     if openness.iter().any(|o| !(0.0..=1.0).contains(o)) {
         return Err(err("mesh artifact: openness outside [0, 1]"));
     }
+    let portals: Vec<Portal> = if a.has("portals") {
+        a.f32_list("portals", 9)?
+            .chunks_exact(9)
+            .map(|c| Portal {
+                corner: Vec3::new(c[0], c[1], c[2]),
+                u: Vec3::new(c[3], c[4], c[5]),
+                v: Vec3::new(c[6], c[7], c[8]),
+            })
+            .collect()
+    } else {
+        Vec::new()
+    };
+    if let Some(k) = portals.iter().position(|p| !p.is_valid()) {
+        return Err(err(format!(
+            "mesh artifact: portal {k} is not a rectangle (two perpendicular edges of positive length)"
+        )));
+    }
     Ok((
         Camera::new(cam[0] as usize, cam[1] as usize),
         TriMesh {
@@ -192,6 +222,7 @@ pub fn decode_mesh(b: &[u8]) -> Result<(Camera, TriMesh), NodeError> {
             film,
             material_pixel,
             openness,
+            portals,
         },
     ))
 }
@@ -681,7 +712,7 @@ mod cost_tests {
 mod mesh_tests {
     use super::{decode_mesh, encode_mesh};
     use glam::Vec3;
-    use matflow_geom::{TriMesh, PROJECTED};
+    use matflow_geom::{Portal, TriMesh, PROJECTED};
 
     #[test]
     fn a_mesh_keeps_its_material_pixels_and_a_plain_one_encodes_as_before() {
@@ -731,5 +762,34 @@ mod mesh_tests {
                 .to_string();
             assert!(e.contains("openness outside [0, 1]"), "{x}: {e}");
         }
+    }
+
+    #[test]
+    fn a_mesh_keeps_its_portals_which_must_be_rectangles() {
+        let mut m = TriMesh::default();
+        m.add_box(Vec3::splat(-1.0), Vec3::ONE);
+        let plain = encode_mesh(4, 3, &m);
+        m.portals = vec![
+            Portal {
+                corner: Vec3::new(-0.5, 0.2, 1.0),
+                u: Vec3::new(1.0, 0.0, 0.0),
+                v: Vec3::new(0.0, 0.5, 0.0),
+            },
+            Portal {
+                corner: Vec3::new(1.0, 0.0, 0.5),
+                u: Vec3::new(0.0, 0.0, -1.0),
+                v: Vec3::new(0.0, 0.7, 0.0),
+            },
+        ];
+        let with = encode_mesh(4, 3, &m);
+        assert_ne!(with, plain);
+        let (_, back) = decode_mesh(&with).unwrap();
+        assert_eq!(back, m);
+        let mut skew = m.clone();
+        skew.portals[1].v = Vec3::new(0.0, 0.7, 0.7);
+        let e = decode_mesh(&encode_mesh(4, 3, &skew))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("portal 1 is not a rectangle"), "{e}");
     }
 }

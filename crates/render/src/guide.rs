@@ -726,7 +726,7 @@ pub(crate) enum Draw {
 const NO_ROW: u32 = u32::MAX;
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::envmap::tests::sphere_integral;
     use crate::envmap::EnvMap;
@@ -793,7 +793,7 @@ mod tests {
         )
     }
 
-    fn sky(w: usize, h: usize) -> RgbImage {
+    pub(crate) fn sky(w: usize, h: usize) -> RgbImage {
         Image::from_fn(w, h, |x, y| {
             let d =
                 crate::envmap::uv_to_dir((x as f32 + 0.5) / w as f32, y as f32 / (h - 1) as f32);
@@ -919,7 +919,7 @@ mod tests {
 
     /// The room as a rendered scene: a two-sided diffuse object seen from
     /// inside, the camera looking at the floor under the opening.
-    fn room_scene(n: usize, env: RgbImage, mesh: TriMesh) -> crate::RenderScene {
+    pub(crate) fn room_scene(n: usize, env: RgbImage, mesh: TriMesh) -> crate::RenderScene {
         let cam = matflow_scene::Camera::new(n, n);
         let maps = matflow_scene::MaterialMaps::uniform(n, n, Vec3::splat(0.5), 1.0, 0.0);
         let room = crate::SceneObject {
@@ -939,7 +939,7 @@ mod tests {
         .unwrap()
     }
 
-    fn rmse(a: &RgbImage, b: &RgbImage) -> f64 {
+    pub(crate) fn rmse(a: &RgbImage, b: &RgbImage) -> f64 {
         let s: f64 = a
             .data
             .iter()
@@ -949,7 +949,7 @@ mod tests {
         (s / a.data.len() as f64).sqrt()
     }
 
-    fn mean(a: &RgbImage) -> f64 {
+    pub(crate) fn mean(a: &RgbImage) -> f64 {
         a.data.iter().map(|x| x.element_sum() as f64).sum::<f64>() / a.data.len() as f64
     }
 

@@ -292,6 +292,11 @@ struct Path {
     /// ([`crate::EnvMap::cluster`]): its light sample and a BSDF sample
     /// that reaches the sky are weighted with that cluster's density.
     cluster: u32,
+    /// Where the vertex's light sample left from and the portals' weight
+    /// there ([`RenderScene::sample_sky`]): a BSDF sample that reaches
+    /// the sky is weighted with the same density.
+    sky_from: Vec3,
+    portal_weight: f32,
 }
 
 impl Path {
@@ -330,6 +335,8 @@ impl Path {
             u_lamp: 0.0,
             next: None,
             cluster: crate::guide::NO_CLUSTER,
+            sky_from: Vec3::ZERO,
+            portal_weight: 0.0,
         }
     }
 }
@@ -765,7 +772,8 @@ impl Wavefront {
                 continue;
             };
             let Some(h) = *hit else {
-                let (le, pdf_e) = scene.env.eval_pdf_in(path.cluster, path.dir);
+                let (le, pdf_e) =
+                    scene.sky_eval_pdf(path.sky_from, path.portal_weight, path.cluster, path.dir);
                 let w = if c.delta {
                     1.0
                 } else {
@@ -782,7 +790,8 @@ impl Wavefront {
             let open = scene.openness(h.prim);
             let mut keep = 1.0;
             if open > 0.0 {
-                let (le, pdf_e) = scene.env.eval_pdf_in(path.cluster, path.dir);
+                let (le, pdf_e) =
+                    scene.sky_eval_pdf(path.sky_from, path.portal_weight, path.cluster, path.dir);
                 let w = if c.delta {
                     1.0
                 } else {
@@ -863,10 +872,14 @@ fn sample_light(
     path.lamp = None;
     path.u_lamp = ue2;
     path.cluster = scene.env.cluster(path.p);
+    path.sky_from = path.p;
+    path.portal_weight = 0.0;
     if !enabled {
         return;
     }
-    if let Some((wl, le, pdf_e)) = scene.env.sample_in(path.cluster, ue1, ue2) {
+    let (drawn, portal_weight) = scene.sample_sky(path.p, path.cluster, ue1, ue2);
+    path.portal_weight = portal_weight;
+    if let Some((wl, le, pdf_e)) = drawn {
         if accept(wl) && pdf_e > 0.0 {
             st.shadow_rays += 1;
             path.light = Some(LightSample {

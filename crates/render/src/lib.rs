@@ -12,6 +12,7 @@ pub mod filter;
 pub mod fmath;
 pub mod guide;
 pub mod integrator;
+pub mod portal;
 pub mod rng;
 pub mod rooms;
 pub mod scene;
@@ -43,4 +44,10 @@ pub enum RenderError {
     Lamp { index: usize },
     #[error("the mesh names a material pixel outside the {pixels} pixels of the image")]
     MaterialPixel { pixels: usize },
+    #[error(
+        "portal {index} is not a finite rectangle (two perpendicular edges of positive length)"
+    )]
+    Portal { index: usize },
+    #[error("the mesh has {count} portals; at most {max} are sampled")]
+    TooManyPortals { count: usize, max: usize },
 }

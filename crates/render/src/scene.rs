@@ -4,7 +4,7 @@
 use glam::{Vec2, Vec3};
 use matflow_geom::{
     complete_beyond_frame, mesh_for_view, vertex_normals, Bvh, CompleteParams, Completion,
-    DepthMesh, MeshStats, TriMesh,
+    DepthMesh, MeshStats, Portal, TriMesh,
 };
 use matflow_scene::{Camera, GrayImage, MaterialMaps};
 
@@ -13,6 +13,9 @@ use crate::dielectric::Dielectric;
 use crate::envmap::EnvMap;
 use crate::fmath;
 use crate::RenderError;
+
+/// The largest f32 below 1.
+const ONE_BELOW: f32 = 1.0 - f32::EPSILON / 2.0;
 
 /// Per-pixel materials of the maps (row-major), sanitised.
 pub fn materials_from_maps(maps: &MaterialMaps) -> Vec<Material> {
@@ -253,8 +256,31 @@ pub struct RenderScene {
     /// Point lamps inside the scene ([`Lamp`]; none by default), set with
     /// [`RenderScene::set_lamps`].
     pub lamps: Vec<Lamp>,
+    /// The openings light samples aim at besides the envmap's density
+    /// ([`crate::portal`]): the mesh's [`TriMesh::portals`], or those of
+    /// [`RenderScene::set_portals`].
+    pub portals: crate::portal::Portals,
+    /// Where a vertex sees a portal, the share of its light samples aimed
+    /// at the portals (the rest follow the envmap's density):
+    /// [`crate::portal::PORTAL_SHARE`] by default.
+    pub portal_share: f32,
     focal: f32,
     principal: Vec2,
+}
+
+/// `portals` prepared for sampling, or the error naming the first bad one
+/// or too many.
+fn checked_portals(portals: &[Portal]) -> Result<crate::portal::Portals, RenderError> {
+    if let Some(index) = portals.iter().position(|p| !p.is_valid()) {
+        return Err(RenderError::Portal { index });
+    }
+    if portals.len() > crate::portal::MAX_PORTALS {
+        return Err(RenderError::TooManyPortals {
+            count: portals.len(),
+            max: crate::portal::MAX_PORTALS,
+        });
+    }
+    Ok(crate::portal::Portals::new(portals))
 }
 
 impl RenderScene {
@@ -295,6 +321,7 @@ impl RenderScene {
                 pixels: npix as usize,
             });
         }
+        let portals = checked_portals(&mesh.portals)?;
         mesh.material_pixel.truncate(screen_prims);
         mesh.openness.truncate(screen_prims);
         for o in &mut mesh.openness {
@@ -370,6 +397,8 @@ impl RenderScene {
             env,
             light_visibility: None,
             lamps: Vec::new(),
+            portals,
+            portal_share: crate::portal::PORTAL_SHARE,
         };
         scene.set_light_guide(Some(&crate::guide::GuideParams::default()));
         Ok(scene)
@@ -440,6 +469,76 @@ impl RenderScene {
         }
         self.lamps = lamps;
         Ok(())
+    }
+
+    /// Aims light samples at `portals` (replacing the mesh's; none turns
+    /// portal sampling off). Each must be [`Portal::is_valid`], and at
+    /// most [`crate::portal::MAX_PORTALS`].
+    pub fn set_portals(&mut self, portals: &[Portal]) -> Result<(), RenderError> {
+        self.portals = checked_portals(portals)?;
+        Ok(())
+    }
+
+    /// A light sample for a vertex at `o` in the envmap's sampling
+    /// cluster `cluster`: (direction, radiance, pdf) or `None`, and the
+    /// portals' weight there ([`crate::portal::Portals::weights`], 0
+    /// where none is seen). Where a portal is seen, `u1` chooses between
+    /// the portals ([`RenderScene::portal_share`]) and the envmap's
+    /// density, and the pdf is the mixture's.
+    #[inline]
+    pub(crate) fn sample_sky(
+        &self,
+        o: Vec3,
+        cluster: u32,
+        u1: f32,
+        u2: f32,
+    ) -> (Option<(Vec3, Vec3, f32)>, f32) {
+        let a = self.portal_share;
+        if self.portals.is_empty() || !(a > 0.0) {
+            return (self.env.sample_in(cluster, u1, u2), 0.0);
+        }
+        let w = self.portals.weights(o);
+        if !(w.1 > 0.0) {
+            return (self.env.sample_in(cluster, u1, u2), 0.0);
+        }
+        let drawn = if u1 < a {
+            self.portals
+                .sample(o, &w, (u1 / a).min(ONE_BELOW), u2)
+                .map(|d| {
+                    let (le, pdf) = self.env.eval_pdf_in(cluster, d);
+                    (d, le, pdf)
+                })
+        } else {
+            let u = ((u1 - a) / (1.0 - a)).clamp(0.0, ONE_BELOW);
+            self.env.sample_in(cluster, u, u2)
+        };
+        let s = drawn.and_then(|(d, le, pdf_e)| {
+            let pdf = a * self.portals.pdf(o, w.1, d) + (1.0 - a) * pdf_e;
+            (pdf > 0.0 && pdf.is_finite()).then_some((d, le, pdf))
+        });
+        (s, w.1)
+    }
+
+    /// The radiance from direction `d` and the density
+    /// [`RenderScene::sample_sky`] draws it with from `o`, where the
+    /// portals' weight was `portal_weight`.
+    #[inline]
+    pub(crate) fn sky_eval_pdf(
+        &self,
+        o: Vec3,
+        portal_weight: f32,
+        cluster: u32,
+        d: Vec3,
+    ) -> (Vec3, f32) {
+        let (le, pdf_e) = self.env.eval_pdf_in(cluster, d);
+        let a = self.portal_share;
+        if !(portal_weight > 0.0) || !(a > 0.0) {
+            return (le, pdf_e);
+        }
+        (
+            le,
+            a * self.portals.pdf(o, portal_weight, d) + (1.0 - a) * pdf_e,
+        )
     }
 
     /// Lights the scene with `env`, guided by the scene's visibility when

@@ -13,7 +13,7 @@ pub struct MeshNode;
 
 const MESH_INFO: NodeInfo = NodeInfo {
     kind: "mesh",
-    version: 3,
+    version: 4,
     doc: "The triangle mesh of a scene's depth map (one vertex per pixel, cut at depth \
          discontinuities found by the reference's angle test), optionally completed past the \
          frame.",
@@ -121,7 +121,13 @@ mod tests {
                 .all(|&p| (p as usize) < 48 * 48));
             assert!(done.positions.iter().all(|p| p.is_finite()));
         }
+        // Only a closed room has windows, which the mesh carries as
+        // portals for renderers to aim at.
+        assert!(mesh_with("planes").portals.is_empty());
+        let room = mesh_with("room");
+        assert!(!room.portals.is_empty());
+        assert!(room.portals.iter().all(|p| p.is_valid()));
         // The same depth completes the same way every time.
-        assert_eq!(mesh_with("room"), mesh_with("room"));
+        assert_eq!(room, mesh_with("room"));
     }
 }
