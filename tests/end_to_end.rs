@@ -123,10 +123,19 @@ fn synth_then_render_writes_exr_png_and_summary() {
     assert!(more.len() >= faces.len(), "{text}");
     // The closed room guides its light samples by what its regions see,
     // unless told not to.
-    let text = render(
-        &b,
-        &["--materials", "ground_truth", "--spp", "2", "--complete"],
-    );
+    let room = |extra: &[&str]| {
+        let mut args = vec![
+            "--materials",
+            "ground_truth",
+            "--spp",
+            "2",
+            "--complete",
+            "room",
+        ];
+        args.extend_from_slice(extra);
+        render(&b, &args)
+    };
+    let text = room(&[]);
     assert!(text.contains("light guided by visibility in "), "{text}");
     // Its light samples also aim at the windows of its assumed walls
     // (portals), unless told not to.
@@ -135,32 +144,9 @@ fn synth_then_render_writes_exr_png_and_summary() {
         text[..end].rsplit(' ').next().unwrap().parse().unwrap()
     };
     assert!(portals(&text) > 0, "{text}");
-    let off = render(
-        &b,
-        &[
-            "--materials",
-            "ground_truth",
-            "--spp",
-            "2",
-            "--complete",
-            "--portals",
-            "off",
-        ],
-    );
+    let off = room(&["--portals", "off"]);
     assert_eq!(portals(&off), 0, "{off}");
-    let text = render(
-        &b,
-        &[
-            "--materials",
-            "ground_truth",
-            "--spp",
-            "2",
-            "--complete",
-            "room",
-            "--light-guide",
-            "off",
-        ],
-    );
+    let text = room(&["--light-guide", "off"]);
     assert!(text.contains("light sampled by radiance"), "{text}");
     let inv = dir.path().join("inv-room");
     ok(&matflow(

@@ -939,6 +939,22 @@ pub(crate) mod tests {
         .unwrap()
     }
 
+    /// Render options of the closed-room tests: `spp` samples, `seed`,
+    /// paths of up to `max_depth` segments.
+    pub(crate) fn opts(spp: u32, seed: u64, max_depth: u32) -> crate::RenderOptions {
+        crate::RenderOptions {
+            spp,
+            seed,
+            max_depth,
+            ..Default::default()
+        }
+    }
+
+    /// The image of `s` rendered with `o`.
+    pub(crate) fn render(s: &crate::RenderScene, o: crate::RenderOptions) -> RgbImage {
+        crate::render(s, &o, &|_, _| {}).image
+    }
+
     pub(crate) fn rmse(a: &RgbImage, b: &RgbImage) -> f64 {
         let s: f64 = a
             .data
@@ -965,13 +981,6 @@ pub(crate) mod tests {
         assert!(guided.env.guided_clusters() > 0);
         let mut plain = room_scene(n, sky(64, 32), box_with_window());
         assert!(!plain.set_light_guide(None));
-        let opts = |spp: u32, seed: u64, max_depth: u32| crate::RenderOptions {
-            spp,
-            seed,
-            max_depth,
-            ..Default::default()
-        };
-        let render = |s: &crate::RenderScene, o| crate::render(s, &o, &|_, _| {}).image;
         // Direct light (depth 2), where guiding acts, and all bounces.
         for (depth, gain) in [(2, 0.5), (4, 0.9)] {
             let (rg, rp) = (

@@ -508,7 +508,7 @@ mod tests {
     /// by visibility, as the renderer builds closed rooms.
     #[test]
     fn a_render_through_a_portal_is_unbiased_and_less_noisy() {
-        use crate::guide::tests::{box_with_window, mean, rmse, room_scene, sky};
+        use crate::guide::tests::{box_with_window, mean, opts, render, rmse, room_scene, sky};
         let n = 24;
         let plain = room_scene(n, sky(64, 32), box_with_window());
         assert!(plain.portals.is_empty());
@@ -519,13 +519,6 @@ mod tests {
             s
         };
         let (exact, loose) = (through(0.0), through(0.5));
-        let opts = |spp: u32, seed: u64, max_depth: u32| crate::RenderOptions {
-            spp,
-            seed,
-            max_depth,
-            ..Default::default()
-        };
-        let render = |s: &crate::RenderScene, o| crate::render(s, &o, &|_, _| {}).image;
         // Direct light is where portals act (measured: 8× less error);
         // with all bounces the sunlit floor's light dominates the noise,
         // which portals leave as it is (measured: 0.9×).
