@@ -257,13 +257,6 @@ impl Portals {
         (w, total)
     }
 
-    /// The sum of the portals' weights from `o` (0: no portal is sampled
-    /// from there).
-    #[inline]
-    pub fn total_weight(&self, o: Vec3) -> f32 {
-        self.weights(o).1
-    }
-
     /// Draws a direction from `o`: a portal chosen by weight with `u1`
     /// (`weights` from [`Portals::weights`]), then uniform in its solid
     /// angle. `None` when no portal is seen or rounding leaves none.
