@@ -669,12 +669,7 @@ fn with_opening(
     if poly.len() < 3 || along == Vec3::ZERO || !(height > 0.0) {
         return (vec![poly.to_vec()], None);
     }
-    let (s0, s1) = poly
-        .iter()
-        .map(|q| along.dot(*q))
-        .fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), s| {
-            (a.min(s), b.max(s))
-        });
+    let (s0, s1) = extent_along(poly, along);
     let (c, half) = (0.5 * (s0 + s1), 0.5 * width.clamp(0.0, 1.0) * (s1 - s0));
     // Height above the floor: up·q + fl.d.
     let (t0, t1) = (WINDOW_BAND.0 * height, WINDOW_BAND.1 * height);
@@ -691,6 +686,15 @@ fn with_opening(
     (pieces, bounding_portal(&window, wall, along))
 }
 
+/// The smallest and largest of `a · q` over the points `q` of `poly`.
+fn extent_along(poly: &[Vec3], a: Vec3) -> (f32, f32) {
+    poly.iter()
+        .map(|q| a.dot(*q))
+        .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), s| {
+            (lo.min(s), hi.max(s))
+        })
+}
+
 /// The rectangle of plane `wall` (axes `along`, which lies in it, and
 /// `wall.n × along`) that bounds convex polygon `window` on it, as a
 /// [`Portal`] facing the camera's side of the plane; `None` for a
@@ -700,15 +704,7 @@ fn bounding_portal(window: &[Vec3], wall: Plane, along: Vec3) -> Option<Portal> 
         return None;
     }
     let across = wall.n.cross(along).normalize_or_zero();
-    let range = |a: Vec3| {
-        window
-            .iter()
-            .map(|q| a.dot(*q))
-            .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), s| {
-                (lo.min(s), hi.max(s))
-            })
-    };
-    let ((a0, a1), (b0, b1)) = (range(along), range(across));
+    let ((a0, a1), (b0, b1)) = (extent_along(window, along), extent_along(window, across));
     let corner = -wall.n * wall.d + along * a0 + across * b0;
     let (u, v) = (along * (a1 - a0), across * (b1 - b0));
     // along × across = n: inward (towards the camera) when d > 0.
@@ -1385,16 +1381,13 @@ mod tests {
             let centre = p.corner + (p.u + p.v) * 0.5;
             assert!(p.normal().dot(-centre) > 0.0, "{p:?} faces away");
             // Upright, over [0.3, 0.85] of the room's height.
-            let (lo, hi) = [
+            let corners = [
                 p.corner,
                 p.corner + p.u,
                 p.corner + p.v,
                 p.corner + p.u + p.v,
-            ]
-            .iter()
-            .fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), q| {
-                (a.min(q.y), b.max(q.y))
-            });
+            ];
+            let (lo, hi) = extent_along(&corners, Vec3::Y);
             let h = c.room_height;
             assert!((lo - floor_y - 0.3 * h).abs() < 1e-3, "{lo}");
             assert!((hi - floor_y - 0.85 * h).abs() < 1e-3, "{hi}");

@@ -20,7 +20,7 @@ use matflow_scene::{Image, RgbImage};
 
 use std::sync::Arc;
 
-use crate::fmath;
+use crate::fmath::{self, ONE_BELOW};
 use crate::guide::{Draw, Guide, Visibility, NO_CLUSTER};
 use crate::RenderError;
 
@@ -30,9 +30,6 @@ fn cell_at(width: usize, height: usize, u: f32, v: f32) -> (usize, usize) {
     let (r, c, _, _) = cell_of_uv(width, height, u, v);
     (r, c)
 }
-
-/// The largest f32 below 1.
-const ONE_BELOW: f32 = 1.0 - f32::EPSILON / 2.0;
 
 /// Values are clamped to this magnitude so no sum can overflow f32.
 pub const MAX_RADIANCE: f32 = 1e18;

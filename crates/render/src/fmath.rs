@@ -2,6 +2,10 @@
 //! libm's results. On the x86-64 baseline (SSE2) `f32::floor` and
 //! `f32::ceil` are calls into libm; these are a conversion and a compare.
 
+/// The largest f32 below 1: where a number in [0, 1] remapped from part
+/// of another must stay below 1.
+pub const ONE_BELOW: f32 = 1.0 - f32::EPSILON / 2.0;
+
 /// ⌊x⌋, exactly as `f32::floor` (a value of magnitude ≥ 2²³ is already
 /// an integer and comes back unchanged, as do NaN and ±∞; the sign of a
 /// zero result may differ).

@@ -45,6 +45,7 @@ use matflow_geom::TriMesh;
 use rayon::prelude::*;
 
 use crate::envmap::{dir_to_uv, locate_cell};
+use crate::fmath::ONE_BELOW;
 use crate::integrator::offset_origin;
 use crate::rng::mix64;
 
@@ -419,9 +420,6 @@ fn cell_direction_uv(dw: usize, dh: usize, cell: usize, a: f32, b: f32) -> (Vec3
         .clamp(row as f32 / dh as f32, (row + 1) as f32 / dh as f32);
     (d, u, v)
 }
-
-/// The largest f32 below 1.
-const ONE_BELOW: f32 = 1.0 - f32::EPSILON / 2.0;
 
 /// A direction uniform in solid angle inside direction cell `cell` of a
 /// `dw`×`dh` lat-long grid (rows of equal polar angle, row 0 at the top),

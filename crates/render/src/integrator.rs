@@ -292,11 +292,10 @@ struct Path {
     /// ([`crate::EnvMap::cluster`]): its light sample and a BSDF sample
     /// that reaches the sky are weighted with that cluster's density.
     cluster: u32,
-    /// Where the vertex's light sample left from and the portals' weight
-    /// there ([`RenderScene::sample_sky`]): a BSDF sample that reaches
-    /// the sky is weighted with the same density.
+    /// Where the vertex's light sample left from
+    /// ([`RenderScene::sample_sky`]): a BSDF sample that reaches the sky
+    /// is weighted with the density there.
     sky_from: Vec3,
-    portal_weight: f32,
 }
 
 impl Path {
@@ -336,7 +335,6 @@ impl Path {
             next: None,
             cluster: crate::guide::NO_CLUSTER,
             sky_from: Vec3::ZERO,
-            portal_weight: 0.0,
         }
     }
 }
@@ -772,8 +770,7 @@ impl Wavefront {
                 continue;
             };
             let Some(h) = *hit else {
-                let (le, pdf_e) =
-                    scene.sky_eval_pdf(path.sky_from, path.portal_weight, path.cluster, path.dir);
+                let (le, pdf_e) = scene.sky_eval_pdf(path.sky_from, path.cluster, path.dir);
                 let w = if c.delta {
                     1.0
                 } else {
@@ -790,8 +787,7 @@ impl Wavefront {
             let open = scene.openness(h.prim);
             let mut keep = 1.0;
             if open > 0.0 {
-                let (le, pdf_e) =
-                    scene.sky_eval_pdf(path.sky_from, path.portal_weight, path.cluster, path.dir);
+                let (le, pdf_e) = scene.sky_eval_pdf(path.sky_from, path.cluster, path.dir);
                 let w = if c.delta {
                     1.0
                 } else {
@@ -873,13 +869,10 @@ fn sample_light(
     path.u_lamp = ue2;
     path.cluster = scene.env.cluster(path.p);
     path.sky_from = path.p;
-    path.portal_weight = 0.0;
     if !enabled {
         return;
     }
-    let (drawn, portal_weight) = scene.sample_sky(path.p, path.cluster, ue1, ue2);
-    path.portal_weight = portal_weight;
-    if let Some((wl, le, pdf_e)) = drawn {
+    if let Some((wl, le, pdf_e)) = scene.sample_sky(path.p, path.cluster, ue1, ue2) {
         if accept(wl) && pdf_e > 0.0 {
             st.shadow_rays += 1;
             path.light = Some(LightSample {

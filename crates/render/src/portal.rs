@@ -23,6 +23,8 @@ use std::f32::consts::PI;
 use glam::Vec3;
 use matflow_geom::Portal;
 
+use crate::fmath::ONE_BELOW;
+
 /// Most portals a scene samples ([`crate::RenderScene`] refuses more): a
 /// completed room has at most one window per assumed wall.
 pub const MAX_PORTALS: usize = 8;
@@ -244,38 +246,33 @@ impl Portals {
         self.rects.len()
     }
 
-    /// Every portal's [`PortalRect::weight`] from `o` (the rest of the
-    /// array 0) and their sum.
+    /// Every portal's [`PortalRect::weight`] from `o`.
     #[inline]
-    pub fn weights(&self, o: Vec3) -> ([f32; MAX_PORTALS], f32) {
-        let mut w = [0.0; MAX_PORTALS];
-        let mut total = 0.0;
-        for (wk, r) in w.iter_mut().zip(&self.rects) {
+    pub fn weights(&self, o: Vec3) -> PortalWeights {
+        let mut w = PortalWeights {
+            each: [0.0; MAX_PORTALS],
+            total: 0.0,
+        };
+        for (wk, r) in w.each.iter_mut().zip(&self.rects) {
             *wk = r.weight(o);
-            total += *wk;
+            w.total += *wk;
         }
-        (w, total)
+        w
     }
 
     /// Draws a direction from `o`: a portal chosen by weight with `u1`
-    /// (`weights` from [`Portals::weights`]), then uniform in its solid
-    /// angle. `None` when no portal is seen or rounding leaves none.
+    /// (`w` from [`Portals::weights`] at `o`), then uniform in its solid
+    /// angle. Returns the direction and [`Portals::pdf`]'s density of it;
+    /// `None` when no portal is seen or rounding leaves none.
     #[inline]
-    pub fn sample(
-        &self,
-        o: Vec3,
-        weights: &([f32; MAX_PORTALS], f32),
-        u1: f32,
-        u2: f32,
-    ) -> Option<Vec3> {
-        let (w, total) = weights;
-        if !(*total > 0.0) {
+    pub fn sample(&self, o: Vec3, w: &PortalWeights, u1: f32, u2: f32) -> Option<(Vec3, f32)> {
+        if !(w.total > 0.0) {
             return None;
         }
-        let target = u1 * total;
+        let target = u1 * w.total;
         let mut acc = 0.0;
         let mut pick = None;
-        for (k, &wk) in w.iter().enumerate().take(self.rects.len()) {
+        for (k, &wk) in w.each.iter().enumerate().take(self.rects.len()) {
             if wk <= 0.0 {
                 continue;
             }
@@ -287,34 +284,52 @@ impl Portals {
             acc = next;
         }
         let (k, u) = pick?;
-        self.rects[k].seen_from(o)?.sample(u, u2)
+        let rect = self.rects[k].seen_from(o)?;
+        let d = rect.sample(u, u2)?;
+        Some((d, self.density(o, w, d, Some((k, rect.solid_angle)))))
     }
 
     /// The density (per solid angle) that [`Portals::sample`] draws
-    /// direction `d` from `o` with, given the weights' sum `total` there.
+    /// direction `d` from `o` with (`w` from [`Portals::weights`] at `o`):
+    /// the sum over the portals `d` passes through.
     #[inline]
-    pub fn pdf(&self, o: Vec3, total: f32, d: Vec3) -> f32 {
-        if !(total > 0.0) {
+    pub fn pdf(&self, o: Vec3, w: &PortalWeights, d: Vec3) -> f32 {
+        self.density(o, w, d, None)
+    }
+
+    /// [`Portals::pdf`], with the solid angle of portal `known.0` already
+    /// known to be `known.1` and `d` drawn through it.
+    #[inline]
+    fn density(&self, o: Vec3, w: &PortalWeights, d: Vec3, known: Option<(usize, f32)>) -> f32 {
+        if !(w.total > 0.0) {
             return 0.0;
         }
         let mut pdf = 0.0;
-        for r in &self.rects {
-            if !r.hit(o, d) {
+        for (k, (r, &wk)) in self.rects.iter().zip(&w.each).enumerate() {
+            if wk <= 0.0 {
                 continue;
             }
-            let w = r.weight(o);
-            if w > 0.0 {
-                if let Some(s) = r.seen_from(o) {
-                    pdf += w / total / s.solid_angle;
-                }
-            }
+            let solid_angle = match known {
+                Some((kk, s)) if kk == k => s,
+                _ if !r.hit(o, d) => continue,
+                _ => match r.seen_from(o) {
+                    Some(s) => s.solid_angle,
+                    None => continue,
+                },
+            };
+            pdf += wk / w.total / solid_angle;
         }
         pdf
     }
 }
 
-/// The largest f32 below 1.
-const ONE_BELOW: f32 = 1.0 - f32::EPSILON / 2.0;
+/// What each portal weighs from a point ([`PortalRect::weight`]; the
+/// entries past the scene's portals are 0) and their sum.
+#[derive(Clone, Copy, Debug)]
+pub struct PortalWeights {
+    pub each: [f32; MAX_PORTALS],
+    pub total: f32,
+}
 
 #[cfg(test)]
 mod tests {
@@ -402,11 +417,13 @@ mod tests {
             for i in 0..n {
                 let u1 = ((i as f64 + 0.5) / n as f64) as f32;
                 let u2 = (((i as u64 * 7919) % n as u64) as f64 / n as f64 + 0.5 / n as f64) as f32;
-                let d = ports.sample(o, &w, u1, u2).expect("a direction");
+                let (d, drawn) = ports.sample(o, &w, u1, u2).expect("a direction");
                 assert!(r.hit(o, d), "{o}: {d} misses");
                 let k = rects.iter().position(|q| q.hit(o, d)).expect("a quarter");
                 counts[k] += 1;
-                let pdf = ports.pdf(o, w.1, d) as f64;
+                let pdf = ports.pdf(o, &w, d);
+                assert_eq!(drawn, pdf, "{o}: the density sampling reports");
+                let pdf = pdf as f64;
                 assert!(
                     (pdf * total_s - 1.0).abs() < 1e-3,
                     "{o}: pdf {pdf} vs 1/{total_s}"
@@ -430,9 +447,9 @@ mod tests {
         let ports = Portals::new(&[window()]);
         for o in [Vec3::new(0.0, 1.0, -5.0), Vec3::new(0.0, 1.0, 1e4)] {
             let w = ports.weights(o);
-            assert_eq!(w.1, 0.0, "{o}");
+            assert_eq!(w.total, 0.0, "{o}");
             assert!(ports.sample(o, &w, 0.5, 0.5).is_none());
-            assert_eq!(ports.pdf(o, w.1, Vec3::new(0.0, 0.0, -1.0)), 0.0);
+            assert_eq!(ports.pdf(o, &w, Vec3::new(0.0, 0.0, -1.0)), 0.0);
         }
     }
 
@@ -450,7 +467,7 @@ mod tests {
         let ports = Portals::new(&[a, b]);
         let o = Vec3::new(0.3, 0.2, 0.1);
         let w = ports.weights(o);
-        assert!(w.0[0] > 0.0 && w.0[1] > 0.0);
+        assert!(w.each[0] > 0.0 && w.each[1] > 0.0);
         // ∫ pdf dω on a fine lat-long grid.
         let (nu, nv) = (1600, 800);
         let mut integral = 0.0f64;
@@ -466,7 +483,7 @@ mod tests {
                 let dw = theta.sin()
                     * (std::f64::consts::PI / nv as f64)
                     * (2.0 * std::f64::consts::PI / nu as f64);
-                integral += ports.pdf(o, w.1, d) as f64 * dw;
+                integral += ports.pdf(o, &w, d) as f64 * dw;
             }
         }
         assert!((integral - 1.0).abs() < 0.01, "∫ pdf = {integral}");
@@ -475,10 +492,10 @@ mod tests {
         let through_a = (0..n)
             .filter(|&i| {
                 let u1 = (i as f32 + 0.5) / n as f32;
-                ra.hit(o, ports.sample(o, &w, u1, 0.37).unwrap())
+                ra.hit(o, ports.sample(o, &w, u1, 0.37).unwrap().0)
             })
             .count();
-        let share = w.0[0] / w.1;
+        let share = w.each[0] / w.total;
         assert!((through_a as f32 / n as f32 - share).abs() < 1e-3);
     }
 

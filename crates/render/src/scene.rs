@@ -11,11 +11,8 @@ use matflow_scene::{Camera, GrayImage, MaterialMaps};
 use crate::bsdf::Material;
 use crate::dielectric::Dielectric;
 use crate::envmap::EnvMap;
-use crate::fmath;
+use crate::fmath::{self, ONE_BELOW};
 use crate::RenderError;
-
-/// The largest f32 below 1.
-const ONE_BELOW: f32 = 1.0 - f32::EPSILON / 2.0;
 
 /// Per-pixel materials of the maps (row-major), sanitised.
 pub fn materials_from_maps(maps: &MaterialMaps) -> Vec<Material> {
@@ -479,12 +476,21 @@ impl RenderScene {
         Ok(())
     }
 
+    /// The portals' weights from `o` when light samples there aim at
+    /// them (the scene has portals, a positive share, and `o` sees one).
+    #[inline]
+    fn portals_seen(&self, o: Vec3) -> Option<crate::portal::PortalWeights> {
+        if self.portals.is_empty() || !(self.portal_share > 0.0) {
+            return None;
+        }
+        Some(self.portals.weights(o)).filter(|w| w.total > 0.0)
+    }
+
     /// A light sample for a vertex at `o` in the envmap's sampling
-    /// cluster `cluster`: (direction, radiance, pdf) or `None`, and the
-    /// portals' weight there ([`crate::portal::Portals::weights`], 0
-    /// where none is seen). Where a portal is seen, `u1` chooses between
-    /// the portals ([`RenderScene::portal_share`]) and the envmap's
-    /// density, and the pdf is the mixture's.
+    /// cluster `cluster`: (direction, radiance, pdf). Where a portal is
+    /// seen, `u1` chooses between the portals
+    /// ([`RenderScene::portal_share`]) and the envmap's density, and the
+    /// pdf is the mixture's.
     #[inline]
     pub(crate) fn sample_sky(
         &self,
@@ -492,53 +498,36 @@ impl RenderScene {
         cluster: u32,
         u1: f32,
         u2: f32,
-    ) -> (Option<(Vec3, Vec3, f32)>, f32) {
+    ) -> Option<(Vec3, Vec3, f32)> {
+        let Some(w) = self.portals_seen(o) else {
+            return self.env.sample_in(cluster, u1, u2);
+        };
         let a = self.portal_share;
-        if self.portals.is_empty() || !(a > 0.0) {
-            return (self.env.sample_in(cluster, u1, u2), 0.0);
-        }
-        let w = self.portals.weights(o);
-        if !(w.1 > 0.0) {
-            return (self.env.sample_in(cluster, u1, u2), 0.0);
-        }
-        let drawn = if u1 < a {
-            self.portals
-                .sample(o, &w, (u1 / a).min(ONE_BELOW), u2)
-                .map(|d| {
-                    let (le, pdf) = self.env.eval_pdf_in(cluster, d);
-                    (d, le, pdf)
-                })
+        let (d, le, pdf_e, pdf_p) = if u1 < a {
+            let (d, pdf_p) = self.portals.sample(o, &w, (u1 / a).min(ONE_BELOW), u2)?;
+            let (le, pdf_e) = self.env.eval_pdf_in(cluster, d);
+            (d, le, pdf_e, pdf_p)
         } else {
             let u = ((u1 - a) / (1.0 - a)).clamp(0.0, ONE_BELOW);
-            self.env.sample_in(cluster, u, u2)
+            let (d, le, pdf_e) = self.env.sample_in(cluster, u, u2)?;
+            (d, le, pdf_e, self.portals.pdf(o, &w, d))
         };
-        let s = drawn.and_then(|(d, le, pdf_e)| {
-            let pdf = a * self.portals.pdf(o, w.1, d) + (1.0 - a) * pdf_e;
-            (pdf > 0.0 && pdf.is_finite()).then_some((d, le, pdf))
-        });
-        (s, w.1)
+        let pdf = a * pdf_p + (1.0 - a) * pdf_e;
+        (pdf > 0.0 && pdf.is_finite()).then_some((d, le, pdf))
     }
 
     /// The radiance from direction `d` and the density
-    /// [`RenderScene::sample_sky`] draws it with from `o`, where the
-    /// portals' weight was `portal_weight`.
+    /// [`RenderScene::sample_sky`] draws it with from `o`.
     #[inline]
-    pub(crate) fn sky_eval_pdf(
-        &self,
-        o: Vec3,
-        portal_weight: f32,
-        cluster: u32,
-        d: Vec3,
-    ) -> (Vec3, f32) {
+    pub(crate) fn sky_eval_pdf(&self, o: Vec3, cluster: u32, d: Vec3) -> (Vec3, f32) {
         let (le, pdf_e) = self.env.eval_pdf_in(cluster, d);
-        let a = self.portal_share;
-        if !(portal_weight > 0.0) || !(a > 0.0) {
-            return (le, pdf_e);
+        match self.portals_seen(o) {
+            Some(w) => {
+                let a = self.portal_share;
+                (le, a * self.portals.pdf(o, &w, d) + (1.0 - a) * pdf_e)
+            }
+            None => (le, pdf_e),
         }
-        (
-            le,
-            a * self.portals.pdf(o, portal_weight, d) + (1.0 - a) * pdf_e,
-        )
     }
 
     /// Lights the scene with `env`, guided by the scene's visibility when
