@@ -166,6 +166,8 @@ fn synth_then_render_writes_exr_png_and_summary() {
             "pred",
             "--lamps",
             "on",
+            "--sun",
+            "on",
             "--quiet",
         ],
         None,
@@ -180,16 +182,41 @@ fn synth_then_render_writes_exr_png_and_summary() {
     let lamps: serde_json::Value =
         serde_json::from_slice(&std::fs::read(inv.join("best_results/lamps.json")).unwrap())
             .unwrap();
-    assert_eq!(lamps["lamps"].as_array().unwrap().len(), 9, "{lamps}");
+    let points: Vec<serde_json::Value> = lamps["lamps"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|l| l.get("position").is_some())
+        .cloned()
+        .collect();
+    assert_eq!(points.len(), 9, "{lamps}");
     assert!(text.contains(", 9 lamp(s), "), "{text}");
     let text = render(&inv, &["--spp", "2", "--lamps", "off"]);
-    assert!(text.contains(", 0 lamp(s), "), "{text}");
+    assert!(text.contains(", 0 lamp(s), 0 sun(s), "), "{text}");
+    // A sun in the lamps file lights the render under the envmap it was
+    // fitted with, and not under a new one.
+    let mut with_sun = points.clone();
+    with_sun.push(serde_json::json!({"direction": [0.0, 1.0, 0.0], "intensity": [2.0, 2.0, 2.0]}));
+    let with_sun = serde_json::json!({ "lamps": with_sun });
+    std::fs::write(
+        inv.join("best_results/lamps.json"),
+        serde_json::to_vec(&with_sun).unwrap(),
+    )
+    .unwrap();
+    let text = render(&inv, &["--spp", "2"]);
+    assert!(text.contains(", 9 lamp(s), 1 sun(s), "), "{text}");
+    let sky = inv.join("best_results/envmap.hdr");
+    let text = render(&inv, &["--spp", "2", "--envmap", s(&sky)]);
+    assert!(text.contains(", 9 lamp(s), 0 sun(s), "), "{text}");
     // The inversion's frozen paths were guided, and its summary says so.
     let summary: serde_json::Value =
         serde_json::from_slice(&std::fs::read(inv.join("summary.json")).unwrap()).unwrap();
     assert_eq!(summary["options"]["light_guide"], true, "{summary}");
     assert_eq!(summary["light_guided"], true, "{summary}");
     assert_eq!(summary["options"]["portals"], true, "{summary}");
+    // The sun was looked for: the summary reports the search.
+    assert_eq!(summary["options"]["sun"], true, "{summary}");
+    assert!(summary["sun"]["found"].is_boolean(), "{summary}");
     assert!(summary["portals"].as_u64().unwrap() > 0, "{summary}");
     // The albedo's level was held at the prediction's: the summary says
     // so, and what gain the light took.

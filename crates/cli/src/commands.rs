@@ -89,7 +89,9 @@ pub struct RenderArgs {
     pub portals: OnOff,
     /// Light the scene with the lamps `matflow invert` fitted with the
     /// maps (best_results/lamps.json, with `--materials best_results`):
-    /// on, or off (e.g. to relight a room by a new envmap alone).
+    /// on, or off (e.g. to relight a room by a new envmap alone). A sun
+    /// it fitted lights the scene only under the envmap it was fitted
+    /// with: `--envmap` is a new sky.
     #[arg(long, default_value = "on")]
     pub lamps: OnOff,
 }
@@ -289,7 +291,9 @@ pub fn render_completion(
 
 /// Builds mesh, BVH, materials and envmap for a bundle; with `lamps`,
 /// the lamps `matflow invert` fitted with its `best_results/` maps light
-/// them too (when those are the maps and it fitted any).
+/// them too (when those are the maps and it fitted any), the sun among
+/// them only under the envmap it was fitted with (a new `envmap` is a new
+/// sky, which brings its own sun).
 pub fn load_scene(
     bundle_dir: &Path,
     materials: MaterialSource,
@@ -322,7 +326,10 @@ pub fn load_scene(
         .with_context(|| format!("{}: building the scene", bundle_dir.display()))?
         .0;
     if lamps && materials == MaterialSource::BestResults {
-        if let Some(l) = crate::lamps::bundle_lamps(bundle_dir)? {
+        if let Some(mut l) = crate::lamps::bundle_lamps(bundle_dir)? {
+            if envmap.is_some() {
+                l.retain(|l| !l.is_distant());
+            }
             scene.set_lamps(l)?;
         }
     }
@@ -444,14 +451,15 @@ pub fn render(a: RenderArgs) -> Result<()> {
     let png = write_outputs(&a.out, &out.image)?;
     let s = out.stats;
     outln!(
-        "rendered {}x{} at {} spp, depth {}, {} filter ({why}), completion {} ({why_complete}), {} lamp(s), {} portal(s), {} in {:.2} s (mesh and BVH {:.2} s, total {:.2} s): {:.1} M rays, {:.2} Mrays/s -> {}, {}",
+        "rendered {}x{} at {} spp, depth {}, {} filter ({why}), completion {} ({why_complete}), {} lamp(s), {} sun(s), {} portal(s), {} in {:.2} s (mesh and BVH {:.2} s, total {:.2} s): {:.1} M rays, {:.2} Mrays/s -> {}, {}",
         loaded.scene.camera.width,
         loaded.scene.camera.height,
         a.spp,
         a.depth,
         filter.name(),
         complete.name(),
-        loaded.scene.lamps.len(),
+        loaded.scene.lamps.iter().filter(|l| !l.is_distant()).count(),
+        loaded.scene.lamps.iter().filter(|l| l.is_distant()).count(),
         loaded.scene.portals.len(),
         light_guide_note(&loaded.scene),
         seconds,

@@ -121,6 +121,13 @@ pub struct InvertArgs {
     /// decide.
     #[arg(long, default_value_t = 0.003)]
     pub lamp_sparsity: f32,
+    /// The sun: `on` looks in the scout's envmap for a peak that carries
+    /// much of the light and, where there is one, fits it as a distant
+    /// light beside the texels (texel route), its direction searched by
+    /// the shadows the photo shows; written to best_results/lamps.json.
+    /// Scenes without such a peak are recovered as with `off`.
+    #[arg(long, default_value = "off")]
+    pub sun: crate::commands::OnOff,
     /// Disable early stopping (run every stage for its full step count).
     #[arg(long)]
     pub no_early_stop: bool,
@@ -249,6 +256,7 @@ pub fn options_from(a: &InvertArgs) -> InvertOptions {
         rm_margin: a.rm_margin,
         level_from_pred: a.albedo_level == AlbedoLevel::Pred,
         level_band: a.albedo_level_band,
+        sun: a.sun.on(),
         ..Default::default()
     }
 }
@@ -414,12 +422,20 @@ pub fn invert_cmd(a: InvertArgs) -> Result<()> {
             "albedo_level_band": opts.level_band,
             "lamps": a.lamps.on(),
             "lamp_sparsity": opts.lamp_sparsity,
+            "sun": opts.sun,
         },
         "lamps": {
             "sites": opts.lamp_sites.len(),
             "room_height": completion.room_height,
-            "intensity_sum": res.lamps.iter().map(|l| l.intensity).sum::<Vec3>().to_array(),
+            "intensity_sum": res
+                .lamps
+                .iter()
+                .filter(|l| !l.is_distant())
+                .map(|l| l.intensity)
+                .sum::<Vec3>()
+                .to_array(),
         },
+        "sun": res.report.sun,
         "light_guided": light_guided,
         "portals": portals,
         "rm_search": res.report.rm_search,

@@ -30,6 +30,10 @@ pub struct EnvTransport {
     pub env_height: usize,
     /// Lamps after the envmap's texels ([`crate::paths::light_len`]).
     pub lamps: usize,
+    /// Per lamp, whether it is distant (the sun, which the lamps'
+    /// sparsity prior leaves alone: it is only there when the scout found
+    /// it).
+    pub distant: Vec<bool>,
     /// Selected pixel indices (row-major image index).
     pub pixels: Vec<u32>,
     /// Per selected pixel, start of its terms (len = pixels + 1).
@@ -115,6 +119,7 @@ impl EnvTransport {
             env_width: cache.env_width,
             env_height: cache.env_height,
             lamps: cache.lamps,
+            distant: cache.distant.clone(),
             pixels,
             start,
             terms,
@@ -246,7 +251,7 @@ pub struct EnvFitOptions {
 /// `grad`; `reference` is the scale an entry is measured against.
 fn lamp_prior(
     theta: &[f32],
-    lamps: std::ops::Range<usize>,
+    lamps: &[usize],
     reference: f32,
     weight: f32,
     grad: &mut [f32],
@@ -256,7 +261,7 @@ fn lamp_prior(
     }
     let norm = weight / (3.0 * reference);
     let mut sum = 0f64;
-    for t in lamps {
+    for &t in lamps {
         for c in 0..3 {
             let e = theta[3 * t + c].exp();
             sum += (norm * e) as f64;
@@ -334,7 +339,12 @@ pub fn fit_texels(
     };
     let pairs = texel_pairs(tr.env_width, tr.env_height);
     let ntex = tr.env_width * tr.env_height;
-    let lamps = ntex.min(n)..(ntex + tr.lamps).min(n);
+    // Point lamps' entries (the sun has no sparsity prior).
+    let lamps: Vec<usize> = (0..tr.lamps)
+        .filter(|&k| !tr.distant.get(k).copied().unwrap_or(false))
+        .map(|k| ntex + k)
+        .filter(|&t| t < n)
+        .collect();
     let reference = (init[..ntex.min(n)]
         .iter()
         .map(|e| e.element_sum() as f64)
@@ -342,7 +352,7 @@ pub fn fit_texels(
         / (3 * ntex.max(1)) as f64) as f32;
     let priors = |theta: &[f32], grad: &mut [f32]| {
         smooth_prior(theta, &pairs, opts.smooth, grad)
-            + lamp_prior(theta, lamps.clone(), reference, opts.lamp_sparsity, grad)
+            + lamp_prior(theta, &lamps, reference, opts.lamp_sparsity, grad)
     };
     let mut adam = Adam::new(3 * n, opts.lr);
     let mut stop = EarlyStop::paper();

@@ -32,7 +32,7 @@ use matflow_scene::{Image, MaterialMaps, RgbImage};
 use crate::denoise::{denoise_tables, Guide};
 use crate::envfit::{exposure_scale, strided_pixels, EnvTransport, FitTrace};
 use crate::loss::{loss_and_grad, Target};
-use crate::paths::{check_lamps, light_len, CacheError, CacheOptions, PathCache};
+use crate::paths::{check_lamps, light_len, sun_scale, CacheError, CacheOptions, PathCache};
 
 /// The pixel filter the inversion fits and re-renders with (each sample in
 /// its own pixel, as the frozen paths are kept); `summary.json` records
@@ -45,6 +45,7 @@ use crate::routes::{
     self, Chosen, EnvFitter, EnvRoute, EnvStage, EnvStart, MatRoute, MatStage, MatStart,
 };
 use crate::segments::{apply, search_rm, segment, SearchParams, SegmentParams};
+use crate::sun::{self, SearchPixel, SunFit, SunParams};
 use crate::tables::{build_tables_with_variance, PixelTable};
 use crate::transport;
 
@@ -124,6 +125,12 @@ pub struct InvertOptions {
     /// Weight of the lamps' sparsity prior
     /// ([`crate::envfit::EnvFitOptions::lamp_sparsity`]).
     pub lamp_sparsity: f32,
+    /// Look for a sun in the scout's envmap and, where one carries much
+    /// of the light, fit it as a distant lamp beside the texels
+    /// ([`crate::sun`]; texel route only).
+    pub sun: bool,
+    /// When a peak is a sun, and how its direction is searched.
+    pub sun_params: SunParams,
 }
 
 impl InvertOptions {
@@ -217,6 +224,8 @@ impl Default for InvertOptions {
             lamp_sites: Vec::new(),
             lamp_scale: 1.0,
             lamp_sparsity: 0.003,
+            sun: false,
+            sun_params: SunParams::default(),
         }
     }
 }
@@ -268,6 +277,25 @@ pub struct InvertReport {
     /// With the level held at the prediction's: the gain per channel the
     /// light took from the albedo over the whole recovery.
     pub level_gain: Option<[f32; 3]>,
+    /// The search for a sun, when it ran.
+    pub sun: Option<SunReport>,
+}
+
+/// The search for a sun ([`crate::sun`]).
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct SunReport {
+    /// Whether the best direction explained enough to be taken for the
+    /// sun.
+    pub found: bool,
+    /// The best direction (camera space, towards the sun).
+    pub direction: [f32; 3],
+    /// Share of what the ambient terms leave of the photo's light that
+    /// it explained.
+    pub explained: f64,
+    /// The irradiance it started from (the search's) and the one fitted
+    /// (found: zero), per channel.
+    pub start_irradiance: [f32; 3],
+    pub irradiance: [f32; 3],
 }
 
 /// The search of roughness and metallic per segment ([`crate::segments`]).
@@ -287,7 +315,8 @@ pub struct InvertResult {
     pub materials: Vec<Material>,
     pub envmap: RgbImage,
     /// The lamps fitted at [`InvertOptions::lamp_sites`] (one per site,
-    /// some possibly dark; none without sites).
+    /// some possibly dark; none without sites), then the sun when one was
+    /// found ([`InvertOptions::sun`]).
     pub lamps: Vec<Lamp>,
     /// The frozen estimator's image for the final parameters.
     pub fit_image: RgbImage,
@@ -344,6 +373,8 @@ pub enum InvertError {
     TooManyLamps { sites: usize, width: usize },
     #[error("lamp scale {0} is not a positive finite length")]
     LampScale(f32),
+    #[error("a sun was asked for: the `{route}` envmap route fits no lamps or suns")]
+    SunNotFitted { route: &'static str },
     #[error("lamp site {index} is not a finite point")]
     LampSite { index: usize },
     #[error("tracing the frozen light paths")]
@@ -408,17 +439,18 @@ fn start_envmap(e: &RgbImage, opts: &InvertOptions) -> Result<Vec<Vec3>, InvertE
 
 /// The lamps at [`InvertOptions::lamp_sites`] lit as the light vector
 /// `env` says (its entries after the envmap's texels, times the lamp
-/// scale squared).
-fn lamps_of(env: &[Vec3], opts: &InvertOptions) -> Vec<Lamp> {
+/// scale squared), then the sun in direction `sun` (the next entry, times
+/// [`sun_scale`]).
+fn lamps_of(env: &[Vec3], opts: &InvertOptions, sun: Option<Vec3>) -> Vec<Lamp> {
     let base = opts.env_width * opts.env_height;
     let area = opts.lamp_scale * opts.lamp_scale;
+    let entry = |k: usize| env.get(base + k).copied().unwrap_or(Vec3::ZERO);
+    let sites = opts.lamp_sites.len();
     opts.lamp_sites
         .iter()
         .enumerate()
-        .map(|(k, &position)| Lamp {
-            position,
-            intensity: env.get(base + k).map_or(Vec3::ZERO, |e| *e * area),
-        })
+        .map(|(k, &position)| Lamp::point(position, entry(k) * area))
+        .chain(sun.map(|d| Lamp::sun(d, entry(sites) * sun_scale(opts.env_width, opts.env_height))))
         .collect()
 }
 
@@ -426,6 +458,8 @@ fn lamps_of(env: &[Vec3], opts: &InvertOptions) -> Vec<Lamp> {
 struct Run<'a> {
     scene: RenderScene,
     opts: &'a InvertOptions,
+    /// The sun's direction, once found.
+    sun: Option<Vec3>,
     target: Target,
     pixels: Vec<u32>,
     stages: Vec<StageReport>,
@@ -456,7 +490,7 @@ impl Run<'_> {
             })?;
         self.scene.set_env(map);
         self.scene
-            .set_lamps(lamps_of(env, self.opts))
+            .set_lamps(lamps_of(env, self.opts, self.sun))
             .map_err(|source| InvertError::Render {
                 what: "lamps",
                 source,
@@ -481,6 +515,44 @@ impl Run<'_> {
         )?;
         self.end(StageReport::plain(name, spp as usize));
         Ok(cache)
+    }
+
+    /// The sun the photo shows, if any ([`crate::sun`]), searched at up
+    /// to [`SunParams::pixels`] of the envmap stages' pixels (those with
+    /// a saturated channel left out); with it, the scout's light vector
+    /// `env` with its texels brought down to the baseline.
+    fn find_sun(
+        &self,
+        mats: &[Material],
+        env: &[Vec3],
+        guide: &Guide,
+    ) -> Option<(Vec<Vec3>, SunFit, bool)> {
+        let (ew, eh) = (self.opts.env_width, self.opts.env_height);
+        let params = &self.opts.sun_params;
+        let step = self.pixels.len().div_ceil(params.pixels.max(1)).max(1);
+        let pixels: Vec<SearchPixel> = self
+            .pixels
+            .iter()
+            .step_by(step)
+            .filter_map(|&i| {
+                let i = i as usize;
+                let (point, normal, _) = guide.hits.get(i).copied().flatten()?;
+                if self.target.saturated[i].iter().any(|&s| s) {
+                    return None;
+                }
+                let m = &mats[i];
+                Some(SearchPixel {
+                    point,
+                    normal,
+                    albedo: m.albedo * (1.0 - m.metallic) / std::f32::consts::PI,
+                    light: self.target.linear[i],
+                })
+            })
+            .collect();
+        let fit = sun::search(&self.scene, &pixels, ew, eh, params)?;
+        let mut base = env.to_vec();
+        base[..ew * eh].copy_from_slice(&sun::baseline(env, ew, eh, params.quantile));
+        Some((base, fit, fit.is_sun(params)))
     }
 
     fn fit_env(
@@ -548,16 +620,26 @@ pub fn invert(
     }
     let (ew, eh) = (opts.env_width, opts.env_height);
     let sites = opts.lamp_sites.len();
-    if sites > 0 {
+    if opts.sun && !env_route.fits_lamps() {
+        return Err(InvertError::SunNotFitted {
+            route: opts.env_route.name(),
+        });
+    }
+    if sites > 0 || opts.sun {
         if !env_route.fits_lamps() {
             return Err(InvertError::LampsNotFitted {
                 sites,
                 route: opts.env_route.name(),
             });
         }
-        // The frozen paths' own limits, checked before anything runs.
-        check_lamps(sites, ew, eh, opts.lamp_scale).map_err(|e| match e {
-            CacheError::Lamps { .. } => InvertError::TooManyLamps { sites, width: ew },
+        // The frozen paths' own limits, checked before anything runs (a
+        // sun takes the entry after the sites').
+        let slots = sites + opts.sun as usize;
+        check_lamps(slots, ew, eh, opts.lamp_scale).map_err(|e| match e {
+            CacheError::Lamps { .. } => InvertError::TooManyLamps {
+                sites: slots,
+                width: ew,
+            },
             CacheError::LampScale(s) => InvertError::LampScale(s),
             e => InvertError::Cache(e),
         })?;
@@ -599,19 +681,24 @@ pub fn invert(
     let mut run = Run {
         scene,
         opts,
+        sun: None,
         target: Target::new(w, h, &target_linear.data),
         pixels: strided_pixels(w, h, first.env_stride),
         stages: Vec::new(),
         events,
     };
 
+    // What each pixel sees first (geometry only: it never changes).
+    let guide = Guide::build(&run.scene);
+
     // 1. Scout.
     let flat = with_lamps(vec![Vec3::ONE; ew * eh], Vec3::ONE);
     run.set_scene(&mats, &flat)?;
     let scout = run.trace("trace scout", first.scout_spp, opts.seed ^ 0x5c0u64)?;
-    let plan = Plan {
+    let scout_cost = SceneCost::of(&scout).guided(guided).with_portals(portals);
+    let mut plan = Plan {
         scout_spp: first.scout_spp,
-        ..plan_for(SceneCost::of(&scout).guided(guided).with_portals(portals))
+        ..plan_for(scout_cost)
     };
     let exposure = {
         let tr = EnvTransport::build(&scout, &mats, run.pixels.clone());
@@ -632,12 +719,40 @@ pub fn invert(
             run.fit_env("envmap (scout)", &mut *env_fit, &scout, &mats, &init, steps)
         }
     };
+    // The sun, where the scout's envmap shows one: a distant lamp in the
+    // entry after the sites', its power taken out of the texels.
+    let mut sun_report = None;
+    if opts.sun {
+        run.begin("sun", 1);
+        let found = run.find_sun(&mats, &env, &guide);
+        sun_report = found.as_ref().map(|(_, fit, taken)| SunReport {
+            found: *taken,
+            direction: fit.direction.to_array(),
+            explained: fit.explained,
+            start_irradiance: fit.irradiance.to_array(),
+            irradiance: [0.0; 3],
+        });
+        if let Some((base, fit, true)) = found {
+            let mut lit = base[..ew * eh].to_vec();
+            lit.extend_from_slice(&env[ew * eh..ew * eh + sites]);
+            lit.push(fit.irradiance / sun_scale(ew, eh));
+            lit.resize(light_len(ew, eh, sites + 1), Vec3::ZERO);
+            env = lit;
+            run.sun = Some(fit.direction);
+            // One more shadow ray per vertex.
+            let n = (scout.width * scout.height * scout.spp.max(1) as usize).max(1) as f64;
+            plan = Plan {
+                scout_spp: first.scout_spp,
+                ..plan_for(scout_cost.with_extra_rays(scout.stats.vertices as f64 / n))
+            };
+        }
+        run.end(StageReport::plain("sun", run.sun.is_some() as usize));
+    }
     drop(scout);
 
     // 2. Main trace.
     run.set_scene(&mats, &env)?;
     let cache = run.trace("trace", plan.spp, opts.seed)?;
-    let guide = Guide::build(&run.scene);
 
     // R and M per segment: moves the anchor (and the start) of segments
     // that one albedo under another (R, M) explains clearly better.
@@ -784,7 +899,12 @@ pub fn invert(
         &|d, t| events(Event::Trace { done: d, total: t }),
     );
     run.end(StageReport::plain("render", plan.final_spp as usize));
-    let lamps = lamps_of(&env, opts);
+    let lamps = lamps_of(&env, opts, run.sun);
+    if let (Some(r), Some(sun)) = (sun_report.as_mut(), lamps.last()) {
+        if r.found {
+            r.irradiance = sun.intensity.to_array();
+        }
+    }
     env.truncate(ew * eh);
     Ok(InvertResult {
         materials: mats,
@@ -800,6 +920,7 @@ pub fn invert(
             fit_loss: fit_loss.total(),
             rm_search,
             level_gain: level_total.map(|g| g.to_array()),
+            sun: sun_report,
         },
     })
 }
@@ -909,6 +1030,99 @@ mod tests {
         );
     }
 
+    /// The sun is found and fitted: a room lit by a dim uniform sky and a
+    /// sun is recovered (materials known) with a sun within 10°
+    /// of the true one at about its irradiance, explaining the image
+    /// better than the texels alone; lit by the sky alone, no sun is
+    /// found; a route that fits no lamps refuses to look for one.
+    #[test]
+    fn a_sun_is_found_where_the_sky_has_one() {
+        let n = 64;
+        let sky = Image::from_vec(32, 16, vec![Vec3::new(0.25, 0.3, 0.4); 32 * 16]);
+        let scene = || {
+            let mut s = room(5, n).scene;
+            s.set_env(EnvMap::new(&sky).unwrap());
+            s
+        };
+        let truth = Vec3::new(-0.6, 0.7, 0.2).normalize();
+        let irradiance = Vec3::new(3.0, 2.7, 2.2);
+        let pred = materials_of(&room(5, n).maps);
+        let target_with = |sun: bool| {
+            let mut s = scene();
+            if sun {
+                s.set_lamps(vec![Lamp::sun(truth, irradiance)]).unwrap();
+            }
+            matflow_render::render(
+                &s,
+                &RenderOptions {
+                    spp: 64,
+                    ..Default::default()
+                },
+                &|_, _| {},
+            )
+            .image
+        };
+        let opts = |sun: bool| InvertOptions {
+            budget_seconds: 2.0,
+            env_route: env_route("texel", &[]).expect("env route"),
+            mat_route: mat_route("solve", &[]).expect("mat route"),
+            trust_rm: true,
+            env_only: true,
+            spp: Some(16),
+            final_spp: Some(8),
+            loops: Some(2),
+            env_steps: Some(150),
+            mat_steps: Some(10),
+            sun,
+            ..Default::default()
+        };
+        let run = |target: &RgbImage, sun: bool| {
+            invert(scene(), target, &pred, &opts(sun), &|_| {}).expect("invert")
+        };
+        let lit = target_with(true);
+        let with = run(&lit, true);
+        let without = run(&lit, false);
+        let found = with.report.sun.expect("a sun");
+        assert!(found.found, "{found:?}");
+        let d = Vec3::from(found.direction);
+        assert!(
+            d.dot(truth) > 10f32.to_radians().cos(),
+            "found {d} ({found:?}) for {truth}"
+        );
+        let sun = with.lamps.last().expect("the sun is a lamp");
+        assert!(sun.is_distant() && with.lamps.len() == 1);
+        let ratio = sun.intensity / irradiance;
+        assert!(
+            ratio.min_element() > 0.6 && ratio.max_element() < 1.5,
+            "fitted {} for {irradiance}",
+            sun.intensity
+        );
+        assert!(without.report.sun.is_none() && without.lamps.is_empty());
+        assert!(
+            with.report.fit_loss < 0.8 * without.report.fit_loss,
+            "with the sun {} without {}",
+            with.report.fit_loss,
+            without.report.fit_loss
+        );
+        // The sky alone: nothing to find.
+        let overcast = run(&target_with(false), true);
+        assert!(
+            overcast.report.sun.is_none_or(|s| !s.found),
+            "{:?}",
+            overcast.report.sun
+        );
+        assert!(overcast.lamps.is_empty());
+        // Looking for a sun needs a route that fits lamps.
+        let mlp = InvertOptions {
+            env_route: env_route("mlp", &[]).expect("env route"),
+            ..opts(true)
+        };
+        assert!(matches!(
+            invert(scene(), &lit, &pred, &mlp, &|_| {}),
+            Err(InvertError::SunNotFitted { .. })
+        ));
+    }
+
     /// Lamps are fitted with the envmap: a room lit by its envmap and a
     /// lamp at one of two sites is recovered (materials known) with the
     /// lamp at about its intensity and the other site dark, explaining the
@@ -929,12 +1143,7 @@ mod tests {
         let target_with = |lamp: bool| {
             let mut scene = room(3, n).scene;
             if lamp {
-                scene
-                    .set_lamps(vec![Lamp {
-                        position: sites[0],
-                        intensity: truth,
-                    }])
-                    .unwrap();
+                scene.set_lamps(vec![Lamp::point(sites[0], truth)]).unwrap();
             }
             matflow_render::render(
                 &scene,

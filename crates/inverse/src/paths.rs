@@ -21,7 +21,10 @@
 //! vector* (the W·H texels, then two rows of W: the lamps, padded so that
 //! a record's bilinear taps stay inside; [`light_len`]), with weights 0 on
 //! the other taps, and a lamp's entry is its intensity over
-//! `lamp_scale`². Every estimator is linear in the light vector alike.
+//! `lamp_scale`²; a distant lamp's (the sun's) is its irradiance over
+//! [`sun_scale`], the solid angle of a mean texel, so that the entry is
+//! the radiance one texel would need to give that light. Every estimator
+//! is linear in the light vector alike.
 //!
 //! Layout: one [`RowPaths`] per image row (built in parallel, never
 //! concatenated); inside a row, per pixel, its paths' vertices in order,
@@ -160,6 +163,12 @@ impl Default for CacheOptions {
     }
 }
 
+/// What a distant lamp's entry in the light vector of a `w`×`h` envmap is
+/// measured in: its irradiance over this, the mean texel's solid angle.
+pub fn sun_scale(w: usize, h: usize) -> f32 {
+    (4.0 * std::f64::consts::PI / (w * h).max(1) as f64) as f32
+}
+
 /// Length of the light vector of a `w`×`h` envmap and `lamps` lamps (see
 /// the module documentation).
 pub fn light_len(w: usize, h: usize, lamps: usize) -> usize {
@@ -201,6 +210,9 @@ pub struct PathCache {
     /// envmap's), and the scale of their entries.
     pub lamps: usize,
     pub lamp_scale: f32,
+    /// Per lamp, whether it is distant (the sun: its entry is measured in
+    /// [`sun_scale`]).
+    pub distant: Vec<bool>,
     pub rows: Vec<RowPaths>,
     pub stats: CacheStats,
 }
@@ -313,6 +325,7 @@ impl PathCache {
             env_height: opts.env_height,
             lamps,
             lamp_scale: opts.lamp_scale,
+            distant: scene.lamps.iter().map(|l| l.is_distant()).collect(),
             rows: out,
             stats,
         })
@@ -503,6 +516,7 @@ impl PathCache {
             env_height: eh as usize,
             lamps: 0,
             lamp_scale: 1.0,
+            distant: Vec::new(),
             rows,
             stats: CacheStats::default(),
         })
@@ -530,8 +544,9 @@ struct Recorder {
     records: Vec<Record>,
     ew: usize,
     eh: usize,
-    /// lamp_scale².
-    lamp_area: f32,
+    /// Per lamp, what its entry is measured in: lamp_scale² for a point,
+    /// [`sun_scale`] for a distant lamp.
+    lamp_area: Vec<f32>,
     /// Index of the current vertex in `vertices`.
     vi: usize,
     /// Cached angles of the BSDF sample being traced.
@@ -576,7 +591,7 @@ impl PathSink for Recorder {
 
     fn lamp(&mut self, n: Vec3, v: Vec3, l: Vec3, k: usize, weight: f32) {
         let geo = Geo::new(n, v, l);
-        let w = weight * self.lamp_area;
+        let w = weight * self.lamp_area.get(k).copied().unwrap_or(0.0);
         if geo.lit() && w.is_finite() && w > 0.0 {
             self.records.push(Record {
                 geo,
@@ -662,7 +677,17 @@ fn trace_row(
         Recorder {
             ew: opts.env_width,
             eh: opts.env_height,
-            lamp_area: opts.lamp_scale * opts.lamp_scale,
+            lamp_area: scene
+                .lamps
+                .iter()
+                .map(|l| {
+                    if l.is_distant() {
+                        sun_scale(opts.env_width, opts.env_height)
+                    } else {
+                        opts.lamp_scale * opts.lamp_scale
+                    }
+                })
+                .collect(),
             ..Default::default()
         };
         BATCH_PIXELS * spp
@@ -708,9 +733,10 @@ mod tests {
     /// recorded path with the materials and envmap it was traced with gives
     /// the radiance the forward renderer computes for that (pixel, sample),
     /// up to the recorder's 16-bit quantisation of angles and envmap taps.
-    /// With lamps too: their records index the light vector after the
-    /// envmap's texels, each entry the lamp's intensity over the lamp
-    /// scale squared.
+    /// With lamps and a sun too: their records index the light vector
+    /// after the envmap's texels, each entry the lamp's intensity over the
+    /// lamp scale squared, the sun's irradiance over the mean texel's
+    /// solid angle.
     #[test]
     fn recorded_paths_replay_to_the_renderers_radiance() {
         for (seed, lamps) in [(3u64, false), (8, false), (3, true)] {
@@ -725,15 +751,23 @@ mod tests {
                     (Vec3::new(0.2, 0.3, -0.4 * depth), Vec3::new(3.0, 2.0, 1.0)),
                     (Vec3::new(-0.3, 0.1, -0.6 * depth), Vec3::new(0.5, 1.0, 2.0)),
                 ];
+                let sun = matflow_render::Lamp::sun(
+                    Vec3::new(0.3, 0.8, 0.4),
+                    texels(&t.env)[0] * sun_scale(ew, eh) * 20.0,
+                );
                 let lit: Vec<_> = sites
                     .iter()
-                    .map(|&(position, i)| matflow_render::Lamp {
-                        position,
-                        intensity: i * depth * depth,
-                    })
+                    .map(|&(position, i)| matflow_render::Lamp::point(position, i * depth * depth))
+                    .chain([sun])
                     .collect();
                 t.scene.set_lamps(lit.clone()).unwrap();
-                env.extend(lit.iter().map(|l| l.intensity / (lamp_scale * lamp_scale)));
+                env.extend(lit.iter().map(|l| {
+                    if l.is_distant() {
+                        l.intensity / sun_scale(ew, eh)
+                    } else {
+                        l.intensity / (lamp_scale * lamp_scale)
+                    }
+                }));
                 env.resize(light_len(ew, eh, lit.len()), Vec3::ZERO);
             }
             let opts = CacheOptions {

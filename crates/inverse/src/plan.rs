@@ -73,6 +73,15 @@ impl SceneCost {
         }
     }
 
+    /// The same scene with `rays` more rays per sample (e.g. a shadow ray
+    /// per vertex towards a sun found after the scout counted them).
+    pub fn with_extra_rays(self, rays: f64) -> SceneCost {
+        SceneCost {
+            rays_per_sample: self.rays_per_sample + rays.max(0.0),
+            ..self
+        }
+    }
+
     /// The same scene with its light samples aiming at portals
     /// ([`matflow_render::portal`]), after [`SceneCost::guided`].
     pub fn with_portals(self, portals: bool) -> SceneCost {

@@ -22,7 +22,7 @@ use crate::dielectric;
 use crate::filter::PixelFilter;
 use crate::fmath;
 use crate::rng::{Keys1d, Keys2d, Sampler};
-use crate::scene::{RenderScene, Surface};
+use crate::scene::{LampAt, RenderScene, Surface};
 use crate::warp::{square_to_cosine_hemisphere, Frame};
 
 /// Default [`RenderOptions::glass_depth`]: enough for a glass ball, torus
@@ -147,8 +147,9 @@ pub trait PathSink {
     #[inline(always)]
     fn emitter(&mut self, _n: Vec3, _v: Vec3, _l: Vec3, _weight: f32) {}
     /// An unoccluded sample of lamp `k` ([`crate::Lamp`]) in direction
-    /// `l` at the current vertex, estimator weight 1/(pmf·r²) (the lamp's
-    /// intensity times that, times f·cos, is its light).
+    /// `l` at the current vertex, estimator weight 1/(pmf·r²) (a distant
+    /// lamp: 1/pmf; the lamp's intensity times that, times f·cos, is its
+    /// light).
     #[inline(always)]
     fn lamp(&mut self, _n: Vec3, _v: Vec3, _l: Vec3, _k: usize, _weight: f32) {}
     /// The BSDF sampled `l`, about to be traced; false ends the path here
@@ -213,7 +214,8 @@ struct LightSample {
 }
 
 /// A lamp towards which a shadow ray is traced: direction, which lamp,
-/// estimator weight 1/(pmf·r²) and the shadow ray's index.
+/// estimator weight 1/(pmf·r²) (a distant lamp: 1/pmf) and the shadow
+/// ray's index.
 #[derive(Clone, Copy)]
 struct LampSample {
     dir: Vec3,
@@ -223,7 +225,7 @@ struct LampSample {
 }
 
 /// The far end of a lamp's shadow ray, whose direction spans the segment
-/// to the lamp (t = 1 at the lamp).
+/// to the lamp (t = 1 at the lamp; a distant lamp's ends past the scene).
 const LAMP_TMAX: f32 = 1.0 - 1e-4;
 
 /// The keys of a vertex's draws — envmap sample (2-D), lobe (1-D),
@@ -891,7 +893,8 @@ fn sample_light(
 /// number): one lamp, chosen uniformly by the number drawn with the
 /// vertex's envmap sample (its own estimator, so sharing the number
 /// biases neither), and when `accept(direction)` a shadow ray queued in
-/// `rays` along the segment to it, leaving by the geometric normal `ng`.
+/// `rays` along the segment to it (a distant lamp: to past the scene),
+/// leaving by the geometric normal `ng`.
 #[inline(always)]
 fn sample_lamp(
     scene: &RenderScene,
@@ -906,12 +909,17 @@ fn sample_lamp(
         return;
     }
     let k = ((path.u_lamp * count as f32) as usize).min(count - 1);
-    let d = scene.lamps[k].position - path.p;
-    let r2 = d.length_squared();
-    if !(r2 > 1e-12) || !r2.is_finite() {
-        return;
-    }
-    let dir = d / r2.sqrt();
+    let (dir, weight, end) = match scene.lamps[k].at {
+        LampAt::Point(position) => {
+            let d = position - path.p;
+            let r2 = d.length_squared();
+            if !(r2 > 1e-12) || !r2.is_finite() {
+                return;
+            }
+            (d / r2.sqrt(), count as f32 / r2, Some(position))
+        }
+        LampAt::Distant(dir) => (dir, count as f32, None),
+    };
     if !accept(dir) {
         return;
     }
@@ -920,10 +928,11 @@ fn sample_lamp(
     path.lamp = Some(LampSample {
         dir,
         index: k as u32,
-        weight: count as f32 / r2,
+        weight,
         ray: rays.len() as u32,
     });
-    rays.push((origin, scene.lamps[k].position - origin));
+    let segment = end.map_or(dir * scene.lamp_far, |e| e - origin);
+    rays.push((origin, segment));
 }
 
 /// f·cos and pdf of the vertex being shaded (depth mesh, transparent
@@ -1720,14 +1729,15 @@ mod tests {
         }
     }
 
-    /// Known answer: the plane of [`plane_under_envmap_matches_quadrature`]
-    /// lit by the envmap and three lamps, one in front of it, one behind
-    /// it (its back faces the lamp: no light) and one hidden behind a small
-    /// square: the estimator's mean equals the envmap's quadrature (with
-    /// the square's solid angle taken out) plus f·cos·I/r² of the lamp in
+    /// A glossy plane lit by an envmap, three lamps and three suns: one
+    /// lamp in front of it, one behind it (its back faces the lamp: no
+    /// light) and one hidden behind a small square, and suns in the same
+    /// three directions from the pixel's point: the estimator's mean equals
+    /// the envmap's quadrature (with the square's solid angle taken out)
+    /// plus f·cos·I/r² of the lamp in front and f·cos·E of the sun in
     /// front alone.
     #[test]
-    fn lamps_add_their_inverse_square_light_where_they_are_seen() {
+    fn lamps_and_suns_add_their_light_where_they_are_seen() {
         let mat = crate::Material {
             albedo: Vec3::new(0.7, 0.5, 0.3),
             roughness: 0.35,
@@ -1748,16 +1758,13 @@ mod tests {
         let maps = MaterialMaps::uniform(n, n, mat.albedo, mat.roughness, mat.metallic);
         let mut scene = RenderScene::new(cam, mesh, &maps, EnvMap::new(&sky()).unwrap()).unwrap();
         let intensity = Vec3::new(2.0, 1.5, 1.0);
-        scene
-            .set_lamps(
-                [seen, behind, hidden]
-                    .map(|position| crate::Lamp {
-                        position,
-                        intensity,
-                    })
-                    .to_vec(),
-            )
-            .unwrap();
+        let irradiance = Vec3::new(0.3, 0.35, 0.4);
+        let sun_in_front = Vec3::new(-0.5, 0.3, 1.0).normalize();
+        let lamps = [seen, behind, hidden]
+            .map(|position| crate::Lamp::point(position, intensity))
+            .into_iter()
+            .chain([sun_in_front, behind - p, hidden - p].map(|d| crate::Lamp::sun(d, irradiance)));
+        scene.set_lamps(lamps.collect()).unwrap();
         let opts = RenderOptions {
             max_depth: 2,
             ..Default::default()
@@ -1776,24 +1783,26 @@ mod tests {
         let l = d.normalize();
         let lamp =
             (crate::bsdf::eval(&mat, Vec3::Z, v, l) * intensity / d.length_squared()).element_sum();
-        let expected = env + lamp as f64;
+        let sun = (crate::bsdf::eval(&mat, Vec3::Z, v, sun_in_front) * irradiance).element_sum();
+        let expected = env + lamp as f64 + sun as f64;
         let (mean, se) = pixel_mean(&scene, &opts, film, 200_000);
         assert!(
             (mean - expected).abs() < 4.0 * se + 1e-3 * expected,
-            "MC {mean} ± {se} vs {expected} (envmap {env}, lamp {lamp})"
+            "MC {mean} ± {se} vs {expected} (envmap {env}, lamp {lamp}, sun {sun})"
         );
         assert!(
-            lamp > 0.05 * env as f32,
-            "the lamp must matter: {lamp} vs {env}"
+            lamp > 0.05 * env as f32 && sun > 0.05 * env as f32,
+            "the lamp and the sun must matter: {lamp}, {sun} vs {env}"
         );
-        assert!(!crate::Lamp {
-            position: Vec3::ZERO,
-            intensity: Vec3::new(1.0, -1.0, 0.0),
-        }
-        .is_valid());
+        assert!(!crate::Lamp::point(Vec3::ZERO, Vec3::new(1.0, -1.0, 0.0)).is_valid());
+        assert!(!crate::Lamp::sun(Vec3::ZERO, Vec3::ONE).is_valid());
+        assert!(crate::Lamp::sun(Vec3::new(0.0, 3.0, 0.0), Vec3::ONE).is_valid());
+        assert!(scene
+            .set_lamps(vec![crate::Lamp::point(Vec3::NAN, Vec3::ONE)])
+            .is_err());
         assert!(scene
             .set_lamps(vec![crate::Lamp {
-                position: Vec3::NAN,
+                at: crate::LampAt::Distant(Vec3::new(0.0, 0.5, 0.0)),
                 intensity: Vec3::ONE,
             }])
             .is_err());

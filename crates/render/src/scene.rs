@@ -195,23 +195,63 @@ pub(crate) fn transmittance_stream(
 /// [`ScreenGlass::surface`] of a pixel that sees the sky.
 pub const NO_SURFACE: u32 = u32::MAX;
 
-/// An isotropic point light inside the scene: a lamp, which the camera
-/// never sees (it has no area) but whose light every surface it reaches
-/// receives, `intensity`·cos θ / r² (radiant intensity, per channel, in
-/// the envmap's radiance units times area).
+/// Where a [`Lamp`] is.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum LampAt {
+    /// An isotropic point light inside the scene at this camera-space
+    /// position: a surface at distance r receives intensity·cos θ / r²
+    /// (radiant intensity, per channel, in the envmap's radiance units
+    /// times area).
+    Point(Vec3),
+    /// A distant light, the sun: in this camera-space direction (unit,
+    /// towards the light), seen under a vanishing angle; a surface that
+    /// sees it receives intensity·cos θ (the irradiance at normal
+    /// incidence, in the envmap's radiance units times solid angle).
+    Distant(Vec3),
+}
+
+/// A light without area besides the envmap: a lamp in the room or the
+/// sun ([`LampAt`]). The camera never sees one (it has no area), and a
+/// BSDF sample never meets one; next-event estimation alone brings its
+/// light, to every surface it reaches.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Lamp {
-    /// Camera space.
-    pub position: Vec3,
+    pub at: LampAt,
     pub intensity: Vec3,
 }
 
 impl Lamp {
-    /// Finite position, finite non-negative intensity.
+    /// An isotropic point light.
+    pub fn point(position: Vec3, intensity: Vec3) -> Lamp {
+        Lamp {
+            at: LampAt::Point(position),
+            intensity,
+        }
+    }
+
+    /// A distant light in `direction` (normalised here; a zero or
+    /// non-finite one gives a lamp that is not [`Lamp::is_valid`]) giving
+    /// `irradiance` at normal incidence.
+    pub fn sun(direction: Vec3, irradiance: Vec3) -> Lamp {
+        Lamp {
+            at: LampAt::Distant(direction.try_normalize().unwrap_or(Vec3::NAN)),
+            intensity: irradiance,
+        }
+    }
+
+    /// Whether it is the sun.
+    pub fn is_distant(&self) -> bool {
+        matches!(self.at, LampAt::Distant(_))
+    }
+
+    /// Finite position (a unit direction for a distant lamp), finite
+    /// non-negative intensity.
     pub fn is_valid(&self) -> bool {
-        self.position.is_finite()
-            && self.intensity.is_finite()
-            && self.intensity.min_element() >= 0.0
+        let at = match self.at {
+            LampAt::Point(p) => p.is_finite(),
+            LampAt::Distant(d) => d.is_finite() && (d.length() - 1.0).abs() < 1e-3,
+        };
+        at && self.intensity.is_finite() && self.intensity.min_element() >= 0.0
     }
 }
 
@@ -250,9 +290,12 @@ pub struct RenderScene {
     /// the geometry ([`crate::guide`]); `None` samples light by radiance
     /// alone.
     pub light_visibility: Option<std::sync::Arc<crate::guide::Visibility>>,
-    /// Point lamps inside the scene ([`Lamp`]; none by default), set with
-    /// [`RenderScene::set_lamps`].
+    /// Lamps inside the scene and the sun ([`Lamp`]; none by default),
+    /// set with [`RenderScene::set_lamps`].
     pub lamps: Vec<Lamp>,
+    /// Length of a shadow ray towards a distant lamp: past everything in
+    /// the scene (set with the lamps).
+    pub(crate) lamp_far: f32,
     /// The openings light samples aim at besides the envmap's density
     /// ([`crate::portal`]): the mesh's [`TriMesh::portals`], or those of
     /// [`RenderScene::set_portals`].
@@ -394,6 +437,7 @@ impl RenderScene {
             env,
             light_visibility: None,
             lamps: Vec::new(),
+            lamp_far: 1.0,
             portals,
             portal_share: crate::portal::PORTAL_SHARE,
         };
@@ -458,11 +502,22 @@ impl RenderScene {
     }
 
     /// Lights the scene with `lamps` besides its envmap (replacing any it
-    /// had). A lamp must have a finite position and a finite, non-negative
-    /// intensity.
+    /// had). Each must be [`Lamp::is_valid`].
     pub fn set_lamps(&mut self, lamps: Vec<Lamp>) -> Result<(), RenderError> {
         if let Some(k) = lamps.iter().position(|l| !l.is_valid()) {
             return Err(RenderError::Lamp { index: k });
+        }
+        if lamps.iter().any(Lamp::is_distant) {
+            // Twice the farthest vertex from the camera, and more: a ray
+            // from any point of the scene ends past all of it.
+            let r = self
+                .mesh
+                .positions
+                .iter()
+                .map(|p| p.length())
+                .filter(|r| r.is_finite())
+                .fold(0.0f32, f32::max);
+            self.lamp_far = 4.0 * r + 1.0;
         }
         self.lamps = lamps;
         Ok(())
