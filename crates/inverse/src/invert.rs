@@ -4,7 +4,9 @@
 //! Schedule (following the reference's alternation, `opt_order = rm, a`):
 //!
 //! 1. scout: a few paths per pixel, envmap fitted from a constant start
-//!    (gives the main trace a sensible envmap to importance-sample);
+//!    (gives the main trace a sensible envmap to importance-sample); then,
+//!    when asked, the search for a sun ([`crate::sun`]), which joins the
+//!    light vector as a distant lamp where the photo shows one;
 //! 2. main trace with the scout envmap and the starting materials; then,
 //!    when asked and R and M are not trusted, roughness and metallic per segment
 //!    ([`crate::segments`]): where one albedo under another (R, M) explains

@@ -170,24 +170,11 @@ impl SunFit {
     }
 }
 
-/// Length past everything in `scene` from any point in it.
-fn far(scene: &RenderScene) -> f32 {
-    scene
-        .mesh
-        .positions
-        .iter()
-        .map(|p| p.length())
-        .filter(|r| r.is_finite())
-        .fold(0.0f32, f32::max)
-        * 4.0
-        + 1.0
-}
-
 /// The sun in direction `d` fitted to `pixels`' light besides the
 /// ambient terms (see the module documentation); sums over the pixels in
 /// order.
 pub fn score(scene: &RenderScene, pixels: &[SearchPixel], d: Vec3) -> SunFit {
-    score_with(scene, pixels, &ambient(pixels), d, far(scene))
+    score_with(scene, pixels, &ambient(pixels), d, scene.beyond())
 }
 
 /// Per channel, the ambient regressors' normal equations: AᵀA (with a
@@ -289,7 +276,7 @@ fn score_with(
 
 /// The best of `directions` (most explained; the first of equals).
 fn best_of(scene: &RenderScene, pixels: &[SearchPixel], directions: &[Vec3]) -> Option<SunFit> {
-    let far = far(scene);
+    let far = scene.beyond();
     let amb = ambient(pixels);
     let fits: Vec<SunFit> = directions
         .par_iter()

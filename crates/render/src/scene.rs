@@ -501,6 +501,20 @@ impl RenderScene {
             .collect()
     }
 
+    /// A length past everything in the scene from any point in it: four
+    /// times the farthest vertex from the camera, and one more (a ray that
+    /// long towards a distant light leaves the scene).
+    pub fn beyond(&self) -> f32 {
+        let r = self
+            .mesh
+            .positions
+            .iter()
+            .map(|p| p.length())
+            .filter(|r| r.is_finite())
+            .fold(0.0f32, f32::max);
+        4.0 * r + 1.0
+    }
+
     /// Lights the scene with `lamps` besides its envmap (replacing any it
     /// had). Each must be [`Lamp::is_valid`].
     pub fn set_lamps(&mut self, lamps: Vec<Lamp>) -> Result<(), RenderError> {
@@ -508,16 +522,7 @@ impl RenderScene {
             return Err(RenderError::Lamp { index: k });
         }
         if lamps.iter().any(Lamp::is_distant) {
-            // Twice the farthest vertex from the camera, and more: a ray
-            // from any point of the scene ends past all of it.
-            let r = self
-                .mesh
-                .positions
-                .iter()
-                .map(|p| p.length())
-                .filter(|r| r.is_finite())
-                .fold(0.0f32, f32::max);
-            self.lamp_far = 4.0 * r + 1.0;
+            self.lamp_far = self.beyond();
         }
         self.lamps = lamps;
         Ok(())
