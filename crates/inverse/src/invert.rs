@@ -1032,6 +1032,24 @@ mod tests {
         );
     }
 
+    /// A quick fit of the light alone (envmap only, the texel route, the
+    /// materials trusted), as the light tests run it.
+    fn light_fit() -> InvertOptions {
+        InvertOptions {
+            budget_seconds: 2.0,
+            env_route: env_route("texel", &[]).expect("env route"),
+            mat_route: mat_route("solve", &[]).expect("mat route"),
+            trust_rm: true,
+            env_only: true,
+            spp: Some(16),
+            final_spp: Some(8),
+            loops: Some(2),
+            env_steps: Some(150),
+            mat_steps: Some(10),
+            ..Default::default()
+        }
+    }
+
     /// The sun is found and fitted: a room lit by a dim uniform sky and a
     /// sun is recovered (materials known) with a sun within 10°
     /// of the true one at about its irradiance, explaining the image
@@ -1064,20 +1082,7 @@ mod tests {
             )
             .image
         };
-        let opts = |sun: bool| InvertOptions {
-            budget_seconds: 2.0,
-            env_route: env_route("texel", &[]).expect("env route"),
-            mat_route: mat_route("solve", &[]).expect("mat route"),
-            trust_rm: true,
-            env_only: true,
-            spp: Some(16),
-            final_spp: Some(8),
-            loops: Some(2),
-            env_steps: Some(150),
-            mat_steps: Some(10),
-            sun,
-            ..Default::default()
-        };
+        let opts = |sun: bool| InvertOptions { sun, ..light_fit() };
         let run = |target: &RgbImage, sun: bool| {
             invert(scene(), target, &pred, &opts(sun), &|_| {}).expect("invert")
         };
@@ -1158,19 +1163,9 @@ mod tests {
             .image
         };
         let opts = |sites: Vec<Vec3>| InvertOptions {
-            budget_seconds: 2.0,
-            env_route: env_route("texel", &[]).expect("env route"),
-            mat_route: mat_route("solve", &[]).expect("mat route"),
-            trust_rm: true,
-            env_only: true,
-            spp: Some(16),
-            final_spp: Some(8),
-            loops: Some(2),
-            env_steps: Some(150),
-            mat_steps: Some(10),
             lamp_sites: sites,
             lamp_scale: depth,
-            ..Default::default()
+            ..light_fit()
         };
         let run = |target: &RgbImage, sites: Vec<Vec3>| {
             invert(room(3, n).scene, target, &pred, &opts(sites), &|_| {}).expect("invert")

@@ -374,42 +374,7 @@ mod tests {
             v(-3.0, -1.0, -8.0),
         );
         // The block: x ∈ [−0.5, 0.5], y ∈ [−1, 0.5], z ∈ [−5.5, −4.5].
-        let (x0, x1, y0, y1, z0, z1) = (-0.5, 0.5, -1.0, 0.5, -5.5, -4.5);
-        quad(
-            &mut mesh,
-            v(x0, y0, z1),
-            v(x1, y0, z1),
-            v(x1, y1, z1),
-            v(x0, y1, z1),
-        );
-        quad(
-            &mut mesh,
-            v(x1, y0, z0),
-            v(x0, y0, z0),
-            v(x0, y1, z0),
-            v(x1, y1, z0),
-        );
-        quad(
-            &mut mesh,
-            v(x0, y0, z0),
-            v(x0, y0, z1),
-            v(x0, y1, z1),
-            v(x0, y1, z0),
-        );
-        quad(
-            &mut mesh,
-            v(x1, y0, z1),
-            v(x1, y0, z0),
-            v(x1, y1, z0),
-            v(x1, y1, z1),
-        );
-        quad(
-            &mut mesh,
-            v(x0, y1, z1),
-            v(x1, y1, z1),
-            v(x1, y1, z0),
-            v(x0, y1, z0),
-        );
+        mesh.add_box(v(-0.5, -1.0, -5.5), v(0.5, 0.5, -4.5));
         let cam = Camera::new(16, 16);
         let maps = MaterialMaps::uniform(16, 16, Vec3::splat(0.5), 0.5, 0.0);
         let env = EnvMap::new(&Image::from_vec(4, 4, vec![Vec3::ONE; 16])).unwrap();
