@@ -121,11 +121,11 @@ pub struct InvertArgs {
     /// decide.
     #[arg(long, default_value_t = 0.003)]
     pub lamp_sparsity: f32,
-    /// The sun: `on` looks in the scout's envmap for a peak that carries
-    /// much of the light and, where there is one, fits it as a distant
-    /// light beside the texels (texel route), its direction searched by
-    /// the shadows the photo shows; written to best_results/lamps.json.
-    /// Scenes without such a peak are recovered as with `off`.
+    /// The sun: `on` searches the photo's light and shadow, after the
+    /// scout, for a sun direction that explains them and, where one does,
+    /// fits it as a distant light beside the texels (texel route);
+    /// written to best_results/lamps.json. Scenes where none does are
+    /// recovered as with `off`.
     #[arg(long, default_value = "off")]
     pub sun: crate::commands::OnOff,
     /// Disable early stopping (run every stage for its full step count).

@@ -127,11 +127,11 @@ pub struct InvertOptions {
     /// Weight of the lamps' sparsity prior
     /// ([`crate::envfit::EnvFitOptions::lamp_sparsity`]).
     pub lamp_sparsity: f32,
-    /// Look for a sun in the scout's envmap and, where one carries much
-    /// of the light, fit it as a distant lamp beside the texels
+    /// After the scout, search the photo's light and shadow for a sun and,
+    /// where one explains them, fit it as a distant lamp beside the texels
     /// ([`crate::sun`]; texel route only).
     pub sun: bool,
-    /// When a peak is a sun, and how its direction is searched.
+    /// How the sun is searched for, and when the best direction is one.
     pub sun_params: SunParams,
 }
 
@@ -519,16 +519,11 @@ impl Run<'_> {
         Ok(cache)
     }
 
-    /// The sun the photo shows, if any ([`crate::sun`]), searched at up
-    /// to [`SunParams::pixels`] of the envmap stages' pixels (those with
-    /// a saturated channel left out); with it, the scout's light vector
-    /// `env` with its texels brought down to the baseline.
-    fn find_sun(
-        &self,
-        mats: &[Material],
-        env: &[Vec3],
-        guide: &Guide,
-    ) -> Option<(Vec<Vec3>, SunFit, bool)> {
+    /// The best sun direction the photo shows ([`crate::sun`]), searched
+    /// at up to [`SunParams::pixels`] of the envmap stages' pixels (those
+    /// with a saturated channel left out), and whether it is taken for
+    /// the sun.
+    fn find_sun(&self, mats: &[Material], guide: &Guide) -> Option<(SunFit, bool)> {
         let (ew, eh) = (self.opts.env_width, self.opts.env_height);
         let params = &self.opts.sun_params;
         let step = self.pixels.len().div_ceil(params.pixels.max(1)).max(1);
@@ -552,9 +547,7 @@ impl Run<'_> {
             })
             .collect();
         let fit = sun::search(&self.scene, &pixels, ew, eh, params)?;
-        let mut base = env.to_vec();
-        base[..ew * eh].copy_from_slice(&sun::baseline(env, ew, eh, params.quantile));
-        Some((base, fit, fit.is_sun(params)))
+        Some((fit, fit.is_sun(params)))
     }
 
     fn fit_env(
@@ -726,16 +719,17 @@ pub fn invert(
     let mut sun_report = None;
     if opts.sun {
         run.begin("sun", 1);
-        let found = run.find_sun(&mats, &env, &guide);
-        sun_report = found.as_ref().map(|(_, fit, taken)| SunReport {
+        let found = run.find_sun(&mats, &guide);
+        sun_report = found.as_ref().map(|(fit, taken)| SunReport {
             found: *taken,
             direction: fit.direction.to_array(),
             explained: fit.explained,
             start_irradiance: fit.irradiance.to_array(),
             irradiance: [0.0; 3],
         });
-        if let Some((base, fit, true)) = found {
-            let mut lit = base[..ew * eh].to_vec();
+        if let Some((fit, true)) = found {
+            // The scout had spread the sun into the brightest texels.
+            let mut lit = sun::baseline(&env, ew, eh, opts.sun_params.quantile);
             lit.extend_from_slice(&env[ew * eh..ew * eh + sites]);
             lit.push(fit.irradiance / sun_scale(ew, eh));
             lit.resize(light_len(ew, eh, sites + 1), Vec3::ZERO);

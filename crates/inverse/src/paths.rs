@@ -546,7 +546,7 @@ struct Recorder {
     eh: usize,
     /// Per lamp, what its entry is measured in: lamp_scale² for a point,
     /// [`sun_scale`] for a distant lamp.
-    lamp_area: Vec<f32>,
+    lamp_area: std::sync::Arc<[f32]>,
     /// Index of the current vertex in `vertices`.
     vi: usize,
     /// Cached angles of the BSDF sample being traced.

@@ -33,6 +33,7 @@ use glam::{DMat4, DVec3, DVec4, Vec3};
 use matflow_render::envmap::{dir_to_uv, uv_to_dir};
 use matflow_render::integrator::offset_origin;
 use matflow_render::RenderScene;
+use matflow_scene::color::luminance;
 use rayon::prelude::*;
 
 /// When the photo shows a sun, and how its direction is searched.
@@ -72,11 +73,6 @@ impl Default for SunParams {
             pixels: 16384,
         }
     }
-}
-
-/// Rec. 709 luminance of linear RGB.
-pub fn luminance(c: Vec3) -> f32 {
-    c.dot(Vec3::new(0.2126, 0.7152, 0.0722))
 }
 
 /// The first `w`·`h` entries of `env` (an envmap's texels) with every
