@@ -402,6 +402,7 @@ fn invert_writes_best_results_deterministically_and_rerenders() {
         "best_results/normal.exr",
         "best_results/envmap.hdr",
         "best_results/rendered_img.exr",
+        "best_results/rendered_raw.exr",
     ];
     let mut runs: Vec<Vec<Vec<u8>>> = Vec::new();
     for (k, t) in [1usize, 2].iter().enumerate() {
@@ -438,6 +439,18 @@ fn invert_writes_best_results_deterministically_and_rerenders() {
         let psnr = summary["rerender"]["psnr"].as_f64().unwrap();
         assert!(psnr.is_finite() && psnr > 10.0, "{summary}");
         assert!(summary["rerender"]["ssim"].as_f64().unwrap() > 0.0);
+        // The re-render is denoised by default; its samples as they came
+        // are kept beside it, and differ.
+        assert_eq!(summary["options"]["denoise_render"], true);
+        assert!(summary["rerender_raw"]["psnr"]
+            .as_f64()
+            .unwrap()
+            .is_finite());
+        assert!(text.contains("denoised ("), "{text}");
+        assert_ne!(
+            std::fs::read(out.join("best_results/rendered_img.exr")).unwrap(),
+            std::fs::read(out.join("best_results/rendered_raw.exr")).unwrap()
+        );
         let stages = summary["stages"].as_array().unwrap();
         assert!(stages.iter().any(|s| s["name"] == "materials arm 1"));
         for st in stages {
@@ -493,6 +506,24 @@ fn invert_writes_best_results_deterministically_and_rerenders() {
     let text = render("best_results", &["--filter", "gaussian"]);
     assert!(text.contains("gaussian filter (as asked)"), "{text}");
     assert_ne!(std::fs::read(&r).unwrap(), boxed);
+    let text = render("best_results", &["--denoise"]);
+    assert!(text.contains("4 spp (denoised)"), "{text}");
+    assert_ne!(std::fs::read(&r).unwrap(), boxed);
+    let o = matflow(
+        &[
+            "render",
+            "--bundle",
+            s(&out),
+            "--spp",
+            "1",
+            "--denoise",
+            "--out",
+            s(&r),
+        ],
+        None,
+    );
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--spp 2 or more"));
     // Predictions are not what invert fitted: Mitsuba's Gaussian.
     let text = render("pred", &[]);
     assert!(text.contains("gaussian filter (the default)"), "{text}");

@@ -61,6 +61,11 @@ pub struct RenderArgs {
     /// Print PSNR (sRGB, γ 2.2) against this linear EXR.
     #[arg(long)]
     pub compare: Option<PathBuf>,
+    /// Denoise the render (as `invert` does its re-render): two halves of
+    /// the samples, divided by the pixels' albedo, edge-aware à-trous
+    /// filtered, multiplied back. Needs --spp 2 or more; not with --insert.
+    #[arg(long)]
+    pub denoise: bool,
     /// Output EXR (linear); a gamma-encoded PNG is written beside it.
     #[arg(long)]
     pub out: PathBuf,
@@ -444,17 +449,45 @@ pub fn render(a: RenderArgs) -> Result<()> {
             crate::run::duration(matflow_engine::spec::EXPENSIVE_SECONDS)
         );
     }
+    if a.denoise && (a.insert.is_some() || a.spp < 2) {
+        bail!(
+            "{}: --denoise needs --spp 2 or more (two halves of the samples) and a plain render (not --insert)",
+            a.bundle.display()
+        );
+    }
     if let Some(objects_file) = &a.insert {
         return render_inserted(&a, objects_file, loaded, &opts, t_all);
     }
-    let (out, seconds) = render_with_progress(&loaded.scene, &opts, "render");
+    let (out, seconds) = if a.denoise {
+        let pb = progress_bar(0, "render (two halves)");
+        let t0 = Instant::now();
+        let d = matflow_render::denoise::render_denoised(
+            &loaded.scene,
+            &opts,
+            matflow_render::denoise::RENDER_PASSES,
+            &|done, total| {
+                pb.set_length(total as u64);
+                pb.set_position(done as u64)
+            },
+        )
+        .context("denoising needs at least 2 samples per pixel")?;
+        pb.finish_and_clear();
+        let out = RenderOutput {
+            image: d.image,
+            stats: d.stats,
+        };
+        (out, t0.elapsed().as_secs_f64())
+    } else {
+        render_with_progress(&loaded.scene, &opts, "render")
+    };
     let png = write_outputs(&a.out, &out.image)?;
     let s = out.stats;
     outln!(
-        "rendered {}x{} at {} spp, depth {}, {} filter ({why}), completion {} ({why_complete}), {} lamp(s), {} sun(s), {} portal(s), {} in {:.2} s (mesh and BVH {:.2} s, total {:.2} s): {:.1} M rays, {:.2} Mrays/s -> {}, {}",
+        "rendered {}x{} at {} spp{}, depth {}, {} filter ({why}), completion {} ({why_complete}), {} lamp(s), {} sun(s), {} portal(s), {} in {:.2} s (mesh and BVH {:.2} s, total {:.2} s): {:.1} M rays, {:.2} Mrays/s -> {}, {}",
         loaded.scene.camera.width,
         loaded.scene.camera.height,
         a.spp,
+        if a.denoise { " (denoised)" } else { "" },
         a.depth,
         filter.name(),
         complete.name(),

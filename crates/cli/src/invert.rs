@@ -74,6 +74,12 @@ pub struct InvertArgs {
     /// À-trous denoising passes over the per-pixel tables (0: off).
     #[arg(long, default_value_t = 3)]
     pub denoise: usize,
+    /// Denoise the independent re-render (`best_results/rendered_img`):
+    /// two halves of its samples, albedo-demodulated, edge-aware à-trous
+    /// filtered (on); off writes the render as it comes. With on,
+    /// `rendered_raw.exr` is the same samples unfiltered.
+    #[arg(long, default_value = "on")]
+    pub denoise_render: crate::commands::OnOff,
     /// Do not normalise the render's mean in material stages.
     #[arg(long)]
     pub no_rescale: bool,
@@ -248,6 +254,7 @@ pub fn options_from(a: &InvertArgs) -> InvertOptions {
         mat_steps: a.steps,
         early_stop: !a.no_early_stop,
         denoise: a.denoise,
+        denoise_render: a.denoise_render.on(),
         rescale: !a.no_rescale,
         env_only: a.env_only,
         light_guide: a.light_guide.on(),
@@ -360,6 +367,13 @@ pub fn write_bundle(
     }
     io::write_exr_rgb(&b.path("best_results/rendered_img.exr"), &res.rendered)?;
     io::write_png_gamma(&b.path("best_results/rendered_img.png"), &res.rendered)?;
+    let raw = b.path("best_results/rendered_raw.exr");
+    if let Some(im) = &res.rendered_raw {
+        io::write_exr_rgb(&raw, im)?;
+    } else if raw.exists() {
+        std::fs::remove_file(&raw)
+            .with_context(|| format!("removing the stale {}", raw.display()))?;
+    }
     // The frozen-path estimator's image for the recovered parameters (what
     // the optimiser fitted), and a viewable albedo.
     io::write_exr_rgb(&b.path("best_results/fit_img.exr"), &res.fit_image)?;
@@ -399,6 +413,10 @@ pub fn invert_cmd(a: InvertArgs) -> Result<()> {
     let (depth, pred, target) = (&depth, &maps, &target);
     let rerender = image_metrics(&res.rendered, target);
     let fit = image_metrics(&res.fit_image, target);
+    let rerender_raw = res
+        .rendered_raw
+        .as_ref()
+        .map(|im| image_metrics(im, target));
     let summary = serde_json::json!({
         "input": a.bundle.display().to_string(),
         "options": {
@@ -423,6 +441,7 @@ pub fn invert_cmd(a: InvertArgs) -> Result<()> {
             "lamps": a.lamps.on(),
             "lamp_sparsity": opts.lamp_sparsity,
             "sun": opts.sun,
+            "denoise_render": opts.denoise_render,
         },
         "lamps": {
             "sites": opts.lamp_sites.len(),
@@ -445,16 +464,20 @@ pub fn invert_cmd(a: InvertArgs) -> Result<()> {
         "cache_bytes": res.report.cache_bytes,
         "cache_rays": res.report.cache_rays,
         "rerender": rerender,
+        "rerender_raw": rerender_raw,
         "fit": fit,
         "seconds": t0.elapsed().as_secs_f64(),
         "peak_memory_bytes": peak_memory_bytes(),
     });
     write_bundle(&a.out, &res, depth, pred, target, &summary)?;
     outln!(
-        "inverted {} in {:.1} s: rerender PSNR {:.2} dB, SSIM {:.4}, MSE {:.5} (sRGB, gamma 2.2; frozen-path fit {:.2} dB); peak memory {:.0} MB -> {}",
+        "inverted {} in {:.1} s: rerender PSNR {:.2} dB{}, SSIM {:.4}, MSE {:.5} (sRGB, gamma 2.2; frozen-path fit {:.2} dB); peak memory {:.0} MB -> {}",
         a.bundle.display(),
         t0.elapsed().as_secs_f64(),
         rerender.psnr,
+        rerender_raw
+            .map(|r| format!(" denoised ({:.2} dB as rendered)", r.psnr))
+            .unwrap_or_default(),
         rerender.ssim,
         rerender.mse,
         fit.psnr,

@@ -81,6 +81,12 @@ pub struct InvertOptions {
     /// À-trous passes over the per-pixel tables before each material
     /// stage (0: fit the raw Monte Carlo tables).
     pub denoise: usize,
+    /// Denoise the independent re-render: it is rendered as two halves of
+    /// its samples with their own random numbers, and filtered by
+    /// [`matflow_render::denoise::denoise_render`] (albedo-demodulated,
+    /// edge-aware à-trous, the halves' difference giving its noise).
+    /// Off: one render, as it comes.
+    pub denoise_render: bool,
     /// Recover only the envmap, materials held at the given ones (which
     /// are trusted as they are: the paper's Table 3 setting with ground
     /// truth or MatNet materials).
@@ -215,6 +221,7 @@ impl Default for InvertOptions {
             early_stop: true,
             rescale: true,
             denoise: 3,
+            denoise_render: true,
             env_only: false,
             light_guide: true,
             portals: true,
@@ -322,8 +329,12 @@ pub struct InvertResult {
     pub lamps: Vec<Lamp>,
     /// The frozen estimator's image for the final parameters.
     pub fit_image: RgbImage,
-    /// Independent re-render (new random numbers, box filter).
+    /// Independent re-render (new random numbers, box filter), denoised
+    /// with [`InvertOptions::denoise_render`].
     pub rendered: RgbImage,
+    /// With [`InvertOptions::denoise_render`]: the same re-render before
+    /// denoising (the mean of its two halves).
+    pub rendered_raw: Option<RgbImage>,
     pub report: InvertReport,
 }
 
@@ -880,20 +891,31 @@ pub fn invert(
     // 5. Independent re-render.
     run.set_scene(&mats, &env)?;
     run.begin("render", h);
-    let out = matflow_render::render(
-        &run.scene,
-        &RenderOptions {
-            spp: plan.final_spp,
-            max_depth: opts.max_depth,
-            glass_depth: matflow_render::integrator::DEFAULT_GLASS_DEPTH,
-            seed: opts.seed ^ 0xf1_4a1,
-            filter: FIT_FILTER,
-            reference_compat: false,
-            tile_size: 16,
-            crop: None,
-        },
-        &|d, t| events(Event::Trace { done: d, total: t }),
-    );
+    let render_opts = RenderOptions {
+        spp: plan.final_spp,
+        max_depth: opts.max_depth,
+        glass_depth: matflow_render::integrator::DEFAULT_GLASS_DEPTH,
+        seed: opts.seed ^ 0xf1_4a1,
+        filter: FIT_FILTER,
+        reference_compat: false,
+        tile_size: 16,
+        crop: None,
+    };
+    let trace = |d: usize, t: usize| events(Event::Trace { done: d, total: t });
+    let denoised = opts
+        .denoise_render
+        .then(|| {
+            let passes = matflow_render::denoise::RENDER_PASSES;
+            matflow_render::denoise::render_denoised(&run.scene, &render_opts, passes, &trace)
+        })
+        .flatten();
+    let (rendered, rendered_raw) = match denoised {
+        Some(d) => (d.image, Some(d.raw)),
+        None => (
+            matflow_render::render(&run.scene, &render_opts, &trace).image,
+            None,
+        ),
+    };
     run.end(StageReport::plain("render", plan.final_spp as usize));
     let lamps = lamps_of(&env, opts, run.sun);
     if let (Some(r), Some(sun)) = (sun_report.as_mut(), lamps.last()) {
@@ -907,7 +929,8 @@ pub fn invert(
         envmap: Image::from_vec(ew, eh, env),
         lamps,
         fit_image: Image::from_vec(w, h, fit),
-        rendered: out.image,
+        rendered,
+        rendered_raw,
         report: InvertReport {
             plan,
             stages: run.stages,

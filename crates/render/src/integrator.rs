@@ -93,7 +93,7 @@ impl RenderStats {
     pub fn total_rays(&self) -> u64 {
         self.primary_rays + self.bounce_rays + self.shadow_rays
     }
-    fn add(&mut self, o: &RenderStats) {
+    pub(crate) fn add(&mut self, o: &RenderStats) {
         self.primary_rays += o.primary_rays;
         self.bounce_rays += o.bounce_rays;
         self.shadow_rays += o.shadow_rays;

@@ -6,6 +6,7 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord, clippy::needless_range_loop)]
 
 pub mod bsdf;
+pub mod denoise;
 pub mod dielectric;
 pub mod envmap;
 pub mod filter;

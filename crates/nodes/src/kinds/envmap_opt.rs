@@ -45,7 +45,7 @@ impl Node for EnvmapOptNode {
         static ALL_PARAMS: OnceLock<Vec<ParamSpec>> = OnceLock::new();
         INFO.get_or_init(|| NodeInfo {
             kind: "envmap_opt",
-            version: 4,
+            version: 5,
             doc: "Recovers the 32×16 HDR environment map with the materials held fixed (the \
                   paper's envmap stage; L1 + L2 on γ-encoded images over frozen paths).",
             params: with_route_params(&ALL_PARAMS, PARAMS, &[Side::Env]),

@@ -65,7 +65,7 @@ const OUTPUTS: &[OutputSpec] = &[
     OutputSpec {
         name: "rendered",
         ty: "image",
-        doc: "independent re-render of the result",
+        doc: "independent re-render of the result (denoised)",
     },
     REPORT,
 ];
@@ -76,7 +76,7 @@ impl Node for MaterialOptNode {
         static ALL_PARAMS: OnceLock<Vec<ParamSpec>> = OnceLock::new();
         INFO.get_or_init(|| NodeInfo {
             kind: "material_opt",
-            version: 4,
+            version: 5,
             doc: "Recovers albedo, roughness and metallic together with the envmap: the \
                   reference's alternation of envmap and material stages (paper §3.2), on \
                   frozen paths.",
