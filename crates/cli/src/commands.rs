@@ -461,8 +461,10 @@ pub fn render(a: RenderArgs) -> Result<()> {
     let (out, seconds) = if a.denoise {
         let pb = progress_bar(0, "render (two halves)");
         let t0 = Instant::now();
+        let guide = matflow_render::denoise::Guide::build(&loaded.scene);
         let d = matflow_render::denoise::render_denoised(
             &loaded.scene,
+            &guide,
             &opts,
             matflow_render::denoise::RENDER_PASSES,
             &|done, total| {

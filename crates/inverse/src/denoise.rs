@@ -10,15 +10,16 @@
 //! coefficient. Every table entry is linear in the incident light, so a
 //! weighted mean of tables is the table of a weighted mean of the light.
 
-use matflow_render::denoise::{atrous, lum, Filterable};
+use matflow_render::denoise::{atrous, Filterable};
 pub use matflow_render::denoise::{Guide, SIGMA_L, SIGMA_N};
+use matflow_scene::color::luminance;
 
 use crate::tables::PixelTable;
 
 /// Luminance of the diffuse coefficient at R = 0 (a proxy for irradiance).
 #[inline]
 pub fn table_luminance(t: &PixelTable) -> f32 {
-    lum(t.c[0])
+    luminance(t.c[0])
 }
 
 impl Filterable for PixelTable {
@@ -87,7 +88,7 @@ mod tests {
                 .zip(tr.iter())
                 .zip(valid.iter())
                 .filter(|(_, v)| **v)
-                .map(|((a, b), _)| (lum(a.c[0]) - lum(b.c[0])).abs() as f64)
+                .map(|((a, b), _)| (luminance(a.c[0]) - luminance(b.c[0])).abs() as f64)
                 .sum::<f64>()
         };
         let before = err(&t);

@@ -906,7 +906,13 @@ pub fn invert(
         .denoise_render
         .then(|| {
             let passes = matflow_render::denoise::RENDER_PASSES;
-            matflow_render::denoise::render_denoised(&run.scene, &render_opts, passes, &trace)
+            matflow_render::denoise::render_denoised(
+                &run.scene,
+                &guide,
+                &render_opts,
+                passes,
+                &trace,
+            )
         })
         .flatten();
     let (rendered, rendered_raw) = match denoised {

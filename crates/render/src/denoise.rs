@@ -20,6 +20,7 @@
 //! depend on the thread count.
 
 use glam::{Vec2, Vec3};
+use matflow_scene::color::luminance;
 use matflow_scene::RgbImage;
 use rayon::prelude::*;
 
@@ -90,17 +91,12 @@ pub trait Filterable: Copy + Default + Send + Sync {
 impl Filterable for Vec3 {
     #[inline]
     fn luminance(&self) -> f32 {
-        lum(*self)
+        luminance(*self)
     }
     #[inline]
     fn scale_add(&mut self, o: &Self, w: f32) {
         *self += *o * w;
     }
-}
-
-#[inline]
-pub fn lum(v: Vec3) -> f32 {
-    0.2126 * v.x + 0.7152 * v.y + 0.0722 * v.z
 }
 
 /// Filters `values` in place with `iterations` à-trous passes. `variance`
@@ -257,11 +253,12 @@ pub const SECOND_HALF_SEED: u64 = 0x0005_eedb;
 
 /// Renders `scene` with `opts` as two independent halves of its samples
 /// (seeds `opts.seed` and `opts.seed ^ SECOND_HALF_SEED`) and denoises
-/// them ([`denoise_render`]); `progress(done, total)` counts the tiles of
-/// both. `None` below 2 samples per pixel or with a crop (nothing to tell
+/// them ([`denoise_render`], guided by `guide`, the scene's
+/// [`Guide::build`]); `progress(done, total)` counts the tiles of both. `None` below 2 samples per pixel or with a crop (nothing to tell
 /// the noise from, or no whole view to filter).
 pub fn render_denoised(
     scene: &RenderScene,
+    guide: &Guide,
     opts: &crate::RenderOptions,
     passes: usize,
     progress: &(dyn Fn(usize, usize) + Sync),
@@ -276,8 +273,7 @@ pub fn render_denoised(
     };
     let a = half(0, na, opts.seed);
     let b = half(1, nb, opts.seed ^ SECOND_HALF_SEED);
-    let guide = Guide::build(scene);
-    let image = denoise_render(scene, &guide, &a.image, na, &b.image, nb, passes);
+    let image = denoise_render(scene, guide, &a.image, na, &b.image, nb, passes);
     let mut stats = a.stats;
     stats.add(&b.stats);
     Some(Denoised {
@@ -354,7 +350,7 @@ pub fn denoise_render(
     let share = 1.0 / (total * (1.0 / na as f32 + 1.0 / nb as f32));
     let var: Vec<f32> = (0..w * h)
         .map(|i| {
-            let d = lum(a.data[i] / demod[i]) - lum(b.data[i] / demod[i]);
+            let d = luminance(a.data[i] / demod[i]) - luminance(b.data[i] / demod[i]);
             d * d * share
         })
         .collect();
