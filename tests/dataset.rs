@@ -464,6 +464,11 @@ fn a_rooms_sample_unpacks_into_a_bundle_that_renders() {
             "ground_truth",
             "--spp",
             "16",
+            // The rooms' geometry is whole and mostly open (no ceiling
+            // three times in four, missing walls): the depth mesh alone
+            // renders it closer than a room closed by assumption.
+            "--complete",
+            "none",
             "--out",
             s(&w.join("re.exr")),
             "--compare",

@@ -82,6 +82,12 @@ fn synth_then_render_writes_exr_png_and_summary() {
         ],
     );
     assert!(text.contains("rendered 48x48 at 8 spp, depth 3"), "{text}");
+    // A synth scene is its depth mesh: the bundle says so, and renders
+    // complete nothing past the frame unless asked.
+    assert!(
+        text.contains("completion none (the bundle's own geometry, geometry.json)"),
+        "{text}"
+    );
     // The open depth mesh samples its light by radiance alone.
     assert!(text.contains("light sampled by radiance"), "{text}");
     assert!(text.contains("Mrays/s"), "{text}");
@@ -106,9 +112,31 @@ fn synth_then_render_writes_exr_png_and_summary() {
         None,
     ));
     assert!(text.contains("triangles"), "{text}");
+    assert!(
+        text.contains("completion none (the bundle's own geometry, geometry.json)"),
+        "{text}"
+    );
     let (pos, faces) =
         matflow_geom::mesh::read_ply_positions_faces(&std::fs::read(&ply).unwrap()).unwrap();
     assert!(!pos.is_empty() && !faces.is_empty());
+    // A bundle that says nothing of its geometry (a photo's) is completed
+    // as a room by default; a geometry.json that names no mode is an
+    // error naming the file.
+    let geometry = b.join("geometry.json");
+    let declared = std::fs::read(&geometry).unwrap();
+    std::fs::remove_file(&geometry).unwrap();
+    let text = ok(&matflow(
+        &["mesh", "--bundle", s(&b), "--out", s(&ply)],
+        None,
+    ));
+    assert!(text.contains("completion room (the default)"), "{text}");
+    assert!(text.contains("completion: "), "{text}");
+    std::fs::write(&geometry, r#"{"complete": "box"}"#).unwrap();
+    let o = matflow(&["mesh", "--bundle", s(&b), "--out", s(&ply)], None);
+    assert!(!o.status.success());
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(e.contains("geometry.json: complete:"), "{e}");
+    std::fs::write(&geometry, declared).unwrap();
     // With the room completed past the frame: more triangles in the PLY,
     // and a render that still runs (the added triangles take the materials
     // of the pixels they continue); an inversion with it, whose result
@@ -117,6 +145,7 @@ fn synth_then_render_writes_exr_png_and_summary() {
         &["mesh", "--bundle", s(&b), "--complete", "--out", s(&ply)],
         None,
     ));
+    assert!(text.contains("completion room (as asked)"), "{text}");
     assert!(text.contains("completion: "), "{text}");
     let (_, more) =
         matflow_geom::mesh::read_ply_positions_faces(&std::fs::read(&ply).unwrap()).unwrap();
@@ -428,6 +457,10 @@ fn invert_writes_best_results_deterministically_and_rerenders() {
             Some(*t),
         ));
         assert!(text.contains("rerender PSNR"), "{text}");
+        assert!(
+            text.contains("completion none (the bundle's own geometry, geometry.json)"),
+            "{text}"
+        );
         for f in files {
             assert!(out.join(f).is_file(), "missing {f}");
         }

@@ -40,13 +40,17 @@ fn meshes_match_the_reference_algorithm_counts() {
     ] {
         let Some(b) = data(scene) else { return };
         let dir = tempfile::tempdir().unwrap();
+        // The reference meshes the depth alone: no completion.
         let out = run(&[
             "mesh",
             "--bundle",
             b.to_str().unwrap(),
+            "--complete",
+            "none",
             "--out",
             dir.path().join("m.ply").to_str().unwrap(),
         ]);
+        assert!(out.contains("completion none (as asked)"), "{scene}: {out}");
         assert!(
             out.contains(&format!("{verts} vertices, {tris} triangles")),
             "{scene}: {out}"
@@ -89,6 +93,12 @@ fn indoor_best_results_reproduce_the_stored_render() {
         "--out",
         dir.path().join("r.exr").to_str().unwrap(),
     ]);
+    // The reference renders its depth mesh alone, and so does
+    // --reference-compat unless told otherwise.
+    assert!(
+        out.contains("completion none (the reference's, --reference-compat)"),
+        "{out}"
+    );
     let psnr = psnr_of(&out);
     assert!(
         psnr > 29.0,

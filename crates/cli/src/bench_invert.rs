@@ -68,7 +68,7 @@ pub struct BenchInvertArgs {
     /// With --validation: the geometry past the frame, for `invert` and
     /// every render (`--complete`: none, planes, room, closed); several
     /// run in turn.
-    #[arg(long, num_args = 1.., default_values = ["none"])]
+    #[arg(long, num_args = 1.., default_values = ["room"])]
     pub complete: Vec<crate::commands::CompleteMode>,
 }
 

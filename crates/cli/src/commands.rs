@@ -45,12 +45,17 @@ pub struct RenderArgs {
     /// Mesh boundary angle threshold in degrees.
     #[arg(long, default_value_t = 6.0)]
     pub mesh_angle: f64,
-    /// Complete the geometry past the frame before rendering
-    /// (matflow_geom::complete), so that unseen parts of the room block
-    /// and reflect light: `room` (the default when the flag is given
-    /// alone) extends the view's floor, walls and ceiling and closes the
-    /// room with assumed ones where the view shows a room; `planes` only
-    /// extends the planes seen.
+    /// Geometry past the frame (matflow_geom::complete), so that unseen
+    /// parts of the room block and reflect light: `room` extends the
+    /// view's floor, walls and ceiling and closes the room with assumed
+    /// ones where the view shows a room; `closed` the same without
+    /// windows; `planes` only extends the planes seen; `none` renders the
+    /// depth mesh alone. Default: for `best_results` written by `matflow
+    /// invert`, the completion it recovered them with (its summary.json's
+    /// `options.complete`); else none with `--reference-compat`; else the
+    /// one the bundle declares for its own geometry (geometry.json, which
+    /// `matflow synth` writes: none); otherwise room (also when the flag
+    /// is given alone).
     #[arg(long, num_args = 0..=1, default_missing_value = "room")]
     pub complete: Option<CompleteMode>,
     /// Reproduce the reference renderer's sampling-frame defect and its
@@ -170,7 +175,10 @@ pub struct MeshArgs {
     /// Boundary angle threshold in degrees (the reference's code uses 6).
     #[arg(long, default_value_t = 6.0)]
     pub angle: f64,
-    /// Also complete the geometry past the frame (see `render --complete`).
+    /// Geometry past the frame (see `render --complete`): room, closed,
+    /// planes, or none (the depth mesh alone). Default: the completion the
+    /// bundle declares for its own geometry (geometry.json, which `matflow
+    /// synth` writes), otherwise room (also when the flag is given alone).
     #[arg(long, num_args = 0..=1, default_missing_value = "room")]
     pub complete: Option<CompleteMode>,
     #[arg(long)]
@@ -214,7 +222,6 @@ pub struct LoadedScene {
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
 pub enum CompleteMode {
     /// The depth mesh alone.
-    #[default]
     None,
     /// Extend the floor, walls and ceiling the view shows, fill them in
     /// behind what hides them in view, and continue objects cut by the
@@ -222,7 +229,8 @@ pub enum CompleteMode {
     Planes,
     /// As `planes`, and close the room with an assumed ceiling and walls,
     /// each assumed wall with a typical window left open (light from
-    /// openings the view does not show).
+    /// openings the view does not show). The default.
+    #[default]
     Room,
     /// As `room`, the assumed walls without windows.
     Closed,
@@ -276,22 +284,79 @@ fn from_invert<T: Default>(
     Ok((T::default(), "the default"))
 }
 
+/// The file in which a bundle declares the completion that reproduces its
+/// own geometry (`{"complete": "none", "why": ...}`): `matflow synth`
+/// writes it, since its scenes are their depth mesh and nothing else.
+pub const GEOMETRY_FILE: &str = "geometry.json";
+
+/// The completion `bundle` declares for itself in [`GEOMETRY_FILE`], if
+/// it declares one (a bad file is an error naming it).
+pub fn declared_completion(bundle: &Path) -> Result<Option<CompleteMode>> {
+    let path = bundle.join(GEOMETRY_FILE);
+    let Ok(text) = std::fs::read_to_string(&path) else {
+        return Ok(None);
+    };
+    let v: serde_json::Value =
+        serde_json::from_str(&text).with_context(|| format!("{}: not JSON", path.display()))?;
+    let name = v
+        .get("complete")
+        .and_then(|c| c.as_str())
+        .with_context(|| format!("{}: no string field `complete`", path.display()))?;
+    let mode = <CompleteMode as clap::ValueEnum>::from_str(name, false)
+        .map_err(|e| anyhow::anyhow!("{}: complete: {e}", path.display()))?;
+    Ok(Some(mode))
+}
+
+/// The completion a command uses on `bundle` when none was asked for: the
+/// one the bundle declares for its own geometry ([`GEOMETRY_FILE`]), else
+/// room. Also says why.
+pub fn default_completion(bundle: &Path) -> Result<(CompleteMode, &'static str)> {
+    Ok(match declared_completion(bundle)? {
+        Some(m) => (m, "the bundle's own geometry, geometry.json"),
+        None => (CompleteMode::default(), "the default"),
+    })
+}
+
+/// The completion `asked` for, else [`default_completion`].
+pub fn completion_or_default(
+    bundle: &Path,
+    asked: Option<CompleteMode>,
+) -> Result<(CompleteMode, &'static str)> {
+    match asked {
+        Some(m) => Ok((m, "as asked")),
+        None => default_completion(bundle),
+    }
+}
+
 /// The completion a render uses: the one asked for; else, for the maps
 /// `matflow invert` wrote, the one it recovered them with (`summary.json`'s
-/// `options.complete`); else none. Also says why.
+/// `options.complete`); else, with `--reference-compat`, none (the
+/// reference renders the depth mesh alone); else [`default_completion`].
+/// Also says why.
 pub fn render_completion(
     bundle: &Path,
     materials: MaterialSource,
     asked: Option<CompleteMode>,
+    reference_compat: bool,
 ) -> Result<(CompleteMode, &'static str)> {
-    from_invert(
+    if asked.is_some() {
+        return completion_or_default(bundle, asked);
+    }
+    let (from_summary, why) = from_invert(
         bundle,
         materials,
-        asked,
+        None,
         "complete",
         "the one matflow invert recovered these maps with",
-        |name| <CompleteMode as clap::ValueEnum>::from_str(name, false),
-    )
+        |name| <CompleteMode as clap::ValueEnum>::from_str(name, false).map(Some),
+    )?;
+    if let Some(m) = from_summary {
+        return Ok((m, why));
+    }
+    if reference_compat {
+        return Ok((CompleteMode::None, "the reference's, --reference-compat"));
+    }
+    default_completion(bundle)
 }
 
 /// Builds mesh, BVH, materials and envmap for a bundle; with `lamps`,
@@ -404,7 +469,8 @@ pub fn render_filter(
 pub fn render(a: RenderArgs) -> Result<()> {
     let t_all = Instant::now();
     let (filter, why) = render_filter(&a.bundle, a.materials, a.filter)?;
-    let (complete, why_complete) = render_completion(&a.bundle, a.materials, a.complete)?;
+    let (complete, why_complete) =
+        render_completion(&a.bundle, a.materials, a.complete, a.reference_compat)?;
     let mut loaded = load_scene(
         &a.bundle,
         a.materials,
@@ -604,7 +670,9 @@ pub fn mesh(a: MeshArgs) -> Result<()> {
     let depth = bundle.load_depth()?;
     let t0 = Instant::now();
     let (cam, mut m) = mesh_for_view(&depth, a.angle)?;
-    if let Some(params) = a.complete.and_then(|m| m.params()) {
+    let (complete, why) = completion_or_default(&a.bundle, a.complete)?;
+    outln!("completion {} ({why})", complete.name());
+    if let Some(params) = complete.params() {
         let c = matflow_geom::complete_beyond_frame(&mut m.mesh, &depth, &cam, &params);
         for f in &c.extended {
             outln!(
@@ -662,6 +730,16 @@ pub fn synth(a: SynthArgs) -> Result<()> {
     }
     bundle.write_materials("ground_truth", &s.maps)?;
     io::write_hdr(&bundle.path("ground_truth/envmap.hdr"), &s.envmap)?;
+    // The scene is its depth mesh and nothing else (rendered on it alone,
+    // below): commands on the bundle default to completing nothing.
+    let geometry = serde_json::json!({
+        "complete": "none",
+        "why": "a matflow synth scene: the depth mesh is the whole scene (its images were rendered on it alone)",
+    });
+    io::write_atomic(
+        &bundle.path(GEOMETRY_FILE),
+        serde_json::to_string_pretty(&geometry)?.as_bytes(),
+    )?;
     // Render the input photo with the true materials and lighting.
     let loaded = load_scene(
         &a.out,

@@ -66,11 +66,13 @@ pub struct InvertArgs {
     /// Mesh boundary angle threshold in degrees.
     #[arg(long, default_value_t = 6.0)]
     pub mesh_angle: f64,
-    /// Geometry past the frame (see `render --complete`): none, planes,
-    /// room or closed. `render` on the result uses the same unless told
-    /// otherwise.
-    #[arg(long, default_value = "none")]
-    pub complete: crate::commands::CompleteMode,
+    /// Geometry past the frame (see `render --complete`): room, closed,
+    /// planes, or none (the depth mesh alone). Default: the completion the
+    /// bundle declares for its own geometry (geometry.json, which `matflow
+    /// synth` writes), otherwise room. `render` on the result uses the
+    /// same unless told otherwise.
+    #[arg(long)]
+    pub complete: Option<crate::commands::CompleteMode>,
     /// À-trous denoising passes over the per-pixel tables (0: off).
     #[arg(long, default_value_t = 3)]
     pub denoise: usize,
@@ -386,11 +388,12 @@ pub fn write_bundle(
 
 pub fn invert_cmd(a: InvertArgs) -> Result<()> {
     let t0 = Instant::now();
+    let (complete, why_complete) = crate::commands::completion_or_default(&a.bundle, a.complete)?;
     let input = load_input(
         &a.bundle,
         a.materials,
         a.mesh_angle,
-        a.complete.params().as_ref(),
+        complete.params().as_ref(),
     )?;
     let mut opts = options_from(&a);
     let InvertInput {
@@ -431,7 +434,7 @@ pub fn invert_cmd(a: InvertArgs) -> Result<()> {
             "max_depth": opts.max_depth,
             "seed": opts.seed,
             "pixel_filter": matflow_inverse::invert::FIT_FILTER.name(),
-            "complete": a.complete.name(),
+            "complete": complete.name(),
             "light_guide": opts.light_guide,
             "portals": opts.portals,
             "rm_search": opts.rm_search,
@@ -471,8 +474,9 @@ pub fn invert_cmd(a: InvertArgs) -> Result<()> {
     });
     write_bundle(&a.out, &res, depth, pred, target, &summary)?;
     outln!(
-        "inverted {} in {:.1} s: rerender PSNR {:.2} dB{}, SSIM {:.4}, MSE {:.5} (sRGB, gamma 2.2; frozen-path fit {:.2} dB); peak memory {:.0} MB -> {}",
+        "inverted {} (completion {} ({why_complete})) in {:.1} s: rerender PSNR {:.2} dB{}, SSIM {:.4}, MSE {:.5} (sRGB, gamma 2.2; frozen-path fit {:.2} dB); peak memory {:.0} MB -> {}",
         a.bundle.display(),
+        complete.name(),
         t0.elapsed().as_secs_f64(),
         rerender.psnr,
         rerender_raw

@@ -38,9 +38,9 @@ const MESH_INFO: NodeInfo = NodeInfo {
         ParamSpec {
             name: "complete",
             ty: ParamType::Choice(&COMPLETE_MODES),
-            default: Some("none"),
+            default: Some("room"),
             unit: "",
-            doc: "geometry past the frame: none; planes (the floor, walls and ceiling seen, \
+            doc: "geometry past the frame: none (the depth mesh alone); planes (the floor, walls and ceiling seen, \
                   extended and filled behind what hides them, and objects cut by the border \
                   continued); room (also a room the view shows closed, each assumed wall with a \
                   typical window); closed (assumed walls without windows)",
@@ -80,7 +80,9 @@ mod tests {
     use matflow_engine::Value;
     use matflow_geom::TriMesh;
 
-    fn mesh_with(complete: &str) -> TriMesh {
+    /// The stage's mesh of synthetic scene 3 with `complete` set, or left
+    /// at its default.
+    fn mesh_with_param(complete: Option<&str>) -> TriMesh {
         let s = matflow_scene::synthetic::generate(3, 48, 48);
         let scene = SceneData {
             depth: s.depth,
@@ -88,7 +90,11 @@ mod tests {
             pred: s.maps,
         }
         .encode();
-        let p = params_of(&MESH_INFO, &[("complete", Value::Str(complete.into()))]);
+        let given: Vec<(&str, Value)> = complete
+            .map(|c| ("complete", Value::Str(c.into())))
+            .into_iter()
+            .collect();
+        let p = params_of(&MESH_INFO, &given);
         let out = MeshNode
             .run(&RunContext {
                 stage: "m",
@@ -103,8 +109,12 @@ mod tests {
         tri
     }
 
+    fn mesh_with(complete: &str) -> TriMesh {
+        mesh_with_param(Some(complete))
+    }
+
     #[test]
-    fn the_mesh_stage_completes_the_room_past_the_frame_only_when_asked() {
+    fn the_mesh_stage_completes_the_room_past_the_frame_by_default() {
         let plain = mesh_with("none");
         assert!(plain.material_pixel.is_empty());
         let s = matflow_scene::synthetic::generate(3, 48, 48);
@@ -127,7 +137,9 @@ mod tests {
         let room = mesh_with("room");
         assert!(!room.portals.is_empty());
         assert!(room.portals.iter().all(|p| p.is_valid()));
-        // The same depth completes the same way every time.
+        // The same depth completes the same way every time, and `room`
+        // is what a stage that says nothing gets.
         assert_eq!(room, mesh_with("room"));
+        assert_eq!(room, mesh_with_param(None));
     }
 }

@@ -16,8 +16,9 @@ const SYNTHETIC_SCENE_INFO: NodeInfo = NodeInfo {
     kind: "synthetic_scene",
     version: 2,
     doc: "A procedural room (floor, walls, a few objects with varied albedo, roughness and \
-         metallic) under a procedural sky, its input image rendered by matflow's path tracer, \
-         and predictions made by degrading the truth (blur, noise, bias, wrong R/M).",
+         metallic) under a procedural sky, its input image rendered by matflow's path tracer \
+         on its depth mesh alone (so its `mesh` stage takes `complete: none`), and predictions \
+         made by degrading the truth (blur, noise, bias, wrong R/M).",
     params: &[
         ParamSpec {
             name: "seed",
