@@ -509,6 +509,11 @@ fn invert_writes_best_results_deterministically_and_rerenders() {
         serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
     assert_eq!(summary["options"]["pixel_filter"], "box");
     assert_eq!(summary["options"]["complete"], "none");
+    // The result carries the input's own geometry with its depth.
+    assert_eq!(
+        std::fs::read(out.join("geometry.json")).unwrap(),
+        std::fs::read(b.join("geometry.json")).unwrap()
+    );
     let r = dir.path().join("rr.exr");
     let render = |materials: &str, extra: &[&str]| {
         let mut args = vec![

@@ -293,8 +293,10 @@ pub const GEOMETRY_FILE: &str = "geometry.json";
 /// it declares one (a bad file is an error naming it).
 pub fn declared_completion(bundle: &Path) -> Result<Option<CompleteMode>> {
     let path = bundle.join(GEOMETRY_FILE);
-    let Ok(text) = std::fs::read_to_string(&path) else {
-        return Ok(None);
+    let text = match std::fs::read_to_string(&path) {
+        Ok(t) => t,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => return Err(e).with_context(|| format!("reading {}", path.display())),
     };
     let v: serde_json::Value =
         serde_json::from_str(&text).with_context(|| format!("{}: not JSON", path.display()))?;

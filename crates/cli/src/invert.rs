@@ -473,6 +473,17 @@ pub fn invert_cmd(a: InvertArgs) -> Result<()> {
         "peak_memory_bytes": peak_memory_bytes(),
     });
     write_bundle(&a.out, &res, depth, pred, target, &summary)?;
+    // The result holds the input's depth: what the input declared of its
+    // geometry holds for it too (`mesh` on it reads it; `render` reads the
+    // summary first).
+    let declared = a.bundle.join(crate::commands::GEOMETRY_FILE);
+    let copied = a.out.join(crate::commands::GEOMETRY_FILE);
+    if declared.is_file() {
+        io::write_atomic(&copied, &std::fs::read(&declared)?)?;
+    } else if copied.exists() {
+        std::fs::remove_file(&copied)
+            .with_context(|| format!("removing the stale {}", copied.display()))?;
+    }
     outln!(
         "inverted {} (completion {} ({why_complete})) in {:.1} s: rerender PSNR {:.2} dB{}, SSIM {:.4}, MSE {:.5} (sRGB, gamma 2.2; frozen-path fit {:.2} dB); peak memory {:.0} MB -> {}",
         a.bundle.display(),
