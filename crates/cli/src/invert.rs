@@ -337,11 +337,23 @@ fn stages_with_seconds(res: &InvertResult, seconds: &[f64]) -> serde_json::Value
     v
 }
 
+/// Removes `path`, left by an earlier run, where this run writes nothing.
+fn remove_stale(path: &Path) -> Result<()> {
+    match std::fs::remove_file(path) {
+        Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+            Err(e).with_context(|| format!("removing the stale {}", path.display()))
+        }
+        _ => Ok(()),
+    }
+}
+
 /// Writes the output bundle: geometry inputs and predictions (so that
 /// `matflow render --bundle OUT --materials best_results` re-renders the
-/// result), `best_results/` and `summary.json`.
+/// result; the `input` bundle's geometry.json with them), `best_results/`
+/// and `summary.json`.
 pub fn write_bundle(
     out: &Path,
+    input: &Path,
     res: &InvertResult,
     depth: &matflow_scene::GrayImage,
     pred: &MaterialMaps,
@@ -360,21 +372,26 @@ pub fn write_bundle(
     io::write_hdr(&b.path("best_results/envmap.hdr"), &res.envmap)?;
     let lamps = b.path(crate::lamps::LAMPS_FILE);
     if res.lamps.is_empty() {
-        if lamps.exists() {
-            std::fs::remove_file(&lamps)
-                .with_context(|| format!("removing the stale {}", lamps.display()))?;
-        }
+        remove_stale(&lamps)?;
     } else {
         crate::lamps::write_lamps(&lamps, &res.lamps)?;
     }
     io::write_exr_rgb(&b.path("best_results/rendered_img.exr"), &res.rendered)?;
     io::write_png_gamma(&b.path("best_results/rendered_img.png"), &res.rendered)?;
     let raw = b.path("best_results/rendered_raw.exr");
-    if let Some(im) = &res.rendered_raw {
-        io::write_exr_rgb(&raw, im)?;
-    } else if raw.exists() {
-        std::fs::remove_file(&raw)
-            .with_context(|| format!("removing the stale {}", raw.display()))?;
+    match &res.rendered_raw {
+        Some(im) => io::write_exr_rgb(&raw, im)?,
+        None => remove_stale(&raw)?,
+    }
+    // The result holds the input's depth: what the input declared of its
+    // geometry holds for it too (`mesh` on it reads it; `render` reads the
+    // summary first).
+    let declared = input.join(crate::commands::GEOMETRY_FILE);
+    let copied = b.path(crate::commands::GEOMETRY_FILE);
+    if declared.is_file() {
+        io::write_atomic(&copied, &std::fs::read(&declared)?)?;
+    } else {
+        remove_stale(&copied)?;
     }
     // The frozen-path estimator's image for the recovered parameters (what
     // the optimiser fitted), and a viewable albedo.
@@ -472,18 +489,7 @@ pub fn invert_cmd(a: InvertArgs) -> Result<()> {
         "seconds": t0.elapsed().as_secs_f64(),
         "peak_memory_bytes": peak_memory_bytes(),
     });
-    write_bundle(&a.out, &res, depth, pred, target, &summary)?;
-    // The result holds the input's depth: what the input declared of its
-    // geometry holds for it too (`mesh` on it reads it; `render` reads the
-    // summary first).
-    let declared = a.bundle.join(crate::commands::GEOMETRY_FILE);
-    let copied = a.out.join(crate::commands::GEOMETRY_FILE);
-    if declared.is_file() {
-        io::write_atomic(&copied, &std::fs::read(&declared)?)?;
-    } else if copied.exists() {
-        std::fs::remove_file(&copied)
-            .with_context(|| format!("removing the stale {}", copied.display()))?;
-    }
+    write_bundle(&a.out, &a.bundle, &res, depth, pred, target, &summary)?;
     outln!(
         "inverted {} (completion {} ({why_complete})) in {:.1} s: rerender PSNR {:.2} dB{}, SSIM {:.4}, MSE {:.5} (sRGB, gamma 2.2; frozen-path fit {:.2} dB); peak memory {:.0} MB -> {}",
         a.bundle.display(),

@@ -254,8 +254,9 @@ pub const SECOND_HALF_SEED: u64 = 0x0005_eedb;
 /// Renders `scene` with `opts` as two independent halves of its samples
 /// (seeds `opts.seed` and `opts.seed ^ SECOND_HALF_SEED`) and denoises
 /// them ([`denoise_render`], guided by `guide`, the scene's
-/// [`Guide::build`]); `progress(done, total)` counts the tiles of both. `None` below 2 samples per pixel or with a crop (nothing to tell
-/// the noise from, or no whole view to filter).
+/// [`Guide::build`]); `progress(done, total)` counts the tiles of both.
+/// `None` below 2 samples per pixel or with a crop (nothing to tell the
+/// noise from, or no whole view to filter).
 pub fn render_denoised(
     scene: &RenderScene,
     guide: &Guide,
@@ -438,6 +439,15 @@ mod tests {
         (s / n.max(1) as f64).sqrt()
     }
 
+    /// The block scene at `n`², its guide, and two halves rendered with
+    /// `spp_a` and `spp_b` samples per pixel (seeds 1 and 2).
+    fn halves(n: usize, spp_a: u32, spp_b: u32) -> (RenderScene, Guide, RgbImage, RgbImage) {
+        let scene = block_scene(n);
+        let guide = Guide::build(&scene);
+        let (a, b) = (render(&scene, spp_a, 1), render(&scene, spp_b, 2));
+        (scene, guide, a, b)
+    }
+
     /// Known answer: against a 1024-spp render, the denoised 8-spp render
     /// (two halves of 4) is far closer than the same samples unfiltered,
     /// both over the whole view and along the block's edges and the
@@ -446,10 +456,8 @@ mod tests {
     #[test]
     fn denoised_render_is_closer_to_the_converged_one() {
         let n = 48;
-        let scene = block_scene(n);
-        let guide = Guide::build(&scene);
+        let (scene, guide, a, b) = halves(n, 4, 4);
         let reference = render(&scene, 1024, 99);
-        let (a, b) = (render(&scene, 4, 1), render(&scene, 4, 2));
         let raw = mean_of_halves(&a, 4, &b, 4);
         let den = denoise_render(&scene, &guide, &a, 4, &b, 4, RENDER_PASSES);
         assert!(den.data.iter().all(|v| v.is_finite()));
@@ -477,9 +485,7 @@ mod tests {
     #[test]
     fn sky_is_kept_and_halves_are_weighted_by_samples() {
         let n = 24;
-        let scene = block_scene(n);
-        let guide = Guide::build(&scene);
-        let (a, b) = (render(&scene, 3, 1), render(&scene, 1, 2));
+        let (scene, guide, a, b) = halves(n, 3, 1);
         let mean = mean_of_halves(&a, 3, &b, 1);
         for i in 0..n * n {
             let want = a.data[i] * 0.75 + b.data[i] * 0.25;
@@ -499,10 +505,7 @@ mod tests {
     /// The same halves give the same denoised image on 1 and 2 threads.
     #[test]
     fn denoising_does_not_depend_on_the_thread_count() {
-        let n = 40;
-        let scene = block_scene(n);
-        let guide = Guide::build(&scene);
-        let (a, b) = (render(&scene, 2, 1), render(&scene, 2, 2));
+        let (scene, guide, a, b) = halves(40, 2, 2);
         let on = |threads| {
             rayon::ThreadPoolBuilder::new()
                 .num_threads(threads)
