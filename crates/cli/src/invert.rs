@@ -105,16 +105,17 @@ pub struct InvertArgs {
     #[arg(long, default_value_t = 0.1, value_parser = margin_in_range)]
     pub rm_margin: f64,
     /// The albedo's level and colour (its mean per channel over the
-    /// surfaces in view): `free` leaves them to the fit; `pred` holds
-    /// them at the prediction's after each albedo stage, the light taking
-    /// the gain (one image cannot tell a brighter light from a brighter
-    /// albedo).
-    #[arg(long, value_enum, default_value = "free")]
+    /// surfaces in view): `pred` (the default) holds them near the
+    /// prediction's after each albedo stage (within
+    /// `--albedo-level-band`), the light taking the gain, since one image
+    /// cannot tell a brighter light from a brighter albedo; `free` leaves
+    /// them to the fit.
+    #[arg(long, value_enum, default_value = "pred")]
     pub albedo_level: AlbedoLevel,
     /// With `--albedo-level pred`: how far (a share, per channel) the
     /// albedo's mean may move from the prediction's before it is held
     /// (0: held exactly).
-    #[arg(long, default_value_t = 0.0, value_parser = band_in_range)]
+    #[arg(long, default_value_t = matflow_inverse::invert::LEVEL_BAND, value_parser = band_in_range)]
     pub albedo_level_band: f32,
     /// Lamps the view does not show, in a room the completion closed
     /// (`--complete room` or `closed`): `on` fits point lights at a grid
