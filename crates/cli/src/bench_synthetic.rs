@@ -83,7 +83,15 @@ struct Row {
 
 fn scene(exe: &Path, a: &BenchSyntheticArgs, seed: u64) -> Result<PathBuf> {
     let dir = a.work.join(format!("scene-{seed}-{}-{}", a.size, a.gt_spp));
-    if !dir.join("ground_truth/relit_image.exr").exists() {
+    // A scene made before `synth` declared its geometry (geometry.json:
+    // the depth mesh alone) would be completed as a room: make it again.
+    let made = [
+        "ground_truth/relit_image.exr",
+        crate::commands::GEOMETRY_FILE,
+    ]
+    .iter()
+    .all(|f| dir.join(f).exists());
+    if !made {
         child(
             exe,
             &[
