@@ -49,6 +49,23 @@ const PARAMS: &[ParamSpec] = &[
         unit: "",
         doc: "envmap/material alternations (default: from the budget)",
     },
+    ParamSpec {
+        name: "albedo_level",
+        ty: ParamType::Choice(&["pred", "free"]),
+        default: Some("pred"),
+        unit: "",
+        doc: "who sets the albedo's mean level and colour: the prediction (within \
+              albedo_level_band; the light takes the gain, since one image cannot tell a \
+              brighter light from a brighter albedo) or the fit",
+    },
+    ParamSpec {
+        name: "albedo_level_band",
+        ty: ParamType::Float { min: 0.0, max: 0.9 },
+        default: Some("0.25"),
+        unit: "share",
+        doc: "with albedo_level pred: how far the albedo's mean per channel may move from the \
+              prediction's before it is held (0: held exactly)",
+    },
 ];
 
 const OUTPUTS: &[OutputSpec] = &[
@@ -79,9 +96,8 @@ impl Node for MaterialOptNode {
             version: 6,
             doc: "Recovers albedo, roughness and metallic together with the envmap: the \
                   reference's alternation of envmap and material stages (paper §3.2), on \
-                  frozen paths. The albedo's mean per channel stays within 25 % of the \
-                  prediction's (one image cannot tell a brighter light from a brighter \
-                  albedo); the light takes the rest.",
+                  frozen paths. The albedo's mean per channel stays near the prediction's \
+                  (albedo_level); the light takes the rest.",
             params: with_route_params(&ALL_PARAMS, PARAMS, &[Side::Env, Side::Mat]),
             outputs: OUTPUTS,
         })
@@ -106,6 +122,8 @@ impl Node for MaterialOptNode {
             mat_route: mat_route(p)?,
             delta: p.f32("delta"),
             loops: p.opt_i64("loops").map(|l| l as usize),
+            level_from_pred: p.str("albedo_level") == "pred",
+            level_band: p.f32("albedo_level_band"),
             init_env,
             ..base_options(p, ctx.seed)?
         };
@@ -131,5 +149,76 @@ impl Node for MaterialOptNode {
             ),
         ]
         .into())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::artifact::Artifact;
+    use crate::data::{encode_mesh, SceneData};
+    use crate::testutil::{params_of, small_room};
+    use matflow_engine::Value;
+    use matflow_render::{render, EnvMap, RenderOptions, RenderScene};
+    use std::sync::Arc;
+
+    /// The report of a small recovery of the procedural room, photographed
+    /// at half its brightness (the fit must trade light for albedo), with
+    /// `albedo_level` set or at its default.
+    fn report_with(level: Option<&str>) -> serde_json::Value {
+        let n = 24;
+        let (s, cam, tri) = small_room(n);
+        let env = EnvMap::new(&s.envmap).unwrap();
+        let scene = RenderScene::new(cam, tri.clone(), &s.maps, env).unwrap();
+        let opts = RenderOptions {
+            spp: 4,
+            ..Default::default()
+        };
+        let mut target = render(&scene, &opts, &|_, _| {}).image;
+        target.data.iter_mut().for_each(|v| *v *= 0.5);
+        let data = SceneData {
+            depth: s.depth.clone(),
+            target: Some(target),
+            pred: s.maps.clone(),
+        }
+        .encode();
+        let given: Vec<(&str, Value)> = level
+            .map(|l| ("albedo_level", Value::Str(l.into())))
+            .into_iter()
+            .collect();
+        let p = params_of(MaterialOptNode.info(), &given);
+        let out = MaterialOptNode
+            .run(&RunContext {
+                stage: "opt",
+                params: &p,
+                inputs: [
+                    ("scene".to_string(), Arc::new(data)),
+                    ("mesh".to_string(), Arc::new(encode_mesh(n, n, &tri))),
+                ]
+                .into(),
+                seed: 1,
+                progress: &|_, _| {},
+            })
+            .unwrap();
+        let a = Artifact::decode(&out["report"], "report").unwrap();
+        serde_json::from_slice(a.bytes("json").unwrap()).unwrap()
+    }
+
+    #[test]
+    fn the_albedo_level_is_held_near_the_prediction_unless_freed() {
+        // Held by default: the report names the gain the light took.
+        let held = report_with(None);
+        let gain = held["invert"]["level_gain"].as_array().expect("a gain");
+        assert_eq!(gain.len(), 3);
+        assert!(gain.iter().all(|g| g.as_f64().is_some_and(|g| g > 0.0)));
+        assert_eq!(report_with(Some("pred")), held);
+        // The stage's default band is the library's.
+        let p = params_of(MaterialOptNode.info(), &[]);
+        assert_eq!(
+            p.f32("albedo_level_band"),
+            matflow_inverse::invert::LEVEL_BAND
+        );
+        // Free: the fit settles the level alone.
+        assert!(report_with(Some("free"))["invert"]["level_gain"].is_null());
     }
 }
