@@ -238,7 +238,7 @@ fn margin_in_range(s: &str) -> Result<f64, String> {
 }
 
 fn band_in_range(s: &str) -> Result<f32, String> {
-    below(s, 0.95).map(|v| v as f32)
+    below(s, matflow_inverse::invert::MAX_LEVEL_BAND).map(|v| v as f32)
 }
 
 pub fn options_from(a: &InvertArgs) -> InvertOptions {
@@ -390,7 +390,9 @@ pub fn write_bundle(
     let declared = input.join(crate::commands::GEOMETRY_FILE);
     let copied = b.path(crate::commands::GEOMETRY_FILE);
     if declared.is_file() {
-        io::write_atomic(&copied, &std::fs::read(&declared)?)?;
+        let text =
+            std::fs::read(&declared).with_context(|| format!("reading {}", declared.display()))?;
+        io::write_atomic(&copied, &text)?;
     } else {
         remove_stale(&copied)?;
     }

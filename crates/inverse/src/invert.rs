@@ -175,6 +175,9 @@ fn fresh_tables(
 /// 2.5 dB better.
 pub const LEVEL_BAND: f32 = 0.25;
 
+/// The widest band of the albedo's level (a wider one is taken as this).
+pub const MAX_LEVEL_BAND: f64 = 0.95;
+
 /// Per pixel, whether it sees a surface (a finite distance of
 /// [`RenderScene::primary_distances`]) rather than the sky.
 pub fn surface_pixels(dist: &[f32]) -> Vec<bool> {
@@ -822,7 +825,7 @@ pub fn invert(
     // albedo its mean per channel goes back to the prediction's (past the
     // band) and the light takes the gain.
     let surface = surface_pixels(&dist);
-    let band = opts.level_band.clamp(0.0, 0.95);
+    let band = opts.level_band.clamp(0.0, MAX_LEVEL_BAND as f32);
     let mut mat_fit = (!opts.env_only).then(|| {
         mat_route.start(&MatStart {
             width: w,

@@ -6,7 +6,7 @@ use std::sync::OnceLock;
 
 use matflow_engine::node::Params;
 use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
-use matflow_inverse::invert::{invert, materials_to_maps, InvertOptions};
+use matflow_inverse::invert::{invert, materials_to_maps, InvertOptions, MAX_LEVEL_BAND};
 use matflow_inverse::routes::Side;
 
 use crate::data::{encode_image, encode_materials, envmap_from, MESH, SCENE};
@@ -60,7 +60,10 @@ const PARAMS: &[ParamSpec] = &[
     },
     ParamSpec {
         name: "albedo_level_band",
-        ty: ParamType::Float { min: 0.0, max: 0.9 },
+        ty: ParamType::Float {
+            min: 0.0,
+            max: MAX_LEVEL_BAND,
+        },
         default: Some("0.25"),
         unit: "share",
         doc: "with albedo_level pred: how far the albedo's mean per channel may move from the \
@@ -162,10 +165,9 @@ mod tests {
     use matflow_render::{render, EnvMap, RenderOptions, RenderScene};
     use std::sync::Arc;
 
-    /// The report of a small recovery of the procedural room, photographed
-    /// at half its brightness (the fit must trade light for albedo), with
-    /// `albedo_level` set or at its default.
-    fn report_with(level: Option<&str>) -> serde_json::Value {
+    /// The stage's inputs: the procedural room at 24², photographed at half
+    /// its brightness (the fit must trade light for albedo), and its mesh.
+    fn inputs() -> [(String, Arc<Vec<u8>>); 2] {
         let n = 24;
         let (s, cam, tri) = small_room(n);
         let env = EnvMap::new(&s.envmap).unwrap();
@@ -182,6 +184,15 @@ mod tests {
             pred: s.maps.clone(),
         }
         .encode();
+        [
+            ("scene".to_string(), Arc::new(data)),
+            ("mesh".to_string(), Arc::new(encode_mesh(n, n, &tri))),
+        ]
+    }
+
+    /// The report of the stage on `inputs` with `albedo_level` set, or at
+    /// its default.
+    fn report_with(inputs: &[(String, Arc<Vec<u8>>); 2], level: Option<&str>) -> serde_json::Value {
         let given: Vec<(&str, Value)> = level
             .map(|l| ("albedo_level", Value::Str(l.into())))
             .into_iter()
@@ -191,11 +202,7 @@ mod tests {
             .run(&RunContext {
                 stage: "opt",
                 params: &p,
-                inputs: [
-                    ("scene".to_string(), Arc::new(data)),
-                    ("mesh".to_string(), Arc::new(encode_mesh(n, n, &tri))),
-                ]
-                .into(),
+                inputs: inputs.iter().cloned().collect(),
                 seed: 1,
                 progress: &|_, _| {},
             })
@@ -207,11 +214,12 @@ mod tests {
     #[test]
     fn the_albedo_level_is_held_near_the_prediction_unless_freed() {
         // Held by default: the report names the gain the light took.
-        let held = report_with(None);
+        let inputs = inputs();
+        let held = report_with(&inputs, None);
         let gain = held["invert"]["level_gain"].as_array().expect("a gain");
         assert_eq!(gain.len(), 3);
         assert!(gain.iter().all(|g| g.as_f64().is_some_and(|g| g > 0.0)));
-        assert_eq!(report_with(Some("pred")), held);
+        assert_eq!(report_with(&inputs, Some("pred")), held);
         // The stage's default band is the library's.
         let p = params_of(MaterialOptNode.info(), &[]);
         assert_eq!(
@@ -219,6 +227,6 @@ mod tests {
             matflow_inverse::invert::LEVEL_BAND
         );
         // Free: the fit settles the level alone.
-        assert!(report_with(Some("free"))["invert"]["level_gain"].is_null());
+        assert!(report_with(&inputs, Some("free"))["invert"]["level_gain"].is_null());
     }
 }
