@@ -328,7 +328,11 @@ def downsample_env(img, w, h):
 SKY_KINDS = ["sun", "overcast", "sunset"]
 
 
-def draw_scene(seed, k, n):
+def draw_scene(seed, k, n, edit_windows=None):
+    """Scene k of n: its parameters P, its geometry and its camera-to-world
+    matrix. `edit_windows`, when given, maps the drawn list of windows to
+    another (bench/relight_twins.py: rooms that differ only where the camera
+    cannot see); every other draw is unchanged by it."""
     rng = np.random.default_rng([seed, k])
     P = {"index": k, "seed": seed, "split": "tuning" if k < n // 2 else "heldback",
          "generator_version": GENERATOR_VERSION}
@@ -388,6 +392,8 @@ def draw_scene(seed, k, n):
         t0 = rng.uniform(0.4, 0.9)
         t1 = min(t0 + rng.uniform(1.0, 1.8), H - 0.2)
         windows.append((wall, s0, s0 + ww, t0, t1))
+    if edit_windows is not None:
+        windows = edit_windows(windows, {"width": W, "depth": D, "height": H, "missing_wall": missing})
     P["room"]["openness"] = openness
     P["room"]["missing_wall"] = missing
     P["windows"] = [{"wall": w_[0], "s": [w_[1], w_[2]], "t": [w_[3], w_[4]]} for w_ in windows]
