@@ -787,27 +787,39 @@ def make_bundle(mi, dr, k, a, out_dir):
     return P
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", required=True, help="folder for the bundles (scene-00 ...)")
+def add_render_args(ap, size, spp):
+    """The set's draw and render options (this script's and
+    bench/relight_twins.py's), with their own default size and spp."""
     ap.add_argument("--scenes", type=int, default=16)
     ap.add_argument("--seed", type=int, default=2026)
-    ap.add_argument("--size", type=int, default=512)
-    ap.add_argument("--spp", type=int, default=1024)
+    ap.add_argument("--size", type=int, default=size)
+    ap.add_argument("--spp", type=int, default=spp)
     ap.add_argument("--pass-spp", type=int, default=32)
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--only", type=int, nargs="+", help="generate only these scene indices")
-    ap.add_argument("--force", action="store_true", help="re-render complete bundles")
     ap.add_argument("--llvm", help="libLLVM for Dr.Jit (>= 17); see bench/drjit_llvm.py")
-    a = ap.parse_args()
-    if a.scenes < 2:
-        sys.exit("relight_scenes: --scenes must be at least 2 (a tuning and a held-back half)")
+
+
+def start_mitsuba(a):
+    """Mitsuba and Dr.Jit for the parsed options `a` (--llvm, --threads)."""
     drjit_llvm.choose(a.llvm)
     import drjit as dr
     import mitsuba as mi
 
     mi.set_variant("llvm_ad_rgb")
     dr.set_thread_count(max(1, a.threads))
+    return mi, dr
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", required=True, help="folder for the bundles (scene-00 ...)")
+    add_render_args(ap, 512, 1024)
+    ap.add_argument("--only", type=int, nargs="+", help="generate only these scene indices")
+    ap.add_argument("--force", action="store_true", help="re-render complete bundles")
+    a = ap.parse_args()
+    if a.scenes < 2:
+        sys.exit("relight_scenes: --scenes must be at least 2 (a tuning and a held-back half)")
+    mi, dr = start_mitsuba(a)
     os.makedirs(a.out, exist_ok=True)
     index = {"generator": "bench/relight_scenes.py", "generator_version": GENERATOR_VERSION, "seed": a.seed,
              "size": a.size, "spp": a.spp, "tuning": [], "heldback": []}

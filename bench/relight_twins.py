@@ -4,12 +4,11 @@ Mitsuba 3 (benchmark only, like bench/relight_scenes.py).
 
 For each room of the validation set (the same draw as relight_scenes.py:
 --seed, --scenes, the same index k) three variants differ only in the wall
-behind the camera, which no view of the set can show (the camera stands
-0.4-1.2 m in front of it and turns at most 35 deg + half the 35 deg field of
-view away from it):
+behind the camera, which no view of the set can show (every camera ray
+points away from it; the script checks that the views are identical):
 
-* ``closed``: the room's windows in that wall removed (for all but one room
-  of the set this is the room as generated);
+* ``closed``: the room's windows in that wall removed (for all but three
+  rooms of the set, scene-03, -07 and -12, this is the room as generated);
 * ``end A`` / ``end B``: ``closed`` with one window of 1.4 m x 1.4 m (narrower
   in a narrow room) at one end of that wall or at the other.
 
@@ -19,19 +18,22 @@ black in every direction from which light could come in through that wall
 (world directions with z > 0: a building right behind the room, or a
 photo taken where nothing lights that side); the new skies are the room's.
 Then no capture light enters through the back window, and the variants'
-photos differ only by the light the window lets out of the room. Each variant is rendered as the set is:
-the capture image scaled to the room's exposure target by its own level
-(what a method is given), and each new sky at the scale that brings the
-``closed`` variant's relit image to the room's target (the same sky for
-every variant: a method is given the sky, not the image). All variants use
-the same sample streams, so their differences are not noise.
+photos differ only by the light the window lets out of the room.
+
+Each variant is rendered as the set is: the capture image scaled to the
+room's exposure target by its own level (what a method is given), and each
+new sky at the scale that brings the ``closed`` variant's relit image to
+the room's target (the same sky for every variant: a method is given the
+sky, not the image). All variants use the same sample streams, so little
+of their differences is noise (paths part only where the variants do).
 
 The point is a bound. For two rooms A and B and any prediction R of a
 relit image, the triangle inequality on the root-mean-square error of the
 gamma-encoded images gives max(RMSE(R, A), RMSE(R, B)) >= RMSE(A, B) / 2,
-i.e. the worse of the two PSNRs is at most PSNR(A, B) + 6.02 dB. When the
-two photos are as alike as a method's re-render is to its photo, no method
-can tell the rooms apart, so none can relight both better than that bound.
+i.e. the worse of the two PSNRs is at most PSNR(A, B) + 6.02 dB. Twins
+whose photos are alike (and whose predictions are the same, their views
+being identical) get the same answer from any method, so none can relight
+both better than that bound.
 
 The script checks that the variants' views are identical (depth and
 materials at every pixel centre, and normals but at ties on edges: the
@@ -88,9 +90,17 @@ def back_windows(variant):
     return edit
 
 
-def psnr(a, b):
-    mse = float(np.mean((rs.gamma(a) - rs.gamma(b)) ** 2))
+# The worse of two rooms' PSNRs exceeds theirs by at most this (see the top).
+TRIANGLE_DB = 20.0 * math.log10(2.0)
+
+
+def psnr_of(mse):
     return 100.0 if mse <= 1e-10 else -10.0 * math.log10(mse)
+
+
+def psnr(a, b):
+    """PSNR as matflow reports it: clipped to [0, 1], gamma 2.2."""
+    return psnr_of(float(np.mean((rs.gamma(a) - rs.gamma(b)) ** 2)))
 
 
 def render_variant(mi, dr, a, k, variant):
@@ -137,17 +147,13 @@ def mse_of(p):
     return 10.0 ** (-p / 10.0)
 
 
-def psnr_of(mse):
-    return 100.0 if mse <= 1e-10 else -10.0 * math.log10(mse)
-
-
 def conservative_bound(room, pair, j):
     """The worse twin's best possible relight PSNR under sky j, with both
     relit images' noise taken out of their difference (see the top)."""
     n1, n2 = pair.split("|")
     floors = room["noise_floor"]
     mse = mse_of(room["pairs"][pair]["relit"][j]) - mse_of(floors[n1][j + 1]) - mse_of(floors[n2][j + 1])
-    return psnr_of(max(mse, 0.0)) + 20.0 * math.log10(2.0)
+    return psnr_of(max(mse, 0.0)) + TRIANGLE_DB
 
 
 def table(folders):
@@ -206,23 +212,12 @@ def main():
         return
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", required=True)
-    ap.add_argument("--scenes", type=int, default=16)
-    ap.add_argument("--seed", type=int, default=2026)
-    ap.add_argument("--size", type=int, default=256)
-    ap.add_argument("--spp", type=int, default=128)
-    ap.add_argument("--pass-spp", type=int, default=32)
-    ap.add_argument("--threads", type=int, default=2)
+    rs.add_render_args(ap, 256, 128)
     ap.add_argument("--behind", choices=["sky", "dark"], default="sky",
                     help="the capture sky behind the room: the room's own, or black (see above)")
     ap.add_argument("--only", type=int, nargs="+", help="these room indices (default: the held-back half)")
-    ap.add_argument("--llvm", help="libLLVM for Dr.Jit (>= 17); see bench/drjit_llvm.py")
     a = ap.parse_args()
-    drjit_llvm.choose(a.llvm)
-    import drjit as dr
-    import mitsuba as mi
-
-    mi.set_variant("llvm_ad_rgb")
-    dr.set_thread_count(max(1, a.threads))
+    mi, dr = rs.start_mitsuba(a)
     rooms = a.only if a.only is not None else list(range(a.scenes // 2, a.scenes))
     os.makedirs(a.out, exist_ok=True)
     path = os.path.join(a.out, "twins.json")
@@ -257,7 +252,7 @@ def main():
             n1, n2 = pa.split("|")
             ph = psnr(v[n1]["photo"], v[n2]["photo"])
             rl = [psnr(r1, r2) for r1, r2 in zip(v[n1]["relit"], v[n2]["relit"])]
-            pairs[pa] = {"photo": ph, "relit": rl, "bound": [x + 20 * math.log10(2) for x in rl]}
+            pairs[pa] = {"photo": ph, "relit": rl, "bound": [x + TRIANGLE_DB for x in rl]}
         report["rooms"][f"scene-{k:02d}"] = {
             "split": P0["split"], "sky": P0["sky"]["type"], "relight_skies": [s["type"] for s in P0["relight_skies"]],
             "lamps": len(P0["lamps"]), "back_windows_generated": sum(1 for w in P0["windows"] if w["wall"] == BACK),
