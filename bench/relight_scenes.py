@@ -63,12 +63,25 @@ Each bundle holds:
   independent halves of its samples (a perfect, noise-free prediction
   would score this against the stored truth).
 
+With ``--kinds``, each half cycles through kinds of scene (``closed`` is
+the room above; the others are drawn by ``draw_other_kind``): ``open``
+rooms (a floor and one to three walls that continue past the frame,
+nothing above or behind), ``stage`` (a raised platform and a back wall
+that end near the frame's sides, a lower ground and the sky beyond) and
+``outdoor`` (objects on a wide ground under the sky); validation.json
+then names each scene's kind (``kinds``). E.g. six of each kind, three in
+each half:
+
+    python3 bench/relight_scenes.py --out out/kinds --scenes 24 \
+        --kinds closed open stage outdoor --size 256 --spp 256
+
 Scene k is drawn from a generator seeded with (--seed, k). The first half
 of the scenes (k < n/2) is the tuning half, the second half is held back:
 no choice is made on it. ``validation.json`` at the top lists both halves.
 
     python3 bench/relight_scenes.py --out out/relight-val [--scenes 16]
         [--spp 1024] [--size 512] [--only K ...] [--threads 2]
+        [--kinds closed open stage outdoor]
 
 Existing complete bundles are kept unless --force; a bundle is written to a
 temporary folder and renamed when complete.
@@ -328,17 +341,221 @@ def downsample_env(img, w, h):
 SKY_KINDS = ["sun", "overcast", "sunset"]
 
 
-def draw_scene(seed, k, n, edit_windows=None):
+SCENE_KINDS = ["closed", "open", "stage", "outdoor"]
+KIND_STREAM = {"open": 1, "stage": 2, "outdoor": 3}
+
+
+def draw_objects(rng, geo, cam_p, yaw, bounds, far):
+    """Objects on the floor (y = 0) in front of the camera, some cut by the
+    frame: their centres inside `bounds` (x0, x1, z0, z1, less the object's
+    radius) at 1.6 to `far` from the camera; returns their parameters."""
+    x0, x1, z0, z1 = bounds
+    kinds = ["metal", "glossy"] + [str(rng.choice(["diffuse", "glossy", "metal"], p=[0.45, 0.3, 0.25]))
+                                   for _ in range(rng.integers(2, 6))]
+    placed = []  # (x, z, r)
+    objects = []
+    half_fov = math.radians(FOV_X_DEG / 2)
+    for oi, kind in enumerate(kinds):
+        m = draw_object_material(rng, kind)
+        for _ in range(200):
+            dist = rng.uniform(1.6, max(1.7, far))
+            lat = rng.uniform(-1.15, 1.15) * math.tan(half_fov) * dist
+            hf = np.array([math.sin(yaw), 0.0, -math.cos(yaw)])
+            hr = np.array([math.cos(yaw), 0.0, math.sin(yaw)])
+            p = cam_p + hf * dist + hr * lat
+            shape = str(rng.choice(["box", "sphere", "cylinder", "table"], p=[0.3, 0.3, 0.25, 0.15]))
+            r = {"box": 0.6, "sphere": 0.45, "cylinder": 0.3, "table": 0.8}[shape]
+            if not (x0 + r < p[0] < x1 - r and z0 + r < p[2] < z1 - r):
+                continue
+            if any((p[0] - q[0]) ** 2 + (p[2] - q[1]) ** 2 < (r + q[2]) ** 2 for q in placed):
+                continue
+            placed.append((p[0], p[2], r))
+            break
+        else:
+            continue
+        name = f"obj{oi}"
+        o = {"name": name, "shape": shape, "material": m, "position": [p[0], p[2]]}
+        if shape == "box":
+            half = [rng.uniform(0.2, 0.55), rng.uniform(0.2, 0.55), rng.uniform(0.18, 0.3)]
+            ang = rng.uniform(-0.6, 0.6)
+            geo.box(name, [p[0], half[1], p[2]], half, ang, m)
+            o.update(half=half, yaw=ang)
+        elif shape == "sphere":
+            rad = rng.uniform(0.15, 0.42)
+            geo.sphere(name, [p[0], rad, p[2]], rad, m)
+            o.update(radius=rad)
+        elif shape == "cylinder":
+            rad, h = rng.uniform(0.08, 0.28), rng.uniform(0.25, 0.9)
+            geo.cylinder(name, [p[0], 0.0, p[2]], rad, h, m)
+            o.update(radius=rad, height=h)
+        else:
+            ht, hw, hd = rng.uniform(0.65, 0.8), rng.uniform(0.4, 0.75), rng.uniform(0.3, 0.5)
+            ang = rng.uniform(-0.6, 0.6)
+            geo.box(name, [p[0], ht - 0.02, p[2]], [hw, 0.02, hd], ang, m)
+            c, s = math.cos(ang), math.sin(ang)
+            leg_mat = mat(np.array(m["albedo"]) * 0.6, 0.7, m["metallic"], m["kind"])
+            for sx in (-1, 1):
+                for sz in (-1, 1):
+                    lx, lz = sx * (hw - 0.04), sz * (hd - 0.04)
+                    geo.box(f"{name}leg{sx}{sz}", [p[0] + c * lx + s * lz, (ht - 0.04) / 2, p[2] - s * lx + c * lz],
+                            [0.025, (ht - 0.04) / 2, 0.025], ang, leg_mat)
+            o.update(height=ht, half=[hw, hd], yaw=ang)
+        objects.append(o)
+    return objects
+
+
+def draw_lighting(rng, P, jh, lamp_box=None):
+    """The capture sky (sun, overcast, sunset in turn by `jh`), lamps under
+    the ceiling of `lamp_box` (W, D, H) in some rooms, two new skies, the
+    exposure targets and the predictions' degradation, into P."""
+    sky_kind = SKY_KINDS[jh % 3]
+    sky = draw_sky(rng, sky_kind)
+    lamps = []
+    if lamp_box is not None and jh % 3 == (jh // 3) % 3:
+        W, D, H = lamp_box
+        for _ in range(rng.integers(1, 3)):
+            lamps.append({"position": [rng.uniform(0.5, W - 0.5), H - rng.uniform(0.3, 0.6), rng.uniform(0.5, D - 0.5)],
+                          "radius": rng.uniform(0.06, 0.12),
+                          "radiance": (np.array([1.0, 0.85, 0.65]) * rng.uniform(20, 60)
+                                       * float(np.mean(sky["horizon"]))).tolist()})
+    relights = [draw_sky(rng, SKY_KINDS[(SKY_KINDS.index(sky_kind) + j) % 3]) for j in (1, 2)]
+    P["sky"], P["lamps"], P["relight_skies"] = sky, lamps, relights
+    P["exposure_target_mean"] = rng.uniform(0.12, 0.35)
+    P["relit_target_means"] = [rng.uniform(0.15, 0.3), rng.uniform(0.15, 0.3)]
+    P["degrade"] = {"gain": rng.uniform(0.75, 1.25, size=3).tolist(), "blur_sigma_px": 1.5, "noise_std": 0.03,
+                    "roughness": rng.uniform(0.4, 0.7), "metallic": rng.uniform(0.0, 0.15),
+                    "noise_seed": int(rng.integers(0, 2**31))}
+
+
+def draw_other_kind(seed, k, n, kind, jh):
+    """A scene of a kind other than a closed room (draw_scene's own):
+
+    * open: a floor and one to three walls (the one ahead always) that
+      continue past the frame; nothing above (no ceiling) or behind the
+      camera, which stands at or past the walls' open end;
+    * stage: a raised platform (a box, its top the floor) and a back wall
+      of its width, both ending near the frame's sides (within 0.85-1.1 of
+      the half-width the view spans there), the wall's top in view; a
+      distant lower ground and the sky beyond;
+    * outdoor: objects on a wide ground plane under the sky, at times a
+      low wall or a building block further off.
+
+    Its own random stream ([seed, k, kind]); no lamps (daylight alone)."""
+    if kind not in KIND_STREAM:
+        raise ValueError(f"unknown scene kind {kind!r} (one of {SCENE_KINDS})")
+    rng = np.random.default_rng([seed, k, KIND_STREAM[kind]])
+    P = {"index": k, "seed": seed, "split": "tuning" if k < n // 2 else "heldback",
+         "generator_version": GENERATOR_VERSION, "kind": kind}
+    geo = Geometry()
+    wall_col = hsv(rng.uniform(), rng.uniform(0.05, 0.45), rng.uniform(0.45, 0.85))
+    wall_rough = rng.uniform(0.7, 1.0)
+    tan_h = math.tan(math.radians(FOV_X_DEG / 2))
+    floor_col = hsv(rng.uniform(0.04, 0.12), rng.uniform(0.2, 0.6), rng.uniform(0.3, 0.7)) if rng.uniform() < 0.6 \
+        else hsv(rng.uniform(), rng.uniform(0.0, 0.3), rng.uniform(0.25, 0.8))
+    floor_rough = rng.uniform(0.3, 0.9)
+
+    def floor_quads(name, x0, x1, z0, z1, col, rough, y=0.0, step=None):
+        """A floor in two tones (tiles or strips), so it has texture."""
+        step = step or rng.uniform(0.4, 1.0)
+        tones = [col, col * rng.uniform(0.7, 0.9)]
+        groups = {0: [], 1: []}
+        xs = np.arange(x0, x1, step).tolist() + [x1]
+        zs = np.arange(z0, z1, step).tolist() + [z1]
+        for i in range(len(xs) - 1):
+            for j in range(len(zs) - 1):
+                a, b, c, d = xs[i], xs[i + 1], zs[j], zs[j + 1]
+                groups[(i + j) % 2].append([[a, y, c], [a, y, d], [b, y, d], [b, y, c]])
+        for g, qs in groups.items():
+            geo.quads(f"{name}{g}", qs, mat(tones[g], rough, 0.0, "floor"))
+
+    if kind == "open":
+        W, D, H = rng.uniform(4.0, 8.0), rng.uniform(4.0, 8.0), rng.uniform(2.2, 3.5)
+        cam_p = np.array([rng.uniform(0.35, 0.65) * W, rng.uniform(1.1, 1.7), D + rng.uniform(-0.3, 2.0)])
+        yaw, pitch = math.radians(rng.uniform(-25, 25)), math.radians(rng.uniform(-22, 0))
+        sides = [[], [1], [2], [1, 2]][int(rng.integers(0, 4))]
+        P["room"] = {"width": W, "depth": D, "height": H, "ceiling": False, "walls": [0] + sides}
+        # Walls: 0 ahead (z = 0), 1 left (x = 0), 2 right (x = W), from
+        # z = 0 to z = D; the floor runs on past them and behind the camera.
+        geo.quads("wall0", wall_with_holes(np.array([0.0, 0, 0]), np.array([1.0, 0, 0]), np.array([0.0, 1, 0]),
+                                           W, H, []), mat(wall_col, wall_rough, 0.0, "wall"))
+        if 1 in sides:
+            geo.quads("wall1", wall_with_holes(np.array([0.0, 0, D]), np.array([0.0, 0, -1]),
+                                               np.array([0.0, 1, 0]), D, H, []),
+                      mat(wall_col, wall_rough, 0.0, "wall"))
+        if 2 in sides:
+            geo.quads("wall2", wall_with_holes(np.array([W, 0, 0]), np.array([0.0, 0, 1]),
+                                               np.array([0.0, 1, 0]), D, H, []),
+                      mat(wall_col * rng.uniform(0.8, 1.0), wall_rough, 0.0, "wall"))
+        floor_quads("floor", -6.0, W + 6.0, 0.0, D + 8.0, floor_col, floor_rough)
+        bounds, far = (0.0, W, 0.0, D), cam_p[2] - 0.8
+    elif kind == "stage":
+        zc, hc = rng.uniform(4.0, 8.0), rng.uniform(0.3, 1.2)
+        yaw, pitch = math.radians(rng.uniform(-8, 8)), math.radians(rng.uniform(-12, 0))
+        cam_p = np.array([rng.uniform(-0.3, 0.3), hc, zc])
+        half_w = rng.uniform(0.85, 1.1) * tan_h * zc
+        Ds = rng.uniform(0.45, 0.8) * zc
+        # The wall's top in view: below the top of the frame at the wall.
+        top = hc + math.tan(math.radians(FOV_X_DEG / 2) + pitch) * zc
+        Hs = max(1.2, rng.uniform(0.55, 0.9) * top)
+        drop = rng.uniform(0.6, 1.2)
+        P["room"] = {"width": 2 * half_w, "depth": Ds, "height": Hs, "ceiling": False, "stage_height": drop}
+        geo.quads("wall0", wall_with_holes(np.array([-half_w, 0, 0]), np.array([1.0, 0, 0]), np.array([0.0, 1, 0]),
+                                           2 * half_w, Hs, []), mat(wall_col, wall_rough, 0.0, "wall"))
+        # The platform: its top the floor, its front and sides down to the
+        # ground; the ground far and wide below.
+        floor_quads("floor", -half_w, half_w, 0.0, Ds, floor_col, floor_rough)
+        side = mat(floor_col * 0.6, 0.8, 0.0, "wall")
+        geo.quads("platform", [[[-half_w, -drop, Ds], [half_w, -drop, Ds], [half_w, 0, Ds], [-half_w, 0, Ds]],
+                               [[half_w, -drop, Ds], [half_w, -drop, 0], [half_w, 0, 0], [half_w, 0, Ds]],
+                               [[-half_w, -drop, 0], [-half_w, -drop, Ds], [-half_w, 0, Ds], [-half_w, 0, 0]]], side)
+        ground = hsv(rng.uniform(0.05, 0.35), rng.uniform(0.2, 0.6), rng.uniform(0.15, 0.45))
+        geo.quads("ground", [[[-80.0, -drop, -80.0], [-80.0, -drop, 80.0], [80.0, -drop, 80.0],
+                              [80.0, -drop, -80.0]]], mat(ground, 0.95, 0.0, "ground"))
+        bounds, far = (-half_w, half_w, 0.0, Ds), zc - 0.8
+    else:
+        cam_p = np.array([0.0, rng.uniform(1.2, 1.8), 0.0])
+        yaw, pitch = math.radians(rng.uniform(-30, 30)), math.radians(rng.uniform(-25, -4))
+        P["room"] = {"ceiling": False}
+        ground = hsv(rng.uniform(0.05, 0.35), rng.uniform(0.1, 0.6), rng.uniform(0.2, 0.6))
+        floor_quads("ground", -60.0, 60.0, -60.0, 60.0, ground, rng.uniform(0.6, 1.0), step=rng.uniform(1.0, 3.0))
+        if rng.uniform() < 0.5:
+            # A building block or a low wall further off.
+            d, ang = rng.uniform(10.0, 25.0), yaw + rng.uniform(-0.4, 0.4)
+            c = np.array([math.sin(ang) * d, 0.0, -math.cos(ang) * d])
+            half = [rng.uniform(2.0, 6.0), rng.uniform(0.5, 5.0), rng.uniform(1.0, 4.0)]
+            geo.box("block", [c[0], half[1], c[2]], half, rng.uniform(-0.5, 0.5),
+                    mat(hsv(rng.uniform(), rng.uniform(0.0, 0.3), rng.uniform(0.4, 0.8)), 0.9, 0.0, "wall"))
+            P["room"]["block"] = {"centre": c.tolist(), "half": half}
+        bounds, far = (-12.0, 12.0, -12.0, 12.0), 8.0
+    fwd = np.array([math.sin(yaw) * math.cos(pitch), math.sin(pitch), -math.cos(yaw) * math.cos(pitch)])
+    right = normalize(np.cross(fwd, [0.0, 1.0, 0.0]))
+    up = np.cross(right, fwd)
+    c2w = frame_matrix(cam_p, right, up, -fwd)
+    P["camera"] = {"position": cam_p.tolist(), "yaw_deg": math.degrees(yaw), "pitch_deg": math.degrees(pitch),
+                   "fov_x_deg": FOV_X_DEG}
+    P["windows"] = []
+    P["objects"] = draw_objects(rng, geo, cam_p, yaw, bounds, far)
+    draw_lighting(rng, P, jh)
+    return P, geo, c2w
+
+
+def draw_scene(seed, k, n, edit_windows=None, kind="closed", jh=None):
     """Scene k of n: its parameters P, its geometry and its camera-to-world
-    matrix. `edit_windows`, when given, maps the drawn list of windows to
+    matrix. `kind` is the kind of scene (SCENE_KINDS; closed rooms are this
+    function's own draw, the others draw_other_kind's), `jh` the scene's
+    place among its half's scenes of that kind (default: its place in its
+    half). `edit_windows`, when given, maps the drawn list of windows to
     another (bench/relight_twins.py: rooms that differ only where the camera
     cannot see); every other draw is unchanged by it."""
-    rng = np.random.default_rng([seed, k])
-    P = {"index": k, "seed": seed, "split": "tuning" if k < n // 2 else "heldback",
-         "generator_version": GENERATOR_VERSION}
     # The halves get the same mixture of capture skies, lamps and open
     # courtyards: jh is the scene's place in its half.
-    jh = k % max(1, n // 2)
+    if jh is None:
+        jh = k % max(1, n // 2)
+    if kind != "closed":
+        return draw_other_kind(seed, k, n, kind, jh)
+    rng = np.random.default_rng([seed, k])
+    P = {"index": k, "seed": seed, "split": "tuning" if k < n // 2 else "heldback",
+         "generator_version": GENERATOR_VERSION, "kind": "closed"}
     W, D, H = rng.uniform(3.5, 7.0), rng.uniform(4.0, 8.0), rng.uniform(2.5, 3.2)
     has_ceiling = jh % 8 != 5
     P["room"] = {"width": W, "depth": D, "height": H, "ceiling": bool(has_ceiling)}
@@ -453,77 +670,9 @@ def draw_scene(seed, k, n, edit_windows=None):
         if qs:
             geo.quads(f"floor{g}", qs, mat(tones[g], floor_rough, 0.0, "floor"))
 
-    # Objects in front of the camera (on the floor), some cut by the frame.
-    kinds = ["metal", "glossy"] + [str(rng.choice(["diffuse", "glossy", "metal"], p=[0.45, 0.3, 0.25]))
-                                   for _ in range(rng.integers(2, 6))]
-    placed = []  # (x, z, r)
-    objects = []
-    half_fov = math.radians(FOV_X_DEG / 2)
-    for oi, kind in enumerate(kinds):
-        m = draw_object_material(rng, kind)
-        for _ in range(200):
-            dist = rng.uniform(1.6, max(1.7, D - 0.8))
-            lat = rng.uniform(-1.15, 1.15) * math.tan(half_fov) * dist
-            hf = np.array([math.sin(yaw), 0.0, -math.cos(yaw)])
-            hr = np.array([math.cos(yaw), 0.0, math.sin(yaw)])
-            p = cam_p + hf * dist + hr * lat
-            shape = str(rng.choice(["box", "sphere", "cylinder", "table"], p=[0.3, 0.3, 0.25, 0.15]))
-            r = {"box": 0.6, "sphere": 0.45, "cylinder": 0.3, "table": 0.8}[shape]
-            if not (r < p[0] < W - r and r < p[2] < D - r):
-                continue
-            if any((p[0] - q[0]) ** 2 + (p[2] - q[1]) ** 2 < (r + q[2]) ** 2 for q in placed):
-                continue
-            placed.append((p[0], p[2], r))
-            break
-        else:
-            continue
-        name = f"obj{oi}"
-        o = {"name": name, "shape": shape, "material": m, "position": [p[0], p[2]]}
-        if shape == "box":
-            half = [rng.uniform(0.2, 0.55), rng.uniform(0.2, 0.55), rng.uniform(0.18, 0.3)]
-            ang = rng.uniform(-0.6, 0.6)
-            geo.box(name, [p[0], half[1], p[2]], half, ang, m)
-            o.update(half=half, yaw=ang)
-        elif shape == "sphere":
-            rad = rng.uniform(0.15, 0.42)
-            geo.sphere(name, [p[0], rad, p[2]], rad, m)
-            o.update(radius=rad)
-        elif shape == "cylinder":
-            rad, h = rng.uniform(0.08, 0.28), rng.uniform(0.25, 0.9)
-            geo.cylinder(name, [p[0], 0.0, p[2]], rad, h, m)
-            o.update(radius=rad, height=h)
-        else:
-            ht, hw, hd = rng.uniform(0.65, 0.8), rng.uniform(0.4, 0.75), rng.uniform(0.3, 0.5)
-            ang = rng.uniform(-0.6, 0.6)
-            geo.box(name, [p[0], ht - 0.02, p[2]], [hw, 0.02, hd], ang, m)
-            c, s = math.cos(ang), math.sin(ang)
-            leg_mat = mat(np.array(m["albedo"]) * 0.6, 0.7, m["metallic"], m["kind"])
-            for sx in (-1, 1):
-                for sz in (-1, 1):
-                    lx, lz = sx * (hw - 0.04), sz * (hd - 0.04)
-                    geo.box(f"{name}leg{sx}{sz}", [p[0] + c * lx + s * lz, (ht - 0.04) / 2, p[2] - s * lx + c * lz],
-                            [0.025, (ht - 0.04) / 2, 0.025], ang, leg_mat)
-            o.update(height=ht, half=[hw, hd], yaw=ang)
-        objects.append(o)
-    P["objects"] = objects
+    P["objects"] = draw_objects(rng, geo, cam_p, yaw, (0.0, W, 0.0, D), D - 0.8)
 
-    # Lighting.
-    sky_kind = SKY_KINDS[jh % 3]
-    sky = draw_sky(rng, sky_kind)
-    lamps = []
-    if jh % 3 == (jh // 3) % 3:
-        for _ in range(rng.integers(1, 3)):
-            lamps.append({"position": [rng.uniform(0.5, W - 0.5), H - rng.uniform(0.3, 0.6), rng.uniform(0.5, D - 0.5)],
-                          "radius": rng.uniform(0.06, 0.12),
-                          "radiance": (np.array([1.0, 0.85, 0.65]) * rng.uniform(20, 60)
-                                       * float(np.mean(sky["horizon"]))).tolist()})
-    relights = [draw_sky(rng, SKY_KINDS[(SKY_KINDS.index(sky_kind) + j) % 3]) for j in (1, 2)]
-    P["sky"], P["lamps"], P["relight_skies"] = sky, lamps, relights
-    P["exposure_target_mean"] = rng.uniform(0.12, 0.35)
-    P["relit_target_means"] = [rng.uniform(0.15, 0.3), rng.uniform(0.15, 0.3)]
-    P["degrade"] = {"gain": rng.uniform(0.75, 1.25, size=3).tolist(), "blur_sigma_px": 1.5, "noise_std": 0.03,
-                    "roughness": rng.uniform(0.4, 0.7), "metallic": rng.uniform(0.0, 0.15),
-                    "noise_seed": int(rng.integers(0, 2**31))}
+    draw_lighting(rng, P, jh, lamp_box=(W, D, H))
     return P, geo, c2w
 
 
@@ -723,8 +872,16 @@ def write_exr(mi, path, img):
     mi.Bitmap(a, mi.Bitmap.PixelFormat.RGB).write(path)
 
 
+def scene_kind(k, n, kinds):
+    """The kind of scene k of n and its place among its half's scenes of
+    that kind: each half cycles through `kinds`."""
+    j = k % max(1, n // 2)
+    return kinds[j % len(kinds)], j // len(kinds)
+
+
 def make_bundle(mi, dr, k, a, out_dir):
-    P, geo, c2w = draw_scene(a.seed, k, a.scenes)
+    kind, jh = scene_kind(k, a.scenes, a.kinds)
+    P, geo, c2w = draw_scene(a.seed, k, a.scenes, kind=kind, jh=None if a.kinds == ["closed"] else jh)
     w2c = np.linalg.inv(c2w)
     rot = c2w[:3, :3]
     tmp = out_dir + ".partial"
@@ -797,6 +954,9 @@ def add_render_args(ap, size, spp):
     ap.add_argument("--pass-spp", type=int, default=32)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--llvm", help="libLLVM for Dr.Jit (>= 17); see bench/drjit_llvm.py")
+    ap.add_argument("--kinds", nargs="+", default=["closed"], choices=SCENE_KINDS,
+                    help="kinds of scene, in turn within each half (default: closed rooms alone, the "
+                         "original set)")
 
 
 def start_mitsuba(a):
@@ -822,9 +982,10 @@ def main():
     mi, dr = start_mitsuba(a)
     os.makedirs(a.out, exist_ok=True)
     index = {"generator": "bench/relight_scenes.py", "generator_version": GENERATOR_VERSION, "seed": a.seed,
-             "size": a.size, "spp": a.spp, "tuning": [], "heldback": []}
+             "size": a.size, "spp": a.spp, "tuning": [], "heldback": [], "kinds": {}}
     for k in range(a.scenes):
         index["tuning" if k < a.scenes // 2 else "heldback"].append(f"scene-{k:02d}")
+        index["kinds"][f"scene-{k:02d}"] = scene_kind(k, a.scenes, a.kinds)[0]
     with open(os.path.join(a.out, "validation.json"), "w") as fh:
         json.dump(index, fh, indent=1)
     for k in range(a.scenes):
@@ -836,7 +997,7 @@ def main():
             log(f"relight_scenes: {name} exists, kept")
             continue
         P = make_bundle(mi, dr, k, a, d)
-        log(f"relight_scenes: {name} ({P['split']}, sky {P['sky']['type']}, {len(P['lamps'])} lamp(s), "
+        log(f"relight_scenes: {name} ({P['split']}, {P['kind']}, sky {P['sky']['type']}, {len(P['lamps'])} lamp(s), "
             f"{len(P['windows'])} window(s), {len(P['objects'])} object(s)) in {P['render']['seconds']} s")
 
 

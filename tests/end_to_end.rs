@@ -119,9 +119,12 @@ fn synth_then_render_writes_exr_png_and_summary() {
     let (pos, faces) =
         matflow_geom::mesh::read_ply_positions_faces(&std::fs::read(&ply).unwrap()).unwrap();
     assert!(!pos.is_empty() && !faces.is_empty());
-    // A bundle that says nothing of its geometry (a photo's) is completed
-    // as a room by default; a geometry.json that names no mode is an
-    // error naming the file.
+    // A bundle that says nothing of its geometry (a photo's) has its photo
+    // test each completion under its own light and maps: this one was
+    // rendered on its depth mesh alone, which the photo supports (and it
+    // assumes least); the scores are printed, and a render writes them to
+    // its report. A geometry.json that names no mode is an error naming
+    // the file.
     let geometry = b.join("geometry.json");
     let declared = std::fs::read(&geometry).unwrap();
     std::fs::remove_file(&geometry).unwrap();
@@ -129,8 +132,40 @@ fn synth_then_render_writes_exr_png_and_summary() {
         &["mesh", "--bundle", s(&b), "--out", s(&ply)],
         None,
     ));
-    assert!(text.contains("completion room (the default)"), "{text}");
-    assert!(text.contains("completion: "), "{text}");
+    assert!(text.contains("completion none (auto: "), "{text}");
+    for h in ["none", "planes", "room", "closed"] {
+        assert!(text.contains(&format!("  {h} ")), "{text}");
+    }
+    assert!(text.contains("tested under "), "{text}");
+    let text = render(&b, &["--materials", "ground_truth", "--spp", "2"]);
+    assert!(text.contains("completion none (auto: "), "{text}");
+    // It explains its own photo (the sanity check of every render in the
+    // photo's light), and says so in its report.
+    assert!(text.contains("the render explains the photo at "), "{text}");
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.with_extension("json")).unwrap()).unwrap();
+    assert_eq!(report["completion"]["complete"], "none");
+    assert_eq!(
+        report["completion"]["evidence"]["scores"]
+            .as_array()
+            .unwrap()
+            .len(),
+        4
+    );
+    assert!(report["photo_psnr"].as_f64().unwrap() > 20.0, "{report}");
+    // Forced, it is what was asked.
+    let text = render(
+        &b,
+        &[
+            "--materials",
+            "ground_truth",
+            "--spp",
+            "2",
+            "--complete",
+            "planes",
+        ],
+    );
+    assert!(text.contains("completion planes (as asked)"), "{text}");
     std::fs::write(&geometry, r#"{"complete": "box"}"#).unwrap();
     let o = matflow(&["mesh", "--bundle", s(&b), "--out", s(&ply)], None);
     assert!(!o.status.success());
@@ -509,11 +544,11 @@ fn invert_writes_best_results_deterministically_and_rerenders() {
         serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
     assert_eq!(summary["options"]["pixel_filter"], "box");
     assert_eq!(summary["options"]["complete"], "none");
-    // The result carries the input's own geometry with its depth.
-    assert_eq!(
-        std::fs::read(out.join("geometry.json")).unwrap(),
-        std::fs::read(b.join("geometry.json")).unwrap()
-    );
+    // The result declares the geometry it was recovered on with its depth.
+    let declared: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("geometry.json")).unwrap()).unwrap();
+    assert_eq!(declared["complete"], "none");
+    assert_eq!(summary["completion"]["complete"], "none");
     let r = dir.path().join("rr.exr");
     let render = |materials: &str, extra: &[&str]| {
         let mut args = vec![

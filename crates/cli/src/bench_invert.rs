@@ -66,10 +66,14 @@ pub struct BenchInvertArgs {
     #[arg(long, default_value_t = 64)]
     pub relight_spp: u32,
     /// With --validation: the geometry past the frame, for `invert` and
-    /// every render (`--complete`: none, planes, room, closed); several
-    /// run in turn.
-    #[arg(long, num_args = 1.., default_values = ["room"])]
-    pub complete: Vec<crate::commands::CompleteMode>,
+    /// every render (`--complete`: auto, none, planes, room, closed);
+    /// several run in turn.
+    #[arg(long, num_args = 1.., default_values = ["auto"])]
+    pub complete: Vec<crate::commands::CompleteArg>,
+    /// With --validation: only the geometry part (the true maps and light
+    /// rendered on each completion against the truths), no inversion.
+    #[arg(long)]
+    pub geometry_only: bool,
 }
 
 /// `name=flags` or just flags (named by themselves; "" is "default").
@@ -157,7 +161,13 @@ pub fn bench_invert(a: BenchInvertArgs) -> Result<()> {
     std::fs::create_dir_all(&a.work)?;
     if let Some(dir) = &a.validation {
         let v = crate::bench_relight::load_validation(dir)?;
-        for &budget in &a.budgets {
+        // The geometry part renders the truths alone: one budget is all.
+        let budgets = if a.geometry_only {
+            &a.budgets[..a.budgets.len().min(1)]
+        } else {
+            &a.budgets[..]
+        };
+        for &budget in budgets {
             crate::bench_relight::bench_relight(
                 &v,
                 &crate::bench_relight::RelightRun {
@@ -166,6 +176,7 @@ pub fn bench_invert(a: BenchInvertArgs) -> Result<()> {
                     variants: a.variants.iter().map(|x| parse_variant(x)).collect(),
                     spp: a.relight_spp,
                     complete: a.complete.clone(),
+                    geometry_only: a.geometry_only,
                     halves: a.halves.clone(),
                     only: a.scenes.clone(),
                     work: &a.work,

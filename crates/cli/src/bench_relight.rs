@@ -33,13 +33,25 @@ use matflow_scene::{io, Bundle, MaterialSource, RgbImage};
 
 use crate::bench::{child, path_arg as s};
 use crate::bench_pipeline::median;
-use crate::commands::CompleteMode;
+use crate::commands::CompleteArg;
 
 /// The validation set's index (`validation.json`).
 pub struct Validation {
     pub dir: PathBuf,
     pub tuning: Vec<String>,
     pub heldback: Vec<String>,
+    /// Each scene's kind (closed, open, stage, outdoor): `kinds` in the
+    /// index; a set without it is closed rooms alone.
+    pub kinds: std::collections::BTreeMap<String, String>,
+}
+
+impl Validation {
+    pub fn kind(&self, scene: &str) -> &str {
+        self.kinds
+            .get(scene)
+            .map(String::as_str)
+            .unwrap_or("closed")
+    }
 }
 
 pub fn load_validation(dir: &Path) -> Result<Validation> {
@@ -63,10 +75,26 @@ pub fn load_validation(dir: &Path) -> Result<Validation> {
             })
             .collect()
     };
+    let mut kinds = std::collections::BTreeMap::new();
+    if let Some(k) = v.get("kinds") {
+        let k = k.as_object().with_context(|| {
+            format!(
+                "{}: field `kinds` must map scene names to kinds",
+                p.display()
+            )
+        })?;
+        for (name, kind) in k {
+            let kind = kind
+                .as_str()
+                .with_context(|| format!("{}: kinds.{name} is not a string", p.display()))?;
+            kinds.insert(name.clone(), kind.to_string());
+        }
+    }
     Ok(Validation {
         dir: dir.to_path_buf(),
         tuning: names("tuning")?,
         heldback: names("heldback")?,
+        kinds,
     })
 }
 
@@ -79,7 +107,10 @@ pub struct RelightRun<'a> {
     pub spp: u32,
     /// Geometry past the frame for `invert` and every render: each mode
     /// runs every variant.
-    pub complete: Vec<CompleteMode>,
+    pub complete: Vec<CompleteArg>,
+    /// Only the geometry part (the true maps rendered on each completion
+    /// against the truths): no inversion.
+    pub geometry_only: bool,
     pub halves: Vec<String>,
     /// Only these scenes (all of the halves when empty).
     pub only: Vec<String>,
@@ -90,6 +121,11 @@ pub struct RelightRun<'a> {
 struct SceneRow {
     scene: String,
     half: String,
+    kind: String,
+    /// The completion the true maps' capture render took (auto decides).
+    taken: String,
+    /// Seconds auto's choice took in that render.
+    choice_seconds: f64,
     variant: String,
     seconds: f64,
     rerender: f64,
@@ -110,7 +146,7 @@ struct SceneRow {
 /// it exists: the true-map renders are shared by every configuration).
 fn render(
     r: &RelightRun,
-    complete: CompleteMode,
+    complete: CompleteArg,
     bundle: &Path,
     materials: &str,
     envmap: &Path,
@@ -216,18 +252,32 @@ fn scene_meta(scene: &Path) -> Result<serde_json::Value> {
         .with_context(|| format!("parsing {}", s(&p)))
 }
 
+#[allow(clippy::too_many_arguments)]
 fn measure(
     r: &RelightRun,
-    complete: CompleteMode,
+    complete: CompleteArg,
     scene: &Path,
     name: &str,
     half: &str,
+    kind: &str,
     variant: &(String, Vec<String>),
 ) -> Result<SceneRow> {
     let tag = variant.0.replace(|c: char| !c.is_ascii_alphanumeric(), "_");
     let out = r
         .work
         .join(format!("{name}-{}-{tag}-{}", r.budget, complete.name()));
+    if r.geometry_only {
+        let mut row = SceneRow {
+            scene: name.into(),
+            half: half.into(),
+            kind: kind.into(),
+            variant: format!("complete {}", complete.name()),
+            noise_floor: noise_floor(&scene_meta(scene)?),
+            ..Default::default()
+        };
+        geometry_part(r, complete, scene, name, &mut row)?;
+        return Ok(row);
+    }
     let mut args: Vec<String> = vec![
         "invert".into(),
         "--bundle".into(),
@@ -255,40 +305,17 @@ fn measure(
         } else {
             variant.0.clone()
         },
+        kind: kind.into(),
         seconds: sum["seconds"].as_f64().unwrap_or(f64::NAN),
         rerender: sum["rerender"]["psnr"].as_f64().unwrap_or(f64::NAN),
-        noise_floor: meta["noise_floor_psnr"]
-            .as_array()
-            .map(|a| a.iter().filter_map(|x| x.as_f64()).collect())
-            .unwrap_or_default(),
+        noise_floor: noise_floor(&meta),
         ..Default::default()
     };
     let c = format!("-complete-{}", complete.name());
-    let shared = r.work.join(format!("{name}-truth-{}spp{c}", r.spp));
-    std::fs::create_dir_all(&shared)?;
-    let cap = render(
-        r,
-        complete,
-        scene,
-        "ground_truth",
-        &scene.join("ground_truth/envmap.exr"),
-        &shared.join("capture.exr"),
-        true,
-    )?;
-    row.geo_capture = psnr_gamma(&cap, &io::read_exr_rgb(&scene.join("gt_image.exr"))?);
-    for j in 0..2 {
-        let (env, img) = relight_names(j);
-        let truth = io::read_exr_rgb(&scene.join(&img))?;
+    let relit_truth = geometry_part(r, complete, scene, name, &mut row)?;
+    for (j, (truth, t)) in relit_truth.iter().enumerate() {
+        let (env, _) = relight_names(j);
         let env = scene.join(env);
-        let t = render(
-            r,
-            complete,
-            scene,
-            "ground_truth",
-            &env,
-            &shared.join(format!("relit{j}.exr")),
-            true,
-        )?;
         let g = render(
             r,
             complete,
@@ -298,13 +325,75 @@ fn measure(
             &out.join(format!("relit{j}{c}.exr")),
             false,
         )?;
-        row.relight[j] = psnr_gamma(&g, &truth);
-        row.relight_gain[j] = psnr_gamma(&with_best_gain(&g, &truth), &truth);
-        row.geo_relit[j] = psnr_gamma(&t, &truth);
-        row.recovery[j] = psnr_gamma(&g, &t);
+        row.relight[j] = psnr_gamma(&g, truth);
+        row.relight_gain[j] = psnr_gamma(&with_best_gain(&g, truth), truth);
+        row.recovery[j] = psnr_gamma(&g, t);
     }
     material_errors(scene, &out, &mut row)?;
     Ok(row)
+}
+
+fn noise_floor(meta: &serde_json::Value) -> Vec<f64> {
+    meta["noise_floor_psnr"]
+        .as_array()
+        .map(|a| a.iter().filter_map(|x| x.as_f64()).collect())
+        .unwrap_or_default()
+}
+
+/// The geometry part: the true maps under the true capture light and each
+/// new sky, rendered on the view's completed mesh, against the truths
+/// (the capture image and the relit images); the completion the capture
+/// render took (auto decides it by the photo) and the seconds its choice
+/// took. Returns each relit (truth, render).
+fn geometry_part(
+    r: &RelightRun,
+    complete: CompleteArg,
+    scene: &Path,
+    name: &str,
+    row: &mut SceneRow,
+) -> Result<Vec<(RgbImage, RgbImage)>> {
+    let c = format!("-complete-{}", complete.name());
+    let shared = r.work.join(format!("{name}-truth-{}spp{c}", r.spp));
+    std::fs::create_dir_all(&shared)?;
+    let cap_path = shared.join("capture.exr");
+    let cap = render(
+        r,
+        complete,
+        scene,
+        "ground_truth",
+        &scene.join("ground_truth/envmap.exr"),
+        &cap_path,
+        true,
+    )?;
+    row.geo_capture = psnr_gamma(&cap, &io::read_exr_rgb(&scene.join("gt_image.exr"))?);
+    let report: serde_json::Value = std::fs::read(cap_path.with_extension("json"))
+        .ok()
+        .and_then(|b| serde_json::from_slice(&b).ok())
+        .unwrap_or_default();
+    row.taken = report["completion"]["complete"]
+        .as_str()
+        .unwrap_or("?")
+        .to_string();
+    row.choice_seconds = report["completion"]["evidence"]["seconds"]
+        .as_f64()
+        .unwrap_or(0.0);
+    let mut out = Vec::new();
+    for j in 0..2 {
+        let (env, img) = relight_names(j);
+        let truth = io::read_exr_rgb(&scene.join(&img))?;
+        let t = render(
+            r,
+            complete,
+            scene,
+            "ground_truth",
+            &scene.join(env),
+            &shared.join(format!("relit{j}.exr")),
+            true,
+        )?;
+        row.geo_relit[j] = psnr_gamma(&t, &truth);
+        out.push((truth, t));
+    }
+    Ok(out)
 }
 
 fn print_row(r: &SceneRow) {
@@ -315,10 +404,12 @@ fn print_row(r: &SceneRow) {
         .collect::<Vec<_>>()
         .join(" / ");
     outln!(
-        "| {} | {} | {} | {:.1} | {:.2} | {:.2} / {:.2} | {:.2} / {:.2} | {:.2} | {:.2} / {:.2} | {:.2} / {:.2} | {:.3} / {:.1}° | {:.3} / {:.3} | {:.3} / {:.3} | {} |",
+        "| {} | {} | {} | {} | {} | {:.1} | {:.2} | {:.2} / {:.2} | {:.2} / {:.2} | {:.2} | {:.2} / {:.2} | {:.2} / {:.2} | {:.3} / {:.1}° | {:.3} / {:.3} | {:.3} / {:.3} | {} |",
         r.scene,
         r.half,
+        r.kind,
         r.variant,
+        r.taken,
         r.seconds,
         r.rerender,
         r.relight[0],
@@ -340,7 +431,7 @@ fn print_row(r: &SceneRow) {
     );
 }
 
-const HEADER: &str = "| scene | half | configuration | wall (s) | rerender (dB) | relight 1 / 2 (dB) | relight, best gain, 1 / 2 (dB) | geometry, capture (dB) | geometry, relit 1 / 2 (dB) | recovery 1 / 2 (dB) | albedo RMSE / chroma | R MAE metal / dielectric | M MAE metal / dielectric | truth noise floor (dB) |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|";
+const HEADER: &str = "| scene | half | kind | configuration | completion taken | wall (s) | rerender (dB) | relight 1 / 2 (dB) | relight, best gain, 1 / 2 (dB) | geometry, capture (dB) | geometry, relit 1 / 2 (dB) | recovery 1 / 2 (dB) | albedo RMSE / chroma | R MAE metal / dielectric | M MAE metal / dielectric | truth noise floor (dB) |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|";
 
 fn min(v: &[f64]) -> f64 {
     v.iter().cloned().fold(f64::INFINITY, f64::min)
@@ -392,7 +483,15 @@ pub fn bench_relight(v: &Validation, r: &RelightRun) -> Result<()> {
     for &complete in &r.complete {
         for variant in &r.variants {
             for (name, half) in &scenes {
-                let row = measure(r, complete, &v.dir.join(name), name, half, variant)?;
+                let row = measure(
+                    r,
+                    complete,
+                    &v.dir.join(name),
+                    name,
+                    half,
+                    v.kind(name),
+                    variant,
+                )?;
                 print_row(&row);
                 if !configs.contains(&row.variant) {
                     configs.push(row.variant.clone());
@@ -401,47 +500,94 @@ pub fn bench_relight(v: &Validation, r: &RelightRun) -> Result<()> {
             }
         }
     }
+    let mut kinds: Vec<String> = Vec::new();
+    for row in &rows {
+        if !kinds.contains(&row.kind) {
+            kinds.push(row.kind.clone());
+        }
+    }
     outln!();
-    outln!("Per half: median and worst over (scene, envmap) pairs; geometry worst over capture and relit; material errors are means.");
-    outln!("| half | configuration | scenes | wall (s) | rerender median (dB) | relight median / worst (dB) | relight, best gain, median / worst (dB) | geometry worst (dB) | recovery median / worst (dB) | albedo RMSE / chroma | R MAE metal / dielectric | M MAE metal / dielectric |");
-    outln!("|---|---|---|---|---|---|---|---|---|---|---|---|");
+    outln!("Per half and kind of scene: median and worst over (scene, envmap) pairs; geometry over capture and relit; material errors are means. The worst kind (by its worst relight, or geometry with --geometry-only) heads each half.");
+    outln!("| half | kind | configuration | scenes | completions taken | choice (s) | wall (s) | rerender median (dB) | relight median / worst (dB) | relight, best gain, median / worst (dB) | geometry, capture median / worst (dB) | geometry median / worst (dB) | recovery median / worst (dB) | albedo RMSE / chroma | R MAE metal / dielectric | M MAE metal / dielectric |");
+    outln!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     for config in &configs {
         for half in &r.halves {
-            let sel: Vec<&SceneRow> = rows
-                .iter()
-                .filter(|x| &x.half == half && &x.variant == config)
-                .collect();
-            if sel.is_empty() {
-                continue;
+            let mut lines: Vec<(f64, String)> = Vec::new();
+            for kind in kinds.iter().map(Some).chain([None]) {
+                let sel: Vec<&SceneRow> = rows
+                    .iter()
+                    .filter(|x| {
+                        &x.half == half && &x.variant == config && kind.is_none_or(|k| &x.kind == k)
+                    })
+                    .collect();
+                if sel.is_empty() {
+                    continue;
+                }
+                let relight: Vec<f64> = sel.iter().flat_map(|x| x.relight).collect();
+                let gained: Vec<f64> = sel.iter().flat_map(|x| x.relight_gain).collect();
+                let recovery: Vec<f64> = sel.iter().flat_map(|x| x.recovery).collect();
+                let capture: Vec<f64> = sel.iter().map(|x| x.geo_capture).collect();
+                let geo: Vec<f64> = sel
+                    .iter()
+                    .flat_map(|x| [x.geo_capture, x.geo_relit[0], x.geo_relit[1]])
+                    .collect();
+                let mut taken: Vec<(String, usize)> = Vec::new();
+                for x in &sel {
+                    match taken.iter_mut().find(|t| t.0 == x.taken) {
+                        Some(t) => t.1 += 1,
+                        None => taken.push((x.taken.clone(), 1)),
+                    }
+                }
+                let line = format!(
+                    "| {} | {} | {} | {} | {} | {:.2} | {:.1} | {:.2} | {:.2} / {:.2} | {:.2} / {:.2} | {:.2} / {:.2} | {:.2} / {:.2} | {:.2} / {:.2} | {:.3} / {:.1}° | {:.3} / {:.3} | {:.3} / {:.3} |",
+                    half,
+                    kind.map(String::as_str).unwrap_or("all"),
+                    config,
+                    sel.len(),
+                    taken
+                        .iter()
+                        .map(|(n, c)| format!("{n} {c}"))
+                        .collect::<Vec<_>>()
+                        .join(", "),
+                    median(sel.iter().map(|x| x.choice_seconds).collect()),
+                    median(sel.iter().map(|x| x.seconds).collect()),
+                    median(sel.iter().map(|x| x.rerender).collect()),
+                    median(relight.clone()),
+                    min(&relight),
+                    median(gained.clone()),
+                    min(&gained),
+                    median(capture.clone()),
+                    min(&capture),
+                    median(geo.clone()),
+                    min(&geo),
+                    median(recovery.clone()),
+                    min(&recovery),
+                    nan_mean(sel.iter().map(|x| x.albedo_rmse)),
+                    nan_mean(sel.iter().map(|x| x.albedo_chroma_deg)),
+                    nan_mean(sel.iter().map(|x| x.rough_mae[0])),
+                    nan_mean(sel.iter().map(|x| x.rough_mae[1])),
+                    nan_mean(sel.iter().map(|x| x.metal_mae[0])),
+                    nan_mean(sel.iter().map(|x| x.metal_mae[1])),
+                );
+                let key = if r.geometry_only {
+                    min(&geo)
+                } else {
+                    min(&relight)
+                };
+                lines.push((
+                    if kind.is_some() {
+                        key
+                    } else {
+                        f64::NEG_INFINITY
+                    },
+                    line,
+                ));
             }
-            let relight: Vec<f64> = sel.iter().flat_map(|x| x.relight).collect();
-            let gained: Vec<f64> = sel.iter().flat_map(|x| x.relight_gain).collect();
-            let recovery: Vec<f64> = sel.iter().flat_map(|x| x.recovery).collect();
-            let geo: Vec<f64> = sel
-                .iter()
-                .flat_map(|x| [x.geo_capture, x.geo_relit[0], x.geo_relit[1]])
-                .collect();
-            outln!(
-                "| {} | {} | {} | {:.1} | {:.2} | {:.2} / {:.2} | {:.2} / {:.2} | {:.2} | {:.2} / {:.2} | {:.3} / {:.1}° | {:.3} / {:.3} | {:.3} / {:.3} |",
-                half,
-                config,
-                sel.len(),
-                median(sel.iter().map(|x| x.seconds).collect()),
-                median(sel.iter().map(|x| x.rerender).collect()),
-                median(relight.clone()),
-                min(&relight),
-                median(gained.clone()),
-                min(&gained),
-                min(&geo),
-                median(recovery.clone()),
-                min(&recovery),
-                nan_mean(sel.iter().map(|x| x.albedo_rmse)),
-                nan_mean(sel.iter().map(|x| x.albedo_chroma_deg)),
-                nan_mean(sel.iter().map(|x| x.rough_mae[0])),
-                nan_mean(sel.iter().map(|x| x.rough_mae[1])),
-                nan_mean(sel.iter().map(|x| x.metal_mae[0])),
-                nan_mean(sel.iter().map(|x| x.metal_mae[1])),
-            );
+            // The whole half first, then its kinds from the worst up.
+            lines.sort_by(|a, b| a.0.total_cmp(&b.0));
+            for (_, l) in lines {
+                outln!("{l}");
+            }
         }
     }
     Ok(())
@@ -463,6 +609,25 @@ mod tests {
         let v = load_validation(&d).unwrap();
         assert_eq!(v.tuning, ["scene-00"]);
         assert_eq!(v.heldback, ["scene-01", "scene-02"]);
+        // A set without kinds is closed rooms alone.
+        assert_eq!(v.kind("scene-01"), "closed");
+        std::fs::write(
+            d.join("validation.json"),
+            r#"{"tuning": ["scene-00"], "heldback": ["scene-01"], "kinds": {"scene-00": "stage", "scene-01": "outdoor"}}"#,
+        )
+        .unwrap();
+        let v = load_validation(&d).unwrap();
+        assert_eq!(
+            (v.kind("scene-00"), v.kind("scene-01")),
+            ("stage", "outdoor")
+        );
+        std::fs::write(
+            d.join("validation.json"),
+            r#"{"tuning": ["scene-00"], "heldback": [], "kinds": {"scene-00": 3}}"#,
+        )
+        .unwrap();
+        let e = format!("{:#}", load_validation(&d).err().unwrap());
+        assert!(e.contains("kinds.scene-00"), "{e}");
         std::fs::write(d.join("validation.json"), r#"{"tuning": "scene-00"}"#).unwrap();
         let e = format!("{:#}", load_validation(&d).err().unwrap());
         assert!(e.contains("tuning") && e.contains("validation.json"), "{e}");

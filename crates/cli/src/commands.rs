@@ -46,18 +46,22 @@ pub struct RenderArgs {
     #[arg(long, default_value_t = 6.0)]
     pub mesh_angle: f64,
     /// Geometry past the frame (matflow_geom::complete), so that unseen
-    /// parts of the room block and reflect light: `room` extends the
+    /// parts of the scene block and reflect light: `room` extends the
     /// view's floor, walls and ceiling and closes the room with assumed
     /// ones where the view shows a room; `closed` the same without
     /// windows; `planes` only extends the planes seen; `none` renders the
-    /// depth mesh alone. Default: for `best_results` written by `matflow
-    /// invert`, the completion it recovered them with (its summary.json's
+    /// depth mesh alone; `auto` renders each of them cheaply under the
+    /// light the photo was taken in (the bundle's own envmap, else
+    /// `--envmap`) and takes the least assuming whose render agrees with
+    /// the bundle's photo within 0.5 dB of the best's (none without a
+    /// photo). Default: for `best_results` written by `matflow invert`,
+    /// the completion it recovered them with (its summary.json's
     /// `options.complete`); else none with `--reference-compat`; else the
     /// one the bundle declares for its own geometry (geometry.json, which
-    /// `matflow synth` writes: none); otherwise room (also when the flag
-    /// is given alone).
+    /// `matflow synth` writes: none); otherwise auto. The flag alone means
+    /// room.
     #[arg(long, num_args = 0..=1, default_missing_value = "room")]
-    pub complete: Option<CompleteMode>,
+    pub complete: Option<CompleteArg>,
     /// Reproduce the reference renderer's sampling-frame defect and its
     /// optimisation-time envmap layout (for comparing with its stored
     /// renders; physically incorrect).
@@ -175,12 +179,15 @@ pub struct MeshArgs {
     /// Boundary angle threshold in degrees (the reference's code uses 6).
     #[arg(long, default_value_t = 6.0)]
     pub angle: f64,
-    /// Geometry past the frame (see `render --complete`): room, closed,
-    /// planes, or none (the depth mesh alone). Default: the completion the
-    /// bundle declares for its own geometry (geometry.json, which `matflow
-    /// synth` writes), otherwise room (also when the flag is given alone).
+    /// Geometry past the frame (see `render --complete`): auto, room,
+    /// closed, planes, or none (the depth mesh alone). Default: the
+    /// completion the bundle declares for its own geometry (geometry.json,
+    /// which `matflow synth` and `matflow invert` write), otherwise auto:
+    /// the photo tests each under the bundle's own light and materials
+    /// (best_results, else ground_truth), none without them. The flag
+    /// alone means room.
     #[arg(long, num_args = 0..=1, default_missing_value = "room")]
-    pub complete: Option<CompleteMode>,
+    pub complete: Option<CompleteArg>,
     #[arg(long)]
     pub out: PathBuf,
 }
@@ -284,9 +291,144 @@ fn from_invert<T: Default>(
     Ok((T::default(), "the default"))
 }
 
+/// What `--complete` asks for: a completion, or `auto` (the photo
+/// decides, [`evidence_completion`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum CompleteArg {
+    /// Test each completion against the photo and take the least assuming
+    /// one the photo supports.
+    Auto,
+    /// The depth mesh alone.
+    None,
+    /// Extend the planes seen.
+    Planes,
+    /// Extend them and close a room, with windows in its assumed walls.
+    Room,
+    /// As room, without windows.
+    Closed,
+}
+
+impl CompleteArg {
+    pub fn name(self) -> &'static str {
+        match self.forced() {
+            Some(m) => m.name(),
+            None => "auto",
+        }
+    }
+
+    /// The completion forced, or `None` for auto.
+    pub fn forced(self) -> Option<CompleteMode> {
+        match self {
+            CompleteArg::Auto => None,
+            CompleteArg::None => Some(CompleteMode::None),
+            CompleteArg::Planes => Some(CompleteMode::Planes),
+            CompleteArg::Room => Some(CompleteMode::Room),
+            CompleteArg::Closed => Some(CompleteMode::Closed),
+        }
+    }
+}
+
+/// The completions the photo chooses among, from the least assuming to
+/// the most.
+pub const HYPOTHESES: [CompleteMode; 4] = [
+    CompleteMode::None,
+    CompleteMode::Planes,
+    CompleteMode::Room,
+    CompleteMode::Closed,
+];
+
+/// The photo's evidence on the geometry past the frame.
+#[derive(Clone, Debug)]
+pub struct Evidence {
+    pub choice: matflow_render::evidence::CompletionChoice,
+    /// The light the hypotheses were rendered in (a file, or what it was
+    /// built from), and the maps.
+    pub light: String,
+    pub materials: MaterialSource,
+}
+
+/// A completion decided, why, and the evidence when the photo decided.
+#[derive(Clone, Debug)]
+pub struct CompletionDecision {
+    pub mode: CompleteMode,
+    pub why: String,
+    pub evidence: Option<Evidence>,
+}
+
+impl CompletionDecision {
+    fn given(mode: CompleteMode, why: &str) -> Self {
+        CompletionDecision {
+            mode,
+            why: why.to_string(),
+            evidence: None,
+        }
+    }
+
+    /// For summary.json and geometry.json: the mode, why, and the scores.
+    pub fn to_json(&self) -> serde_json::Value {
+        let mut v = serde_json::json!({"complete": self.mode.name(), "why": self.why});
+        if let Some(e) = &self.evidence {
+            let c = &e.choice;
+            v["evidence"] = serde_json::json!({
+                "light": e.light,
+                "materials": e.materials.folder().unwrap_or("pred"),
+                "differing_blocks": c.differing,
+                "margin_db": c.margin_db,
+                "decisive": c.decisive,
+                "reason": c.reason,
+                "seconds": c.seconds,
+                "scores": c.scores.iter().map(|s| serde_json::json!({
+                    "complete": s.name,
+                    "psnr_differing": s.psnr_differing,
+                    "psnr_all": s.psnr_all,
+                    "light_gain": s.gain,
+                    "psnr_gained": s.psnr_gained,
+                    "same_mesh_as": s.same_as,
+                })).collect::<Vec<_>>(),
+            });
+        }
+        v
+    }
+
+    /// Prints the decision, and the scores when the photo decided.
+    pub fn print(&self) {
+        outln!("completion {} ({})", self.mode.name(), self.why);
+        if let Some(e) = &self.evidence {
+            let c = &e.choice;
+            for s in &c.scores {
+                match &s.same_as {
+                    Some(o) => outln!("  {:<7} the same mesh as {o}", s.name),
+                    None => outln!(
+                        "  {:<7} {:6.2} dB where the hypotheses differ ({:.0} % of the image), {:6.2} dB overall; needs {:.3}x the light ({:.2} dB with it)",
+                        s.name,
+                        s.psnr_differing,
+                        100.0 * c.differing,
+                        s.psnr_all,
+                        s.gain,
+                        s.psnr_gained
+                    ),
+                }
+            }
+            outln!(
+                "  margin {:+.2} dB, {}; tested under {} with the {} maps in {:.2} s",
+                c.margin_db,
+                if c.decisive {
+                    "decisive"
+                } else {
+                    "weak evidence"
+                },
+                e.light,
+                e.materials.folder().unwrap_or("predicted"),
+                c.seconds
+            );
+        }
+    }
+}
+
 /// The file in which a bundle declares the completion that reproduces its
 /// own geometry (`{"complete": "none", "why": ...}`): `matflow synth`
-/// writes it, since its scenes are their depth mesh and nothing else.
+/// writes it, since its scenes are their depth mesh and nothing else, and
+/// `matflow invert` the one it recovered its maps with.
 pub const GEOMETRY_FILE: &str = "geometry.json";
 
 /// The completion `bundle` declares for itself in [`GEOMETRY_FILE`], if
@@ -309,56 +451,186 @@ pub fn declared_completion(bundle: &Path) -> Result<Option<CompleteMode>> {
     Ok(Some(mode))
 }
 
-/// The completion a command uses on `bundle` when none was asked for: the
-/// one the bundle declares for its own geometry ([`GEOMETRY_FILE`]), else
-/// room. Also says why.
-pub fn default_completion(bundle: &Path) -> Result<(CompleteMode, &'static str)> {
-    Ok(match declared_completion(bundle)? {
-        Some(m) => (m, "the bundle's own geometry, geometry.json"),
-        None => (CompleteMode::default(), "the default"),
+/// How the photo's evidence is rendered: the render's filter and depth.
+#[derive(Clone, Copy, Debug)]
+pub struct EvidenceRender {
+    pub mesh_angle: f64,
+    pub filter: PixelFilter,
+    pub max_depth: u32,
+}
+
+/// The completion the photo supports ([`matflow_render::evidence`]): each
+/// of [`HYPOTHESES`] rendered with `materials` in `light` and compared
+/// with the bundle's photo. Without a photo or a light there is no
+/// evidence, and the least assuming (none) is taken.
+pub fn hypotheses() -> Vec<matflow_render::evidence::Hypothesis> {
+    HYPOTHESES
+        .iter()
+        .map(|m| matflow_render::evidence::Hypothesis {
+            name: m.name().to_string(),
+            params: m.params(),
+        })
+        .collect()
+}
+
+pub fn evidence_completion(
+    bundle_dir: &Path,
+    materials: MaterialSource,
+    light: Option<&Path>,
+    how: EvidenceRender,
+) -> Result<CompletionDecision> {
+    let bundle = Bundle::open(bundle_dir)?;
+    let Some(light) = light else {
+        return Ok(CompletionDecision::given(
+            CompleteMode::None,
+            "auto: no light to test the geometry past the frame under; the least assuming",
+        ));
+    };
+    let photo =
+        match bundle.load_gt_image() {
+            Ok(p) => p,
+            Err(_) => return Ok(CompletionDecision::given(
+                CompleteMode::None,
+                "auto: no photo to test the geometry past the frame against; the least assuming",
+            )),
+        };
+    let depth = bundle.load_depth()?;
+    let maps = bundle.load_materials(materials)?;
+    let env =
+        EnvMap::new(&io::read_envmap(light)?).with_context(|| format!("{}", light.display()))?;
+    let hyps = hypotheses();
+    let opts = matflow_render::evidence::EvidenceOptions {
+        filter: how.filter,
+        max_depth: how.max_depth,
+        ..Default::default()
+    };
+    let choice = matflow_render::evidence::choose_completion(
+        &depth,
+        &maps,
+        &env,
+        how.mesh_angle,
+        &photo,
+        &hyps,
+        &opts,
+    )
+    .with_context(|| {
+        format!(
+            "{}: testing the geometry past the frame",
+            bundle_dir.display()
+        )
+    })?;
+    let mode = HYPOTHESES[choice.chosen];
+    Ok(CompletionDecision {
+        mode,
+        why: format!("auto: {}", choice.reason),
+        evidence: Some(Evidence {
+            choice,
+            light: light.display().to_string(),
+            materials,
+        }),
     })
 }
 
-/// The completion `asked` for, else [`default_completion`].
+/// The light and maps a bundle holds of its own, to test completions
+/// with when nothing else is given: `best_results` (with its envmap) if
+/// it has them, else `ground_truth`.
+pub fn own_light_and_maps(bundle_dir: &Path) -> Option<(PathBuf, MaterialSource)> {
+    [MaterialSource::BestResults, MaterialSource::GroundTruth]
+        .into_iter()
+        .find_map(|m| {
+            let folder = bundle_dir.join(m.folder()?);
+            let env = folder.join("envmap.hdr");
+            (env.is_file() && folder.join("albedo.exr").is_file()).then_some((env, m))
+        })
+}
+
+/// The completion a command uses when it renders nothing itself (`mesh`):
+/// the one `asked` for; else the one the bundle declares
+/// ([`GEOMETRY_FILE`]); else auto with the bundle's own light and maps
+/// ([`own_light_and_maps`]).
 pub fn completion_or_default(
     bundle: &Path,
-    asked: Option<CompleteMode>,
-) -> Result<(CompleteMode, &'static str)> {
-    match asked {
-        Some(m) => Ok((m, "as asked")),
-        None => default_completion(bundle),
+    asked: Option<CompleteArg>,
+    how: EvidenceRender,
+) -> Result<CompletionDecision> {
+    if let Some(m) = asked.and_then(CompleteArg::forced) {
+        return Ok(CompletionDecision::given(m, "as asked"));
+    }
+    if asked.is_none() {
+        if let Some(m) = declared_completion(bundle)? {
+            return Ok(CompletionDecision::given(
+                m,
+                "the bundle's own geometry, geometry.json",
+            ));
+        }
+    }
+    match own_light_and_maps(bundle) {
+        Some((light, maps)) => evidence_completion(bundle, maps, Some(&light), how),
+        None => evidence_completion(bundle, MaterialSource::Pred, None, how),
     }
 }
 
 /// The completion a render uses: the one asked for; else, for the maps
 /// `matflow invert` wrote, the one it recovered them with (`summary.json`'s
 /// `options.complete`); else, with `--reference-compat`, none (the
-/// reference renders the depth mesh alone); else [`default_completion`].
-/// Also says why.
+/// reference renders the depth mesh alone); else the one the bundle
+/// declares ([`GEOMETRY_FILE`]); else auto: tested under the light the
+/// photo was taken in (the bundle's own envmap, else the render's
+/// `envmap`) with the render's maps.
 pub fn render_completion(
     bundle: &Path,
     materials: MaterialSource,
-    asked: Option<CompleteMode>,
+    asked: Option<CompleteArg>,
     reference_compat: bool,
-) -> Result<(CompleteMode, &'static str)> {
-    if asked.is_some() {
-        return completion_or_default(bundle, asked);
+    envmap: Option<&Path>,
+    how: EvidenceRender,
+) -> Result<CompletionDecision> {
+    if let Some(m) = asked.and_then(CompleteArg::forced) {
+        return Ok(CompletionDecision::given(m, "as asked"));
     }
-    let (from_summary, why) = from_invert(
-        bundle,
-        materials,
-        None,
-        "complete",
-        "the one matflow invert recovered these maps with",
-        |name| <CompleteMode as clap::ValueEnum>::from_str(name, false).map(Some),
-    )?;
-    if let Some(m) = from_summary {
-        return Ok((m, why));
+    if asked.is_none() {
+        let (from_summary, why) = from_invert(
+            bundle,
+            materials,
+            None,
+            "complete",
+            "the one matflow invert recovered these maps with",
+            |name| <CompleteMode as clap::ValueEnum>::from_str(name, false).map(Some),
+        )?;
+        if let Some(m) = from_summary {
+            return Ok(CompletionDecision::given(m, why));
+        }
+        if reference_compat {
+            return Ok(CompletionDecision::given(
+                CompleteMode::None,
+                "the reference's, --reference-compat",
+            ));
+        }
+        if let Some(m) = declared_completion(bundle)? {
+            return Ok(CompletionDecision::given(
+                m,
+                "the bundle's own geometry, geometry.json",
+            ));
+        }
     }
-    if reference_compat {
-        return Ok((CompleteMode::None, "the reference's, --reference-compat"));
-    }
-    default_completion(bundle)
+    let light = capture_light(bundle, materials, envmap);
+    evidence_completion(bundle, materials, light.as_deref(), how)
+}
+
+/// The light the bundle's photo was taken in, as far as the bundle says:
+/// its own envmap for these maps (best_results/ or ground_truth/), else
+/// any of its own, else the one the render was given.
+pub fn capture_light(
+    bundle: &Path,
+    materials: MaterialSource,
+    envmap: Option<&Path>,
+) -> Option<PathBuf> {
+    materials
+        .folder()
+        .map(|f| bundle.join(f).join("envmap.hdr"))
+        .filter(|p| p.is_file())
+        .or_else(|| Bundle::open(bundle).ok().and_then(|b| b.envmap_path()))
+        .or_else(|| envmap.map(Path::to_path_buf))
 }
 
 /// Builds mesh, BVH, materials and envmap for a bundle; with `lamps`,
@@ -471,8 +743,20 @@ pub fn render_filter(
 pub fn render(a: RenderArgs) -> Result<()> {
     let t_all = Instant::now();
     let (filter, why) = render_filter(&a.bundle, a.materials, a.filter)?;
-    let (complete, why_complete) =
-        render_completion(&a.bundle, a.materials, a.complete, a.reference_compat)?;
+    let decision = render_completion(
+        &a.bundle,
+        a.materials,
+        a.complete,
+        a.reference_compat,
+        a.envmap.as_deref(),
+        EvidenceRender {
+            mesh_angle: a.mesh_angle,
+            filter,
+            max_depth: a.depth,
+        },
+    )?;
+    decision.print();
+    let complete = decision.mode;
     let mut loaded = load_scene(
         &a.bundle,
         a.materials,
@@ -524,7 +808,7 @@ pub fn render(a: RenderArgs) -> Result<()> {
         );
     }
     if let Some(objects_file) = &a.insert {
-        return render_inserted(&a, objects_file, loaded, &opts, t_all);
+        return render_inserted(&a, objects_file, loaded, &opts, t_all, &decision);
     }
     let (out, seconds) = if a.denoise {
         let pb = progress_bar(0, "render (two halves)");
@@ -553,7 +837,7 @@ pub fn render(a: RenderArgs) -> Result<()> {
     let png = write_outputs(&a.out, &out.image)?;
     let s = out.stats;
     outln!(
-        "rendered {}x{} at {} spp{}, depth {}, {} filter ({why}), completion {} ({why_complete}), {} lamp(s), {} sun(s), {} portal(s), {} in {:.2} s (mesh and BVH {:.2} s, total {:.2} s): {:.1} M rays, {:.2} Mrays/s -> {}, {}",
+        "rendered {}x{} at {} spp{}, depth {}, {} filter ({why}), completion {}, {} lamp(s), {} sun(s), {} portal(s), {} in {:.2} s (mesh and BVH {:.2} s, total {:.2} s): {:.1} M rays, {:.2} Mrays/s -> {}, {}",
         loaded.scene.camera.width,
         loaded.scene.camera.height,
         a.spp,
@@ -579,6 +863,8 @@ pub fn render(a: RenderArgs) -> Result<()> {
             s.discarded_samples
         );
     }
+    let photo_psnr = explains_photo(&a, &out.image);
+    write_report(&a.out, &decision, photo_psnr)?;
     if let Some(c) = &a.compare {
         let reference = io::read_exr_rgb(c)?;
         if !reference.same_size(&out.image) {
@@ -593,6 +879,54 @@ pub fn render(a: RenderArgs) -> Result<()> {
     Ok(())
 }
 
+/// Under this PSNR on its own photo a result is reported as not
+/// explaining it (`render`, `invert`).
+pub const EXPLAINS_PHOTO_DB: f64 = 20.0;
+
+/// Says how well `psnr` on the photo explains it, warning under
+/// [`EXPLAINS_PHOTO_DB`].
+pub fn report_photo_psnr(what: &str, psnr: f64) {
+    outln!("{what} explains the photo at {psnr:.2} dB (sRGB, gamma 2.2)");
+    if psnr < EXPLAINS_PHOTO_DB {
+        eprintln!(
+            "warning: {what} explains the photo at only {psnr:.2} dB (under {EXPLAINS_PHOTO_DB} dB): \
+             the geometry or the light does not explain the photo"
+        );
+    }
+}
+
+/// A plain render in the light of the bundle's photo (no `--envmap`, or
+/// none of the bundle's own to tell it from) against that photo: the
+/// PSNR, reported ([`report_photo_psnr`]); `None` when the render is a
+/// relighting or the bundle has no photo.
+fn explains_photo(a: &RenderArgs, image: &RgbImage) -> Option<f64> {
+    let bundle = Bundle::open(&a.bundle).ok()?;
+    if a.envmap.is_some() && bundle.envmap_path().is_some() {
+        return None;
+    }
+    let photo = bundle.load_gt_image().ok()?;
+    if !photo.same_size(image) {
+        return None;
+    }
+    let psnr = psnr_gamma(image, &photo);
+    report_photo_psnr("the render", psnr);
+    Some(psnr)
+}
+
+/// The render's report beside its output (OUT.json): the completion, why,
+/// the photo's evidence, and how well the render explains the photo.
+fn write_report(out: &Path, decision: &CompletionDecision, photo_psnr: Option<f64>) -> Result<()> {
+    let report = serde_json::json!({
+        "completion": decision.to_json(),
+        "photo_psnr": photo_psnr,
+    });
+    io::write_atomic(
+        &out.with_extension("json"),
+        serde_json::to_string_pretty(&report)?.as_bytes(),
+    )?;
+    Ok(())
+}
+
 /// `render --insert`: the bundle with the objects of `objects_file`,
 /// composited into its input image (or the full render).
 fn render_inserted(
@@ -601,6 +935,7 @@ fn render_inserted(
     loaded: LoadedScene,
     opts: &RenderOptions,
     t_all: Instant,
+    decision: &CompletionDecision,
 ) -> Result<()> {
     let specs =
         matflow_nodes::objects::read_objects_file(objects_file).map_err(anyhow::Error::msg)?;
@@ -664,6 +999,7 @@ fn render_inserted(
         a.out.display(),
         png.display()
     );
+    write_report(&a.out, decision, None)?;
     Ok(())
 }
 
@@ -672,9 +1008,17 @@ pub fn mesh(a: MeshArgs) -> Result<()> {
     let depth = bundle.load_depth()?;
     let t0 = Instant::now();
     let (cam, mut m) = mesh_for_view(&depth, a.angle)?;
-    let (complete, why) = completion_or_default(&a.bundle, a.complete)?;
-    outln!("completion {} ({why})", complete.name());
-    if let Some(params) = complete.params() {
+    let decision = completion_or_default(
+        &a.bundle,
+        a.complete,
+        EvidenceRender {
+            mesh_angle: a.angle,
+            filter: PixelFilter::default(),
+            max_depth: 4,
+        },
+    )?;
+    decision.print();
+    if let Some(params) = decision.mode.params() {
         let c = matflow_geom::complete_beyond_frame(&mut m.mesh, &depth, &cam, &params);
         for f in &c.extended {
             outln!(

@@ -72,7 +72,7 @@ pub struct InvertArgs {
     /// synth` writes), otherwise room. `render` on the result uses the
     /// same unless told otherwise.
     #[arg(long)]
-    pub complete: Option<crate::commands::CompleteMode>,
+    pub complete: Option<crate::commands::CompleteArg>,
     /// À-trous denoising passes over the per-pixel tables (0: off).
     #[arg(long, default_value_t = 3)]
     pub denoise: usize,
@@ -350,11 +350,10 @@ fn remove_stale(path: &Path) -> Result<()> {
 
 /// Writes the output bundle: geometry inputs and predictions (so that
 /// `matflow render --bundle OUT --materials best_results` re-renders the
-/// result; the `input` bundle's geometry.json with them), `best_results/`
-/// and `summary.json`.
+/// result; geometry.json declaring the completion recovered with),
+/// `best_results/` and `summary.json`.
 pub fn write_bundle(
     out: &Path,
-    input: &Path,
     res: &InvertResult,
     depth: &matflow_scene::GrayImage,
     pred: &MaterialMaps,
@@ -384,18 +383,14 @@ pub fn write_bundle(
         Some(im) => io::write_exr_rgb(&raw, im)?,
         None => remove_stale(&raw)?,
     }
-    // The result holds the input's depth: what the input declared of its
-    // geometry holds for it too (`mesh` on it reads it; `render` reads the
-    // summary first).
-    let declared = input.join(crate::commands::GEOMETRY_FILE);
-    let copied = b.path(crate::commands::GEOMETRY_FILE);
-    if declared.is_file() {
-        let text =
-            std::fs::read(&declared).with_context(|| format!("reading {}", declared.display()))?;
-        io::write_atomic(&copied, &text)?;
-    } else {
-        remove_stale(&copied)?;
-    }
+    // The result holds the input's depth and was recovered on one
+    // completion of it: geometry.json declares that one (and, when the
+    // photo chose it, the evidence), so `mesh` on the result builds what
+    // `invert` built; `render` reads the summary first.
+    io::write_atomic(
+        &b.path(crate::commands::GEOMETRY_FILE),
+        serde_json::to_string_pretty(&summary["completion"])?.as_bytes(),
+    )?;
     // The frozen-path estimator's image for the recovered parameters (what
     // the optimiser fitted), and a viewable albedo.
     io::write_exr_rgb(&b.path("best_results/fit_img.exr"), &res.fit_image)?;
@@ -406,9 +401,115 @@ pub fn write_bundle(
     Ok(())
 }
 
+/// The completion `invert` recovers with: the one asked for; else the one
+/// the bundle declares (geometry.json); else the one the photo supports:
+/// where the photo shows the sky unclipped, each completion is rendered
+/// with the predicted maps under that sky (extended alike past what the
+/// view shows, [`matflow_render::evidence::seen_sky_light`]) and tested
+/// against the photo as `render --complete auto` tests them under a known
+/// light. Where it shows none, every completion explains the photo with
+/// a light of its own (fitted, each re-renders it alike), so nothing
+/// weighs them: `room`, which closes a room only where the view shows
+/// one, as before.
+fn invert_completion(a: &InvertArgs) -> Result<crate::commands::CompletionDecision> {
+    use crate::commands::{declared_completion, CompleteMode, CompletionDecision};
+    if let Some(m) = a.complete.and_then(crate::commands::CompleteArg::forced) {
+        return Ok(CompletionDecision {
+            mode: m,
+            why: "as asked".into(),
+            evidence: None,
+        });
+    }
+    if a.complete.is_none() {
+        if let Some(m) = declared_completion(&a.bundle)? {
+            return Ok(CompletionDecision {
+                mode: m,
+                why: "the bundle's own geometry, geometry.json".into(),
+                evidence: None,
+            });
+        }
+    }
+    let bundle = Bundle::open(&a.bundle)?;
+    let photo = bundle.load_gt_image()?;
+    let depth = bundle.load_depth()?;
+    let maps = bundle.load_materials(a.materials)?;
+    let cam = matflow_scene::Camera::new(depth.width, depth.height);
+    let up = matflow_geom::view_up(&depth, &cam, &matflow_geom::PlaneParams::default());
+    let Some(sky) = matflow_render::evidence::seen_sky_light(
+        &photo,
+        &depth,
+        &cam,
+        up,
+        32,
+        16,
+        saturation(&photo),
+    ) else {
+        return Ok(CompletionDecision {
+            mode: CompleteMode::Room,
+            why: "auto: the photo shows no unclipped sky, so nothing weighs the light each \
+                  completion needs (every one explains the photo with a light of its own); \
+                  room, which closes a room only where the view shows one"
+                .into(),
+            evidence: None,
+        });
+    };
+    let env = EnvMap::new(&sky.env)?;
+    let opts = matflow_render::evidence::EvidenceOptions {
+        filter: matflow_inverse::invert::FIT_FILTER,
+        max_depth: a.depth,
+        ..Default::default()
+    };
+    let choice = matflow_render::evidence::choose_completion(
+        &depth,
+        &maps,
+        &env,
+        a.mesh_angle,
+        &photo,
+        &crate::commands::hypotheses(),
+        &opts,
+    )
+    .with_context(|| {
+        format!(
+            "{}: testing the geometry past the frame",
+            a.bundle.display()
+        )
+    })?;
+    Ok(CompletionDecision {
+        mode: crate::commands::HYPOTHESES[choice.chosen],
+        why: format!("auto: {}", choice.reason),
+        evidence: Some(crate::commands::Evidence {
+            choice,
+            light: format!(
+                "the sky the photo shows ({} pixels in {} texels, mean ({:.4}, {:.4}, {:.4})), elsewhere above the horizon alike",
+                sky.pixels, sky.seen_texels, sky.level[0], sky.level[1], sky.level[2]
+            ),
+            materials: a.materials,
+        }),
+    })
+}
+
+/// The level at which the photo's pixels are clipped: a photo whose
+/// values stay within [0, 1] (8 bits, or an EXR of one) is clipped near 1,
+/// and its sky there measures nothing; an HDR photo is clipped nowhere.
+fn saturation(photo: &RgbImage) -> f32 {
+    let max = photo
+        .data
+        .iter()
+        .filter(|v| v.is_finite())
+        .map(|v| v.max_element())
+        .fold(0.0f32, f32::max);
+    if max > 1.0 {
+        f32::INFINITY
+    } else {
+        0.98
+    }
+}
+
 pub fn invert_cmd(a: InvertArgs) -> Result<()> {
     let t0 = Instant::now();
-    let (complete, why_complete) = crate::commands::completion_or_default(&a.bundle, a.complete)?;
+    let decision = invert_completion(&a)?;
+    decision.print();
+    let complete = decision.mode;
     let input = load_input(
         &a.bundle,
         a.materials,
@@ -478,6 +579,7 @@ pub fn invert_cmd(a: InvertArgs) -> Result<()> {
                 .to_array(),
         },
         "sun": res.report.sun,
+        "completion": decision.to_json(),
         "light_guided": light_guided,
         "portals": portals,
         "rm_search": res.report.rm_search,
@@ -492,11 +594,12 @@ pub fn invert_cmd(a: InvertArgs) -> Result<()> {
         "seconds": t0.elapsed().as_secs_f64(),
         "peak_memory_bytes": peak_memory_bytes(),
     });
-    write_bundle(&a.out, &a.bundle, &res, depth, pred, target, &summary)?;
+    write_bundle(&a.out, &res, depth, pred, target, &summary)?;
     outln!(
-        "inverted {} (completion {} ({why_complete})) in {:.1} s: rerender PSNR {:.2} dB{}, SSIM {:.4}, MSE {:.5} (sRGB, gamma 2.2; frozen-path fit {:.2} dB); peak memory {:.0} MB -> {}",
+        "inverted {} (completion {} ({})) in {:.1} s: rerender PSNR {:.2} dB{}, SSIM {:.4}, MSE {:.5} (sRGB, gamma 2.2; frozen-path fit {:.2} dB); peak memory {:.0} MB -> {}",
         a.bundle.display(),
         complete.name(),
+        decision.why,
         t0.elapsed().as_secs_f64(),
         rerender.psnr,
         rerender_raw
@@ -508,5 +611,6 @@ pub fn invert_cmd(a: InvertArgs) -> Result<()> {
         peak_memory_bytes().unwrap_or(0) as f64 / 1e6,
         a.out.display()
     );
+    crate::commands::report_photo_psnr("the recovered scene's re-render", rerender.psnr);
     Ok(())
 }

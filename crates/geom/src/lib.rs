@@ -21,4 +21,4 @@ pub use depth_mesh::{
     mesh_for_view, mesh_from_depth, vertex_normals, DepthMesh, MeshError, MeshParams, MeshStats,
 };
 pub use mesh::{Portal, TriMesh, PROJECTED};
-pub use planes::{fit_planes, Plane, PlaneFit, PlaneKind, PlaneParams};
+pub use planes::{fit_planes, view_up, Plane, PlaneFit, PlaneKind, PlaneParams};

@@ -179,6 +179,12 @@ pub fn fit_planes(z: &GrayImage, cam: &Camera, p: &PlaneParams) -> Vec<PlaneFit>
     fit_planes_resumable(z, cam, p).0
 }
 
+/// The view's "up" (camera space, unit): the floor's normal, or the
+/// corner of two walls, or the camera's +y ([`fit_planes`]' rule).
+pub fn view_up(z: &GrayImage, cam: &Camera, p: &PlaneParams) -> Vec3 {
+    fit_planes_resumable(z, cam, p).2
+}
+
 /// [`fit_planes`], and the search as it stopped (None when the view has
 /// too little geometry), to be continued with a lower threshold
 /// ([`PlaneSearch::next`]); its planes are classified against the same

@@ -9,6 +9,7 @@ pub mod bsdf;
 pub mod denoise;
 pub mod dielectric;
 pub mod envmap;
+pub mod evidence;
 pub mod filter;
 pub mod fmath;
 pub mod guide;

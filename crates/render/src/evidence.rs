@@ -1,0 +1,670 @@
+//! Which geometry past the frame the photo supports, when the materials
+//! and the light are given.
+//!
+//! Every completion of a view ([`matflow_geom::complete`]) is a
+//! hypothesis about what the photo does not show. With the light and the
+//! materials known, each hypothesis predicts the photo: a closed room
+//! shuts out the sky an open room is lit by, an extended floor hides the
+//! ground below a stage. [`choose_completion`] renders every hypothesis
+//! cheaply (a few samples per pixel in two independent halves), compares
+//! each with the photo over blocks of pixels, and takes the least-assuming
+//! hypothesis whose agreement is within [`EvidenceOptions::tolerance_db`]
+//! of the best's.
+//!
+//! The error of a hypothesis is estimated without its own noise: for two
+//! independent halves A, B of its samples, E[(A − P)(B − P)] = (μ − P)²,
+//! the squared difference of its noise-free render μ from the photo P. The
+//! comparison is made after gamma encoding (as every PSNR matflow reports)
+//! on the means of `block`×`block` pixel blocks, and over the blocks where
+//! the hypotheses' renders differ (elsewhere they all score alike).
+
+use matflow_geom::CompleteParams;
+use matflow_scene::color::linear_to_gamma;
+use matflow_scene::{GrayImage, MaterialMaps, RgbImage};
+
+use crate::{render, scene_from_depth, EnvMap, PixelFilter, RenderError, RenderOptions};
+
+/// A geometry past the frame to be tested: its name and its completion
+/// (`None`: the depth mesh alone).
+#[derive(Clone, Debug)]
+pub struct Hypothesis {
+    pub name: String,
+    pub params: Option<CompleteParams>,
+}
+
+/// How [`choose_completion`] renders and decides.
+#[derive(Clone, Debug)]
+pub struct EvidenceOptions {
+    /// Samples per pixel of each of the two halves.
+    pub spp_half: u32,
+    /// Side of the pixel blocks compared.
+    pub block: usize,
+    pub max_depth: u32,
+    pub filter: PixelFilter,
+    pub seed: u64,
+    /// A hypothesis that assumes less is taken while its PSNR over the
+    /// blocks where the hypotheses differ is within this of the best's.
+    pub tolerance_db: f64,
+    /// Blocks whose hypotheses' renders spread by less than this (gamma
+    /// encoded, mean over the channels) do not tell them apart.
+    pub min_spread: f32,
+}
+
+impl Default for EvidenceOptions {
+    fn default() -> Self {
+        EvidenceOptions {
+            spp_half: 2,
+            block: 8,
+            max_depth: 4,
+            filter: PixelFilter::default(),
+            seed: 0x0e71_d3c3,
+            tolerance_db: 0.5,
+            min_spread: 0.02,
+        }
+    }
+}
+
+/// One hypothesis's agreement with the photo.
+#[derive(Clone, Debug, PartialEq)]
+pub struct HypothesisScore {
+    pub name: String,
+    /// PSNR (gamma 2.2, noise removed) over the blocks where the
+    /// hypotheses differ.
+    pub psnr_differing: f64,
+    /// The same over every block.
+    pub psnr_all: f64,
+    /// The factor on the light that brings the render closest to the
+    /// photo over the blocks where the hypotheses differ (least squares,
+    /// linear): how much more (or less) light the hypothesis needs.
+    pub gain: f64,
+    /// The PSNR over those blocks with the render times that gain.
+    pub psnr_gained: f64,
+    /// Another hypothesis built the same mesh: its score is reused.
+    pub same_as: Option<String>,
+    pub seconds: f64,
+}
+
+/// What the photo says of the hypotheses.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CompletionChoice {
+    /// Index of the hypothesis taken.
+    pub chosen: usize,
+    pub scores: Vec<HypothesisScore>,
+    /// Share of the blocks where the hypotheses' renders differ.
+    pub differing: f64,
+    /// The taken hypothesis's PSNR over the differing blocks less the best
+    /// of the others' (negative when a more assuming one scored higher,
+    /// within the tolerance).
+    pub margin_db: f64,
+    /// Whether the photo told them apart: false when they render alike, or
+    /// the taken one was taken as the least assuming within the tolerance
+    /// of one that scored higher.
+    pub decisive: bool,
+    /// In words.
+    pub reason: String,
+    pub seconds: f64,
+}
+
+/// Block means of `img`, linear, per channel.
+fn block_means(img: &RgbImage, block: usize) -> (usize, usize, Vec<[f32; 3]>) {
+    let bw = img.width.div_ceil(block);
+    let bh = img.height.div_ceil(block);
+    let mut sum = vec![[0.0f64; 4]; bw * bh];
+    for y in 0..img.height {
+        for x in 0..img.width {
+            let v = img.get(x, y);
+            let s = &mut sum[(y / block) * bw + x / block];
+            for c in 0..3 {
+                // Non-finite input counts as black (a stage never emits
+                // it; a hostile photo might).
+                s[c] += if v[c].is_finite() { v[c] as f64 } else { 0.0 };
+            }
+            s[3] += 1.0;
+        }
+    }
+    let out = sum
+        .iter()
+        .map(|s| {
+            let n = s[3].max(1.0);
+            [0, 1, 2].map(|c| (s[c] / n) as f32)
+        })
+        .collect();
+    (bw, bh, out)
+}
+
+/// Mean of the noise-free squared error estimates over the blocks where
+/// `mask` holds (all when `None`), gamma encoded, of the halves (linear
+/// block means) times `gain`, as a PSNR; 100 dB when nothing is left.
+fn psnr_over(
+    halves: &[Vec<[f32; 3]>; 2],
+    photo: &[[f32; 3]],
+    mask: Option<&[bool]>,
+    gain: f32,
+) -> f64 {
+    let mut sum = 0.0f64;
+    let mut n = 0usize;
+    for (i, p) in photo.iter().enumerate() {
+        if mask.is_some_and(|m| !m[i]) {
+            continue;
+        }
+        for c in 0..3 {
+            let pg = linear_to_gamma(p[c]);
+            let a = (linear_to_gamma(gain * halves[0][i][c]) - pg) as f64;
+            let b = (linear_to_gamma(gain * halves[1][i][c]) - pg) as f64;
+            sum += a * b;
+        }
+        n += 3;
+    }
+    if n == 0 {
+        return 100.0;
+    }
+    // The estimate is unbiased but can dip below zero where the error is
+    // under the noise: no hypothesis explains a photo better than exactly.
+    let mse = (sum / n as f64).max(1e-10);
+    -10.0 * mse.log10()
+}
+
+/// The least-squares factor g on the render (linear block means, both
+/// halves' product for the render's square so its noise does not pull g
+/// down) that brings it closest to the photo over the masked blocks.
+fn light_gain(halves: &[Vec<[f32; 3]>; 2], photo: &[[f32; 3]], mask: Option<&[bool]>) -> f64 {
+    let (mut pr, mut rr) = (0.0f64, 0.0f64);
+    for (i, p) in photo.iter().enumerate() {
+        if mask.is_some_and(|m| !m[i]) {
+            continue;
+        }
+        for c in 0..3 {
+            let (a, b) = (halves[0][i][c] as f64, halves[1][i][c] as f64);
+            pr += p[c] as f64 * 0.5 * (a + b);
+            rr += a * b;
+        }
+    }
+    if rr > 1e-20 && pr.is_finite() {
+        (pr / rr).clamp(1e-6, 1e6)
+    } else {
+        1.0
+    }
+}
+
+/// Renders every hypothesis on the view `depth` with `maps` under `env`,
+/// compares each with `photo`, and takes the first hypothesis (they are
+/// listed from the least assuming to the most) whose PSNR over the blocks
+/// where they differ is within the tolerance of the best's.
+pub fn choose_completion(
+    depth: &GrayImage,
+    maps: &MaterialMaps,
+    env: &EnvMap,
+    mesh_angle_deg: f64,
+    photo: &RgbImage,
+    hypotheses: &[Hypothesis],
+    opts: &EvidenceOptions,
+) -> Result<CompletionChoice, RenderError> {
+    let t_all = std::time::Instant::now();
+    assert!(!hypotheses.is_empty(), "choose_completion: no hypothesis");
+    let block = opts.block.max(1);
+    let (_, _, photo_blocks) = block_means(photo, block);
+    let mut halves: Vec<[Vec<[f32; 3]>; 2]> = Vec::new();
+    let mut scores = Vec::new();
+    let mut meshes: Vec<(u64, usize)> = Vec::new();
+    for h in hypotheses {
+        let t0 = std::time::Instant::now();
+        let (scene, _, _) =
+            scene_from_depth(depth, maps, env.clone(), mesh_angle_deg, h.params.as_ref())?;
+        if (scene.camera.width, scene.camera.height) != (photo.width, photo.height) {
+            return Err(RenderError::MaterialSize {
+                maps_width: photo.width,
+                maps_height: photo.height,
+                width: scene.camera.width,
+                height: scene.camera.height,
+            });
+        }
+        let key = mesh_key(&scene.mesh);
+        if let Some(j) = meshes.iter().position(|m| m.0 == key) {
+            halves.push(halves[j].clone());
+            meshes.push((key, j));
+            scores.push(HypothesisScore {
+                name: h.name.clone(),
+                psnr_differing: 0.0,
+                psnr_all: 0.0,
+                gain: 1.0,
+                psnr_gained: 0.0,
+                same_as: Some(hypotheses[j].name.clone()),
+                seconds: t0.elapsed().as_secs_f64(),
+            });
+            continue;
+        }
+        let half = |k: u64| {
+            let o = RenderOptions {
+                spp: opts.spp_half.max(1),
+                max_depth: opts.max_depth,
+                seed: opts.seed.wrapping_add(k),
+                filter: opts.filter,
+                ..Default::default()
+            };
+            block_means(&render(&scene, &o, &|_, _| {}).image, block).2
+        };
+        halves.push([half(0), half(1)]);
+        meshes.push((key, meshes.len()));
+        scores.push(HypothesisScore {
+            name: h.name.clone(),
+            psnr_differing: 0.0,
+            psnr_all: 0.0,
+            gain: 1.0,
+            psnr_gained: 0.0,
+            same_as: None,
+            seconds: t0.elapsed().as_secs_f64(),
+        });
+    }
+    // Where the hypotheses differ: the spread of their mean renders.
+    let nb = photo_blocks.len();
+    let mut differ = vec![false; nb];
+    for (i, d) in differ.iter_mut().enumerate() {
+        let mut lo = f32::INFINITY;
+        let mut hi = f32::NEG_INFINITY;
+        for hv in &halves {
+            let m = (0..3)
+                .map(|c| 0.5 * (linear_to_gamma(hv[0][i][c]) + linear_to_gamma(hv[1][i][c])))
+                .sum::<f32>()
+                / 3.0;
+            lo = lo.min(m);
+            hi = hi.max(m);
+        }
+        *d = hi - lo >= opts.min_spread;
+    }
+    let differing = differ.iter().filter(|&&d| d).count() as f64 / nb.max(1) as f64;
+    let region = if differing > 0.0 {
+        Some(&differ[..])
+    } else {
+        None
+    };
+    for (s, hv) in scores.iter_mut().zip(&halves) {
+        s.psnr_differing = psnr_over(hv, &photo_blocks, Some(&differ), 1.0);
+        s.psnr_all = psnr_over(hv, &photo_blocks, None, 1.0);
+        s.gain = light_gain(hv, &photo_blocks, region);
+        s.psnr_gained = psnr_over(hv, &photo_blocks, region, s.gain as f32);
+    }
+    let best = (0..scores.len())
+        .max_by(|&a, &b| {
+            scores[a]
+                .psnr_differing
+                .total_cmp(&scores[b].psnr_differing)
+                .then(b.cmp(&a))
+        })
+        .unwrap_or(0);
+    let (chosen, decisive, reason) = if differing == 0.0 {
+        (
+            0,
+            false,
+            "the hypotheses render alike: no evidence, the least assuming taken".to_string(),
+        )
+    } else {
+        let top = scores[best].psnr_differing;
+        let c = (0..scores.len())
+            .find(|&i| scores[i].psnr_differing >= top - opts.tolerance_db)
+            .unwrap_or(best);
+        if c == best {
+            (c, true, "it explains the photo best".to_string())
+        } else {
+            (
+                c,
+                false,
+                format!(
+                    "within {:.1} dB of {} (the best), and assumes less",
+                    opts.tolerance_db, scores[best].name
+                ),
+            )
+        }
+    };
+    let others = (0..scores.len())
+        .filter(|&i| i != chosen && scores[i].same_as.is_none())
+        .map(|i| scores[i].psnr_differing)
+        .fold(f64::NEG_INFINITY, f64::max);
+    let margin_db = if others.is_finite() {
+        scores[chosen].psnr_differing - others
+    } else {
+        0.0
+    };
+    Ok(CompletionChoice {
+        chosen,
+        scores,
+        differing,
+        margin_db,
+        decisive,
+        reason,
+        seconds: t_all.elapsed().as_secs_f64(),
+    })
+}
+
+/// A hash of a mesh's triangles, positions and openness: hypotheses that
+/// complete a view alike are rendered once.
+fn mesh_key(m: &matflow_geom::TriMesh) -> u64 {
+    use std::hash::{Hash, Hasher};
+    let mut h = std::collections::hash_map::DefaultHasher::new();
+    m.indices.hash(&mut h);
+    for p in &m.positions {
+        p.x.to_bits().hash(&mut h);
+        p.y.to_bits().hash(&mut h);
+        p.z.to_bits().hash(&mut h);
+    }
+    for o in &m.openness {
+        o.to_bits().hash(&mut h);
+    }
+    m.portals.len().hash(&mut h);
+    h.finish()
+}
+
+/// The sky a photo shows, as a light to test hypotheses under when the
+/// light is not known (inversion): [`seen_sky_light`].
+#[derive(Clone, Debug)]
+pub struct SeenSky {
+    /// The envmap (camera frame, matflow's lat-long layout).
+    pub env: RgbImage,
+    /// Unsaturated sky pixels used.
+    pub pixels: usize,
+    /// Texels they fall in.
+    pub seen_texels: usize,
+    /// Their mean radiance (linear RGB).
+    pub level: [f32; 3],
+}
+
+/// Radiance of the ground (below the horizon) in [`seen_sky_light`], as a
+/// share of the seen sky's mean: a ground of albedo 0.25 under a uniform
+/// sky of that radiance.
+pub const SEEN_SKY_GROUND: f32 = 0.25;
+
+/// Least share of the image the unsaturated sky must cover for
+/// [`seen_sky_light`] to build a light from it.
+pub const SEEN_SKY_MIN_SHARE: f64 = 0.002;
+
+/// A light built from the sky the photo shows: pixels without geometry
+/// (`depth` not positive) whose every channel is finite and under
+/// `saturated` are the sky's radiance in their directions. Each texel of a
+/// `w`×`h` map that such pixels fall in takes their mean; every other
+/// texel above the horizon (`up`: the view's up, camera space) the seen
+/// sky's mean, and below it [`SEEN_SKY_GROUND`] of that. `None` when the
+/// sky covers less than [`SEEN_SKY_MIN_SHARE`] of the image (or 16
+/// pixels). The sky the view does not show is assumed like the sky it
+/// shows: what light a hypothesis needs beyond that is its assumption.
+pub fn seen_sky_light(
+    photo: &RgbImage,
+    depth: &GrayImage,
+    cam: &matflow_scene::Camera,
+    up: glam::Vec3,
+    w: usize,
+    h: usize,
+    saturated: f32,
+) -> Option<SeenSky> {
+    use crate::envmap::{dir_to_uv, uv_to_dir};
+    if !photo.same_size(depth) || w < 2 || h < 2 {
+        return None;
+    }
+    let up = up.try_normalize().unwrap_or(glam::Vec3::Y);
+    let mut acc = vec![[0.0f64; 4]; w * h];
+    let mut total = [0.0f64; 3];
+    let mut pixels = 0usize;
+    for y in 0..photo.height {
+        for x in 0..photo.width {
+            let z = depth.get(x, y);
+            let v = photo.get(x, y);
+            if z > 0.0 || !v.is_finite() || v.max_element() >= saturated || v.min_element() < 0.0 {
+                continue;
+            }
+            let d = cam
+                .film_to_dir(glam::Vec2::new(x as f32 + 0.5, y as f32 + 0.5))
+                .normalize_or_zero();
+            let (u, vv) = dir_to_uv(d);
+            let col = ((u * w as f32) as usize).min(w - 1);
+            let row = ((vv * (h - 1) as f32).round() as usize).min(h - 1);
+            let a = &mut acc[row * w + col];
+            for c in 0..3 {
+                a[c] += v[c] as f64;
+                total[c] += v[c] as f64;
+            }
+            a[3] += 1.0;
+            pixels += 1;
+        }
+    }
+    let min = ((SEEN_SKY_MIN_SHARE * (photo.width * photo.height) as f64).ceil() as usize).max(16);
+    if pixels < min {
+        return None;
+    }
+    let level = total.map(|t| (t / pixels as f64) as f32);
+    let mean = glam::Vec3::from_array(level);
+    let mut seen_texels = 0;
+    let env = RgbImage::from_fn(w, h, |col, row| {
+        let a = acc[row * w + col];
+        if a[3] > 0.0 {
+            return glam::Vec3::new(
+                (a[0] / a[3]) as f32,
+                (a[1] / a[3]) as f32,
+                (a[2] / a[3]) as f32,
+            );
+        }
+        let d = uv_to_dir((col as f32 + 0.5) / w as f32, row as f32 / (h - 1) as f32);
+        if d.dot(up) > 0.0 {
+            mean
+        } else {
+            mean * SEEN_SKY_GROUND
+        }
+    });
+    for a in &acc {
+        if a[3] > 0.0 {
+            seen_texels += 1;
+        }
+    }
+    Some(SeenSky {
+        env,
+        pixels,
+        seen_texels,
+        level,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Vec3;
+    use matflow_scene::Camera;
+
+    const N: usize = 48;
+
+    /// Depth of a floor 1.2 below the camera and a wall 5 ahead, 2.4 high
+    /// above the floor, wider than the view: sky above the wall.
+    fn floor_and_wall() -> GrayImage {
+        let cam = Camera::new(N, N);
+        GrayImage::from_fn(N, N, |x, y| {
+            let d = cam.backproject(x as f32, y as f32, 1.0);
+            let mut best = f32::INFINITY;
+            // Floor y = -1.2 (n = +y), wall z = -5 (n = +z), up to y = 1.2.
+            if d.y < 0.0 {
+                best = best.min(1.2 / -d.y);
+            }
+            let t = 5.0 / -d.z;
+            if (d * t).y <= 1.2 {
+                best = best.min(t);
+            }
+            if best.is_finite() {
+                best
+            } else {
+                0.0
+            }
+        })
+    }
+
+    /// A sky brighter above than at the horizon, a dim ground.
+    fn sky() -> EnvMap {
+        EnvMap::new(&RgbImage::from_fn(32, 16, |_, r| {
+            if r < 8 {
+                Vec3::new(0.8, 0.9, 1.2) * (1.5 - r as f32 / 16.0)
+            } else {
+                Vec3::splat(0.1)
+            }
+        }))
+        .unwrap()
+    }
+
+    fn hyps() -> Vec<Hypothesis> {
+        ["none", "planes", "room", "closed"]
+            .iter()
+            .map(|n| Hypothesis {
+                name: n.to_string(),
+                params: CompleteParams::for_mode(n),
+            })
+            .collect()
+    }
+
+    /// The photo: the view rendered on hypothesis `k`'s completion.
+    fn photo(depth: &GrayImage, maps: &MaterialMaps, k: usize) -> RgbImage {
+        let h = &hyps()[k];
+        let (scene, _, _) = scene_from_depth(depth, maps, sky(), 6.0, h.params.as_ref()).unwrap();
+        let o = RenderOptions {
+            spp: 64,
+            seed: 99,
+            ..Default::default()
+        };
+        render(&scene, &o, &|_, _| {}).image
+    }
+
+    #[test]
+    fn the_photo_picks_the_geometry_it_was_rendered_with() {
+        let depth = floor_and_wall();
+        let maps = MaterialMaps::uniform(N, N, Vec3::splat(0.6), 0.8, 0.0);
+        let opts = EvidenceOptions {
+            spp_half: 4,
+            block: 4,
+            ..Default::default()
+        };
+        // Open: the sky lights the floor and the wall; a closed room
+        // would shut most of it out.
+        let open = choose_completion(
+            &depth,
+            &maps,
+            &sky(),
+            6.0,
+            &photo(&depth, &maps, 0),
+            &hyps(),
+            &opts,
+        )
+        .unwrap();
+        assert_eq!(open.chosen, 0, "{open:?}");
+        assert!(open.differing > 0.1, "{open:?}");
+        let room = &open.scores[2];
+        assert!(
+            open.scores[0].psnr_differing > room.psnr_differing + 6.0,
+            "{open:?}"
+        );
+        // A closed room needs more light than the open view does.
+        assert!(room.gain > 1.2 * open.scores[0].gain, "{open:?}");
+        // Closed with windows: room.
+        let closed = choose_completion(
+            &depth,
+            &maps,
+            &sky(),
+            6.0,
+            &photo(&depth, &maps, 2),
+            &hyps(),
+            &opts,
+        )
+        .unwrap();
+        assert_eq!(closed.chosen, 2, "{closed:?}");
+        assert!(closed.decisive && closed.margin_db > 1.0, "{closed:?}");
+        // The same inputs give the same answer.
+        let again = choose_completion(
+            &depth,
+            &maps,
+            &sky(),
+            6.0,
+            &photo(&depth, &maps, 2),
+            &hyps(),
+            &opts,
+        )
+        .unwrap();
+        let numbers = |c: &CompletionChoice| {
+            c.scores
+                .iter()
+                .map(|s| (s.psnr_differing, s.psnr_all, s.gain, s.psnr_gained))
+                .collect::<Vec<_>>()
+        };
+        assert_eq!(numbers(&closed), numbers(&again));
+    }
+
+    #[test]
+    fn hypotheses_that_render_alike_are_no_evidence() {
+        // A view of the sky alone: nothing to complete, every hypothesis
+        // builds the same (empty) mesh.
+        let depth = GrayImage::new(16, 16, 0.0);
+        let maps = MaterialMaps::uniform(16, 16, Vec3::splat(0.5), 0.5, 0.0);
+        let photo = RgbImage::new(16, 16, Vec3::splat(0.7));
+        let c = choose_completion(
+            &depth,
+            &maps,
+            &sky(),
+            6.0,
+            &photo,
+            &hyps(),
+            &EvidenceOptions::default(),
+        )
+        .unwrap();
+        assert_eq!(c.chosen, 0);
+        assert!(!c.decisive && c.differing == 0.0, "{c:?}");
+        assert!(
+            c.scores[1..]
+                .iter()
+                .all(|s| s.same_as.as_deref() == Some("none")),
+            "{c:?}"
+        );
+    }
+
+    #[test]
+    fn the_noise_free_error_of_a_render_equal_to_the_photo_is_nil() {
+        let p = vec![[0.2f32, 0.4, 0.1]; 10];
+        // Halves with opposite noise around the photo: their product
+        // estimate is below zero, clamped: no better than exact.
+        let a: Vec<[f32; 3]> = p.iter().map(|v| v.map(|x| x + 0.01)).collect();
+        let b: Vec<[f32; 3]> = p.iter().map(|v| v.map(|x| x - 0.01)).collect();
+        assert_eq!(psnr_over(&[a.clone(), b.clone()], &p, None, 1.0), 100.0);
+        // Twice as bright a render needs half the light.
+        let twice: Vec<[f32; 3]> = p.iter().map(|v| v.map(|x| 2.0 * x)).collect();
+        let g = light_gain(&[twice.clone(), twice], &p, None);
+        assert!((g - 0.5).abs() < 1e-6, "{g}");
+    }
+
+    #[test]
+    fn the_seen_sky_lights_what_the_view_does_not_show_alike() {
+        let depth = floor_and_wall();
+        let cam = Camera::new(N, N);
+        let blue = Vec3::new(0.3, 0.5, 0.9);
+        let mut photo = RgbImage::from_fn(N, N, |x, y| {
+            if depth.get(x, y) > 0.0 {
+                Vec3::splat(0.2)
+            } else {
+                blue
+            }
+        });
+        let sky = seen_sky_light(&photo, &depth, &cam, Vec3::Y, 32, 16, 0.98).unwrap();
+        let sky_pixels = depth.data.iter().filter(|&&z| z == 0.0).count();
+        assert_eq!(sky.pixels, sky_pixels);
+        assert!(
+            sky.seen_texels > 0 && sky.seen_texels < 32 * 16 / 4,
+            "{sky:?}"
+        );
+        // Every texel above the horizon is the seen sky, below it a
+        // quarter of it.
+        for r in 0..16 {
+            for c in 0..32 {
+                let v = sky.env.get(c, r);
+                let want = if r < 8 { blue } else { blue * SEEN_SKY_GROUND };
+                assert!((v - want).abs().max_element() < 1e-5, "texel {c},{r}: {v}");
+            }
+        }
+        // Saturated sky is no measure, and too little sky no light.
+        for v in photo.data.iter_mut() {
+            if *v == blue {
+                *v = Vec3::new(1.0, 1.0, 1.0);
+            }
+        }
+        assert!(seen_sky_light(&photo, &depth, &cam, Vec3::Y, 32, 16, 0.98).is_none());
+        let full = GrayImage::new(N, N, 3.0);
+        assert!(seen_sky_light(&photo, &full, &cam, Vec3::Y, 32, 16, 0.98).is_none());
+    }
+}
