@@ -464,13 +464,9 @@ pub struct EvidenceRender {
 /// with the bundle's photo. Without a photo or a light there is no
 /// evidence, and the least assuming (none) is taken.
 pub fn hypotheses() -> Vec<matflow_render::evidence::Hypothesis> {
-    HYPOTHESES
-        .iter()
-        .map(|m| matflow_render::evidence::Hypothesis {
-            name: m.name().to_string(),
-            params: m.params(),
-        })
-        .collect()
+    let h = matflow_render::evidence::completion_hypotheses();
+    debug_assert!(h.iter().zip(HYPOTHESES).all(|(h, m)| h.name == m.name()));
+    h
 }
 
 pub fn evidence_completion(

@@ -433,36 +433,14 @@ fn invert_completion(a: &InvertArgs) -> Result<crate::commands::CompletionDecisi
     let photo = bundle.load_gt_image()?;
     let depth = bundle.load_depth()?;
     let maps = bundle.load_materials(a.materials)?;
-    let cam = matflow_scene::Camera::new(depth.width, depth.height);
-    let up = matflow_geom::view_up(&depth, &cam, &matflow_geom::PlaneParams::default());
-    let Some(sky) = matflow_render::evidence::seen_sky_light(
-        &photo,
-        &depth,
-        &cam,
-        up,
-        32,
-        16,
-        saturation(&photo),
-    ) else {
-        return Ok(CompletionDecision {
-            mode: CompleteMode::Room,
-            why: "auto: the photo shows no unclipped sky, so nothing weighs the light each \
-                  completion needs (every one explains the photo with a light of its own); \
-                  room, which closes a room only where the view shows one"
-                .into(),
-            evidence: None,
-        });
-    };
-    let env = EnvMap::new(&sky.env)?;
     let opts = matflow_render::evidence::EvidenceOptions {
         filter: matflow_inverse::invert::FIT_FILTER,
         max_depth: a.depth,
         ..Default::default()
     };
-    let choice = matflow_render::evidence::choose_completion(
+    let tested = matflow_render::evidence::choose_under_seen_sky(
         &depth,
         &maps,
-        &env,
         a.mesh_angle,
         &photo,
         &crate::commands::hypotheses(),
@@ -474,36 +452,28 @@ fn invert_completion(a: &InvertArgs) -> Result<crate::commands::CompletionDecisi
             a.bundle.display()
         )
     })?;
+    let Some((choice, sky)) = tested else {
+        return Ok(CompletionDecision {
+            mode: CompleteMode::Room,
+            why: NO_SKY.into(),
+            evidence: None,
+        });
+    };
     Ok(CompletionDecision {
         mode: crate::commands::HYPOTHESES[choice.chosen],
         why: format!("auto: {}", choice.reason),
         evidence: Some(crate::commands::Evidence {
             choice,
-            light: format!(
-                "the sky the photo shows ({} pixels in {} texels, mean ({:.4}, {:.4}, {:.4})), elsewhere above the horizon alike",
-                sky.pixels, sky.seen_texels, sky.level[0], sky.level[1], sky.level[2]
-            ),
+            light: sky.describe(),
             materials: a.materials,
         }),
     })
 }
 
-/// The level at which the photo's pixels are clipped: a photo whose
-/// values stay within [0, 1] (8 bits, or an EXR of one) is clipped near 1,
-/// and its sky there measures nothing; an HDR photo is clipped nowhere.
-fn saturation(photo: &RgbImage) -> f32 {
-    let max = photo
-        .data
-        .iter()
-        .filter(|v| v.is_finite())
-        .map(|v| v.max_element())
-        .fold(0.0f32, f32::max);
-    if max > 1.0 {
-        f32::INFINITY
-    } else {
-        0.98
-    }
-}
+/// Why `invert --complete auto` keeps `room` on a photo without sky.
+pub const NO_SKY: &str = "auto: the photo shows no unclipped sky, so nothing weighs the light \
+     each completion needs (every one explains the photo with a light of its own); room, which \
+     closes a room only where the view shows one";
 
 pub fn invert_cmd(a: InvertArgs) -> Result<()> {
     let t0 = Instant::now();

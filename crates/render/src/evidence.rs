@@ -32,6 +32,18 @@ pub struct Hypothesis {
     pub params: Option<CompleteParams>,
 }
 
+/// The completions of [`matflow_geom::COMPLETE_MODES`] as hypotheses, from
+/// the least assuming (none) to the most (closed).
+pub fn completion_hypotheses() -> Vec<Hypothesis> {
+    matflow_geom::COMPLETE_MODES
+        .iter()
+        .map(|m| Hypothesis {
+            name: m.to_string(),
+            params: CompleteParams::for_mode(m),
+        })
+        .collect()
+}
+
 /// How [`choose_completion`] renders and decides.
 #[derive(Clone, Debug)]
 pub struct EvidenceOptions {
@@ -460,6 +472,59 @@ pub fn seen_sky_light(
     })
 }
 
+/// The level at which `photo`'s pixels are clipped: a photo whose values
+/// stay within [0, 1] (8 bits, or an EXR of one) is clipped near 1, and
+/// its sky there measures nothing; an HDR photo is clipped nowhere.
+pub fn clip_level(photo: &RgbImage) -> f32 {
+    let max = photo
+        .data
+        .iter()
+        .filter(|v| v.is_finite())
+        .map(|v| v.max_element())
+        .fold(0.0f32, f32::max);
+    if max > 1.0 {
+        f32::INFINITY
+    } else {
+        0.98
+    }
+}
+
+/// What the photo says of the hypotheses when the light is not known
+/// (inversion, the pipeline's `mesh` stage): each is rendered with the
+/// predicted `maps` under the sky the photo shows ([`seen_sky_light`],
+/// 32×16, "up" from the view's planes) and tested as
+/// [`choose_completion`] tests them. `None` when the photo shows too
+/// little unclipped sky: then every hypothesis explains the photo with a
+/// light of its own, and nothing weighs them.
+pub fn choose_under_seen_sky(
+    depth: &GrayImage,
+    maps: &MaterialMaps,
+    mesh_angle_deg: f64,
+    photo: &RgbImage,
+    hypotheses: &[Hypothesis],
+    opts: &EvidenceOptions,
+) -> Result<Option<(CompletionChoice, SeenSky)>, RenderError> {
+    let cam = matflow_scene::Camera::new(depth.width, depth.height);
+    let up = matflow_geom::view_up(depth, &cam, &matflow_geom::PlaneParams::default());
+    let Some(sky) = seen_sky_light(photo, depth, &cam, up, 32, 16, clip_level(photo)) else {
+        return Ok(None);
+    };
+    let env = EnvMap::new(&sky.env)?;
+    let choice = choose_completion(depth, maps, &env, mesh_angle_deg, photo, hypotheses, opts)?;
+    Ok(Some((choice, sky)))
+}
+
+impl SeenSky {
+    /// In words, for reports.
+    pub fn describe(&self) -> String {
+        format!(
+            "the sky the photo shows ({} pixels in {} texels, mean ({:.4}, {:.4}, {:.4})), \
+             elsewhere above the horizon alike",
+            self.pixels, self.seen_texels, self.level[0], self.level[1], self.level[2]
+        )
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -504,13 +569,7 @@ mod tests {
     }
 
     fn hyps() -> Vec<Hypothesis> {
-        ["none", "planes", "room", "closed"]
-            .iter()
-            .map(|n| Hypothesis {
-                name: n.to_string(),
-                params: CompleteParams::for_mode(n),
-            })
-            .collect()
+        completion_hypotheses()
     }
 
     /// The photo: the view rendered on hypothesis `k`'s completion.

@@ -4,16 +4,39 @@ use std::collections::BTreeMap;
 
 use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
 
-use matflow_geom::{complete_beyond_frame, CompleteParams, COMPLETE_MODES};
+use matflow_geom::{complete_beyond_frame, CompleteParams};
+use matflow_render::evidence::{choose_under_seen_sky, completion_hypotheses, EvidenceOptions};
 use matflow_scene::Camera;
 
 use crate::data::{encode_mesh, mesh_of, SceneData};
 
 pub struct MeshNode;
 
+/// `complete`'s values: auto, then matflow_geom's modes.
+const COMPLETE_CHOICES: [&str; 5] = ["auto", "none", "planes", "room", "closed"];
+
+/// The mode `auto` takes for the scene `s`: the photo's choice under the
+/// sky it shows, else room (no photo, or no sky to weigh the light by).
+fn auto_mode(s: &SceneData, angle: f64) -> Result<&'static str, NodeError> {
+    let Some(photo) = &s.target else {
+        return Ok("room");
+    };
+    let hyps = completion_hypotheses();
+    let opts = EvidenceOptions {
+        filter: matflow_render::PixelFilter::Box,
+        ..Default::default()
+    };
+    let tested = choose_under_seen_sky(&s.depth, &s.pred, angle, photo, &hyps, &opts)
+        .map_err(|e| crate::err(format!("testing the geometry past the frame: {e}")))?;
+    Ok(match tested {
+        Some((c, _)) => matflow_geom::COMPLETE_MODES[c.chosen],
+        None => "room",
+    })
+}
+
 const MESH_INFO: NodeInfo = NodeInfo {
     kind: "mesh",
-    version: 4,
+    version: 5,
     doc: "The triangle mesh of a scene's depth map (one vertex per pixel, cut at depth \
          discontinuities found by the reference's angle test), optionally completed past the \
          frame.",
@@ -37,13 +60,15 @@ const MESH_INFO: NodeInfo = NodeInfo {
         },
         ParamSpec {
             name: "complete",
-            ty: ParamType::Choice(&COMPLETE_MODES),
-            default: Some("room"),
+            ty: ParamType::Choice(&COMPLETE_CHOICES),
+            default: Some("auto"),
             unit: "",
             doc: "geometry past the frame: none (the depth mesh alone); planes (the floor, walls and ceiling seen, \
                   extended and filled behind what hides them, and objects cut by the border \
                   continued); room (also a room the view shows closed, each assumed wall with a \
-                  typical window); closed (assumed walls without windows)",
+                  typical window); closed (assumed walls without windows); auto (the least \
+                  assuming the photo supports, each tested with the predicted maps under the sky \
+                  the photo shows, as `invert --complete auto`; room where it shows none)",
         },
     ],
     outputs: &[OutputSpec {
@@ -60,7 +85,11 @@ impl Node for MeshNode {
     fn run(&self, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
         let s = SceneData::decode(ctx.input("scene")?)?;
         let mut tri = mesh_of(&s.depth, ctx.params.f64("angle"))?;
-        if let Some(p) = CompleteParams::for_mode(ctx.params.str("complete")) {
+        let mode = match ctx.params.str("complete") {
+            "auto" => auto_mode(&s, ctx.params.f64("angle"))?,
+            m => m,
+        };
+        if let Some(p) = CompleteParams::for_mode(mode) {
             let cam = Camera::new(s.depth.width, s.depth.height);
             complete_beyond_frame(&mut tri, &s.depth, &cam, &p);
         }
@@ -83,10 +112,26 @@ mod tests {
     /// The stage's mesh of synthetic scene 3 with `complete` set, or left
     /// at its default.
     fn mesh_with_param(complete: Option<&str>) -> TriMesh {
+        mesh_of_scene(complete, false)
+    }
+
+    /// The stage's mesh of synthetic scene 3, with its photo (rendered on
+    /// the depth mesh alone, under its own sky) when `photo`.
+    fn mesh_of_scene(complete: Option<&str>, photo: bool) -> TriMesh {
         let s = matflow_scene::synthetic::generate(3, 48, 48);
+        let target = photo.then(|| {
+            let env = matflow_render::EnvMap::new(&s.envmap).unwrap();
+            let (scene, _, _) =
+                matflow_render::scene_from_depth(&s.depth, &s.maps, env, 6.0, None).unwrap();
+            let o = matflow_render::RenderOptions {
+                spp: 32,
+                ..Default::default()
+            };
+            matflow_render::render(&scene, &o, &|_, _| {}).image
+        });
         let scene = SceneData {
             depth: s.depth,
-            target: None,
+            target,
             pred: s.maps,
         }
         .encode();
@@ -141,5 +186,15 @@ mod tests {
         // is what a stage that says nothing gets.
         assert_eq!(room, mesh_with("room"));
         assert_eq!(room, mesh_with_param(None));
+    }
+
+    #[test]
+    fn auto_takes_the_completion_the_photo_supports() {
+        // Scene 3 shows its sky; its photo was rendered on the depth mesh
+        // alone, which the photo supports and which assumes least.
+        let s = matflow_scene::synthetic::generate(3, 48, 48);
+        assert!(s.depth.data.iter().filter(|&&z| z <= 0.0).count() > 48 * 48 / 50);
+        assert_eq!(mesh_of_scene(Some("auto"), true), mesh_with("none"));
+        assert_eq!(mesh_of_scene(None, true), mesh_with("none"));
     }
 }
