@@ -158,7 +158,7 @@ const INSERT_INFO: NodeInfo = NodeInfo {
 pub(crate) const COVERAGE_GRID: usize = 4;
 
 /// The photo of an `image` or `scene` artifact.
-fn photo_from(b: &[u8]) -> Result<RgbImage, NodeError> {
+pub(crate) fn photo_from(b: &[u8]) -> Result<RgbImage, NodeError> {
     match Artifact::decode(b, "image") {
         Ok(a) => a.rgb("image"),
         Err(_) => SceneData::decode(b)?

@@ -34,10 +34,12 @@ fn write_pair(path: &Path, img: &matflow_scene::RgbImage) -> Result<Vec<PathBuf>
 
 const RENDER_INFO: NodeInfo = NodeInfo {
     kind: "render",
-    version: 2,
+    version: 3,
     doc: "Path-traces the mesh with the given materials under the given envmap (unidirectional, \
          next-event estimation with MIS, GGX + Lambert as the reference). Writes an EXR \
-         (linear) and a PNG (γ 2.2) when `output` is set.",
+         (linear) and a PNG (γ 2.2) when `output` is set. With `paths` and `photo`, an edit \
+         keeps the photo: only the change the edit makes to the render enters it, and pixels \
+         the edit does not reach are the photo's exactly.",
     params: &[
         MESH,
         ParamSpec {
@@ -100,13 +102,102 @@ const RENDER_INFO: NodeInfo = NodeInfo {
             unit: "",
             doc: "EXR path to write (a PNG is written beside it)",
         },
+        ParamSpec {
+            name: "photo",
+            ty: ParamType::Ref(&["image", "scene"]),
+            default: Some("~"),
+            unit: "",
+            doc: "with `paths`: the photo the edit's change is composited into (a scene gives its \
+                  input image), instead of the plain render",
+        },
+        ParamSpec {
+            name: "composite",
+            ty: ParamType::Choice(&COMPOSITES),
+            default: Some("auto"),
+            unit: "",
+            doc: "with `photo`: ratio (photo × edited / unedited render: a change of reflectance \
+                  scales the photo's own shading), differential (photo + edited − unedited \
+                  render), or auto (ratio where the edit changed the albedo alone, else \
+                  differential)",
+        },
     ],
     outputs: &[OutputSpec {
         name: "image",
         ty: "image",
-        doc: "the render, linear RGB",
+        doc: "the render (or, with `photo`, the photo with the edit), linear RGB",
     }],
 };
+
+/// `composite`'s values.
+const COMPOSITES: [&str; 3] = ["auto", "ratio", "differential"];
+
+/// How an edit's change enters the photo ([`composite_edit`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Composite {
+    /// photo × edited / unedited.
+    Ratio,
+    /// photo + edited − unedited.
+    Differential,
+}
+
+/// Below this (linear, per channel) an unedited render gives the ratio
+/// no footing: the pixel takes the difference instead.
+const RATIO_FLOOR: f32 = 1e-4;
+
+/// The photo with an edit's change: where `edited` equals `unedited` (the
+/// same sample streams, pixels the edit does not reach) the photo exactly;
+/// elsewhere the change as a ratio or a difference, clamped at 0, never
+/// NaN or Inf.
+pub fn composite_edit(
+    photo: &RgbImage,
+    edited: &RgbImage,
+    unedited: &RgbImage,
+    how: Composite,
+) -> RgbImage {
+    let data = (0..photo.data.len())
+        .map(|k| {
+            let (p, e, u) = (photo.data[k], edited.data[k], unedited.data[k]);
+            if e == u {
+                return p;
+            }
+            let v = glam::Vec3::from_array(std::array::from_fn(|c| {
+                let diff = p[c] + (e[c] - u[c]);
+                match how {
+                    Composite::Ratio if u[c] > RATIO_FLOOR => p[c] * (e[c] / u[c]),
+                    _ => diff,
+                }
+            }));
+            // A non-finite render is no change to add (f32::max would
+            // turn a NaN into 0).
+            if v.is_finite() {
+                v.max(glam::Vec3::ZERO)
+            } else {
+                p
+            }
+        })
+        .collect();
+    RgbImage::from_vec(photo.width, photo.height, data)
+}
+
+/// The composite `auto` takes: ratio when the edit changed albedo alone
+/// (a change of reflectance, which scales the light a surface returns),
+/// else differential.
+fn composite_for(asked: &str, before: &MaterialMaps, after: &MaterialMaps) -> Composite {
+    match asked {
+        "ratio" => Composite::Ratio,
+        "differential" => Composite::Differential,
+        _ => {
+            let same_brdf = before.roughness == after.roughness
+                && before.metallic == after.metallic
+                && before.transparency == after.transparency;
+            if same_brdf {
+                Composite::Ratio
+            } else {
+                Composite::Differential
+            }
+        }
+    }
+}
 
 /// An `output` parameter must name an EXR (a PNG is written beside it).
 pub(crate) fn check_exr_output(p: &Params) -> Result<(), String> {
@@ -177,6 +268,14 @@ impl Node for RenderNode {
     }
     fn check(&self, p: &Params) -> Result<(), String> {
         check_exr_output(p)?;
+        if p.is_set("photo") && !p.is_set("paths") {
+            return Err(
+                "`photo` keeps the photo and adds the edit's change to it, which needs \
+                        the unedited render on the same paths: give `paths` (a `trace` stage of \
+                        the unedited materials)"
+                    .into(),
+            );
+        }
         match (p.is_set("paths"), p.is_set("mesh"), p.is_set("envmap")) {
             (_, false, _) => Err("give `mesh`".into()),
             (true, true, false) | (false, true, true) => Ok(()),
@@ -196,7 +295,18 @@ impl Node for RenderNode {
         let maps = materials_from(ctx.input("materials")?)?;
         if let Some(b) = ctx.opt_input("paths") {
             let kept = Kept::decode(b)?;
-            let img = edited_image(&kept, ctx.input("mesh")?, &maps)?;
+            let mut img = edited_image(&kept, ctx.input("mesh")?, &maps)?;
+            if let Some(photo) = ctx.opt_input("photo") {
+                let photo = crate::kinds::insert::photo_from(photo)?;
+                if !photo.same_size(&img) {
+                    return Err(err(format!(
+                        "the photo is {}x{} but the render is {}x{}",
+                        photo.width, photo.height, img.width, img.height
+                    )));
+                }
+                let how = composite_for(p.str("composite"), &kept.materials, &maps);
+                img = composite_edit(&photo, &img, &kept.image, how);
+            }
             return Ok([("image".to_string(), encode_image("image", "image", &img))].into());
         }
         let env = envmap_from(ctx.input("envmap")?)?;
@@ -241,4 +351,85 @@ pub(crate) fn write_output_image(
         .ok_or_else(|| err("the stage made no image"))?;
     let img = Artifact::decode(&b[..], "image")?.rgb("image")?;
     write_pair(&path, &img)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Vec3;
+
+    fn img(v: &[Vec3]) -> RgbImage {
+        RgbImage::from_vec(v.len(), 1, v.to_vec())
+    }
+
+    #[test]
+    fn an_edit_keeps_the_photo_where_it_does_not_reach_and_adds_its_change_elsewhere() {
+        let photo = img(&[
+            Vec3::new(0.3, 0.2, 0.1),
+            Vec3::new(0.4, 0.4, 0.4),
+            Vec3::splat(0.5),
+        ]);
+        // Pixel 0 untouched (the same samples), pixel 1 twice as bright,
+        // pixel 2 darker than the unedited render by 0.2.
+        let unedited = img(&[
+            Vec3::new(0.25, 0.21, 0.12),
+            Vec3::splat(0.3),
+            Vec3::splat(0.6),
+        ]);
+        let edited = img(&[
+            Vec3::new(0.25, 0.21, 0.12),
+            Vec3::splat(0.6),
+            Vec3::splat(0.4),
+        ]);
+        for how in [Composite::Ratio, Composite::Differential] {
+            let out = composite_edit(&photo, &edited, &unedited, how);
+            assert_eq!(out.data[0], photo.data[0], "{how:?}: bit for bit");
+        }
+        let r = composite_edit(&photo, &edited, &unedited, Composite::Ratio);
+        assert!((r.data[1] - Vec3::splat(0.8)).abs().max_element() < 1e-6);
+        assert!(
+            (r.data[2] - Vec3::splat(0.5 * 0.4 / 0.6))
+                .abs()
+                .max_element()
+                < 1e-6
+        );
+        let d = composite_edit(&photo, &edited, &unedited, Composite::Differential);
+        assert!((d.data[1] - Vec3::splat(0.7)).abs().max_element() < 1e-6);
+        assert!((d.data[2] - Vec3::splat(0.3)).abs().max_element() < 1e-6);
+    }
+
+    #[test]
+    fn a_ratio_without_footing_falls_back_to_the_difference_and_nothing_goes_negative() {
+        let photo = img(&[Vec3::splat(0.2), Vec3::splat(0.05), Vec3::splat(0.5)]);
+        // An unedited render of zero (no ratio), a change darker than the
+        // photo (clamped at 0), and a non-finite render (the photo kept).
+        let unedited = img(&[Vec3::ZERO, Vec3::splat(0.5), Vec3::splat(0.5)]);
+        let edited = img(&[Vec3::splat(0.1), Vec3::ZERO, Vec3::splat(f32::NAN)]);
+        let out = composite_edit(&photo, &edited, &unedited, Composite::Ratio);
+        assert!((out.data[0] - Vec3::splat(0.3)).abs().max_element() < 1e-6);
+        assert_eq!(out.data[1], Vec3::ZERO);
+        let d = composite_edit(&photo, &edited, &unedited, Composite::Differential);
+        assert_eq!(d.data[1], Vec3::ZERO);
+        assert_eq!(d.data[2], photo.data[2]);
+        assert!(out.data.iter().chain(&d.data).all(|v| v.is_finite()));
+    }
+
+    #[test]
+    fn auto_takes_the_ratio_for_a_change_of_albedo_alone() {
+        let before = MaterialMaps::uniform(2, 2, Vec3::splat(0.5), 0.5, 0.0);
+        let mut albedo = before.clone();
+        albedo.albedo.data[0] = Vec3::new(0.9, 0.1, 0.1);
+        assert_eq!(composite_for("auto", &before, &albedo), Composite::Ratio);
+        let mut metal = albedo.clone();
+        metal.metallic.data[0] = 1.0;
+        assert_eq!(
+            composite_for("auto", &before, &metal),
+            Composite::Differential
+        );
+        assert_eq!(composite_for("ratio", &before, &metal), Composite::Ratio);
+        assert_eq!(
+            composite_for("differential", &before, &albedo),
+            Composite::Differential
+        );
+    }
 }
