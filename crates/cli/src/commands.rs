@@ -184,8 +184,8 @@ pub struct MeshArgs {
     /// completion the bundle declares for its own geometry (geometry.json,
     /// which `matflow synth` and `matflow invert` write), otherwise auto:
     /// the photo tests each under the bundle's own light and materials
-    /// (best_results, else ground_truth), none without them. The flag
-    /// alone means room.
+    /// (best_results, else ground_truth); room without them (as
+    /// `invert`). The flag alone means room.
     #[arg(long, num_args = 0..=1, default_missing_value = "room")]
     pub complete: Option<CompleteArg>,
     #[arg(long)]
@@ -543,7 +543,7 @@ pub fn own_light_and_maps(bundle_dir: &Path) -> Option<(PathBuf, MaterialSource)
 /// The completion a command uses when it renders nothing itself (`mesh`):
 /// the one `asked` for; else the one the bundle declares
 /// ([`GEOMETRY_FILE`]); else auto with the bundle's own light and maps
-/// ([`own_light_and_maps`]).
+/// ([`own_light_and_maps`]); room when it has none (as `invert`).
 pub fn completion_or_default(
     bundle: &Path,
     asked: Option<CompleteArg>,
@@ -562,7 +562,11 @@ pub fn completion_or_default(
     }
     match own_light_and_maps(bundle) {
         Some((light, maps)) => evidence_completion(bundle, maps, Some(&light), how),
-        None => evidence_completion(bundle, MaterialSource::Pred, None, how),
+        None => Ok(CompletionDecision::given(
+            CompleteMode::Room,
+            "auto: the bundle has no light of its own to test the completions under; room, as \
+             invert takes by default",
+        )),
     }
 }
 

@@ -67,10 +67,14 @@ pub struct InvertArgs {
     #[arg(long, default_value_t = 6.0)]
     pub mesh_angle: f64,
     /// Geometry past the frame (see `render --complete`): room, closed,
-    /// planes, or none (the depth mesh alone). Default: the completion the
-    /// bundle declares for its own geometry (geometry.json, which `matflow
-    /// synth` writes), otherwise room. `render` on the result uses the
-    /// same unless told otherwise.
+    /// planes, none (the depth mesh alone), or auto: each tested with the
+    /// predicted maps under the sky the photo shows (room where it shows
+    /// none; measured per kind of scene in docs/completion.md: it helps
+    /// open rooms, stages and outdoor scenes and costs closed rooms whose
+    /// windows show the sky, so it is not the default yet). Default: the
+    /// completion the bundle declares for its own geometry (geometry.json,
+    /// which `matflow synth` writes), otherwise room. `render` on the
+    /// result uses the same unless told otherwise.
     #[arg(long)]
     pub complete: Option<crate::commands::CompleteArg>,
     /// À-trous denoising passes over the per-pixel tables (0: off).
@@ -402,8 +406,8 @@ pub fn write_bundle(
 }
 
 /// The completion `invert` recovers with: the one asked for; else the one
-/// the bundle declares (geometry.json); else the one the photo supports:
-/// where the photo shows the sky unclipped, each completion is rendered
+/// the bundle declares (geometry.json); else room. Asked for auto, the one
+/// the photo supports: where the photo shows the sky unclipped, each completion is rendered
 /// with the predicted maps under that sky (extended alike past what the
 /// view shows, [`matflow_render::evidence::seen_sky_light`]) and tested
 /// against the photo as `render --complete auto` tests them under a known
@@ -428,6 +432,11 @@ fn invert_completion(a: &InvertArgs) -> Result<crate::commands::CompletionDecisi
                 evidence: None,
             });
         }
+        return Ok(CompletionDecision {
+            mode: CompleteMode::Room,
+            why: "the default".into(),
+            evidence: None,
+        });
     }
     let bundle = Bundle::open(&a.bundle)?;
     let photo = bundle.load_gt_image()?;

@@ -61,7 +61,7 @@ const MESH_INFO: NodeInfo = NodeInfo {
         ParamSpec {
             name: "complete",
             ty: ParamType::Choice(&COMPLETE_CHOICES),
-            default: Some("auto"),
+            default: Some("room"),
             unit: "",
             doc: "geometry past the frame: none (the depth mesh alone); planes (the floor, walls and ceiling seen, \
                   extended and filled behind what hides them, and objects cut by the border \
@@ -195,6 +195,7 @@ mod tests {
         let s = matflow_scene::synthetic::generate(3, 48, 48);
         assert!(s.depth.data.iter().filter(|&&z| z <= 0.0).count() > 48 * 48 / 50);
         assert_eq!(mesh_of_scene(Some("auto"), true), mesh_with("none"));
-        assert_eq!(mesh_of_scene(None, true), mesh_with("none"));
+        // Without a photo there is nothing to test: room, as by default.
+        assert_eq!(mesh_of_scene(Some("auto"), false), mesh_with("room"));
     }
 }
