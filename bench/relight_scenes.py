@@ -341,6 +341,17 @@ def downsample_env(img, w, h):
 SKY_KINDS = ["sun", "overcast", "sunset"]
 
 
+def camera(P, cam_p, yaw, pitch):
+    """The camera-to-world matrix of a camera at cam_p turned by yaw
+    (about +y) and pitch, recorded in P["camera"]."""
+    fwd = np.array([math.sin(yaw) * math.cos(pitch), math.sin(pitch), -math.cos(yaw) * math.cos(pitch)])
+    right = normalize(np.cross(fwd, [0.0, 1.0, 0.0]))
+    up = np.cross(right, fwd)
+    P["camera"] = {"position": cam_p.tolist(), "yaw_deg": math.degrees(yaw), "pitch_deg": math.degrees(pitch),
+                   "fov_x_deg": FOV_X_DEG}
+    return frame_matrix(cam_p, right, up, -fwd)
+
+
 SCENE_KINDS = ["closed", "open", "stage", "outdoor"]
 KIND_STREAM = {"open": 1, "stage": 2, "outdoor": 3}
 
@@ -527,12 +538,7 @@ def draw_other_kind(seed, k, n, kind, jh):
                     mat(hsv(rng.uniform(), rng.uniform(0.0, 0.3), rng.uniform(0.4, 0.8)), 0.9, 0.0, "wall"))
             P["room"]["block"] = {"centre": c.tolist(), "half": half}
         bounds, far = (-12.0, 12.0, -12.0, 12.0), 8.0
-    fwd = np.array([math.sin(yaw) * math.cos(pitch), math.sin(pitch), -math.cos(yaw) * math.cos(pitch)])
-    right = normalize(np.cross(fwd, [0.0, 1.0, 0.0]))
-    up = np.cross(right, fwd)
-    c2w = frame_matrix(cam_p, right, up, -fwd)
-    P["camera"] = {"position": cam_p.tolist(), "yaw_deg": math.degrees(yaw), "pitch_deg": math.degrees(pitch),
-                   "fov_x_deg": FOV_X_DEG}
+    c2w = camera(P, cam_p, yaw, pitch)
     P["windows"] = []
     P["objects"] = draw_objects(rng, geo, cam_p, yaw, bounds, far)
     draw_lighting(rng, P, jh)
@@ -563,12 +569,7 @@ def draw_scene(seed, k, n, edit_windows=None, kind="closed", jh=None):
     cam_p = np.array([rng.uniform(0.35, 0.65) * W, rng.uniform(1.1, 1.7), D - rng.uniform(0.4, 1.2)])
     yaw = math.radians(rng.uniform(-35, 35))
     pitch = math.radians(rng.uniform(-25, -3))
-    fwd = np.array([math.sin(yaw) * math.cos(pitch), math.sin(pitch), -math.cos(yaw) * math.cos(pitch)])
-    right = normalize(np.cross(fwd, [0.0, 1.0, 0.0]))
-    up = np.cross(right, fwd)
-    c2w = frame_matrix(cam_p, right, up, -fwd)
-    P["camera"] = {"position": cam_p.tolist(), "yaw_deg": math.degrees(yaw), "pitch_deg": math.degrees(pitch),
-                   "fov_x_deg": FOV_X_DEG}
+    c2w = camera(P, cam_p, yaw, pitch)
 
     wall_col = hsv(rng.uniform(), rng.uniform(0.05, 0.45), rng.uniform(0.5, 0.85))
     accent = rng.uniform() < 0.4

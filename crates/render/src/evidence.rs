@@ -217,7 +217,7 @@ pub fn choose_completion(
     let (_, _, photo_blocks) = block_means(photo, block);
     let mut halves: Vec<[Vec<[f32; 3]>; 2]> = Vec::new();
     let mut scores = Vec::new();
-    let mut meshes: Vec<(u64, usize)> = Vec::new();
+    let mut meshes: Vec<u64> = Vec::new();
     for h in hypotheses {
         let t0 = std::time::Instant::now();
         let (scene, _, _) =
@@ -230,40 +230,34 @@ pub fn choose_completion(
                 height: scene.camera.height,
             });
         }
+        // A mesh rendered already is not rendered again: its halves serve.
         let key = mesh_key(&scene.mesh);
-        if let Some(j) = meshes.iter().position(|m| m.0 == key) {
-            halves.push(halves[j].clone());
-            meshes.push((key, j));
-            scores.push(HypothesisScore {
-                name: h.name.clone(),
-                psnr_differing: 0.0,
-                psnr_all: 0.0,
-                gain: 1.0,
-                psnr_gained: 0.0,
-                same_as: Some(hypotheses[j].name.clone()),
-                seconds: t0.elapsed().as_secs_f64(),
-            });
-            continue;
-        }
-        let half = |k: u64| {
-            let o = RenderOptions {
-                spp: opts.spp_half.max(1),
-                max_depth: opts.max_depth,
-                seed: opts.seed.wrapping_add(k),
-                filter: opts.filter,
-                ..Default::default()
-            };
-            block_means(&render(&scene, &o, &|_, _| {}).image, block).2
+        let same = meshes.iter().position(|&m| m == key);
+        let pair = match same {
+            Some(j) => halves[j].clone(),
+            None => {
+                let half = |k: u64| {
+                    let o = RenderOptions {
+                        spp: opts.spp_half.max(1),
+                        max_depth: opts.max_depth,
+                        seed: opts.seed.wrapping_add(k),
+                        filter: opts.filter,
+                        ..Default::default()
+                    };
+                    block_means(&render(&scene, &o, &|_, _| {}).image, block).2
+                };
+                [half(0), half(1)]
+            }
         };
-        halves.push([half(0), half(1)]);
-        meshes.push((key, meshes.len()));
+        halves.push(pair);
+        meshes.push(key);
         scores.push(HypothesisScore {
             name: h.name.clone(),
             psnr_differing: 0.0,
             psnr_all: 0.0,
             gain: 1.0,
             psnr_gained: 0.0,
-            same_as: None,
+            same_as: same.map(|j| hypotheses[j].name.clone()),
             seconds: t0.elapsed().as_secs_f64(),
         });
     }
@@ -593,18 +587,14 @@ mod tests {
             block: 4,
             ..Default::default()
         };
+        // The choice on the photo rendered with hypothesis k.
+        let choose = |k: usize| {
+            let photo = photo(&depth, &maps, k);
+            choose_completion(&depth, &maps, &sky(), 6.0, &photo, &hyps(), &opts).unwrap()
+        };
         // Open: the sky lights the floor and the wall; a closed room
         // would shut most of it out.
-        let open = choose_completion(
-            &depth,
-            &maps,
-            &sky(),
-            6.0,
-            &photo(&depth, &maps, 0),
-            &hyps(),
-            &opts,
-        )
-        .unwrap();
+        let open = choose(0);
         assert_eq!(open.chosen, 0, "{open:?}");
         assert!(open.differing > 0.1, "{open:?}");
         let room = &open.scores[2];
@@ -615,29 +605,11 @@ mod tests {
         // A closed room needs more light than the open view does.
         assert!(room.gain > 1.2 * open.scores[0].gain, "{open:?}");
         // Closed with windows: room.
-        let closed = choose_completion(
-            &depth,
-            &maps,
-            &sky(),
-            6.0,
-            &photo(&depth, &maps, 2),
-            &hyps(),
-            &opts,
-        )
-        .unwrap();
+        let closed = choose(2);
         assert_eq!(closed.chosen, 2, "{closed:?}");
         assert!(closed.decisive && closed.margin_db > 1.0, "{closed:?}");
         // The same inputs give the same answer.
-        let again = choose_completion(
-            &depth,
-            &maps,
-            &sky(),
-            6.0,
-            &photo(&depth, &maps, 2),
-            &hyps(),
-            &opts,
-        )
-        .unwrap();
+        let again = choose(2);
         let numbers = |c: &CompletionChoice| {
             c.scores
                 .iter()
