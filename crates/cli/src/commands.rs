@@ -459,16 +459,17 @@ pub struct EvidenceRender {
     pub max_depth: u32,
 }
 
-/// The completion the photo supports ([`matflow_render::evidence`]): each
-/// of [`HYPOTHESES`] rendered with `materials` in `light` and compared
-/// with the bundle's photo. Without a photo or a light there is no
-/// evidence, and the least assuming (none) is taken.
+/// [`HYPOTHESES`] as the evidence module tests them (the same order).
 pub fn hypotheses() -> Vec<matflow_render::evidence::Hypothesis> {
     let h = matflow_render::evidence::completion_hypotheses();
     debug_assert!(h.iter().zip(HYPOTHESES).all(|(h, m)| h.name == m.name()));
     h
 }
 
+/// The completion the photo supports ([`matflow_render::evidence`]): each
+/// of [`HYPOTHESES`] rendered with `materials` in `light` and compared
+/// with the bundle's photo. Without a photo or a light there is no
+/// evidence, and the least assuming (none) is taken.
 pub fn evidence_completion(
     bundle_dir: &Path,
     materials: MaterialSource,
