@@ -53,6 +53,28 @@ def kind_order(index):
     return order
 
 
+def open_set(a):
+    """The set's index, Mitsuba (a.threads, a.llvm), its scene names in
+    order and its kinds' order."""
+    with open(os.path.join(a.validation, "validation.json")) as fh:
+        index = json.load(fh)
+    mi, dr = rs.start_mitsuba(a)
+    return index, mi, dr, index["tuning"] + index["heldback"], kind_order(index)
+
+
+def redraw(index, k, order, d):
+    """Scene k of the set drawn again (parameters, geometry, camera), and
+    its stored scene.json, which the draw must reproduce."""
+    with open(os.path.join(d, "scene.json")) as fh:
+        stored = json.load(fh)
+    n = len(index["tuning"]) + len(index["heldback"])
+    kind, jh = rs.scene_kind(k, n, order)
+    P, geo, c2w = rs.draw_scene(index["seed"], k, n, kind=kind, jh=None if order == ["closed"] else jh)
+    if P["objects"] != stored["objects"]:
+        sys.exit(f"{d}: the draw does not reproduce scene.json (another generator version?)")
+    return P, geo, c2w, stored
+
+
 def object_ids(mi, dr, scene, size):
     """Per pixel centre, the id (Mitsuba shape id string) of the first hit,
     "" for the sky; matflow's camera, as relight_scenes.pixel_truth."""
@@ -108,12 +130,8 @@ def main():
     ap.add_argument("--llvm")
     ap.add_argument("--force", action="store_true")
     a = ap.parse_args()
-    with open(os.path.join(a.validation, "validation.json")) as fh:
-        index = json.load(fh)
-    mi, dr = rs.start_mitsuba(a)
-    names = index["tuning"] + index["heldback"]
+    index, mi, dr, names, order = open_set(a)
     n = len(names)
-    order = kind_order(index)
     spp = a.spp or index["spp"]
     size = index["size"]
     for k in range(n):
@@ -125,12 +143,8 @@ def main():
             rs.log(f"edit_truths: {name} exists, kept")
             continue
         t0 = time.perf_counter()
-        with open(os.path.join(d, "scene.json")) as fh:
-            stored = json.load(fh)
-        kind, jh = rs.scene_kind(k, n, order)
-        P, geo, c2w = rs.draw_scene(index["seed"], k, n, kind=kind, jh=None if order == ["closed"] else jh)
-        if P["objects"] != stored["objects"]:
-            sys.exit(f"edit_truths: {name}: the draw does not reproduce scene.json (another generator version?)")
+        P, geo, c2w, stored = redraw(index, k, order, d)
+        kind = P["kind"]
         w2c = np.linalg.inv(c2w)
         rot = c2w[:3, :3]
         tmp = os.path.join(d, "mitsuba-edit")

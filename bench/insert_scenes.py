@@ -91,13 +91,8 @@ def spots(P, c2w):
     return None
 
 
-def make_truth(mi, dr, index, k, n, order, d, spp, pass_spp):
-    with open(os.path.join(d, "scene.json")) as fh:
-        stored = json.load(fh)
-    kind, jh = rs.scene_kind(k, n, order)
-    P, geo, c2w = rs.draw_scene(index["seed"], k, n, kind=kind, jh=None if order == ["closed"] else jh)
-    if P["objects"] != stored["objects"]:
-        sys.exit(f"insert_scenes: {d}: the draw does not reproduce scene.json")
+def make_truth(mi, dr, index, k, order, d, spp, pass_spp):
+    P, geo, c2w, stored = et.redraw(index, k, order, d)
     places = spots(P, c2w)
     if places is None:
         return None
@@ -162,12 +157,7 @@ def main():
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--llvm")
     a = ap.parse_args()
-    with open(os.path.join(a.validation, "validation.json")) as fh:
-        index = json.load(fh)
-    mi, dr = rs.start_mitsuba(a)
-    names = index["tuning"] + index["heldback"]
-    n = len(names)
-    order = et.kind_order(index)
+    index, mi, dr, names, order = et.open_set(a)
     os.makedirs(a.work, exist_ok=True)
     rows = []
     for half in a.halves:
@@ -175,7 +165,7 @@ def main():
             k = names.index(name)
             d = os.path.join(a.validation, name)
             if not os.path.exists(os.path.join(d, "insert.yaml")):
-                if make_truth(mi, dr, index, k, n, order, d, a.truth_spp or index["spp"], a.pass_spp) is None:
+                if make_truth(mi, dr, index, k, order, d, a.truth_spp or index["spp"], a.pass_spp) is None:
                     rs.log(f"insert_scenes: {name}: no free floor for three balls, skipped")
                     continue
             truth = np.array(mi.Bitmap(os.path.join(d, "ground_truth", "insert.exr")), dtype=np.float64)[:, :, :3]
