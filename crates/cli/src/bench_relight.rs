@@ -122,7 +122,8 @@ struct SceneRow {
     scene: String,
     half: String,
     kind: String,
-    /// The completion the true maps' capture render took (auto decides).
+    /// The completion taken: the inversion's (its summary.json), or with
+    /// --geometry-only the true maps' capture render's (auto decides).
     taken: String,
     /// Seconds auto's choice took in that render.
     choice_seconds: f64,
@@ -313,6 +314,10 @@ fn measure(
     };
     let c = format!("-complete-{}", complete.name());
     let relit_truth = geometry_part(r, complete, scene, name, &mut row)?;
+    row.taken = sum["options"]["complete"]
+        .as_str()
+        .unwrap_or("?")
+        .to_string();
     for (j, (truth, t)) in relit_truth.iter().enumerate() {
         let (env, _) = relight_names(j);
         let env = scene.join(env);
@@ -431,7 +436,7 @@ fn print_row(r: &SceneRow) {
     );
 }
 
-const HEADER: &str = "| scene | half | kind | configuration | completion taken | wall (s) | rerender (dB) | relight 1 / 2 (dB) | relight, best gain, 1 / 2 (dB) | geometry, capture (dB) | geometry, relit 1 / 2 (dB) | recovery 1 / 2 (dB) | albedo RMSE / chroma | R MAE metal / dielectric | M MAE metal / dielectric | truth noise floor (dB) |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|";
+const HEADER: &str = "| scene | half | kind | configuration | completion taken (the inversion's; the true maps' with --geometry-only) | wall (s) | rerender (dB) | relight 1 / 2 (dB) | relight, best gain, 1 / 2 (dB) | geometry, capture (dB) | geometry, relit 1 / 2 (dB) | recovery 1 / 2 (dB) | albedo RMSE / chroma | R MAE metal / dielectric | M MAE metal / dielectric | truth noise floor (dB) |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|";
 
 fn min(v: &[f64]) -> f64 {
     v.iter().cloned().fold(f64::INFINITY, f64::min)
