@@ -117,11 +117,10 @@ pub struct CompletionChoice {
     pub seconds: f64,
 }
 
-/// Block means of `img`, linear, per channel.
-fn block_means(img: &RgbImage, block: usize) -> (usize, usize, Vec<[f32; 3]>) {
+/// Block means of `img`, linear, per channel, row by row.
+fn block_means(img: &RgbImage, block: usize) -> Vec<[f32; 3]> {
     let bw = img.width.div_ceil(block);
-    let bh = img.height.div_ceil(block);
-    let mut sum = vec![[0.0f64; 4]; bw * bh];
+    let mut sum = vec![[0.0f64; 4]; bw * img.height.div_ceil(block)];
     for y in 0..img.height {
         for x in 0..img.width {
             let v = img.get(x, y);
@@ -134,14 +133,12 @@ fn block_means(img: &RgbImage, block: usize) -> (usize, usize, Vec<[f32; 3]>) {
             s[3] += 1.0;
         }
     }
-    let out = sum
-        .iter()
+    sum.iter()
         .map(|s| {
             let n = s[3].max(1.0);
             [0, 1, 2].map(|c| (s[c] / n) as f32)
         })
-        .collect();
-    (bw, bh, out)
+        .collect()
 }
 
 /// Mean of the noise-free squared error estimates over the blocks where
@@ -214,7 +211,7 @@ pub fn choose_completion(
     let t_all = std::time::Instant::now();
     assert!(!hypotheses.is_empty(), "choose_completion: no hypothesis");
     let block = opts.block.max(1);
-    let (_, _, photo_blocks) = block_means(photo, block);
+    let photo_blocks = block_means(photo, block);
     let mut halves: Vec<[Vec<[f32; 3]>; 2]> = Vec::new();
     let mut scores = Vec::new();
     let mut meshes: Vec<u64> = Vec::new();
@@ -244,7 +241,7 @@ pub fn choose_completion(
                         filter: opts.filter,
                         ..Default::default()
                     };
-                    block_means(&render(&scene, &o, &|_, _| {}).image, block).2
+                    block_means(&render(&scene, &o, &|_, _| {}).image, block)
                 };
                 [half(0), half(1)]
             }
