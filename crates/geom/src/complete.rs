@@ -81,7 +81,25 @@ pub struct CompleteParams {
     /// only as strips along the top). Such a wall must bound the seen
     /// scene like any other; 0 or `planes.min_fraction` turns it off.
     pub small_wall: f64,
+    /// With `close`, the windows of the closed room chosen one by one
+    /// instead of `assumed_opening`'s typical window in each assumed
+    /// wall: bit `3·k + t` opens the `t`-th third of the `k`-th bounding
+    /// plane that runs past the frame (a wall, seen or assumed, or the
+    /// ceiling; see [`WindowSlot`]). `Some(0)` closes every window;
+    /// [`window_slots`] lists the slots a view has.
+    pub windows: Option<u32>,
+    /// With `close`, which of the ceiling and walls the closure assumes
+    /// are kept: bit `k` keeps the `k`-th ([`assumed_planes`]); `None`
+    /// keeps them all. An assumed wall of a room without its ceiling
+    /// stands as high as the ceiling would; with [`RAISE_SEEN_WALLS`] the
+    /// walls seen do too (else they stop at the highest point seen on
+    /// them).
+    pub assumed: Option<u32>,
 }
+
+/// The bit of [`CompleteParams::assumed`] that raises the walls seen of a
+/// room without a ceiling to the height its ceiling would have.
+pub const RAISE_SEEN_WALLS: u32 = 1 << 31;
 
 impl Default for CompleteParams {
     fn default() -> Self {
@@ -96,6 +114,8 @@ impl Default for CompleteParams {
             assumed_openness: 0.0,
             border_margin: 0.1,
             small_wall: 0.02,
+            windows: None,
+            assumed: None,
         }
     }
 }
@@ -210,6 +230,138 @@ pub struct Extensions {
     pub kept_in: usize,
     pub room: Option<RoomBox>,
     pub portals: Vec<Portal>,
+    /// Where a closed room may have a window past the frame (empty
+    /// unless a room was closed).
+    pub window_slots: Vec<WindowSlot>,
+    /// The ceiling and walls the closure assumed, kept or not
+    /// ([`CompleteParams::assumed`]).
+    pub assumed_planes: Vec<AssumedPlane>,
+}
+
+/// A ceiling or wall that closing the room assumes: its bit in
+/// [`CompleteParams::assumed`], its kind and its normal (towards the
+/// camera's side).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AssumedPlane {
+    pub bit: u32,
+    pub kind: PlaneKind,
+    pub normal: Vec3,
+}
+
+impl AssumedPlane {
+    /// Where it is, in words ("ceiling", "wall left", ...).
+    pub fn describe(&self) -> String {
+        if 1 << self.bit == RAISE_SEEN_WALLS {
+            return "the walls seen raised to the room's height".to_string();
+        }
+        WindowSlot {
+            bit: self.bit,
+            kind: self.kind,
+            assumed: true,
+            normal: self.normal,
+            third: 0,
+        }
+        .place()
+    }
+}
+
+/// The ceiling and walls that closing the room of view `z` would assume,
+/// and (as bit [`RAISE_SEEN_WALLS`]) the walls seen raised to its height
+/// when no ceiling is seen (empty when the view shows no room).
+pub fn assumed_planes(z: &GrayImage, cam: &Camera, p: &CompleteParams) -> Vec<AssumedPlane> {
+    let q = CompleteParams {
+        close: true,
+        windows: Some(0),
+        ..*p
+    };
+    let e = extensions(z, cam, &q);
+    let mut out = e.assumed_planes;
+    // Walls seen, when the room has no ceiling in view, may stand higher
+    // than the frame shows.
+    let seen_wall = e
+        .planes
+        .iter()
+        .find(|x| !x.assumed && x.fit.kind == PlaneKind::Wall);
+    let seen_ceiling = e
+        .planes
+        .iter()
+        .any(|x| !x.assumed && x.fit.kind == PlaneKind::Ceiling);
+    if let (Some(w), false, Some(_)) = (seen_wall, seen_ceiling, e.room) {
+        out.push(AssumedPlane {
+            bit: RAISE_SEEN_WALLS.trailing_zeros(),
+            kind: PlaneKind::Wall,
+            normal: w.fit.plane.n,
+        });
+    }
+    out
+}
+
+/// A place past the frame where a closed room may have a window
+/// ([`CompleteParams::windows`]): a third of a wall's length over the
+/// window band ([`WINDOW_BAND`] of the room's height), or a third of the
+/// ceiling over the middle half of its width (a skylight).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct WindowSlot {
+    /// Its bit in [`CompleteParams::windows`].
+    pub bit: u32,
+    pub kind: PlaneKind,
+    /// On a plane the closure assumed (no pixel shows it).
+    pub assumed: bool,
+    /// The plane's normal (towards the camera's side): the plane lies in
+    /// the direction −normal from the camera.
+    pub normal: Vec3,
+    /// Which third along it (0, 1, 2).
+    pub third: u32,
+}
+
+impl WindowSlot {
+    /// Where it is, in words: the plane (ceiling; the wall ahead, behind,
+    /// left or right, as the camera sees it; seen or assumed) and the third.
+    pub fn describe(&self) -> String {
+        format!(
+            "{} ({}), third {}",
+            self.place(),
+            if self.assumed { "assumed" } else { "seen" },
+            self.third + 1
+        )
+    }
+
+    /// Its plane in words: the ceiling, or the wall ahead, behind, left
+    /// or right as the camera sees it.
+    fn place(&self) -> String {
+        if self.kind == PlaneKind::Ceiling {
+            "ceiling".to_string()
+        } else {
+            let d = -self.normal;
+            let dir = if d.x.abs() > d.z.abs() {
+                if d.x < 0.0 {
+                    "left"
+                } else {
+                    "right"
+                }
+            } else if d.z < 0.0 {
+                "ahead"
+            } else {
+                "behind"
+            };
+            format!("wall {dir}")
+        }
+    }
+}
+
+/// Bounding planes past [`MAX_WINDOW_PLANES`] get no window slots (the
+/// mask's bits run out).
+pub const MAX_WINDOW_PLANES: usize = 10;
+
+/// The window slots of the room that completion `p` closes in the view
+/// `z` (empty when it closes none).
+pub fn window_slots(z: &GrayImage, cam: &Camera, p: &CompleteParams) -> Vec<WindowSlot> {
+    let q = CompleteParams {
+        close: true,
+        windows: Some(0),
+        ..*p
+    };
+    extensions(z, cam, &q).window_slots
 }
 
 /// The planes that close a room the view shows only part of. "Up" is the
@@ -354,6 +506,7 @@ fn small_walls(
     p: &CompleteParams,
     found: usize,
     points: &[(Vec3, f32)],
+    reveal: &[bool],
 ) -> Vec<PlaneFit> {
     let Some(mut search) = search else {
         return Vec::new();
@@ -368,7 +521,7 @@ fn small_walls(
             break;
         };
         let f = search.classified(f, up);
-        if f.kind == PlaneKind::Wall && bounds_scene(&f, points, p) {
+        if f.kind == PlaneKind::Wall && bounds_scene(&f, points, reveal, p) {
             walls.push(f);
         }
     }
@@ -462,9 +615,19 @@ fn frustum_sides(cam: &Camera) -> [Vec3; 4] {
     })
 }
 
+/// How far behind a plane (a share of the depth) a point next to an
+/// opening may lie and still count as the plane's: a window's reveal, the
+/// wall's own thickness around the hole.
+pub const REVEAL_DEPTH: f32 = 0.06;
+/// How near (in pixels) to a pixel that shows nothing a point must be
+/// to be part of an opening's reveal.
+pub const REVEAL_PIXELS: usize = 3;
+
 /// Whether `f` bounds the seen scene: a floor, ceiling or wall with
-/// `support` of the seen points on its camera side.
-fn bounds_scene(f: &PlaneFit, points: &[(Vec3, f32)], p: &CompleteParams) -> bool {
+/// `support` of the seen points on its camera side, a point of an
+/// opening's reveal (`reveal`: within [`REVEAL_PIXELS`] of a pixel
+/// showing nothing) counting as on it up to [`REVEAL_DEPTH`] behind it.
+fn bounds_scene(f: &PlaneFit, points: &[(Vec3, f32)], reveal: &[bool], p: &CompleteParams) -> bool {
     if !matches!(
         f.kind,
         PlaneKind::Floor | PlaneKind::Ceiling | PlaneKind::Wall
@@ -474,9 +637,38 @@ fn bounds_scene(f: &PlaneFit, points: &[(Vec3, f32)], p: &CompleteParams) -> boo
     let tol = p.planes.tolerance as f32;
     let front = points
         .iter()
-        .filter(|(q, z)| f.plane.distance(*q) >= -tol * z)
+        .zip(reveal)
+        .filter(|&(&(q, z), &r)| {
+            let behind = if r { tol.max(REVEAL_DEPTH) } else { tol };
+            f.plane.distance(q) >= -behind * z
+        })
         .count();
     front as f64 >= p.support * points.len() as f64
+}
+
+/// Per valid pixel of `valid` (row-major indices into the `w`×`h` depth
+/// `z`): whether a pixel within [`REVEAL_PIXELS`] (a square) shows
+/// nothing, i.e. it may be part of an opening's reveal.
+fn near_openings(z: &GrayImage, valid: &[usize]) -> Vec<bool> {
+    let (w, h) = (z.width, z.height);
+    let r = REVEAL_PIXELS;
+    let open = |i: usize| !(z.data[i] > 0.0 && z.data[i].is_finite());
+    // Rows then columns: a square dilation of the open pixels.
+    let mut rows = vec![false; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let (a, b) = (x.saturating_sub(r), (x + r).min(w - 1));
+            rows[y * w + x] = (a..=b).any(|k| open(y * w + k));
+        }
+    }
+    valid
+        .iter()
+        .map(|&i| {
+            let (x, y) = (i % w, i / w);
+            let (a, b) = (y.saturating_sub(r), (y + r).min(h - 1));
+            (a..=b).any(|k| rows[k * w + x])
+        })
+        .collect()
 }
 
 /// The extensions of the bounding planes of depth map `z` past the frame,
@@ -503,16 +695,36 @@ pub fn extensions(z: &GrayImage, cam: &Camera, p: &CompleteParams) -> Extensions
         return Extensions::default();
     };
     let found = fits.len();
-    let (mut bounding, inside): (Vec<PlaneFit>, Vec<PlaneFit>) =
-        fits.into_iter().partition(|f| bounds_scene(f, &points, p));
+    let reveal = near_openings(z, &valid);
+    let (mut bounding, inside): (Vec<PlaneFit>, Vec<PlaneFit>) = fits
+        .into_iter()
+        .partition(|f| bounds_scene(f, &points, &reveal, p));
     if p.close && floor_alone(&bounding) {
-        bounding.extend(small_walls(search, up, p, found, &points));
+        bounding.extend(small_walls(search, up, p, found, &points, &reveal));
     }
     let seen = bounding.len();
     let mut room = None;
+    let mut assumed_planes = Vec::new();
     if p.close {
         let (extra, r) = closure(&bounding, &points, p);
-        bounding.extend(extra);
+        // The assumed ceiling and walls kept (an assumed floor always is).
+        let mut k = 0;
+        for f in extra {
+            if f.kind == PlaneKind::Floor {
+                bounding.push(f);
+                continue;
+            }
+            let keep = p.assumed.is_none_or(|m| m >> k & 1 == 1);
+            assumed_planes.push(AssumedPlane {
+                bit: k,
+                kind: f.kind,
+                normal: f.plane.n,
+            });
+            k += 1;
+            if keep {
+                bounding.push(f);
+            }
+        }
         room = r;
     }
     let mut kept_in = inside.len();
@@ -537,6 +749,7 @@ pub fn extensions(z: &GrayImage, cam: &Camera, p: &CompleteParams) -> Extensions
     });
     let tol = p.planes.tolerance as f32;
     let mut portals = Vec::new();
+    let mut window_slots = Vec::new();
     for (k, f) in bounding.iter().enumerate() {
         let Plane { n, d } = f.plane;
         let others: Vec<Plane> = bounding
@@ -574,13 +787,46 @@ pub fn extensions(z: &GrayImage, cam: &Camera, p: &CompleteParams) -> Extensions
                 poly = clip(&poly, o.plane.n, o.plane.d);
             }
         }
-        if f.kind == PlaneKind::Wall && !has_ceiling {
+        let raise = room.filter(|_| p.assumed.is_some_and(|m| m & RAISE_SEEN_WALLS != 0));
+        if f.kind == PlaneKind::Wall && !has_ceiling && raise.is_some() {
+            // Seen walls taken to continue up to where the room's
+            // ceiling would be (beyond the frame's top).
+            if let Some(rb) = raise {
+                poly = clip(&poly, -up, rb.height - rb.camera_height);
+            }
+        } else if f.kind == PlaneKind::Wall && !has_ceiling {
             if let Some(top) = on.iter().map(|&j| up.dot(points[j].0)).reduce(f32::max) {
                 poly = clip(&poly, -up, top);
+            } else if let Some(rb) = room.filter(|_| assumed) {
+                // An assumed wall of a room left open above: as high as
+                // the room's ceiling would be.
+                poly = clip(&poly, -up, rb.height - rb.camera_height);
             }
+        }
+        let slot_plane = (room.is_some()
+            && p.windows.is_some()
+            && f.reaches.iter().any(|&r| r)
+            && matches!(f.kind, PlaneKind::Wall | PlaneKind::Ceiling))
+        .then_some(window_slots.len() / 3)
+        .filter(|&j| j < MAX_WINDOW_PLANES);
+        if let Some(j) = slot_plane {
+            window_slots.extend((0..3).map(|t| WindowSlot {
+                bit: (3 * j) as u32 + t,
+                kind: f.kind,
+                assumed,
+                normal: n,
+                third: t,
+            }));
         }
         let pieces = if !f.reaches.iter().any(|&r| r) {
             Vec::new()
+        } else if let (Some(j), Some(mask), Some(rb)) = (slot_plane, p.windows, room) {
+            let thirds: Vec<u32> = (0..3)
+                .filter(|t| mask >> (3 * j as u32 + t) & 1 == 1)
+                .collect();
+            let (pieces, windows) = with_windows(&poly, f, floor, ceiling_height, &rb, &thirds);
+            portals.extend(windows);
+            pieces
         } else if assumed && f.kind == PlaneKind::Wall && p.assumed_opening > 0.0 {
             let (pieces, window) =
                 with_opening(&poly, f.plane, floor, ceiling_height, p.assumed_opening);
@@ -608,6 +854,8 @@ pub fn extensions(z: &GrayImage, cam: &Camera, p: &CompleteParams) -> Extensions
         kept_in,
         room,
         portals,
+        window_slots,
+        assumed_planes,
     }
 }
 
@@ -684,6 +932,77 @@ fn with_opening(
         .filter(|q| q.len() >= 3)
         .collect();
     (pieces, bounding_portal(&window, wall, along))
+}
+
+/// Convex polygon `poly` of plane `f` (a wall or a ceiling of the closed
+/// room `rb`) less windows at the given `thirds` of its length: on a wall,
+/// over the [`WINDOW_BAND`] of the room's height (as `with_opening`); on
+/// a ceiling, thirds along the room's first axis over the middle half of
+/// its extent along the second. Returns the convex pieces left and the
+/// windows as [`Portal`]s.
+fn with_windows(
+    poly: &[Vec3],
+    f: &PlaneFit,
+    floor: Option<Plane>,
+    ceiling_height: Option<f32>,
+    rb: &RoomBox,
+    thirds: &[u32],
+) -> (Vec<Vec<Vec3>>, Vec<Portal>) {
+    if thirds.is_empty() || poly.len() < 3 {
+        return (vec![poly.to_vec()], Vec::new());
+    }
+    let n = f.plane.n;
+    // `across`: the direction of the band; `along`: that of the thirds.
+    let (across, band, along) = if f.kind == PlaneKind::Ceiling {
+        let (a, b) = (rb.axes[1], rb.axes[0]);
+        let (lo, hi) = extent_along(poly, a);
+        (a, (lo + 0.25 * (hi - lo), hi - 0.25 * (hi - lo)), b)
+    } else {
+        let (Some(fl), Some(height)) = (floor, ceiling_height) else {
+            return (vec![poly.to_vec()], Vec::new());
+        };
+        let along = fl.n.cross(n).normalize_or_zero();
+        (
+            fl.n,
+            (WINDOW_BAND.0 * height - fl.d, WINDOW_BAND.1 * height - fl.d),
+            along,
+        )
+    };
+    if along == Vec3::ZERO || across == Vec3::ZERO || !(band.1 > band.0) {
+        return (vec![poly.to_vec()], Vec::new());
+    }
+    let (s0, s1) = extent_along(poly, along);
+    let third = (s1 - s0) / 3.0;
+    // Each window spans the middle 80 % of its third.
+    let holes: Vec<(f32, f32)> = thirds
+        .iter()
+        .map(|&t| {
+            let a = s0 + third * t as f32;
+            (a + 0.1 * third, a + 0.9 * third)
+        })
+        .collect();
+    // s ≤ c: clip(−axis, c); s ≥ c: clip(axis, −c).
+    let below = clip(poly, -across, band.0);
+    let above = clip(poly, across, -band.1);
+    let strip = clip(&clip(poly, across, -band.0), -across, band.1);
+    let mut pieces: Vec<Vec<Vec3>> = vec![below, above];
+    let mut portals = Vec::new();
+    let mut from = f32::NEG_INFINITY;
+    for &(a, b) in &holes {
+        pieces.push(if from.is_finite() {
+            clip(&clip(&strip, along, -from), -along, a)
+        } else {
+            clip(&strip, -along, a)
+        });
+        let hole = clip(&clip(&strip, along, -a), -along, b);
+        portals.extend(bounding_portal(&hole, f.plane, along));
+        from = b;
+    }
+    pieces.push(clip(&strip, along, -from));
+    (
+        pieces.into_iter().filter(|q| q.len() >= 3).collect(),
+        portals,
+    )
 }
 
 /// The smallest and largest of `a · q` over the points `q` of `poly`.
@@ -819,6 +1138,7 @@ pub fn complete_beyond_frame(
         kept_in,
         room,
         portals,
+        ..
     } = extensions(z, cam, p);
     let (w, h) = (z.width, z.height);
     let mut done = Completion {
@@ -1402,6 +1722,198 @@ mod tests {
                 assert!((t - outside.length()).abs() < 1e-3, "{outside}: {t}");
             }
         }
+    }
+
+    #[test]
+    fn a_window_s_reveal_does_not_stop_its_wall_bounding_the_room() {
+        let cam = Camera::new(96, 72);
+        // The wall 8 ahead with a window (no depth) and, around it, a
+        // 2-pixel ring `deeper` times as far: the reveal, the wall's
+        // own thickness (3 %), or something well behind it (30 %).
+        let with_ring = |deeper: f32| {
+            let mut z = render_planes(&cam, &FLOOR_AND_WALL);
+            for y in 8..24 {
+                for x in 28..64 {
+                    let i = y * 96 + x;
+                    if (10..22).contains(&y) && (30..62).contains(&x) {
+                        z.data[i] = 0.0;
+                    } else {
+                        z.data[i] *= deeper;
+                    }
+                }
+            }
+            z
+        };
+        let wall_extended = |z: &GrayImage| {
+            extensions(z, &cam, &CompleteParams::default())
+                .planes
+                .iter()
+                .any(|e| e.fit.kind == PlaneKind::Wall && (e.fit.plane.d - 8.0).abs() < 0.05)
+        };
+        assert!(wall_extended(&render_planes(&cam, &FLOOR_AND_WALL)));
+        assert!(wall_extended(&with_ring(1.03)), "a reveal");
+        assert!(
+            !wall_extended(&with_ring(1.3)),
+            "a wall with things behind it"
+        );
+    }
+
+    #[test]
+    fn assumed_walls_and_the_ceiling_are_kept_one_by_one() {
+        let cam = Camera::new(96, 72);
+        let z = render_planes(&cam, &FLOOR_AND_WALL);
+        let base = CompleteParams::for_mode("room").unwrap();
+        let planes = assumed_planes(&z, &cam, &base);
+        // The ceiling, the walls left, behind and right, and the walls seen
+        // raised (no ceiling in view).
+        let names: Vec<String> = planes.iter().map(|p| p.describe()).collect();
+        assert_eq!(planes.len(), 5, "{names:?}");
+        for n in ["ceiling", "wall left", "wall behind", "wall right"] {
+            assert!(names.iter().any(|x| x == n), "{n} in {names:?}");
+        }
+        assert!(names.last().unwrap().starts_with("the walls seen raised"));
+        let bit = |n: &str| 1u32 << planes.iter().find(|p| p.describe() == n).unwrap().bit;
+        let build = |mask: u32| {
+            let mut m = TriMesh::default();
+            complete_beyond_frame(
+                &mut m,
+                &z,
+                &cam,
+                &CompleteParams {
+                    assumed: Some(mask),
+                    windows: Some(0),
+                    ..base
+                },
+            );
+            m
+        };
+        // Nothing assumed: open behind and above.
+        let open = build(0);
+        assert!(hit(&open, 0, Vec3::Z).is_none());
+        assert!(hit(&open, 0, Vec3::Y).is_none());
+        // The wall behind alone: half a camera height behind, solid, as
+        // high as the ceiling would be; still open above.
+        let behind = build(bit("wall behind"));
+        let t = hit(&behind, 0, Vec3::Z).expect("the wall behind");
+        assert!((t - 0.45).abs() < 1e-3, "{t}");
+        assert!(hit(&behind, 0, Vec3::Y).is_none());
+        let (all, _) = closed_without_windows(&z, &cam);
+        let top = hit(&all, 0, Vec3::Y).expect("the closed room's ceiling");
+        let up_behind = Vec3::new(0.0, top - 0.01, 0.45).normalize();
+        assert!(
+            hit(&behind, 0, up_behind).is_some(),
+            "up to the ceiling's height"
+        );
+        let over = Vec3::new(0.0, top + 0.05, 0.45).normalize();
+        assert!(hit(&behind, 0, over).is_none(), "not above it");
+        // The ceiling alone closes above.
+        assert!(hit(&build(bit("ceiling")), 0, Vec3::Y).is_some());
+        // The wall seen stops at the highest point seen on it, unless
+        // raised to the room's height.
+        let above_frame = Vec3::new(0.0, top - 0.01, -8.0).normalize();
+        assert!(hit(&open, 0, above_frame).is_none());
+        let raised = build(RAISE_SEEN_WALLS);
+        let t = hit(&raised, 0, above_frame).expect("the wall seen, raised");
+        assert!((t * -above_frame.z - 8.0).abs() < 1e-2, "{t}");
+        // Every plane kept is the closed room.
+        let every = build(planes.iter().fold(0, |m, p| m | 1 << p.bit));
+        assert_eq!(every.indices.len(), all.indices.len());
+    }
+
+    #[test]
+    fn windows_open_one_slot_at_a_time_where_the_mask_says() {
+        let cam = Camera::new(96, 72);
+        let z = render_planes(&cam, &FLOOR_AND_WALL);
+        let base = CompleteParams::for_mode("room").unwrap();
+        let slots = window_slots(&z, &cam, &base);
+        // The wall seen runs past the frame, as do the ceiling and the
+        // three assumed walls: three thirds each, bits in order.
+        assert_eq!(slots.len(), 15, "{slots:?}");
+        for (k, s) in slots.iter().enumerate() {
+            assert_eq!(s.bit as usize, k);
+            assert_eq!(s.third as usize, k % 3);
+        }
+        assert_eq!(
+            slots
+                .iter()
+                .filter(|s| s.kind == PlaneKind::Ceiling)
+                .count(),
+            3
+        );
+        assert!(slots
+            .iter()
+            .any(|s| !s.assumed && s.describe().starts_with("wall ahead (seen)")));
+        assert!(slots
+            .iter()
+            .any(|s| s.describe().starts_with("wall behind (assumed)")));
+        // No window: the closed room exactly.
+        let (closed, _) = closed_without_windows(&z, &cam);
+        let mut none = TriMesh::default();
+        let c = complete_beyond_frame(
+            &mut none,
+            &z,
+            &cam,
+            &CompleteParams {
+                windows: Some(0),
+                ..base
+            },
+        );
+        assert_eq!(c.portals, 0);
+        assert_eq!(none.positions, closed.positions);
+        assert_eq!(none.indices, closed.indices);
+        // Each slot alone: one portal, on its plane, whose centre the
+        // camera sees the sky through; the room stays closed elsewhere.
+        for s in &slots {
+            let mut m = TriMesh::default();
+            let c = complete_beyond_frame(
+                &mut m,
+                &z,
+                &cam,
+                &CompleteParams {
+                    windows: Some(1 << s.bit),
+                    ..base
+                },
+            );
+            assert_eq!(c.portals, 1, "{}", s.describe());
+            let p = m.portals[0];
+            let centre = p.corner + (p.u + p.v) * 0.5;
+            assert!(p.normal().dot(s.normal) > 0.99, "{}", s.describe());
+            assert!(p.normal().dot(-centre) > 0.0, "{} faces away", s.describe());
+            // (What the view shows is the depth mesh's, not the
+            // completion's.)
+            let in_view = |q: Vec3| {
+                cam.project(q)
+                    .is_some_and(|f| f.x >= -1.0 && f.y >= -1.0 && f.x <= 97.0 && f.y <= 73.0)
+            };
+            if !in_view(centre) {
+                assert!(hit(&m, 0, centre.normalize()).is_none(), "{}", s.describe());
+            }
+            // Just beside the window, its plane.
+            let beside = p.corner - p.u * 0.05 + p.v * 0.5;
+            if !in_view(beside) {
+                assert!(hit(&m, 0, beside.normalize()).is_some(), "{}", s.describe());
+            }
+            assert!(hit(&m, 0, Vec3::new(0.0, -1.0, 0.3).normalize()).is_some());
+        }
+        // Two thirds of one wall: two windows, the wall between them kept.
+        let behind: Vec<&WindowSlot> = slots
+            .iter()
+            .filter(|s| s.describe().starts_with("wall behind"))
+            .collect();
+        let mut m = TriMesh::default();
+        complete_beyond_frame(
+            &mut m,
+            &z,
+            &cam,
+            &CompleteParams {
+                windows: Some(1 << behind[0].bit | 1 << behind[2].bit),
+                ..base
+            },
+        );
+        assert_eq!(m.portals.len(), 2);
+        let centre = |p: &Portal| p.corner + (p.u + p.v) * 0.5;
+        let mid = (centre(&m.portals[0]) + centre(&m.portals[1])) * 0.5;
+        assert!(hit(&m, 0, mid.normalize()).is_some(), "the wall between");
     }
 
     #[test]

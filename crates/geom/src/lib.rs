@@ -14,8 +14,9 @@ pub mod shapes;
 
 pub use bvh::{Bvh, Hit, PACKET};
 pub use complete::{
-    complete_beyond_frame, extensions, CompleteParams, Completion, Extension, Extensions,
-    COMPLETE_MODES,
+    assumed_planes, complete_beyond_frame, extensions, window_slots, AssumedPlane, CompleteParams,
+    Completion, Extension, Extensions, WindowSlot, COMPLETE_MODES, MAX_WINDOW_PLANES,
+    RAISE_SEEN_WALLS,
 };
 pub use depth_mesh::{
     mesh_for_view, mesh_from_depth, vertex_normals, DepthMesh, MeshError, MeshParams, MeshStats,
