@@ -53,7 +53,9 @@ Each bundle holds:
   ``normal.exr`` (pixel-centre values), ``envmap.hdr`` (the capture sky at
   32x16, matflow's layout, exposure applied; ``envmap.exr`` is the same at
   1024x512, the light the capture was rendered with, less the lamps),
-  ``relight_envmap.exr`` and
+  ``lamps.json`` (the capture's lamps as matflow's point lights: camera
+  space, intensity pi r^2 times radiance, exposure applied; empty without
+  lamps), ``relight_envmap.exr`` and
   ``relight_envmap_2.exr`` (two new skies, 1024x512) with
   ``relit_image.exr`` and ``relit_image_2.exr``: the room under each new sky
   alone (lamps off), the sky scaled so that the image's level is 0.15-0.3;
@@ -922,6 +924,7 @@ def make_bundle(mi, dr, k, a, out_dir):
         write_exr(mi, os.path.join(tmp, "ground_truth", f"relit_image{suffix}.exr"), rimg * scale)
         os.remove(rpath)
     write_exr(mi, os.path.join(tmp, "ground_truth", "envmap.exr"), env * exposure)
+    write_lamps(P, w2c, tmp)
     shutil.rmtree(os.path.join(tmp, "mitsuba"))
 
     write_exr(mi, os.path.join(tmp, "depth.exr"), truth["z"])
@@ -943,6 +946,26 @@ def make_bundle(mi, dr, k, a, out_dir):
     shutil.rmtree(out_dir, ignore_errors=True)
     os.rename(tmp, out_dir)
     return P
+
+
+def write_lamps(P, w2c, folder):
+    """ground_truth/lamps.json: the capture's lamps as matflow reads them
+    (crates/cli/src/lamps.rs): camera-space points whose intensity is a
+    sphere's (pi r^2 times its radiance), with the capture's exposure."""
+    lamps = []
+    for l in P["lamps"]:
+        c = (w2c @ np.r_[l["position"], 1.0])[:3]
+        lamps.append({"position": c.tolist(),
+                      "intensity": [math.pi * l["radius"] ** 2 * v * P["exposure"] for v in l["radiance"]]})
+    with open(os.path.join(folder, "ground_truth", "lamps.json"), "w") as fh:
+        json.dump({"lamps": lamps}, fh, indent=1)
+
+
+def camera_w2c(P):
+    """The world-to-camera matrix of the camera recorded in P."""
+    c = P["camera"]
+    c2w = camera({}, np.array(c["position"]), math.radians(c["yaw_deg"]), math.radians(c["pitch_deg"]))
+    return np.linalg.inv(c2w)
 
 
 def add_render_args(ap, size, spp):
@@ -995,7 +1018,14 @@ def main():
             continue
         d = os.path.join(a.out, name)
         if os.path.exists(os.path.join(d, "scene.json")) and not a.force:
-            log(f"relight_scenes: {name} exists, kept")
+            lamps = os.path.join(d, "ground_truth", "lamps.json")
+            if not os.path.exists(lamps):
+                with open(os.path.join(d, "scene.json")) as fh:
+                    P = json.load(fh)
+                write_lamps(P, camera_w2c(P), d)
+                log(f"relight_scenes: {name} exists, kept; its lamps.json written")
+            else:
+                log(f"relight_scenes: {name} exists, kept")
             continue
         P = make_bundle(mi, dr, k, a, d)
         log(f"relight_scenes: {name} ({P['split']}, {P['kind']}, sky {P['sky']['type']}, {len(P['lamps'])} lamp(s), "

@@ -145,6 +145,14 @@ struct SceneRow {
 
 /// Renders `bundle` with `materials` under `envmap` into `out` (kept when
 /// it exists: the true-map renders are shared by every configuration).
+/// Whether [`render`] reuses an image there already, and lights the
+/// scene with the maps' own lamps.
+#[derive(Clone, Copy)]
+struct RenderHow {
+    reuse: bool,
+    lamps: bool,
+}
+
 fn render(
     r: &RelightRun,
     complete: CompleteArg,
@@ -152,8 +160,9 @@ fn render(
     materials: &str,
     envmap: &Path,
     out: &Path,
-    reuse: bool,
+    how: RenderHow,
 ) -> Result<RgbImage> {
+    let RenderHow { reuse, lamps } = how;
     if !(reuse && out.exists()) {
         let mut args: Vec<String> = [
             "render",
@@ -177,8 +186,9 @@ fn render(
         .collect();
         args.extend(["--complete".into(), complete.name().into()]);
         // Relit truths have their lamps off: so have the recovered
-        // scene's (the fitted lamps light only the rerender).
-        args.extend(["--lamps".into(), "off".into()]);
+        // scene's (the fitted lamps light only the rerender); the capture
+        // is lit by its true lamps too (ground_truth/lamps.json).
+        args.extend(["--lamps".into(), if lamps { "on" } else { "off" }.into()]);
         child(r.exe, &args, false)?;
     }
     Ok(io::read_exr_rgb(out)?)
@@ -328,7 +338,10 @@ fn measure(
             "best_results",
             &env,
             &out.join(format!("relit{j}{c}.exr")),
-            false,
+            RenderHow {
+                reuse: false,
+                lamps: false,
+            },
         )?;
         row.relight[j] = psnr_gamma(&g, truth);
         row.relight_gain[j] = psnr_gamma(&with_best_gain(&g, truth), truth);
@@ -368,7 +381,10 @@ fn geometry_part(
         "ground_truth",
         &scene.join("ground_truth/envmap.exr"),
         &cap_path,
-        true,
+        RenderHow {
+            reuse: true,
+            lamps: true,
+        },
     )?;
     row.geo_capture = psnr_gamma(&cap, &io::read_exr_rgb(&scene.join("gt_image.exr"))?);
     let report: serde_json::Value = std::fs::read(cap_path.with_extension("json"))
@@ -379,9 +395,13 @@ fn geometry_part(
         .as_str()
         .unwrap_or("?")
         .to_string();
+    // The photo's test of the completions, the window search included.
     row.choice_seconds = report["completion"]["evidence"]["seconds"]
         .as_f64()
-        .unwrap_or(0.0);
+        .unwrap_or(0.0)
+        + report["completion"]["windows"]["seconds"]
+            .as_f64()
+            .unwrap_or(0.0);
     let mut out = Vec::new();
     for j in 0..2 {
         let (env, img) = relight_names(j);
@@ -393,7 +413,10 @@ fn geometry_part(
             "ground_truth",
             &scene.join(env),
             &shared.join(format!("relit{j}.exr")),
-            true,
+            RenderHow {
+                reuse: true,
+                lamps: false,
+            },
         )?;
         row.geo_relit[j] = psnr_gamma(&t, &truth);
         out.push((truth, t));

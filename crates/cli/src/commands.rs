@@ -101,11 +101,11 @@ pub struct RenderArgs {
     /// room.
     #[arg(long, default_value = "on")]
     pub portals: OnOff,
-    /// Light the scene with the lamps `matflow invert` fitted with the
-    /// maps (best_results/lamps.json, with `--materials best_results`):
-    /// on, or off (e.g. to relight a room by a new envmap alone). A sun
-    /// it fitted lights the scene only under the envmap it was fitted
-    /// with: `--envmap` is a new sky.
+    /// Light the scene with the lamps of the maps: those `matflow invert`
+    /// fitted (best_results/lamps.json) or the true ones
+    /// (ground_truth/lamps.json): on, or off (e.g. to relight a room by a
+    /// new envmap alone). A sun among them lights the scene only under
+    /// the envmap it came with: `--envmap` is a new sky.
     #[arg(long, default_value = "on")]
     pub lamps: OnOff,
 }
@@ -296,7 +296,8 @@ fn from_invert<T: Default>(
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub enum CompleteArg {
     /// Test each completion against the photo and take the least assuming
-    /// one the photo supports.
+    /// one the photo supports; then, with the photo's light known, where a
+    /// closed room's windows are, or which unseen walls an open view shows.
     Auto,
     /// The depth mesh alone.
     None,
@@ -345,6 +346,12 @@ pub struct Evidence {
     /// built from), and the maps.
     pub light: String,
     pub materials: MaterialSource,
+    /// Where the photo put the windows of the room taken (when it took a
+    /// closed room).
+    pub windows: Option<matflow_render::evidence::WindowChoice>,
+    /// Which unseen walls the photo shows the effect of (when it took an
+    /// open completion).
+    pub walls: Option<matflow_render::evidence::WallChoice>,
 }
 
 /// A completion decided, why, and the evidence when the photo decided.
@@ -361,6 +368,29 @@ impl CompletionDecision {
             mode,
             why: why.to_string(),
             evidence: None,
+        }
+    }
+
+    /// The completion decided, with the windows the photo placed.
+    pub fn params(&self) -> Option<matflow_geom::CompleteParams> {
+        let p = self.mode.params();
+        if let Some(w) = self
+            .evidence
+            .as_ref()
+            .and_then(|e| e.walls.as_ref())
+            .filter(|w| !w.kept_start)
+        {
+            return CompleteMode::Room
+                .params()
+                .map(|r| matflow_render::evidence::walled(&r, w.mask));
+        }
+        match self.evidence.as_ref().and_then(|e| e.windows.as_ref()) {
+            Some(w) if !w.typical => p.map(|p| matflow_geom::CompleteParams {
+                close: true,
+                windows: Some(w.mask),
+                ..p
+            }),
+            _ => p,
         }
     }
 
@@ -386,6 +416,12 @@ impl CompletionDecision {
                     "same_mesh_as": s.same_as,
                 })).collect::<Vec<_>>(),
             });
+            if let Some(w) = &e.windows {
+                v["windows"] = windows_json(w);
+            }
+            if let Some(w) = &e.walls {
+                v["walls"] = walls_json(w);
+            }
         }
         v
     }
@@ -421,8 +457,122 @@ impl CompletionDecision {
                 e.materials.folder().unwrap_or("predicted"),
                 c.seconds
             );
+            if let Some(w) = &e.windows {
+                print_windows(w);
+            }
+            if let Some(w) = &e.walls {
+                print_walls(w);
+            }
         }
     }
+}
+
+/// The window search in words: each round's best and the room taken.
+fn print_windows(w: &matflow_render::evidence::WindowChoice) {
+    for (k, r) in w.rounds.iter().enumerate() {
+        let best = (0..r.scores.len())
+            .max_by(|&a, &b| {
+                r.scores[a]
+                    .psnr_differing
+                    .total_cmp(&r.scores[b].psnr_differing)
+            })
+            .unwrap_or(0);
+        outln!(
+            "  windows, round {}: {} of {} tested; best {} ({:.2} dB where they differ, {:.2} dB without it)",
+            k + 1,
+            r.scores[r.chosen].name,
+            r.scores.len(),
+            r.scores[best].name,
+            r.scores[best].psnr_differing,
+            r.scores[0].psnr_differing
+        );
+    }
+    if let Some(t) = &w.against_typical {
+        outln!(
+            "  windows found {:.2} dB, typical windows {:.2} dB where they differ: {} taken ({:.2} s in all)",
+            t.scores[0].psnr_differing,
+            t.scores.get(1).map_or(f64::NAN, |s| s.psnr_differing),
+            if w.typical { "typical windows" } else { "the windows found" },
+            w.seconds
+        );
+    }
+}
+
+/// The wall search in words: each round's best and what was taken.
+fn print_walls(w: &matflow_render::evidence::WallChoice) {
+    for (k, r) in w.rounds.iter().enumerate() {
+        let best = (0..r.scores.len())
+            .max_by(|&a, &b| {
+                r.scores[a]
+                    .psnr_differing
+                    .total_cmp(&r.scores[b].psnr_differing)
+            })
+            .unwrap_or(0);
+        outln!(
+            "  walls, round {}: {} of {} tested; best {} ({:.2} dB where they differ, {:.2} dB without it)",
+            k + 1,
+            r.scores[r.chosen].name,
+            r.scores.len(),
+            r.scores[best].name,
+            r.scores[best].psnr_differing,
+            r.scores[0].psnr_differing
+        );
+    }
+    match &w.against_start {
+        Some(t) => outln!(
+            "  walls found {:.2} dB, {} {:.2} dB where they differ: {} taken ({:.2} s in all)",
+            t.scores.get(1).map_or(f64::NAN, |s| s.psnr_differing),
+            t.scores[0].name,
+            t.scores[0].psnr_differing,
+            if w.kept_start {
+                t.scores[0].name.as_str()
+            } else {
+                "the walls found"
+            },
+            w.seconds
+        ),
+        None => outln!("  walls: none found ({:.2} s)", w.seconds),
+    }
+}
+
+/// The wall search for summary.json, geometry.json and OUT.json.
+fn walls_json(w: &matflow_render::evidence::WallChoice) -> serde_json::Value {
+    let plane =
+        |p: &matflow_geom::AssumedPlane| serde_json::json!({"bit": p.bit, "where": p.describe()});
+    let scores = |c: &matflow_render::evidence::CompletionChoice| {
+        c.scores
+            .iter()
+            .map(|s| serde_json::json!({"complete": s.name, "psnr_differing": s.psnr_differing}))
+            .collect::<Vec<_>>()
+    };
+    serde_json::json!({
+        "mask": w.mask,
+        "start_kept": w.kept_start,
+        "added": w.added.iter().map(plane).collect::<Vec<_>>(),
+        "planes": w.planes.iter().map(plane).collect::<Vec<_>>(),
+        "rounds": w.rounds.iter().map(scores).collect::<Vec<_>>(),
+        "against_start": w.against_start.as_ref().map(scores),
+        "seconds": w.seconds,
+    })
+}
+
+/// The window search for summary.json, geometry.json and OUT.json.
+fn windows_json(w: &matflow_render::evidence::WindowChoice) -> serde_json::Value {
+    let slot =
+        |s: &matflow_geom::WindowSlot| serde_json::json!({"bit": s.bit, "where": s.describe()});
+    serde_json::json!({
+        "mask": w.mask,
+        "typical_taken": w.typical,
+        "opened": w.opened.iter().map(slot).collect::<Vec<_>>(),
+        "slots": w.slots.iter().map(slot).collect::<Vec<_>>(),
+        "rounds": w.rounds.iter().map(|r| r.scores.iter().map(|s| serde_json::json!({
+            "windows": s.name, "psnr_differing": s.psnr_differing,
+        })).collect::<Vec<_>>()).collect::<Vec<_>>(),
+        "against_typical": w.against_typical.as_ref().map(|t| t.scores.iter().map(|s| serde_json::json!({
+            "windows": s.name, "psnr_differing": s.psnr_differing,
+        })).collect::<Vec<_>>()),
+        "seconds": w.seconds,
+    })
 }
 
 /// The file in which a bundle declares the completion that reproduces its
@@ -496,9 +646,18 @@ pub fn evidence_completion(
     let env =
         EnvMap::new(&io::read_envmap(light)?).with_context(|| format!("{}", light.display()))?;
     let hyps = hypotheses();
+    // The maps' own lamps light the photo too, under their own envmap.
+    let own = materials
+        .folder()
+        .is_some_and(|f| light.parent() == Some(&bundle_dir.join(f)));
+    let lamps = match materials.folder().filter(|_| own) {
+        Some(f) => crate::lamps::bundle_lamps(bundle_dir, f)?.unwrap_or_default(),
+        None => Vec::new(),
+    };
     let opts = matflow_render::evidence::EvidenceOptions {
         filter: how.filter,
         max_depth: how.max_depth,
+        lamps,
         ..Default::default()
     };
     let choice = matflow_render::evidence::choose_completion(
@@ -516,14 +675,71 @@ pub fn evidence_completion(
             bundle_dir.display()
         )
     })?;
-    let mode = HYPOTHESES[choice.chosen];
+    let mut mode = HYPOTHESES[choice.chosen];
+    let view = matflow_render::evidence::PhotoView {
+        depth: &depth,
+        maps: &maps,
+        env: &env,
+        mesh_angle_deg: how.mesh_angle,
+        photo: &photo,
+    };
+    // A closed room: where its windows are, the photo tells too.
+    let windows = match mode.params() {
+        Some(base) if base.close => matflow_render::evidence::choose_windows(
+            &view,
+            &base,
+            // Many more hypotheses: one sample per pixel a half (64 a
+            // block) still tells a window's light apart.
+            &matflow_render::evidence::EvidenceOptions {
+                spp_half: 1,
+                ..opts.clone()
+            },
+        )
+        .with_context(|| format!("{}: placing the room's windows", bundle_dir.display()))?,
+        _ => None,
+    };
+    if let Some(w) = windows.as_ref().filter(|w| !w.typical) {
+        mode = if w.mask == 0 {
+            CompleteMode::Closed
+        } else {
+            CompleteMode::Room
+        };
+    }
+    // An open view: whether an unseen wall (or a ceiling) shows in it.
+    let walls = match (mode, CompleteMode::Room.params()) {
+        (CompleteMode::None | CompleteMode::Planes, Some(room)) => {
+            matflow_render::evidence::choose_walls(
+                &view,
+                &matflow_render::evidence::Hypothesis {
+                    name: mode.name().to_string(),
+                    params: mode.params(),
+                },
+                &room,
+                &matflow_render::evidence::EvidenceOptions {
+                    spp_half: 1,
+                    ..opts.clone()
+                },
+            )
+            .with_context(|| format!("{}: testing unseen walls", bundle_dir.display()))?
+        }
+        _ => None,
+    };
+    if walls.as_ref().is_some_and(|w| !w.kept_start) {
+        mode = CompleteMode::Room;
+    }
     Ok(CompletionDecision {
         mode,
         why: format!("auto: {}", choice.reason),
         evidence: Some(Evidence {
             choice,
-            light: light.display().to_string(),
+            light: if opts.lamps.is_empty() {
+                light.display().to_string()
+            } else {
+                format!("{} and {} lamp(s)", light.display(), opts.lamps.len())
+            },
             materials,
+            windows,
+            walls,
         }),
     })
 }
@@ -619,8 +835,11 @@ pub fn render_completion(
 }
 
 /// The light the bundle's photo was taken in, as far as the bundle says:
-/// its own envmap for these maps (best_results/ or ground_truth/), else
-/// any of its own, else the one the render was given.
+/// its own envmap for these maps (best_results/ or ground_truth/; the
+/// finer `envmap.exr` where one lies beside `envmap.hdr`, as the
+/// validation set's full-resolution capture sky does: a sun blurred over
+/// a 32×16 texel lights other places than the sun), else any of its own,
+/// else the one the render was given.
 pub fn capture_light(
     bundle: &Path,
     materials: MaterialSource,
@@ -628,24 +847,28 @@ pub fn capture_light(
 ) -> Option<PathBuf> {
     materials
         .folder()
-        .map(|f| bundle.join(f).join("envmap.hdr"))
-        .filter(|p| p.is_file())
+        .and_then(|f| {
+            ["envmap.exr", "envmap.hdr"]
+                .iter()
+                .map(|n| bundle.join(f).join(n))
+                .find(|p| p.is_file())
+        })
         .or_else(|| Bundle::open(bundle).ok().and_then(|b| b.envmap_path()))
         .or_else(|| envmap.map(Path::to_path_buf))
 }
 
 /// Builds mesh, BVH, materials and envmap for a bundle; with `lamps`,
-/// the lamps `matflow invert` fitted with its `best_results/` maps light
-/// them too (when those are the maps and it fitted any), the sun among
-/// them only under the envmap it was fitted with (a new `envmap` is a new
-/// sky, which brings its own sun).
+/// the lamps of the maps' folder light them too (`FOLDER/lamps.json`:
+/// those `matflow invert` fitted with its `best_results/` maps, the true
+/// ones with `ground_truth/`), the sun among them only under the envmap
+/// it came with (a new `envmap` is a new sky, which brings its own sun).
 pub fn load_scene(
     bundle_dir: &Path,
     materials: MaterialSource,
     envmap: Option<&Path>,
     mesh_angle: f64,
     reference_compat: bool,
-    complete: Option<CompleteMode>,
+    complete: Option<matflow_geom::CompleteParams>,
     lamps: bool,
 ) -> Result<LoadedScene> {
     let bundle = Bundle::open(bundle_dir)?;
@@ -666,12 +889,11 @@ pub fn load_scene(
     }
     let env = EnvMap::new(&env_img).with_context(|| format!("{}", env_path.display()))?;
     let t0 = Instant::now();
-    let params = complete.and_then(|m| m.params());
-    let mut scene = scene_from_depth(&depth, &maps, env.clone(), mesh_angle, params.as_ref())
+    let mut scene = scene_from_depth(&depth, &maps, env.clone(), mesh_angle, complete.as_ref())
         .with_context(|| format!("{}: building the scene", bundle_dir.display()))?
         .0;
-    if lamps && materials == MaterialSource::BestResults {
-        if let Some(mut l) = crate::lamps::bundle_lamps(bundle_dir)? {
+    if let Some(folder) = materials.folder().filter(|_| lamps) {
+        if let Some(mut l) = crate::lamps::bundle_lamps(bundle_dir, folder)? {
             if envmap.is_some() {
                 l.retain(|l| !l.is_distant());
             }
@@ -764,7 +986,7 @@ pub fn render(a: RenderArgs) -> Result<()> {
         a.envmap.as_deref(),
         a.mesh_angle,
         a.reference_compat,
-        Some(complete),
+        decision.params(),
         a.lamps.on(),
     )?;
     if !a.light_guide.on() {
@@ -1019,7 +1241,7 @@ pub fn mesh(a: MeshArgs) -> Result<()> {
         },
     )?;
     decision.print();
-    if let Some(params) = decision.mode.params() {
+    if let Some(params) = decision.params() {
         let c = matflow_geom::complete_beyond_frame(&mut m.mesh, &depth, &cam, &params);
         for f in &c.extended {
             outln!(

@@ -475,14 +475,17 @@ fn invert_completion(a: &InvertArgs) -> Result<crate::commands::CompletionDecisi
             choice,
             light: sky.describe(),
             materials: a.materials,
+            windows: None,
+            walls: None,
         }),
     })
 }
 
 /// Why `invert --complete auto` keeps `room` on a photo without sky.
-pub const NO_SKY: &str = "auto: the photo shows no unclipped sky, so nothing weighs the light \
-     each completion needs (every one explains the photo with a light of its own); room, which \
-     closes a room only where the view shows one";
+pub const NO_SKY: &str = "auto: the photo shows no unclipped open sky (none, or only through \
+     openings with geometry above them: a room's windows, which let in more light than the sky \
+     they show), so nothing weighs the light each completion needs (every one explains the photo \
+     with a light of its own); room, which closes a room only where the view shows one";
 
 pub fn invert_cmd(a: InvertArgs) -> Result<()> {
     let t0 = Instant::now();

@@ -1,7 +1,8 @@
 //! `best_results/lamps.json`: the lamps `matflow invert` fitted (point
 //! lights in camera space, and the sun: a distant light,
 //! [`matflow_render::Lamp`]), which `matflow render` of those maps lights
-//! the scene with unless told otherwise.
+//! the scene with unless told otherwise; `ground_truth/lamps.json`, the
+//! same for the true maps (the lamps a generated scene was lit by).
 
 use std::path::Path;
 
@@ -91,9 +92,11 @@ pub fn read_lamps(path: &Path) -> Result<Vec<Lamp>> {
     Ok(lamps)
 }
 
-/// The lamps of a bundle's `best_results/` maps, if it has any.
-pub fn bundle_lamps(bundle: &Path) -> Result<Option<Vec<Lamp>>> {
-    let p = bundle.join(LAMPS_FILE);
+/// The lamps that light a bundle's maps in `folder` (`best_results`:
+/// those `matflow invert` fitted; `ground_truth`: the true ones, e.g. the
+/// validation set's), from `FOLDER/lamps.json`, if it has any.
+pub fn bundle_lamps(bundle: &Path, folder: &str) -> Result<Option<Vec<Lamp>>> {
+    let p = bundle.join(folder).join("lamps.json");
     if p.exists() {
         read_lamps(&p).map(Some)
     } else {

@@ -22,7 +22,7 @@ use matflow_geom::CompleteParams;
 use matflow_scene::color::linear_to_gamma;
 use matflow_scene::{GrayImage, MaterialMaps, RgbImage};
 
-use crate::{render, scene_from_depth, EnvMap, PixelFilter, RenderError, RenderOptions};
+use crate::{render, EnvMap, PixelFilter, RenderError, RenderOptions};
 
 /// A geometry past the frame to be tested: its name and its completion
 /// (`None`: the depth mesh alone).
@@ -60,6 +60,12 @@ pub struct EvidenceOptions {
     /// Blocks whose hypotheses' renders spread by less than this (gamma
     /// encoded, mean over the channels) do not tell them apart.
     pub min_spread: f32,
+    /// Guide the light samples by the sky's visibility
+    /// ([`crate::RenderScene::set_light_guide`]); at a few samples per
+    /// pixel building the guide costs more than it saves.
+    pub light_guide: bool,
+    /// Lamps that light the scene besides the envmap (the photo's own).
+    pub lamps: Vec<crate::Lamp>,
 }
 
 impl Default for EvidenceOptions {
@@ -72,6 +78,8 @@ impl Default for EvidenceOptions {
             seed: 0x0e71_d3c3,
             tolerance_db: 0.5,
             min_spread: 0.02,
+            light_guide: false,
+            lamps: Vec::new(),
         }
     }
 }
@@ -116,6 +124,9 @@ pub struct CompletionChoice {
     pub reason: String,
     pub seconds: f64,
 }
+
+/// A render's two independent halves, as block means.
+type Halves = [Vec<[f32; 3]>; 2];
 
 /// Block means of `img`, linear, per channel, row by row.
 fn block_means(img: &RgbImage, block: usize) -> Vec<[f32; 3]> {
@@ -212,27 +223,56 @@ pub fn choose_completion(
     assert!(!hypotheses.is_empty(), "choose_completion: no hypothesis");
     let block = opts.block.max(1);
     let photo_blocks = block_means(photo, block);
-    let mut halves: Vec<[Vec<[f32; 3]>; 2]> = Vec::new();
-    let mut scores = Vec::new();
-    let mut meshes: Vec<u64> = Vec::new();
-    for h in hypotheses {
-        let t0 = std::time::Instant::now();
-        let (scene, _, _) =
-            scene_from_depth(depth, maps, env.clone(), mesh_angle_deg, h.params.as_ref())?;
-        if (scene.camera.width, scene.camera.height) != (photo.width, photo.height) {
-            return Err(RenderError::MaterialSize {
-                maps_width: photo.width,
-                maps_height: photo.height,
-                width: scene.camera.width,
-                height: scene.camera.height,
-            });
+    use rayon::prelude::*;
+    if (depth.width, depth.height) != (photo.width, photo.height) {
+        return Err(RenderError::MaterialSize {
+            maps_width: photo.width,
+            maps_height: photo.height,
+            width: depth.width,
+            height: depth.height,
+        });
+    }
+    // The hypotheses a few at a time (as many as there are threads: a
+    // mesh and its BVH are built mostly serially), each distinct mesh
+    // rendered once: a hypothesis that builds a mesh listed before it
+    // takes that one's halves.
+    let mut halves: Vec<Halves> = Vec::with_capacity(hypotheses.len());
+    let mut scores: Vec<HypothesisScore> = Vec::with_capacity(hypotheses.len());
+    let mut keys: Vec<u64> = Vec::with_capacity(hypotheses.len());
+    let chunk = rayon::current_num_threads().max(1);
+    for group in hypotheses.chunks(chunk) {
+        let built: Vec<(matflow_scene::Camera, matflow_geom::TriMesh, f64)> = group
+            .par_iter()
+            .map(|h| {
+                let t0 = std::time::Instant::now();
+                let (cam, mut m) = matflow_geom::mesh_for_view(depth, mesh_angle_deg)?;
+                if let Some(p) = h.params.as_ref() {
+                    matflow_geom::complete_beyond_frame(&mut m.mesh, depth, &cam, p);
+                }
+                Ok((cam, m.mesh, t0.elapsed().as_secs_f64()))
+            })
+            .collect::<Result<_, RenderError>>()?;
+        // Earlier hypotheses, this group's included, are pushed below
+        // before a later one needs their halves.
+        let mut same = Vec::with_capacity(group.len());
+        for (_, m, _) in &built {
+            let k = mesh_key(m);
+            same.push(keys.iter().position(|&o| o == k));
+            keys.push(k);
         }
-        // A mesh rendered already is not rendered again: its halves serve.
-        let key = mesh_key(&scene.mesh);
-        let same = meshes.iter().position(|&m| m == key);
-        let pair = match same {
-            Some(j) => halves[j].clone(),
-            None => {
+        let rendered: Vec<Option<(Halves, f64)>> = built
+            .into_par_iter()
+            .zip(same.par_iter())
+            .map(|((cam, mesh, tb), same)| {
+                if same.is_some() {
+                    return Ok(None);
+                }
+                let t0 = std::time::Instant::now();
+                let mut scene =
+                    crate::RenderScene::new_guided(cam, mesh, maps, env.clone(), opts.light_guide)?;
+                if !opts.lamps.is_empty() {
+                    scene.set_lamps(opts.lamps.clone())?;
+                }
                 let half = |k: u64| {
                     let o = RenderOptions {
                         spp: opts.spp_half.max(1),
@@ -243,20 +283,27 @@ pub fn choose_completion(
                     };
                     block_means(&render(&scene, &o, &|_, _| {}).image, block)
                 };
-                [half(0), half(1)]
-            }
-        };
-        halves.push(pair);
-        meshes.push(key);
-        scores.push(HypothesisScore {
-            name: h.name.clone(),
-            psnr_differing: 0.0,
-            psnr_all: 0.0,
-            gain: 1.0,
-            psnr_gained: 0.0,
-            same_as: same.map(|j| hypotheses[j].name.clone()),
-            seconds: t0.elapsed().as_secs_f64(),
-        });
+                Ok(Some(([half(0), half(1)], tb + t0.elapsed().as_secs_f64())))
+            })
+            .collect::<Result<_, RenderError>>()?;
+        for (i, (h, r)) in group.iter().zip(rendered).enumerate() {
+            let (pair, seconds) = match (r, same[i]) {
+                (Some(r), _) => r,
+                (None, Some(j)) => (halves[j].clone(), 0.0),
+                // Not reached: only a mesh seen before goes unrendered.
+                (None, None) => Default::default(),
+            };
+            halves.push(pair);
+            scores.push(HypothesisScore {
+                name: h.name.clone(),
+                psnr_differing: 0.0,
+                psnr_all: 0.0,
+                gain: 1.0,
+                psnr_gained: 0.0,
+                same_as: same[i].map(|j| hypotheses[j].name.clone()),
+                seconds,
+            });
+        }
     }
     // Where the hypotheses differ: the spread of their mean renders.
     let nb = photo_blocks.len();
@@ -338,6 +385,274 @@ pub fn choose_completion(
     })
 }
 
+/// What the finer tests ([`choose_windows`], [`choose_walls`]) test
+/// against: the view's depth and maps, the photo, and its light.
+#[derive(Clone, Copy)]
+pub struct PhotoView<'a> {
+    pub depth: &'a GrayImage,
+    pub maps: &'a MaterialMaps,
+    pub env: &'a EnvMap,
+    pub mesh_angle_deg: f64,
+    pub photo: &'a RgbImage,
+}
+
+impl PhotoView<'_> {
+    fn choose(
+        &self,
+        hypotheses: &[Hypothesis],
+        opts: &EvidenceOptions,
+    ) -> Result<CompletionChoice, RenderError> {
+        choose_completion(
+            self.depth,
+            self.maps,
+            self.env,
+            self.mesh_angle_deg,
+            self.photo,
+            hypotheses,
+            opts,
+        )
+    }
+}
+
+/// How many windows [`choose_windows`] opens at most.
+pub const MAX_WINDOWS: usize = 2;
+/// After its first round, [`choose_windows`] tries only the slots that
+/// scored best alone, this many.
+pub const WINDOW_SHORTLIST: usize = 4;
+
+/// Where the photo puts a closed room's windows past the frame.
+#[derive(Clone, Debug, PartialEq)]
+pub struct WindowChoice {
+    /// [`CompleteParams::windows`] of the room taken.
+    pub mask: u32,
+    /// Every place the room may have a window.
+    pub slots: Vec<matflow_geom::WindowSlot>,
+    /// The windows opened, in the order they were.
+    pub opened: Vec<matflow_geom::WindowSlot>,
+    /// Each round's test: the room so far (first), and with one more
+    /// window in each free slot.
+    pub rounds: Vec<CompletionChoice>,
+    /// The last test: the room found against the typical one (a window
+    /// centred in each assumed wall); `typical` when that one won.
+    pub against_typical: Option<CompletionChoice>,
+    pub typical: bool,
+    pub seconds: f64,
+}
+
+/// Where the windows of the room that `base` closes are, as far as the
+/// photo tells (materials and light given): starting from the room with
+/// no window, each round tests one more window in each free slot
+/// ([`matflow_geom::window_slots`]: thirds of the walls and the ceiling
+/// past the frame) with [`choose_completion`], and opens the one that
+/// explains the photo best, while one beats the room so far by more than
+/// the tolerance, up to [`MAX_WINDOWS`]. The room found is then tested
+/// against `base`'s typical windows, which it must beat by the tolerance.
+/// `None` when `base` closes no room in this view.
+pub fn choose_windows(
+    view: &PhotoView,
+    base: &CompleteParams,
+    opts: &EvidenceOptions,
+) -> Result<Option<WindowChoice>, RenderError> {
+    let t0 = std::time::Instant::now();
+    let cam = matflow_scene::Camera::new(view.depth.width, view.depth.height);
+    let slots = matflow_geom::window_slots(view.depth, &cam, base);
+    if slots.is_empty() {
+        return Ok(None);
+    }
+    let with = |mask: u32| Hypothesis {
+        name: window_name(&slots, mask),
+        params: Some(CompleteParams {
+            close: true,
+            windows: Some(mask),
+            ..*base
+        }),
+    };
+    let mut mask = 0u32;
+    let mut opened = Vec::new();
+    let mut rounds = Vec::new();
+    let mut slots_left = slots.clone();
+    for _ in 0..MAX_WINDOWS {
+        let free: Vec<matflow_geom::WindowSlot> = slots_left
+            .iter()
+            .filter(|s| mask >> s.bit & 1 == 0)
+            .copied()
+            .collect();
+        if free.is_empty() {
+            break;
+        }
+        let mut hyps = vec![with(mask)];
+        hyps.extend(free.iter().map(|s| with(mask | 1 << s.bit)));
+        let c = view.choose(&hyps, opts)?;
+        let chosen = c.chosen;
+        if rounds.is_empty() {
+            // Later rounds try the slots that explained the photo best
+            // alone.
+            let mut by: Vec<usize> = (1..c.scores.len()).collect();
+            by.sort_by(|&a, &b| {
+                c.scores[b]
+                    .psnr_differing
+                    .total_cmp(&c.scores[a].psnr_differing)
+                    .then(a.cmp(&b))
+            });
+            let keep: Vec<u32> = by
+                .iter()
+                .take(WINDOW_SHORTLIST)
+                .map(|&i| free[i - 1].bit)
+                .collect();
+            slots_left.retain(|s| keep.contains(&s.bit));
+        }
+        rounds.push(c);
+        if chosen == 0 {
+            break;
+        }
+        mask |= 1 << free[chosen - 1].bit;
+        opened.push(free[chosen - 1]);
+    }
+    let typical = Hypothesis {
+        name: "typical windows".to_string(),
+        params: Some(*base),
+    };
+    let last = view.choose(&[with(mask), typical], opts)?;
+    let is_typical = last.chosen == 1;
+    Ok(Some(WindowChoice {
+        mask,
+        slots,
+        opened,
+        rounds,
+        against_typical: Some(last),
+        typical: is_typical,
+        seconds: t0.elapsed().as_secs_f64(),
+    }))
+}
+
+/// How many assumed walls (or the ceiling) [`choose_walls`] adds at most.
+pub const MAX_WALLS: usize = 2;
+
+/// Which of a room's unseen walls (and its ceiling) the photo shows the
+/// effect of, in a view it found open.
+#[derive(Clone, Debug, PartialEq)]
+pub struct WallChoice {
+    /// [`CompleteParams::assumed`] of the room taken.
+    pub mask: u32,
+    /// Every ceiling and wall that closing the room would assume.
+    pub planes: Vec<matflow_geom::AssumedPlane>,
+    /// Those added, in order.
+    pub added: Vec<matflow_geom::AssumedPlane>,
+    /// Each round's test: the view so far (first), and with one more.
+    pub rounds: Vec<CompletionChoice>,
+    /// The last test: the completion the first test took (`start`)
+    /// against the one found; `kept_start` when that one stayed.
+    pub against_start: Option<CompletionChoice>,
+    pub kept_start: bool,
+    pub seconds: f64,
+}
+
+/// Whether the photo shows the effect of unseen walls (or a ceiling) in
+/// a view whose first test took an open completion (`start`: none or
+/// planes): from the planes seen, each round adds one of the walls and
+/// the ceiling that closing the room `base` would assume (solid, as high
+/// as its ceiling would be; [`matflow_geom::assumed_planes`]) and keeps
+/// the one that explains the photo best while it beats the view so far
+/// by the tolerance, up to [`MAX_WALLS`]: a wall out of view casting its
+/// shadow on the floor seen, say. What it found is then tested against
+/// `start`, which it must beat by the tolerance. `None` when the view
+/// closes no room.
+pub fn choose_walls(
+    view: &PhotoView,
+    start: &Hypothesis,
+    base: &CompleteParams,
+    opts: &EvidenceOptions,
+) -> Result<Option<WallChoice>, RenderError> {
+    let t0 = std::time::Instant::now();
+    let cam = matflow_scene::Camera::new(view.depth.width, view.depth.height);
+    let planes = matflow_geom::assumed_planes(view.depth, &cam, base);
+    if planes.is_empty() {
+        return Ok(None);
+    }
+    let with = |mask: u32| Hypothesis {
+        name: wall_name(&planes, mask),
+        params: Some(walled(base, mask)),
+    };
+    let mut mask = 0u32;
+    let mut added = Vec::new();
+    let mut rounds = Vec::new();
+    for _ in 0..MAX_WALLS {
+        let free: Vec<matflow_geom::AssumedPlane> = planes
+            .iter()
+            .filter(|p| mask >> p.bit & 1 == 0)
+            .copied()
+            .collect();
+        if free.is_empty() {
+            break;
+        }
+        let mut hyps = vec![with(mask)];
+        hyps.extend(free.iter().map(|p| with(mask | 1 << p.bit)));
+        let c = view.choose(&hyps, opts)?;
+        let chosen = c.chosen;
+        rounds.push(c);
+        if chosen == 0 {
+            break;
+        }
+        mask |= 1 << free[chosen - 1].bit;
+        added.push(free[chosen - 1]);
+    }
+    let (against_start, kept_start) = if mask == 0 {
+        (None, true)
+    } else {
+        let last = view.choose(&[start.clone(), with(mask)], opts)?;
+        let kept = last.chosen == 0;
+        (Some(last), kept)
+    };
+    Ok(Some(WallChoice {
+        mask,
+        planes,
+        added,
+        rounds,
+        against_start,
+        kept_start,
+        seconds: t0.elapsed().as_secs_f64(),
+    }))
+}
+
+/// The completion of `base`'s room with only the assumed ceiling and
+/// walls of `mask` ([`CompleteParams::assumed`]), solid (no window).
+pub fn walled(base: &CompleteParams, mask: u32) -> CompleteParams {
+    CompleteParams {
+        close: true,
+        assumed: Some(mask),
+        windows: Some(0),
+        ..*base
+    }
+}
+
+/// The assumed walls of `mask` in words: "the planes seen", else each.
+pub fn wall_name(planes: &[matflow_geom::AssumedPlane], mask: u32) -> String {
+    let on: Vec<String> = planes
+        .iter()
+        .filter(|p| mask >> p.bit & 1 == 1)
+        .map(|p| p.describe())
+        .collect();
+    if on.is_empty() {
+        "the planes seen".to_string()
+    } else {
+        format!("the planes seen and {}", on.join(", "))
+    }
+}
+
+/// A room's windows in words: "no window", else each slot opened.
+pub fn window_name(slots: &[matflow_geom::WindowSlot], mask: u32) -> String {
+    let open: Vec<String> = slots
+        .iter()
+        .filter(|s| mask >> s.bit & 1 == 1)
+        .map(|s| s.describe())
+        .collect();
+    if open.is_empty() {
+        "no window".to_string()
+    } else {
+        format!("window: {}", open.join("; "))
+    }
+}
+
 /// A hash of a mesh's triangles, positions and openness: hypotheses that
 /// complete a view alike are rendered once.
 fn mesh_key(m: &matflow_geom::TriMesh) -> u64 {
@@ -368,6 +683,11 @@ pub struct SeenSky {
     pub seen_texels: usize,
     /// Their mean radiance (linear RGB).
     pub level: [f32; 3],
+    /// Of those, the ones with no geometry above them in their column of
+    /// the image: sky seen past the scene, not through an opening in
+    /// what the view shows (a window under its lintel, a missing wall
+    /// under the ceiling).
+    pub open_pixels: usize,
 }
 
 /// Radiance of the ground (below the horizon) in [`seen_sky_light`], as a
@@ -405,12 +725,24 @@ pub fn seen_sky_light(
     let mut acc = vec![[0.0f64; 4]; w * h];
     let mut total = [0.0f64; 3];
     let mut pixels = 0usize;
+    let mut open_pixels = 0usize;
+    // Per column, the first row (from the top) that shows geometry.
+    let top: Vec<usize> = (0..depth.width)
+        .map(|x| {
+            (0..depth.height)
+                .find(|&y| depth.get(x, y) > 0.0)
+                .unwrap_or(depth.height)
+        })
+        .collect();
     for y in 0..photo.height {
         for x in 0..photo.width {
             let z = depth.get(x, y);
             let v = photo.get(x, y);
             if z > 0.0 || !v.is_finite() || v.max_element() >= saturated || v.min_element() < 0.0 {
                 continue;
+            }
+            if y < top[x] {
+                open_pixels += 1;
             }
             let d = cam
                 .film_to_dir(glam::Vec2::new(x as f32 + 0.5, y as f32 + 0.5))
@@ -460,6 +792,7 @@ pub fn seen_sky_light(
         pixels,
         seen_texels,
         level,
+        open_pixels,
     })
 }
 
@@ -500,6 +833,12 @@ pub fn choose_under_seen_sky(
     let Some(sky) = seen_sky_light(photo, depth, &cam, up, 32, 16, clip_level(photo)) else {
         return Ok(None);
     };
+    // Sky seen only through openings of what the view shows (a window
+    // under its lintel): a room's windows, which let in more than the
+    // sky they show (the sun, lamps); the view is not open.
+    if (sky.open_pixels as f64) < SEEN_SKY_MIN_SHARE * (photo.width * photo.height) as f64 {
+        return Ok(None);
+    }
     let env = EnvMap::new(&sky.env)?;
     let choice = choose_completion(depth, maps, &env, mesh_angle_deg, photo, hypotheses, opts)?;
     Ok(Some((choice, sky)))
@@ -519,6 +858,7 @@ impl SeenSky {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::scene_from_depth;
     use glam::Vec3;
     use matflow_scene::Camera;
 
@@ -617,6 +957,159 @@ mod tests {
     }
 
     #[test]
+    fn the_photo_places_a_closed_room_s_windows_where_they_explain_it() {
+        let depth = floor_and_wall();
+        let maps = MaterialMaps::uniform(N, N, Vec3::splat(0.6), 0.8, 0.0);
+        let cam = Camera::new(N, N);
+        let base = CompleteParams::for_mode("room").unwrap();
+        let slots = matflow_geom::window_slots(&depth, &cam, &base);
+        let opts = EvidenceOptions {
+            spp_half: 4,
+            block: 4,
+            ..Default::default()
+        };
+        let shot = |p: &CompleteParams, seed: u64| {
+            let (scene, _, _) = scene_from_depth(&depth, &maps, sky(), 6.0, Some(p)).unwrap();
+            let o = RenderOptions {
+                spp: 256,
+                seed,
+                ..Default::default()
+            };
+            render(&scene, &o, &|_, _| {}).image
+        };
+        let psnr = |a: &RgbImage, b: &RgbImage| {
+            let mut se = 0.0f64;
+            for (x, y) in a.data.iter().zip(&b.data) {
+                for c in 0..3 {
+                    let d = linear_to_gamma(x[c]) - linear_to_gamma(y[c]);
+                    se += (d * d) as f64;
+                }
+            }
+            -10.0 * (se / (3 * a.data.len()) as f64).log10()
+        };
+        // The room lit through one window: the left wall's middle third,
+        // then a skylight's last third.
+        for want in ["wall left (assumed), third 2", "ceiling (assumed), third 3"] {
+            let slot = slots
+                .iter()
+                .find(|s| s.describe() == want)
+                .unwrap_or_else(|| panic!("{want} in {slots:?}"));
+            let truth = CompleteParams {
+                windows: Some(1 << slot.bit),
+                ..base
+            };
+            let photo = shot(&truth, 99);
+            let env = sky();
+            let view = PhotoView {
+                depth: &depth,
+                maps: &maps,
+                env: &env,
+                mesh_angle_deg: 6.0,
+                photo: &photo,
+            };
+            let w = choose_windows(&view, &base, &opts)
+                .unwrap()
+                .expect("a closed room");
+            assert_eq!(w.slots, slots);
+            assert!(!w.typical && !w.opened.is_empty(), "{want}: {w:?}");
+            // The first round tested every slot.
+            assert_eq!(w.rounds[0].scores.len(), slots.len() + 1);
+            // The room found, rendered anew, explains the photo about as
+            // well as the truth does (another render of it: the noise
+            // floor), and far better than no window or the typical ones.
+            let found = CompleteParams {
+                windows: Some(w.mask),
+                ..base
+            };
+            let floor = psnr(&shot(&truth, 7), &photo);
+            let got = psnr(&shot(&found, 7), &photo);
+            let closed = psnr(
+                &shot(
+                    &CompleteParams {
+                        windows: Some(0),
+                        ..base
+                    },
+                    7,
+                ),
+                &photo,
+            );
+            let typical = psnr(&shot(&base, 7), &photo);
+            assert!(
+                got > floor - 1.5,
+                "{want}: {got:.2} dB, the truth's {floor:.2}: {w:?}"
+            );
+            assert!(
+                got > closed + 3.0 && got > typical + 3.0,
+                "{want}: {got:.2} against closed {closed:.2}, typical {typical:.2}"
+            );
+        }
+        // A view that closes no room has no window to place.
+        let sky_only = GrayImage::new(16, 16, 0.0);
+        let m16 = MaterialMaps::uniform(16, 16, Vec3::splat(0.5), 0.5, 0.0);
+        let photo = RgbImage::new(16, 16, Vec3::splat(0.7));
+        let env = sky();
+        let view = PhotoView {
+            depth: &sky_only,
+            maps: &m16,
+            env: &env,
+            mesh_angle_deg: 6.0,
+            photo: &photo,
+        };
+        assert!(choose_windows(&view, &base, &opts).unwrap().is_none());
+    }
+
+    #[test]
+    fn the_photo_adds_an_unseen_wall_whose_effect_it_shows() {
+        let depth = floor_and_wall();
+        let maps = MaterialMaps::uniform(N, N, Vec3::splat(0.6), 0.8, 0.0);
+        let cam = Camera::new(N, N);
+        let room = CompleteParams::for_mode("room").unwrap();
+        let planes = matflow_geom::assumed_planes(&depth, &cam, &room);
+        let opts = EvidenceOptions {
+            spp_half: 4,
+            block: 4,
+            ..Default::default()
+        };
+        let start = hyps()[1].clone();
+        let shot = |p: Option<&CompleteParams>| {
+            let (scene, _, _) = scene_from_depth(&depth, &maps, sky(), 6.0, p).unwrap();
+            let o = RenderOptions {
+                spp: 256,
+                seed: 99,
+                ..Default::default()
+            };
+            render(&scene, &o, &|_, _| {}).image
+        };
+        // The photo of the planes seen and a wall behind the camera that
+        // shuts out half the sky: the wall is found and taken.
+        let behind = planes
+            .iter()
+            .find(|p| p.describe() == "wall behind")
+            .expect("a wall behind");
+        let photo = shot(Some(&walled(&room, 1 << behind.bit)));
+        let env = sky();
+        let view = |photo| PhotoView {
+            depth: &depth,
+            maps: &maps,
+            env: &env,
+            mesh_angle_deg: 6.0,
+            photo,
+        };
+        let w = choose_walls(&view(&photo), &start, &room, &opts)
+            .unwrap()
+            .expect("a room to close");
+        assert_eq!(w.planes, planes);
+        assert_eq!(w.added.first(), Some(behind), "{w:?}");
+        assert!(!w.kept_start, "{w:?}");
+        // The photo of the planes seen alone: nothing is added.
+        let photo = shot(start.params.as_ref());
+        let w = choose_walls(&view(&photo), &start, &room, &opts)
+            .unwrap()
+            .expect("a room to close");
+        assert!(w.kept_start, "{w:?}");
+    }
+
+    #[test]
     fn hypotheses_that_render_alike_are_no_evidence() {
         // A view of the sky alone: nothing to complete, every hypothesis
         // builds the same (empty) mesh.
@@ -672,6 +1165,20 @@ mod tests {
         let sky = seen_sky_light(&photo, &depth, &cam, Vec3::Y, 32, 16, 0.98).unwrap();
         let sky_pixels = depth.data.iter().filter(|&&z| z == 0.0).count();
         assert_eq!(sky.pixels, sky_pixels);
+        // All of it above the wall: open sky.
+        assert_eq!(sky.open_pixels, sky_pixels);
+        // A window in the wall, under its lintel: sky, not open.
+        let mut windowed = depth.clone();
+        let (rows, cols) = (30..36, 10..20);
+        for y in rows.clone() {
+            for x in cols.clone() {
+                assert!(windowed.get(x, y) > 0.0, "the wall at {x},{y}");
+                windowed.data[y * N + x] = 0.0;
+            }
+        }
+        let through = seen_sky_light(&photo, &windowed, &cam, Vec3::Y, 32, 16, 0.98).unwrap();
+        assert_eq!(through.pixels, sky_pixels + rows.len() * cols.len());
+        assert_eq!(through.open_pixels, sky_pixels);
         assert!(
             sky.seen_texels > 0 && sky.seen_texels < 32 * 16 / 4,
             "{sky:?}"

@@ -45,6 +45,19 @@ pub fn scene_from_depth(
     mesh_angle_deg: f64,
     complete: Option<&CompleteParams>,
 ) -> Result<(RenderScene, MeshStats, Completion), RenderError> {
+    scene_from_depth_guided(depth, maps, env, mesh_angle_deg, complete, true)
+}
+
+/// As [`scene_from_depth`], the light guide built or not
+/// ([`RenderScene::new_guided`]).
+pub fn scene_from_depth_guided(
+    depth: &GrayImage,
+    maps: &MaterialMaps,
+    env: EnvMap,
+    mesh_angle_deg: f64,
+    complete: Option<&CompleteParams>,
+    guided: bool,
+) -> Result<(RenderScene, MeshStats, Completion), RenderError> {
     let (
         cam,
         DepthMesh {
@@ -54,7 +67,11 @@ pub fn scene_from_depth(
     let completion = complete
         .map(|p| complete_beyond_frame(&mut mesh, depth, &cam, p))
         .unwrap_or_default();
-    Ok((RenderScene::new(cam, mesh, maps, env)?, stats, completion))
+    Ok((
+        RenderScene::new_guided(cam, mesh, maps, env, guided)?,
+        stats,
+        completion,
+    ))
 }
 
 /// The material of an inserted object's surface. Unlike the screen-space
@@ -333,13 +350,36 @@ impl RenderScene {
         RenderScene::with_objects(camera, mesh, maps, env, &[])
     }
 
+    /// As [`RenderScene::new`], the light guide built or not (a scene
+    /// rendered once at a few samples may not repay it).
+    pub fn new_guided(
+        camera: Camera,
+        mesh: TriMesh,
+        maps: &MaterialMaps,
+        env: EnvMap,
+        guided: bool,
+    ) -> Result<RenderScene, RenderError> {
+        RenderScene::build(camera, mesh, maps, env, &[], guided)
+    }
+
     /// The scene with objects added to the depth mesh.
     pub fn with_objects(
+        camera: Camera,
+        mesh: TriMesh,
+        maps: &MaterialMaps,
+        env: EnvMap,
+        objects: &[SceneObject],
+    ) -> Result<RenderScene, RenderError> {
+        RenderScene::build(camera, mesh, maps, env, objects, true)
+    }
+
+    fn build(
         camera: Camera,
         mut mesh: TriMesh,
         maps: &MaterialMaps,
         env: EnvMap,
         objects: &[SceneObject],
+        guided: bool,
     ) -> Result<RenderScene, RenderError> {
         if maps.width() != camera.width || maps.height() != camera.height {
             return Err(RenderError::MaterialSize {
@@ -441,7 +481,9 @@ impl RenderScene {
             portals,
             portal_share: crate::portal::PORTAL_SHARE,
         };
-        scene.set_light_guide(Some(&crate::guide::GuideParams::default()));
+        if guided {
+            scene.set_light_guide(Some(&crate::guide::GuideParams::default()));
+        }
         Ok(scene)
     }
 

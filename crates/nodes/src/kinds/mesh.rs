@@ -16,7 +16,8 @@ pub struct MeshNode;
 const COMPLETE_CHOICES: [&str; 5] = ["auto", "none", "planes", "room", "closed"];
 
 /// The mode `auto` takes for the scene `s`: the photo's choice under the
-/// sky it shows, else room (no photo, or no sky to weigh the light by).
+/// sky it shows, else room (no photo, or no open sky to weigh the light
+/// by: a sky seen only through windows comes with light it does not show).
 fn auto_mode(s: &SceneData, angle: f64) -> Result<&'static str, NodeError> {
     let Some(photo) = &s.target else {
         return Ok("room");
@@ -36,7 +37,7 @@ fn auto_mode(s: &SceneData, angle: f64) -> Result<&'static str, NodeError> {
 
 const MESH_INFO: NodeInfo = NodeInfo {
     kind: "mesh",
-    version: 5,
+    version: 6,
     doc: "The triangle mesh of a scene's depth map (one vertex per pixel, cut at depth \
          discontinuities found by the reference's angle test), optionally completed past the \
          frame.",
@@ -68,7 +69,7 @@ const MESH_INFO: NodeInfo = NodeInfo {
                   continued); room (also a room the view shows closed, each assumed wall with a \
                   typical window); closed (assumed walls without windows); auto (the least \
                   assuming the photo supports, each tested with the predicted maps under the sky \
-                  the photo shows, as `invert --complete auto`; room where it shows none)",
+                  the photo shows, as `invert --complete auto`; room where it shows no open sky: none, or only through windows)",
         },
     ],
     outputs: &[OutputSpec {
