@@ -100,6 +100,13 @@ pub struct CompleteParams {
 /// The bit of [`CompleteParams::assumed`] that raises the walls seen of a
 /// room without a ceiling to the height its ceiling would have.
 pub const RAISE_SEEN_WALLS: u32 = 1 << 31;
+/// The bit of [`CompleteParams::assumed`] that raises every wall of a
+/// room without a ceiling, seen or assumed, to [`HIGH_WALLS`] camera
+/// heights above the floor (or the ceiling's height, if higher): a
+/// courtyard's walls, taller than a room's.
+pub const RAISE_WALLS_HIGH: u32 = 1 << 30;
+/// How high [`RAISE_WALLS_HIGH`] raises walls, in camera heights.
+pub const HIGH_WALLS: f32 = 3.0;
 
 impl Default for CompleteParams {
     fn default() -> Self {
@@ -254,6 +261,9 @@ impl AssumedPlane {
         if 1 << self.bit == RAISE_SEEN_WALLS {
             return "the walls seen raised to the room's height".to_string();
         }
+        if 1 << self.bit == RAISE_WALLS_HIGH {
+            return format!("every wall raised to {HIGH_WALLS} camera heights");
+        }
         WindowSlot {
             bit: self.bit,
             kind: self.kind,
@@ -266,8 +276,8 @@ impl AssumedPlane {
 }
 
 /// The ceiling and walls that closing the room of view `z` would assume,
-/// and (as bit [`RAISE_SEEN_WALLS`]) the walls seen raised to its height
-/// when no ceiling is seen (empty when the view shows no room).
+/// and, when no ceiling is seen, the walls raised ([`RAISE_SEEN_WALLS`],
+/// [`RAISE_WALLS_HIGH`]) (empty when the view shows no room).
 pub fn assumed_planes(z: &GrayImage, cam: &Camera, p: &CompleteParams) -> Vec<AssumedPlane> {
     let q = CompleteParams {
         close: true,
@@ -287,11 +297,13 @@ pub fn assumed_planes(z: &GrayImage, cam: &Camera, p: &CompleteParams) -> Vec<As
         .iter()
         .any(|x| !x.assumed && x.fit.kind == PlaneKind::Ceiling);
     if let (Some(w), false, Some(_)) = (seen_wall, seen_ceiling, e.room) {
-        out.push(AssumedPlane {
-            bit: RAISE_SEEN_WALLS.trailing_zeros(),
-            kind: PlaneKind::Wall,
-            normal: w.fit.plane.n,
-        });
+        for bit in [RAISE_SEEN_WALLS, RAISE_WALLS_HIGH] {
+            out.push(AssumedPlane {
+                bit: bit.trailing_zeros(),
+                kind: PlaneKind::Wall,
+                normal: w.fit.plane.n,
+            });
+        }
     }
     out
 }
@@ -787,13 +799,14 @@ pub fn extensions(z: &GrayImage, cam: &Camera, p: &CompleteParams) -> Extensions
                 poly = clip(&poly, o.plane.n, o.plane.d);
             }
         }
-        let raise = room.filter(|_| p.assumed.is_some_and(|m| m & RAISE_SEEN_WALLS != 0));
-        if f.kind == PlaneKind::Wall && !has_ceiling && raise.is_some() {
-            // Seen walls taken to continue up to where the room's
-            // ceiling would be (beyond the frame's top).
-            if let Some(rb) = raise {
-                poly = clip(&poly, -up, rb.height - rb.camera_height);
-            }
+        // Walls taken to continue up past the frame's top: to where the
+        // room's ceiling would be, or higher.
+        let raised = |bit: u32| room.filter(|_| p.assumed.is_some_and(|m| m & bit != 0));
+        let raise_to = raised(RAISE_WALLS_HIGH)
+            .map(|rb| rb.height.max(HIGH_WALLS * rb.camera_height) - rb.camera_height)
+            .or(raised(RAISE_SEEN_WALLS).map(|rb| rb.height - rb.camera_height));
+        if let Some(top) = raise_to.filter(|_| f.kind == PlaneKind::Wall && !has_ceiling) {
+            poly = clip(&poly, -up, top);
         } else if f.kind == PlaneKind::Wall && !has_ceiling {
             if let Some(top) = on.iter().map(|&j| up.dot(points[j].0)).reduce(f32::max) {
                 poly = clip(&poly, -up, top);
@@ -1758,35 +1771,40 @@ mod tests {
         );
     }
 
+    /// The completion of `base`'s room in view `z` with the assumed planes
+    /// (and raised walls) of `mask`, no window.
+    fn walled(z: &GrayImage, cam: &Camera, base: &CompleteParams, mask: u32) -> TriMesh {
+        let mut m = TriMesh::default();
+        complete_beyond_frame(
+            &mut m,
+            z,
+            cam,
+            &CompleteParams {
+                assumed: Some(mask),
+                windows: Some(0),
+                ..*base
+            },
+        );
+        m
+    }
+
     #[test]
     fn assumed_walls_and_the_ceiling_are_kept_one_by_one() {
         let cam = Camera::new(96, 72);
         let z = render_planes(&cam, &FLOOR_AND_WALL);
         let base = CompleteParams::for_mode("room").unwrap();
         let planes = assumed_planes(&z, &cam, &base);
-        // The ceiling, the walls left, behind and right, and the walls seen
-        // raised (no ceiling in view).
+        // The ceiling, the walls left, behind and right, and the walls
+        // raised two ways (no ceiling in view).
         let names: Vec<String> = planes.iter().map(|p| p.describe()).collect();
-        assert_eq!(planes.len(), 5, "{names:?}");
+        assert_eq!(planes.len(), 6, "{names:?}");
         for n in ["ceiling", "wall left", "wall behind", "wall right"] {
             assert!(names.iter().any(|x| x == n), "{n} in {names:?}");
         }
-        assert!(names.last().unwrap().starts_with("the walls seen raised"));
+        assert!(names[4].starts_with("the walls seen raised"));
+        assert!(names[5].starts_with("every wall raised"));
         let bit = |n: &str| 1u32 << planes.iter().find(|p| p.describe() == n).unwrap().bit;
-        let build = |mask: u32| {
-            let mut m = TriMesh::default();
-            complete_beyond_frame(
-                &mut m,
-                &z,
-                &cam,
-                &CompleteParams {
-                    assumed: Some(mask),
-                    windows: Some(0),
-                    ..base
-                },
-            );
-            m
-        };
+        let build = |mask: u32| walled(&z, &cam, &base, mask);
         // Nothing assumed: open behind and above.
         let open = build(0);
         assert!(hit(&open, 0, Vec3::Z).is_none());
@@ -1815,8 +1833,32 @@ mod tests {
         let raised = build(RAISE_SEEN_WALLS);
         let t = hit(&raised, 0, above_frame).expect("the wall seen, raised");
         assert!((t * -above_frame.z - 8.0).abs() < 1e-2, "{t}");
+        // Raised high (a near wall: the room's assumed height, 1.8 camera
+        // heights, is under three): the wall seen and the assumed wall
+        // behind reach 2.7 above the floor, 1.8 above the camera.
+        let near = render_planes(&cam, &[(Vec3::Y, 0.9), (Vec3::Z, 4.0)]);
+        let near_planes = assumed_planes(&near, &cam, &base);
+        let behind_bit = near_planes
+            .iter()
+            .find(|p| p.describe() == "wall behind")
+            .map(|p| 1u32 << p.bit)
+            .expect("a wall behind");
+        let build_near = |mask: u32| walled(&near, &cam, &base, mask);
+        let high = build_near(RAISE_WALLS_HIGH | behind_bit);
+        let low = build_near(RAISE_SEEN_WALLS | behind_bit);
+        let ahead = Vec3::new(0.0, 1.7, -4.0).normalize();
+        let t = hit(&high, 0, ahead).expect("the wall seen, high");
+        assert!((t * -ahead.z - 4.0).abs() < 1e-2, "{t}");
+        assert!(hit(&low, 0, ahead).is_none(), "the room's height is lower");
+        assert!(hit(&high, 0, Vec3::new(0.0, 1.7, 0.45).normalize()).is_some());
+        assert!(hit(&high, 0, Vec3::new(0.0, 1.9, 0.45).normalize()).is_none());
         // Every plane kept is the closed room.
-        let every = build(planes.iter().fold(0, |m, p| m | 1 << p.bit));
+        let every = build(
+            planes
+                .iter()
+                .filter(|p| p.kind == PlaneKind::Ceiling || p.bit < 30)
+                .fold(0, |m, p| m | 1 << p.bit),
+        );
         assert_eq!(every.indices.len(), all.indices.len());
     }
 

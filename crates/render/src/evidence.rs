@@ -551,7 +551,8 @@ pub struct WallChoice {
 /// a view whose first test took an open completion (`start`: none or
 /// planes): from the planes seen, each round adds one of the walls and
 /// the ceiling that closing the room `base` would assume (solid, as high
-/// as its ceiling would be; [`matflow_geom::assumed_planes`]) and keeps
+/// as its ceiling would be), or raises the walls
+/// ([`matflow_geom::assumed_planes`] lists both), and keeps
 /// the one that explains the photo best while it beats the view so far
 /// by the tolerance, up to [`MAX_WALLS`]: a wall out of view casting its
 /// shadow on the floor seen, say. What it found is then tested against
