@@ -83,7 +83,7 @@ pub struct CompleteParams {
     pub small_wall: f64,
     /// With `close`, the windows of the closed room chosen one by one
     /// instead of `assumed_opening`'s typical window in each assumed
-    /// wall: bit `3·k + t` opens the `t`-th third of the `k`-th bounding
+    /// wall: bit `5·k + t` opens part `t` ([`WindowSlot::part`]) of the `k`-th bounding
     /// plane that runs past the frame (a wall, seen or assumed, or the
     /// ceiling; see [`WindowSlot`]). `Some(0)` closes every window;
     /// [`window_slots`] lists the slots a view has.
@@ -269,7 +269,7 @@ impl AssumedPlane {
             kind: self.kind,
             assumed: true,
             normal: self.normal,
-            third: 0,
+            part: 0,
         }
         .place()
     }
@@ -309,9 +309,10 @@ pub fn assumed_planes(z: &GrayImage, cam: &Camera, p: &CompleteParams) -> Vec<As
 }
 
 /// A place past the frame where a closed room may have a window
-/// ([`CompleteParams::windows`]): a third of a wall's length over the
-/// window band ([`WINDOW_BAND`] of the room's height), or a third of the
-/// ceiling over the middle half of its width (a skylight).
+/// ([`CompleteParams::windows`]): a third of a wall's length, or all of
+/// its length, over the window band ([`WINDOW_BAND`] of the room's
+/// height), or the whole wall (missing); on the ceiling likewise, over
+/// the middle half of its width (skylights), or the whole ceiling.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct WindowSlot {
     /// Its bit in [`CompleteParams::windows`].
@@ -322,19 +323,25 @@ pub struct WindowSlot {
     /// The plane's normal (towards the camera's side): the plane lies in
     /// the direction −normal from the camera.
     pub normal: Vec3,
-    /// Which third along it (0, 1, 2).
-    pub third: u32,
+    /// Which part of it: a third along it (0, 1, 2), its whole band
+    /// ([`SLOT_BAND`]) or all of it ([`SLOT_ALL`]: the plane missing past
+    /// the frame, a wall left out or a room open to the sky).
+    pub part: u32,
 }
 
 impl WindowSlot {
     /// Where it is, in words: the plane (ceiling; the wall ahead, behind,
     /// left or right, as the camera sees it; seen or assumed) and the third.
     pub fn describe(&self) -> String {
+        let part = match self.part {
+            SLOT_BAND => "its window band".to_string(),
+            SLOT_ALL => "all of it".to_string(),
+            t => format!("third {}", t + 1),
+        };
         format!(
-            "{} ({}), third {}",
+            "{} ({}), {part}",
             self.place(),
-            if self.assumed { "assumed" } else { "seen" },
-            self.third + 1
+            if self.assumed { "assumed" } else { "seen" }
         )
     }
 
@@ -361,9 +368,16 @@ impl WindowSlot {
     }
 }
 
+/// Slots a plane has: three thirds, its band, all of it.
+pub const SLOT_PARTS: u32 = 5;
+/// [`WindowSlot::part`] of a window along all of the plane's band.
+pub const SLOT_BAND: u32 = 3;
+/// [`WindowSlot::part`] of the plane missing past the frame altogether.
+pub const SLOT_ALL: u32 = 4;
+
 /// Bounding planes past [`MAX_WINDOW_PLANES`] get no window slots (the
 /// mask's bits run out).
-pub const MAX_WINDOW_PLANES: usize = 10;
+pub const MAX_WINDOW_PLANES: usize = 6;
 
 /// The window slots of the room that completion `p` closes in the view
 /// `z` (empty when it closes none).
@@ -820,24 +834,24 @@ pub fn extensions(z: &GrayImage, cam: &Camera, p: &CompleteParams) -> Extensions
             && p.windows.is_some()
             && f.reaches.iter().any(|&r| r)
             && matches!(f.kind, PlaneKind::Wall | PlaneKind::Ceiling))
-        .then_some(window_slots.len() / 3)
+        .then_some(window_slots.len() / SLOT_PARTS as usize)
         .filter(|&j| j < MAX_WINDOW_PLANES);
         if let Some(j) = slot_plane {
-            window_slots.extend((0..3).map(|t| WindowSlot {
-                bit: (3 * j) as u32 + t,
+            window_slots.extend((0..SLOT_PARTS).map(|t| WindowSlot {
+                bit: SLOT_PARTS * j as u32 + t,
                 kind: f.kind,
                 assumed,
                 normal: n,
-                third: t,
+                part: t,
             }));
         }
         let pieces = if !f.reaches.iter().any(|&r| r) {
             Vec::new()
         } else if let (Some(j), Some(mask), Some(rb)) = (slot_plane, p.windows, room) {
-            let thirds: Vec<u32> = (0..3)
-                .filter(|t| mask >> (3 * j as u32 + t) & 1 == 1)
+            let parts: Vec<u32> = (0..SLOT_PARTS)
+                .filter(|t| mask >> (SLOT_PARTS * j as u32 + t) & 1 == 1)
                 .collect();
-            let (pieces, windows) = with_windows(&poly, f, floor, ceiling_height, &rb, &thirds);
+            let (pieces, windows) = with_windows(&poly, f, floor, ceiling_height, &rb, &parts);
             portals.extend(windows);
             pieces
         } else if assumed && f.kind == PlaneKind::Wall && p.assumed_opening > 0.0 {
@@ -959,9 +973,9 @@ fn with_windows(
     floor: Option<Plane>,
     ceiling_height: Option<f32>,
     rb: &RoomBox,
-    thirds: &[u32],
+    parts: &[u32],
 ) -> (Vec<Vec<Vec3>>, Vec<Portal>) {
-    if thirds.is_empty() || poly.len() < 3 {
+    if parts.is_empty() || poly.len() < 3 {
         return (vec![poly.to_vec()], Vec::new());
     }
     let n = f.plane.n;
@@ -984,16 +998,28 @@ fn with_windows(
     if along == Vec3::ZERO || across == Vec3::ZERO || !(band.1 > band.0) {
         return (vec![poly.to_vec()], Vec::new());
     }
+    if parts.contains(&SLOT_ALL) {
+        // The plane missing past the frame: open from edge to edge.
+        return (
+            Vec::new(),
+            bounding_portal(poly, f.plane, along).into_iter().collect(),
+        );
+    }
     let (s0, s1) = extent_along(poly, along);
     let third = (s1 - s0) / 3.0;
-    // Each window spans the middle 80 % of its third.
-    let holes: Vec<(f32, f32)> = thirds
-        .iter()
-        .map(|&t| {
-            let a = s0 + third * t as f32;
-            (a + 0.1 * third, a + 0.9 * third)
-        })
-        .collect();
+    let holes: Vec<(f32, f32)> = if parts.contains(&SLOT_BAND) {
+        // One window along all of the band but its ends.
+        vec![(s0 + 0.05 * (s1 - s0), s1 - 0.05 * (s1 - s0))]
+    } else {
+        // Each window spans the middle 80 % of its third.
+        parts
+            .iter()
+            .map(|&t| {
+                let a = s0 + third * t as f32;
+                (a + 0.1 * third, a + 0.9 * third)
+            })
+            .collect()
+    };
     // s ≤ c: clip(−axis, c); s ≥ c: clip(axis, −c).
     let below = clip(poly, -across, band.0);
     let above = clip(poly, across, -band.1);
@@ -1869,18 +1895,19 @@ mod tests {
         let base = CompleteParams::for_mode("room").unwrap();
         let slots = window_slots(&z, &cam, &base);
         // The wall seen runs past the frame, as do the ceiling and the
-        // three assumed walls: three thirds each, bits in order.
-        assert_eq!(slots.len(), 15, "{slots:?}");
+        // three assumed walls: five parts each (thirds, the band, all of
+        // it), bits in order.
+        assert_eq!(slots.len(), 25, "{slots:?}");
         for (k, s) in slots.iter().enumerate() {
             assert_eq!(s.bit as usize, k);
-            assert_eq!(s.third as usize, k % 3);
+            assert_eq!(s.part, k as u32 % SLOT_PARTS);
         }
         assert_eq!(
             slots
                 .iter()
                 .filter(|s| s.kind == PlaneKind::Ceiling)
                 .count(),
-            3
+            5
         );
         assert!(slots
             .iter()
@@ -1930,9 +1957,10 @@ mod tests {
             if !in_view(centre) {
                 assert!(hit(&m, 0, centre.normalize()).is_none(), "{}", s.describe());
             }
-            // Just beside the window, its plane.
+            // Just beside the window, its plane (but for a plane missing
+            // altogether).
             let beside = p.corner - p.u * 0.05 + p.v * 0.5;
-            if !in_view(beside) {
+            if !in_view(beside) && s.part != SLOT_ALL {
                 assert!(hit(&m, 0, beside.normalize()).is_some(), "{}", s.describe());
             }
             assert!(hit(&m, 0, Vec3::new(0.0, -1.0, 0.3).normalize()).is_some());
@@ -1942,20 +1970,40 @@ mod tests {
             .iter()
             .filter(|s| s.describe().starts_with("wall behind"))
             .collect();
-        let mut m = TriMesh::default();
-        complete_beyond_frame(
-            &mut m,
-            &z,
-            &cam,
-            &CompleteParams {
-                windows: Some(1 << behind[0].bit | 1 << behind[2].bit),
-                ..base
-            },
-        );
+        let complete_with = |mask: u32| {
+            let mut m = TriMesh::default();
+            complete_beyond_frame(
+                &mut m,
+                &z,
+                &cam,
+                &CompleteParams {
+                    windows: Some(mask),
+                    ..base
+                },
+            );
+            m
+        };
+        let m = complete_with(1 << behind[0].bit | 1 << behind[2].bit);
         assert_eq!(m.portals.len(), 2);
         let centre = |p: &Portal| p.corner + (p.u + p.v) * 0.5;
         let mid = (centre(&m.portals[0]) + centre(&m.portals[1])) * 0.5;
         assert!(hit(&m, 0, mid.normalize()).is_some(), "the wall between");
+        // Its band: one window over the middle of the wall, wider than a
+        // third; all of it: no wall behind at all.
+        let band = complete_with(1 << (behind[0].bit - behind[0].part + SLOT_BAND));
+        assert_eq!(band.portals.len(), 1);
+        assert!(
+            band.portals[0].u.length().max(band.portals[0].v.length())
+                > 2.0 * m.portals[0].u.length().max(m.portals[0].v.length())
+        );
+        assert!(hit(&band, 0, mid.normalize()).is_none(), "no wall between");
+        let all = complete_with(1 << (behind[0].bit - behind[0].part + SLOT_ALL));
+        assert!(
+            hit(&all, 0, Vec3::Z).is_none()
+                && hit(&all, 0, Vec3::new(0.0, -0.5, 1.0).normalize()).is_none()
+        );
+        let (closed, _) = closed_without_windows(&z, &cam);
+        assert!(hit(&closed, 0, Vec3::new(0.0, -0.5, 1.0).normalize()).is_some());
     }
 
     #[test]
