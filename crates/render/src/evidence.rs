@@ -1111,6 +1111,45 @@ mod tests {
     }
 
     #[test]
+    fn the_choice_is_the_same_on_any_number_of_threads() {
+        let depth = floor_and_wall();
+        let maps = MaterialMaps::uniform(N, N, Vec3::splat(0.6), 0.8, 0.0);
+        let photo = photo(&depth, &maps, 2);
+        let opts = EvidenceOptions {
+            spp_half: 2,
+            block: 4,
+            ..Default::default()
+        };
+        let on = |threads: usize| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap()
+                .install(|| {
+                    choose_completion(&depth, &maps, &sky(), 6.0, &photo, &hyps(), &opts).unwrap()
+                })
+        };
+        let numbers = |c: &CompletionChoice| {
+            c.scores
+                .iter()
+                .map(|s| {
+                    (
+                        s.psnr_differing.to_bits(),
+                        s.gain.to_bits(),
+                        s.same_as.clone(),
+                    )
+                })
+                .collect::<Vec<_>>()
+        };
+        let one = on(1);
+        for threads in [2, 3] {
+            let other = on(threads);
+            assert_eq!(other.chosen, one.chosen);
+            assert_eq!(numbers(&other), numbers(&one), "{threads} threads");
+        }
+    }
+
+    #[test]
     fn hypotheses_that_render_alike_are_no_evidence() {
         // A view of the sky alone: nothing to complete, every hypothesis
         // builds the same (empty) mesh.
