@@ -746,14 +746,19 @@ pub fn evidence_completion(
 
 /// The light and maps a bundle holds of its own, to test completions
 /// with when nothing else is given: `best_results` (with its envmap) if
-/// it has them, else `ground_truth`.
+/// it has them, else `ground_truth`; the envmap as [`capture_light`]
+/// takes it (`envmap.exr` before `envmap.hdr`), so `mesh` and `render`
+/// test under the same light.
 pub fn own_light_and_maps(bundle_dir: &Path) -> Option<(PathBuf, MaterialSource)> {
     [MaterialSource::BestResults, MaterialSource::GroundTruth]
         .into_iter()
         .find_map(|m| {
             let folder = bundle_dir.join(m.folder()?);
-            let env = folder.join("envmap.hdr");
-            (env.is_file() && folder.join("albedo.exr").is_file()).then_some((env, m))
+            let env = ["envmap.exr", "envmap.hdr"]
+                .iter()
+                .map(|n| folder.join(n))
+                .find(|p| p.is_file())?;
+            folder.join("albedo.exr").is_file().then_some((env, m))
         })
 }
 
