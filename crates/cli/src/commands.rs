@@ -467,9 +467,10 @@ impl CompletionDecision {
     }
 }
 
-/// The window search in words: each round's best and the room taken.
-fn print_windows(w: &matflow_render::evidence::WindowChoice) {
-    for (k, r) in w.rounds.iter().enumerate() {
+/// A greedy search's rounds in words (`what`: windows, walls): what
+/// each took, and its best against the hypothesis so far.
+fn print_rounds(what: &str, rounds: &[matflow_render::evidence::CompletionChoice]) {
+    for (k, r) in rounds.iter().enumerate() {
         let best = (0..r.scores.len())
             .max_by(|&a, &b| {
                 r.scores[a]
@@ -478,7 +479,7 @@ fn print_windows(w: &matflow_render::evidence::WindowChoice) {
             })
             .unwrap_or(0);
         outln!(
-            "  windows, round {}: {} of {} tested; best {} ({:.2} dB where they differ, {:.2} dB without it)",
+            "  {what}, round {}: {} of {} tested; best {} ({:.2} dB where they differ, {:.2} dB without it)",
             k + 1,
             r.scores[r.chosen].name,
             r.scores.len(),
@@ -487,6 +488,11 @@ fn print_windows(w: &matflow_render::evidence::WindowChoice) {
             r.scores[0].psnr_differing
         );
     }
+}
+
+/// The window search in words: each round's best and the room taken.
+fn print_windows(w: &matflow_render::evidence::WindowChoice) {
+    print_rounds("windows", &w.rounds);
     if let Some(t) = &w.against_typical {
         outln!(
             "  windows found {:.2} dB, typical windows {:.2} dB where they differ: {} taken ({:.2} s in all)",
@@ -500,24 +506,7 @@ fn print_windows(w: &matflow_render::evidence::WindowChoice) {
 
 /// The wall search in words: each round's best and what was taken.
 fn print_walls(w: &matflow_render::evidence::WallChoice) {
-    for (k, r) in w.rounds.iter().enumerate() {
-        let best = (0..r.scores.len())
-            .max_by(|&a, &b| {
-                r.scores[a]
-                    .psnr_differing
-                    .total_cmp(&r.scores[b].psnr_differing)
-            })
-            .unwrap_or(0);
-        outln!(
-            "  walls, round {}: {} of {} tested; best {} ({:.2} dB where they differ, {:.2} dB without it)",
-            k + 1,
-            r.scores[r.chosen].name,
-            r.scores.len(),
-            r.scores[best].name,
-            r.scores[best].psnr_differing,
-            r.scores[0].psnr_differing
-        );
-    }
+    print_rounds("walls", &w.rounds);
     match &w.against_start {
         Some(t) => outln!(
             "  walls found {:.2} dB, {} {:.2} dB where they differ: {} taken ({:.2} s in all)",
@@ -535,16 +524,23 @@ fn print_walls(w: &matflow_render::evidence::WallChoice) {
     }
 }
 
+/// A test's scores for the JSON reports: each hypothesis's name (under
+/// `key`) and its PSNR where they differ.
+fn scores_json(
+    c: &matflow_render::evidence::CompletionChoice,
+    key: &str,
+) -> Vec<serde_json::Value> {
+    c.scores
+        .iter()
+        .map(|s| serde_json::json!({key: s.name, "psnr_differing": s.psnr_differing}))
+        .collect()
+}
+
 /// The wall search for summary.json, geometry.json and OUT.json.
 fn walls_json(w: &matflow_render::evidence::WallChoice) -> serde_json::Value {
     let plane =
         |p: &matflow_geom::AssumedPlane| serde_json::json!({"bit": p.bit, "where": p.describe()});
-    let scores = |c: &matflow_render::evidence::CompletionChoice| {
-        c.scores
-            .iter()
-            .map(|s| serde_json::json!({"complete": s.name, "psnr_differing": s.psnr_differing}))
-            .collect::<Vec<_>>()
-    };
+    let scores = |c| scores_json(c, "complete");
     serde_json::json!({
         "mask": w.mask,
         "start_kept": w.kept_start,
@@ -565,12 +561,8 @@ fn windows_json(w: &matflow_render::evidence::WindowChoice) -> serde_json::Value
         "typical_taken": w.typical,
         "opened": w.opened.iter().map(slot).collect::<Vec<_>>(),
         "slots": w.slots.iter().map(slot).collect::<Vec<_>>(),
-        "rounds": w.rounds.iter().map(|r| r.scores.iter().map(|s| serde_json::json!({
-            "windows": s.name, "psnr_differing": s.psnr_differing,
-        })).collect::<Vec<_>>()).collect::<Vec<_>>(),
-        "against_typical": w.against_typical.as_ref().map(|t| t.scores.iter().map(|s| serde_json::json!({
-            "windows": s.name, "psnr_differing": s.psnr_differing,
-        })).collect::<Vec<_>>()),
+        "rounds": w.rounds.iter().map(|r| scores_json(r, "windows")).collect::<Vec<_>>(),
+        "against_typical": w.against_typical.as_ref().map(|t| scores_json(t, "windows")),
         "seconds": w.seconds,
     })
 }
@@ -744,6 +736,16 @@ pub fn evidence_completion(
     })
 }
 
+/// The envmap a maps folder holds of its own: the finer `envmap.exr`
+/// where one lies beside `envmap.hdr` (as the validation set's
+/// full-resolution capture sky does), else `envmap.hdr`.
+fn folder_envmap(folder: &Path) -> Option<PathBuf> {
+    ["envmap.exr", "envmap.hdr"]
+        .iter()
+        .map(|n| folder.join(n))
+        .find(|p| p.is_file())
+}
+
 /// The light and maps a bundle holds of its own, to test completions
 /// with when nothing else is given: `best_results` (with its envmap) if
 /// it has them, else `ground_truth`; the envmap as [`capture_light`]
@@ -754,10 +756,7 @@ pub fn own_light_and_maps(bundle_dir: &Path) -> Option<(PathBuf, MaterialSource)
         .into_iter()
         .find_map(|m| {
             let folder = bundle_dir.join(m.folder()?);
-            let env = ["envmap.exr", "envmap.hdr"]
-                .iter()
-                .map(|n| folder.join(n))
-                .find(|p| p.is_file())?;
+            let env = folder_envmap(&folder)?;
             folder.join("albedo.exr").is_file().then_some((env, m))
         })
 }
@@ -852,12 +851,7 @@ pub fn capture_light(
 ) -> Option<PathBuf> {
     materials
         .folder()
-        .and_then(|f| {
-            ["envmap.exr", "envmap.hdr"]
-                .iter()
-                .map(|n| bundle.join(f).join(n))
-                .find(|p| p.is_file())
-        })
+        .and_then(|f| folder_envmap(&bundle.join(f)))
         .or_else(|| Bundle::open(bundle).ok().and_then(|b| b.envmap_path()))
         .or_else(|| envmap.map(Path::to_path_buf))
 }

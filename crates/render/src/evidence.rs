@@ -219,6 +219,36 @@ pub fn choose_completion(
     hypotheses: &[Hypothesis],
     opts: &EvidenceOptions,
 ) -> Result<CompletionChoice, RenderError> {
+    let view = PhotoView {
+        depth,
+        maps,
+        env,
+        mesh_angle_deg,
+        photo,
+    };
+    view.choose(hypotheses, opts, &mut Vec::new())
+}
+
+/// Meshes rendered already in one search (same view, same options), by
+/// [`mesh_key`]: a hypothesis tested again (the room so far, in every
+/// round) is not rendered again.
+type Rendered = Vec<(u64, Halves)>;
+
+/// [`choose_completion`] on `view`, taking the halves of meshes in `cache`
+/// and adding those it renders.
+fn choose_cached(
+    view: &PhotoView,
+    hypotheses: &[Hypothesis],
+    opts: &EvidenceOptions,
+    cache: &mut Rendered,
+) -> Result<CompletionChoice, RenderError> {
+    let PhotoView {
+        depth,
+        maps,
+        env,
+        mesh_angle_deg,
+        photo,
+    } = *view;
     let t_all = std::time::Instant::now();
     assert!(!hypotheses.is_empty(), "choose_completion: no hypothesis");
     let block = opts.block.max(1);
@@ -255,16 +285,26 @@ pub fn choose_completion(
         // Earlier hypotheses, this group's included, are pushed below
         // before a later one needs their halves.
         let mut same = Vec::with_capacity(group.len());
+        let mut cached: Vec<Option<Halves>> = Vec::with_capacity(group.len());
         for (_, m, _) in &built {
             let k = mesh_key(m);
-            same.push(keys.iter().position(|&o| o == k));
+            let s = keys.iter().position(|&o| o == k);
+            cached.push(
+                s.is_none()
+                    .then(|| cache.iter().find(|(o, _)| *o == k).map(|(_, h)| h.clone()))
+                    .flatten(),
+            );
+            same.push(s);
             keys.push(k);
         }
+        let skip: Vec<bool> = (0..group.len())
+            .map(|i| same[i].is_some() || cached[i].is_some())
+            .collect();
         let rendered: Vec<Option<(Halves, f64)>> = built
             .into_par_iter()
-            .zip(same.par_iter())
-            .map(|((cam, mesh, tb), same)| {
-                if same.is_some() {
+            .zip(skip.par_iter())
+            .map(|((cam, mesh, tb), &skip)| {
+                if skip {
                     return Ok(None);
                 }
                 let t0 = std::time::Instant::now();
@@ -288,10 +328,12 @@ pub fn choose_completion(
             .collect::<Result<_, RenderError>>()?;
         for (i, (h, r)) in group.iter().zip(rendered).enumerate() {
             let (pair, seconds) = match (r, same[i]) {
-                (Some(r), _) => r,
+                (Some(r), _) => {
+                    cache.push((keys[keys.len() - group.len() + i], r.0.clone()));
+                    r
+                }
                 (None, Some(j)) => (halves[j].clone(), 0.0),
-                // Not reached: only a mesh seen before goes unrendered.
-                (None, None) => Default::default(),
+                (None, None) => (cached[i].take().unwrap_or_default(), 0.0),
             };
             halves.push(pair);
             scores.push(HypothesisScore {
@@ -401,17 +443,75 @@ impl PhotoView<'_> {
         &self,
         hypotheses: &[Hypothesis],
         opts: &EvidenceOptions,
+        cache: &mut Rendered,
     ) -> Result<CompletionChoice, RenderError> {
-        choose_completion(
-            self.depth,
-            self.maps,
-            self.env,
-            self.mesh_angle_deg,
-            self.photo,
-            hypotheses,
-            opts,
-        )
+        choose_cached(self, hypotheses, opts, cache)
     }
+}
+
+/// What [`add_greedily`] found: the bits set, the indices (into its
+/// `bits`) in the order they were added, and each round's test.
+struct Greedy {
+    mask: u32,
+    added: Vec<usize>,
+    rounds: Vec<CompletionChoice>,
+}
+
+/// The greedy search of [`choose_windows`] and [`choose_walls`]: from
+/// `with(0)`, each round tests the hypothesis so far (first, the least
+/// assuming) against it with one more of the free `bits` set, and keeps
+/// the one [`choose_completion`] takes, until it takes the one so far,
+/// none is free, or `max` were added. With `shortlist`, rounds after the
+/// first try only that many bits, those that scored best alone.
+fn add_greedily(
+    view: &PhotoView,
+    bits: &[u32],
+    with: &dyn Fn(u32) -> Hypothesis,
+    max: usize,
+    shortlist: Option<usize>,
+    opts: &EvidenceOptions,
+    cache: &mut Rendered,
+) -> Result<Greedy, RenderError> {
+    let mut mask = 0u32;
+    let mut added = Vec::new();
+    let mut rounds = Vec::new();
+    let mut left: Vec<usize> = (0..bits.len()).collect();
+    for _ in 0..max {
+        let free: Vec<usize> = left
+            .iter()
+            .copied()
+            .filter(|&k| mask >> bits[k] & 1 == 0)
+            .collect();
+        if free.is_empty() {
+            break;
+        }
+        let mut hyps = vec![with(mask)];
+        hyps.extend(free.iter().map(|&k| with(mask | 1 << bits[k])));
+        let c = view.choose(&hyps, opts, cache)?;
+        let chosen = c.chosen;
+        if let (Some(n), true) = (shortlist, rounds.is_empty()) {
+            let mut by: Vec<usize> = (1..c.scores.len()).collect();
+            by.sort_by(|&a, &b| {
+                c.scores[b]
+                    .psnr_differing
+                    .total_cmp(&c.scores[a].psnr_differing)
+                    .then(a.cmp(&b))
+            });
+            left = by.iter().take(n).map(|&i| free[i - 1]).collect();
+            left.sort_unstable();
+        }
+        rounds.push(c);
+        if chosen == 0 {
+            break;
+        }
+        mask |= 1 << bits[free[chosen - 1]];
+        added.push(free[chosen - 1]);
+    }
+    Ok(Greedy {
+        mask,
+        added,
+        rounds,
+    })
 }
 
 /// How many windows [`choose_windows`] opens at most.
@@ -467,52 +567,25 @@ pub fn choose_windows(
             ..*base
         }),
     };
-    let mut mask = 0u32;
-    let mut opened = Vec::new();
-    let mut rounds = Vec::new();
-    let mut slots_left = slots.clone();
-    for _ in 0..MAX_WINDOWS {
-        let free: Vec<matflow_geom::WindowSlot> = slots_left
-            .iter()
-            .filter(|s| mask >> s.bit & 1 == 0)
-            .copied()
-            .collect();
-        if free.is_empty() {
-            break;
-        }
-        let mut hyps = vec![with(mask)];
-        hyps.extend(free.iter().map(|s| with(mask | 1 << s.bit)));
-        let c = view.choose(&hyps, opts)?;
-        let chosen = c.chosen;
-        if rounds.is_empty() {
-            // Later rounds try the slots that explained the photo best
-            // alone.
-            let mut by: Vec<usize> = (1..c.scores.len()).collect();
-            by.sort_by(|&a, &b| {
-                c.scores[b]
-                    .psnr_differing
-                    .total_cmp(&c.scores[a].psnr_differing)
-                    .then(a.cmp(&b))
-            });
-            let keep: Vec<u32> = by
-                .iter()
-                .take(WINDOW_SHORTLIST)
-                .map(|&i| free[i - 1].bit)
-                .collect();
-            slots_left.retain(|s| keep.contains(&s.bit));
-        }
-        rounds.push(c);
-        if chosen == 0 {
-            break;
-        }
-        mask |= 1 << free[chosen - 1].bit;
-        opened.push(free[chosen - 1]);
-    }
+    let bits: Vec<u32> = slots.iter().map(|s| s.bit).collect();
+    let mut cache = Rendered::new();
+    let found = add_greedily(
+        view,
+        &bits,
+        &with,
+        MAX_WINDOWS,
+        Some(WINDOW_SHORTLIST),
+        opts,
+        &mut cache,
+    )?;
+    let mask = found.mask;
+    let opened: Vec<matflow_geom::WindowSlot> = found.added.iter().map(|&k| slots[k]).collect();
+    let rounds = found.rounds;
     let typical = Hypothesis {
         name: "typical windows".to_string(),
         params: Some(*base),
     };
-    let last = view.choose(&[with(mask), typical], opts)?;
+    let last = view.choose(&[with(mask), typical], opts, &mut cache)?;
     let is_typical = last.chosen == 1;
     Ok(Some(WindowChoice {
         mask,
@@ -574,33 +647,16 @@ pub fn choose_walls(
         name: wall_name(&planes, mask),
         params: Some(walled(base, mask)),
     };
-    let mut mask = 0u32;
-    let mut added = Vec::new();
-    let mut rounds = Vec::new();
-    for _ in 0..MAX_WALLS {
-        let free: Vec<matflow_geom::AssumedPlane> = planes
-            .iter()
-            .filter(|p| mask >> p.bit & 1 == 0)
-            .copied()
-            .collect();
-        if free.is_empty() {
-            break;
-        }
-        let mut hyps = vec![with(mask)];
-        hyps.extend(free.iter().map(|p| with(mask | 1 << p.bit)));
-        let c = view.choose(&hyps, opts)?;
-        let chosen = c.chosen;
-        rounds.push(c);
-        if chosen == 0 {
-            break;
-        }
-        mask |= 1 << free[chosen - 1].bit;
-        added.push(free[chosen - 1]);
-    }
+    let bits: Vec<u32> = planes.iter().map(|p| p.bit).collect();
+    let mut cache = Rendered::new();
+    let found = add_greedily(view, &bits, &with, MAX_WALLS, None, opts, &mut cache)?;
+    let mask = found.mask;
+    let added: Vec<matflow_geom::AssumedPlane> = found.added.iter().map(|&k| planes[k]).collect();
+    let rounds = found.rounds;
     let (against_start, kept_start) = if mask == 0 {
         (None, true)
     } else {
-        let last = view.choose(&[start.clone(), with(mask)], opts)?;
+        let last = view.choose(&[start.clone(), with(mask)], opts, &mut cache)?;
         let kept = last.chosen == 0;
         (Some(last), kept)
     };
