@@ -47,6 +47,8 @@ fn meshes_match_the_reference_algorithm_counts() {
             b.to_str().unwrap(),
             "--complete",
             "none",
+            "--silhouettes",
+            "reference",
             "--out",
             dir.path().join("m.ply").to_str().unwrap(),
         ]);

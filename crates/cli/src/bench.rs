@@ -136,7 +136,11 @@ fn bench_render(a: BenchRenderArgs) -> Result<()> {
         &a.bundle,
         a.materials,
         None,
-        6.0,
+        if a.reference_compat {
+            matflow_geom::MeshParams::reference(6.0)
+        } else {
+            matflow_geom::MeshParams::default()
+        },
         a.reference_compat,
         None,
         false,

@@ -4,7 +4,7 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use matflow_geom::mesh_for_view;
+use matflow_geom::{mesh_for_view, MeshParams, Silhouettes};
 use matflow_render::{
     render as render_scene, scene_from_depth, EnvMap, PixelFilter, RenderOptions, RenderOutput,
     RenderScene,
@@ -45,6 +45,14 @@ pub struct RenderArgs {
     /// Mesh boundary angle threshold in degrees.
     #[arg(long, default_value_t = 6.0)]
     pub mesh_angle: f64,
+    /// The near side of a depth discontinuity: `kept` (an object's edge
+    /// keeps its depth and reaches the pixel border) or `reference` (every
+    /// boundary pixel takes the background's depth, as the reference
+    /// implementation). Default: for `best_results` written by `matflow
+    /// invert`, the one it recovered them with; else reference with
+    /// `--reference-compat`; otherwise kept.
+    #[arg(long)]
+    pub silhouettes: Option<Silhouettes>,
     /// Geometry past the frame (matflow_geom::complete), so that unseen
     /// parts of the scene block and reflect light: `room` extends the
     /// view's floor, walls and ceiling and closes the room with assumed
@@ -179,6 +187,12 @@ pub struct MeshArgs {
     /// Boundary angle threshold in degrees (the reference's code uses 6).
     #[arg(long, default_value_t = 6.0)]
     pub angle: f64,
+    /// The near side of a depth discontinuity: kept (an object's edge
+    /// keeps its depth and reaches the pixel border) or reference (every
+    /// boundary pixel takes the background's depth, as the reference
+    /// implementation's meshes).
+    #[arg(long, default_value_t = Silhouettes::Kept)]
+    pub silhouettes: Silhouettes,
     /// Geometry past the frame (see `render --complete`): auto, room,
     /// closed, planes, or none (the depth mesh alone). Default: the
     /// completion the bundle declares for its own geometry (geometry.json,
@@ -596,7 +610,7 @@ pub fn declared_completion(bundle: &Path) -> Result<Option<CompleteMode>> {
 /// How the photo's evidence is rendered: the render's filter and depth.
 #[derive(Clone, Copy, Debug)]
 pub struct EvidenceRender {
-    pub mesh_angle: f64,
+    pub mesh: MeshParams,
     pub filter: PixelFilter,
     pub max_depth: u32,
 }
@@ -653,13 +667,7 @@ pub fn evidence_completion(
         ..Default::default()
     };
     let choice = matflow_render::evidence::choose_completion(
-        &depth,
-        &maps,
-        &env,
-        how.mesh_angle,
-        &photo,
-        &hyps,
-        &opts,
+        &depth, &maps, &env, how.mesh, &photo, &hyps, &opts,
     )
     .with_context(|| {
         format!(
@@ -672,7 +680,7 @@ pub fn evidence_completion(
         depth: &depth,
         maps: &maps,
         env: &env,
-        mesh_angle_deg: how.mesh_angle,
+        mesh_params: how.mesh,
         photo: &photo,
     };
     // A closed room: where its windows are, the photo tells too.
@@ -865,7 +873,7 @@ pub fn load_scene(
     bundle_dir: &Path,
     materials: MaterialSource,
     envmap: Option<&Path>,
-    mesh_angle: f64,
+    mesh: MeshParams,
     reference_compat: bool,
     complete: Option<matflow_geom::CompleteParams>,
     lamps: bool,
@@ -888,7 +896,7 @@ pub fn load_scene(
     }
     let env = EnvMap::new(&env_img).with_context(|| format!("{}", env_path.display()))?;
     let t0 = Instant::now();
-    let mut scene = scene_from_depth(&depth, &maps, env.clone(), mesh_angle, complete.as_ref())
+    let mut scene = scene_from_depth(&depth, &maps, env.clone(), mesh, complete.as_ref())
         .with_context(|| format!("{}: building the scene", bundle_dir.display()))?
         .0;
     if let Some(folder) = materials.folder().filter(|_| lamps) {
@@ -962,9 +970,33 @@ pub fn render_filter(
     )
 }
 
+/// The mesh `render` builds: its angle, and the silhouettes asked for,
+/// else those `matflow invert` recovered the maps with, else the
+/// reference's with `--reference-compat`, else kept.
+fn render_mesh(a: &RenderArgs) -> Result<MeshParams> {
+    let (recovered, _) = from_invert(
+        &a.bundle,
+        a.materials,
+        a.silhouettes.map(Some),
+        "silhouettes",
+        "the one matflow invert recovered these maps with",
+        |name| name.parse::<Silhouettes>().map(Some),
+    )?;
+    let silhouettes = recovered.unwrap_or(if a.reference_compat {
+        Silhouettes::Reference
+    } else {
+        Silhouettes::Kept
+    });
+    Ok(MeshParams {
+        min_angle_deg: a.mesh_angle,
+        silhouettes,
+    })
+}
+
 pub fn render(a: RenderArgs) -> Result<()> {
     let t_all = Instant::now();
     let (filter, why) = render_filter(&a.bundle, a.materials, a.filter)?;
+    let mesh = render_mesh(&a)?;
     let decision = render_completion(
         &a.bundle,
         a.materials,
@@ -972,7 +1004,7 @@ pub fn render(a: RenderArgs) -> Result<()> {
         a.reference_compat,
         a.envmap.as_deref(),
         EvidenceRender {
-            mesh_angle: a.mesh_angle,
+            mesh,
             filter,
             max_depth: a.depth,
         },
@@ -983,7 +1015,7 @@ pub fn render(a: RenderArgs) -> Result<()> {
         &a.bundle,
         a.materials,
         a.envmap.as_deref(),
-        a.mesh_angle,
+        mesh,
         a.reference_compat,
         decision.params(),
         a.lamps.on(),
@@ -1229,12 +1261,16 @@ pub fn mesh(a: MeshArgs) -> Result<()> {
     let bundle = Bundle::open(&a.bundle)?;
     let depth = bundle.load_depth()?;
     let t0 = Instant::now();
-    let (cam, mut m) = mesh_for_view(&depth, a.angle)?;
+    let params = MeshParams {
+        min_angle_deg: a.angle,
+        silhouettes: a.silhouettes,
+    };
+    let (cam, mut m) = mesh_for_view(&depth, &params)?;
     let decision = completion_or_default(
         &a.bundle,
         a.complete,
         EvidenceRender {
-            mesh_angle: a.angle,
+            mesh: params,
             filter: PixelFilter::default(),
             max_depth: 4,
         },
@@ -1268,11 +1304,13 @@ pub fn mesh(a: MeshArgs) -> Result<()> {
     m.mesh.write_ply(&mut buf, cam.width, cam.height)?;
     io::write_atomic(&a.out, &buf)?;
     outln!(
-        "mesh: {} vertices, {} triangles in {:.3} s ({} boundary pixels moved, {} copies, {} direct, {} after 1 copy, {} after 2, {} dropped) -> {}",
+        "mesh: {} vertices, {} triangles in {:.3} s ({} silhouettes: {} boundary pixels moved, {} kept as edges; {} copies, {} direct, {} after 1 copy, {} after 2, {} dropped) -> {}",
         m.mesh.vertex_count(),
         m.mesh.triangle_count(),
         secs,
-        m.stats.boundary_pixels,
+        a.silhouettes,
+        m.stats.boundary_pixels - m.stats.kept_edges,
+        m.stats.kept_edges,
         m.stats.copies,
         m.stats.emitted_direct,
         m.stats.emitted_one_copy,
@@ -1313,7 +1351,7 @@ pub fn synth(a: SynthArgs) -> Result<()> {
         &a.out,
         MaterialSource::GroundTruth,
         None,
-        6.0,
+        MeshParams::default(),
         false,
         None,
         false,
@@ -1336,7 +1374,7 @@ pub fn synth(a: SynthArgs) -> Result<()> {
             &a.out,
             MaterialSource::GroundTruth,
             Some(&env_path),
-            6.0,
+            MeshParams::default(),
             false,
             None,
             false,

@@ -8,6 +8,7 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 use glam::Vec3;
 use indicatif::{ProgressBar, ProgressStyle};
+use matflow_geom::{MeshParams, Silhouettes};
 use matflow_inverse::invert::{invert, materials_to_maps, Event, InvertOptions, InvertResult};
 use matflow_render::{scene_from_depth, EnvMap, RenderScene};
 use matflow_scene::metrics::{mse_gamma, psnr_gamma, ssim_gamma};
@@ -66,6 +67,10 @@ pub struct InvertArgs {
     /// Mesh boundary angle threshold in degrees.
     #[arg(long, default_value_t = 6.0)]
     pub mesh_angle: f64,
+    /// The near side of a depth discontinuity (see `mesh --silhouettes`):
+    /// kept or reference.
+    #[arg(long, default_value_t = Silhouettes::Kept)]
+    pub silhouettes: Silhouettes,
     /// Geometry past the frame (see `render --complete`): room, closed,
     /// planes, none (the depth mesh alone), or auto: each tested with the
     /// predicted maps under the sky the photo shows (room where it shows
@@ -195,7 +200,7 @@ pub struct InvertInput {
 pub fn load_input(
     dir: &Path,
     source: MaterialSource,
-    mesh_angle: f64,
+    mesh: MeshParams,
     complete: Option<&matflow_geom::CompleteParams>,
 ) -> Result<InvertInput> {
     let bundle = Bundle::open(dir)?;
@@ -216,7 +221,7 @@ pub fn load_input(
     }
     let flat = Image::new(32, 16, Vec3::ONE);
     let (scene, _, completion) =
-        scene_from_depth(&depth, &maps, EnvMap::new(&flat)?, mesh_angle, complete)
+        scene_from_depth(&depth, &maps, EnvMap::new(&flat)?, mesh, complete)
             .with_context(|| format!("{}: building the scene", dir.display()))?;
     Ok(InvertInput {
         depth,
@@ -450,7 +455,7 @@ fn invert_completion(a: &InvertArgs) -> Result<crate::commands::CompletionDecisi
     let tested = matflow_render::evidence::choose_under_seen_sky(
         &depth,
         &maps,
-        a.mesh_angle,
+        mesh_params(a),
         &photo,
         &crate::commands::hypotheses(),
         &opts,
@@ -487,6 +492,14 @@ pub const NO_SKY: &str = "auto: the photo shows no unclipped open sky (none, or 
      they show), so nothing weighs the light each completion needs (every one explains the photo \
      with a light of its own); room, which closes a room only where the view shows one";
 
+/// The mesh `invert` recovers on.
+fn mesh_params(a: &InvertArgs) -> MeshParams {
+    MeshParams {
+        min_angle_deg: a.mesh_angle,
+        silhouettes: a.silhouettes,
+    }
+}
+
 pub fn invert_cmd(a: InvertArgs) -> Result<()> {
     let t0 = Instant::now();
     let decision = invert_completion(&a)?;
@@ -495,7 +508,7 @@ pub fn invert_cmd(a: InvertArgs) -> Result<()> {
     let input = load_input(
         &a.bundle,
         a.materials,
-        a.mesh_angle,
+        mesh_params(&a),
         complete.params().as_ref(),
     )?;
     let mut opts = options_from(&a);
@@ -538,6 +551,7 @@ pub fn invert_cmd(a: InvertArgs) -> Result<()> {
             "seed": opts.seed,
             "pixel_filter": matflow_inverse::invert::FIT_FILTER.name(),
             "complete": complete.name(),
+            "silhouettes": a.silhouettes.name(),
             "light_guide": opts.light_guide,
             "portals": opts.portals,
             "rm_search": opts.rm_search,

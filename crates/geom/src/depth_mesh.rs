@@ -12,6 +12,15 @@
 //! 3. **Depth replacement.** Boundary pixels follow their pointers (always
 //!    to strictly deeper pixels) and take the depth where the chain ends: the
 //!    near side of a depth discontinuity moves to the background depth.
+//!    That is the reference's rule ([`Silhouettes::Reference`]); it removes
+//!    the pixels a predicted depth map smears between two depths, but it
+//!    also shrinks every object by a pixel and a half where the depth is
+//!    sharp. matflow's default ([`Silhouettes::Kept`]) moves only the
+//!    pixels *between* two depths (steep towards a nearer neighbour and a
+//!    deeper one); the foreground's own edge pixel keeps its depth and its
+//!    vertex moves half a pixel towards each deeper neighbour, so the
+//!    silhouette lies on the pixel border, midway between the last pixel
+//!    centre of the object and the first of what is behind it.
 //! 4. **Triangulation** of every pixel quad along the "/" diagonal; a
 //!    triangle whose angle to the view ray is still ≤ τ joins two objects.
 //! 5. **Boundary duplication.** Such a triangle is rebuilt behind the
@@ -34,11 +43,79 @@ use crate::mesh::TriMesh;
 pub struct MeshParams {
     /// Angle threshold τ in degrees.
     pub min_angle_deg: f64,
+    /// What happens to the near side of a depth discontinuity.
+    pub silhouettes: Silhouettes,
 }
 
 impl Default for MeshParams {
     fn default() -> Self {
-        MeshParams { min_angle_deg: 6.0 }
+        MeshParams {
+            min_angle_deg: 6.0,
+            silhouettes: Silhouettes::default(),
+        }
+    }
+}
+
+impl MeshParams {
+    /// The reference implementation's mesh at angle τ (its meshes, counts
+    /// and renders, vertex for vertex).
+    pub fn reference(min_angle_deg: f64) -> Self {
+        MeshParams {
+            min_angle_deg,
+            silhouettes: Silhouettes::Reference,
+        }
+    }
+
+    /// matflow's mesh at angle τ.
+    pub fn at_angle(min_angle_deg: f64) -> Self {
+        MeshParams {
+            min_angle_deg,
+            ..Default::default()
+        }
+    }
+}
+
+/// The near side of a depth discontinuity (step 3 of the module's doc).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum Silhouettes {
+    /// Every boundary pixel takes the background's depth (the reference's
+    /// rule): objects lose a pixel and a half at their silhouettes.
+    Reference,
+    /// Only pixels between two depths take the background's depth; an
+    /// object's own edge keeps its depth and reaches the pixel border.
+    #[default]
+    Kept,
+}
+
+impl Silhouettes {
+    pub const NAMES: [&'static str; 2] = ["kept", "reference"];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Silhouettes::Kept => "kept",
+            Silhouettes::Reference => "reference",
+        }
+    }
+
+    pub fn parse(s: &str) -> Option<Self> {
+        match s {
+            "kept" => Some(Silhouettes::Kept),
+            "reference" => Some(Silhouettes::Reference),
+            _ => None,
+        }
+    }
+}
+
+impl std::fmt::Display for Silhouettes {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for Silhouettes {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        Silhouettes::parse(s).ok_or_else(|| format!("`{s}`: expected kept or reference"))
     }
 }
 
@@ -46,6 +123,9 @@ impl Default for MeshParams {
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct MeshStats {
     pub boundary_pixels: usize,
+    /// Boundary pixels that kept their depth (an object's own edge,
+    /// [`Silhouettes::Kept`]).
+    pub kept_edges: usize,
     pub copies: usize,
     pub emitted_direct: usize,
     pub emitted_one_copy: usize,
@@ -93,6 +173,16 @@ impl Grid<'_> {
             -z,
         )
     }
+    /// The point at depth z on the ray through film offset (di, dj)
+    /// pixels from pixel (i, j)'s centre.
+    #[inline]
+    fn point_off(&self, i: usize, j: usize, di: f64, dj: f64, z: f64) -> DVec3 {
+        DVec3::new(
+            (j as f64 + dj - self.cx) * z / self.f,
+            -(i as f64 + di - self.cy) * z / self.f,
+            -z,
+        )
+    }
     #[inline]
     fn p(&self, i: usize, j: usize) -> DVec3 {
         self.point(i, j, self.z[i * self.w + j] as f64)
@@ -101,6 +191,37 @@ impl Grid<'_> {
     fn zz(&self, i: usize, j: usize) -> f32 {
         self.z[i * self.w + j]
     }
+}
+
+/// An object's own edge: pixel (i, j), a boundary pixel with all four
+/// neighbours, is steep (its segment within τ of the view ray) only
+/// towards deeper neighbours. Returns its vertex's film offset (half a
+/// pixel towards each of them, per axis at most half a pixel), or None when
+/// it is steep towards a nearer neighbour too (a pixel between two depths).
+fn foreground_edge(g: &Grid, i: usize, j: usize, tau: f64) -> Option<Vec2> {
+    let pc = g.p(i, j);
+    let zc = g.zz(i, j);
+    let mut d = Vec2::ZERO;
+    for (di, dj) in [(1isize, 0isize), (-1, 0), (0, 1), (0, -1)] {
+        let (a, b) = ((i as isize + di) as usize, (j as isize + dj) as usize);
+        let pn = g.p(a, b);
+        let seg = pn - pc;
+        let mid = (pn + pc) * 0.5;
+        let (ls, lm) = (seg.length(), mid.length());
+        if !(ls > 0.0 && lm > 0.0) {
+            continue;
+        }
+        let sin = (seg.cross(mid).length() / (ls * lm)).min(1.0);
+        if !(sin.asin().to_degrees() < tau) {
+            continue;
+        }
+        if g.zz(a, b) > zc {
+            d += Vec2::new(dj as f32, di as f32) * 0.5;
+        } else {
+            return None;
+        }
+    }
+    Some(d.clamp(Vec2::splat(-0.5), Vec2::splat(0.5)))
 }
 
 /// Angle in degrees between a triangle's plane and the ray to its centroid;
@@ -119,14 +240,14 @@ fn view_angle_deg(a: DVec3, b: DVec3, c: DVec3) -> f64 {
 }
 
 /// The mesh of a depth map seen by the default camera of its size (the
-/// one every bundle uses), cut at `min_angle_deg`: the one way the CLI,
-/// the renderer's scene builder and the pipeline's mesh stage mesh a view.
+/// one every bundle uses): the one way the CLI, the renderer's scene
+/// builder and the pipeline's mesh stage mesh a view.
 pub fn mesh_for_view(
     depth: &GrayImage,
-    min_angle_deg: f64,
+    params: &MeshParams,
 ) -> Result<(Camera, DepthMesh), MeshError> {
     let cam = Camera::new(depth.width, depth.height);
-    let mesh = mesh_from_depth(depth, &cam, &MeshParams { min_angle_deg })?;
+    let mesh = mesh_from_depth(depth, &cam, params)?;
     Ok((cam, mesh))
 }
 
@@ -219,11 +340,22 @@ pub fn mesh_from_depth(
     // 3. Depth replacement by following pointer chains.
     let mut znew = z.data.clone();
     let mut boundary_pixels = 0;
+    let kept = params.silhouettes == Silhouettes::Kept;
+    // Film offsets of the kept edges' vertices (empty for the reference).
+    let mut offset: Vec<Vec2> = vec![Vec2::ZERO; if kept { w * h } else { 0 }];
+    let mut kept_edges = 0;
     for k in 0..w * h {
         if refer[k] == NONE {
             continue;
         }
         boundary_pixels += 1;
+        if kept {
+            if let Some(d) = foreground_edge(&g, k / w, k % w, tau) {
+                offset[k] = d;
+                kept_edges += 1;
+                continue;
+            }
+        }
         let mut e = k;
         while refer[e] != NONE {
             e = refer[e] as usize;
@@ -244,7 +376,12 @@ pub fn mesh_from_depth(
     let mut pos64: Vec<DVec3> = Vec::with_capacity(w * h + w * h / 32);
     for i in 0..h {
         for j in 0..w {
-            let p = gn.p(i, j);
+            let p = match offset.get(i * w + j) {
+                Some(d) if *d != Vec2::ZERO => {
+                    gn.point_off(i, j, d.y as f64, d.x as f64, znew[i * w + j] as f64)
+                }
+                _ => gn.p(i, j),
+            };
             pos64.push(p);
             positions.push(p.as_vec3());
             film.push(Vec2::new(j as f32 + 0.5, i as f32 + 0.5));
@@ -287,6 +424,7 @@ pub fn mesh_from_depth(
     // 5. Emit, duplicating boundary vertices sequentially (copies are shared).
     let mut stats = MeshStats {
         boundary_pixels,
+        kept_edges,
         ..Default::default()
     };
     let mut indices: Vec<[u32; 3]> = Vec::with_capacity(2 * (h - 1) * quads_w);
@@ -456,6 +594,79 @@ mod tests {
             }
         }
         assert_eq!(escaped, 0);
+    }
+
+    /// The depth of the first surface hit through film position `film`.
+    fn hit_depth(bvh: &Bvh, c: &Camera, film: Vec2) -> Option<f32> {
+        let d = c.film_to_dir(film);
+        bvh.intersect(Vec3::ZERO, d.normalize(), 0.0, f32::INFINITY)
+            .map(|h| h.t * d.normalize().z.abs())
+    }
+
+    /// A box of pixels 20..44 at depth 4 before a wall at 10, its depth
+    /// sharp (every pixel the depth at its centre): the box spans film
+    /// [20, 44) on each axis, and with kept silhouettes the mesh's box
+    /// does too, to a hair; the reference's rule shrinks it by a pixel
+    /// and a half on every side.
+    #[test]
+    fn kept_silhouettes_lie_on_the_pixel_border() {
+        let n = 64;
+        let z = GrayImage::from_fn(n, n, |x, y| {
+            if (20..44).contains(&x) && (20..44).contains(&y) {
+                4.0
+            } else {
+                10.0
+            }
+        });
+        let c = cam(n);
+        let kept = mesh_from_depth(&z, &c, &MeshParams::default()).unwrap();
+        let reference = mesh_from_depth(&z, &c, &MeshParams::reference(6.0)).unwrap();
+        // Every boundary pixel of the box is its own edge: none moves.
+        assert_eq!(kept.stats.kept_edges, kept.stats.boundary_pixels);
+        assert_eq!(kept.stats.kept_edges, 4 * 24 - 4);
+        assert_eq!(reference.stats.kept_edges, 0);
+        assert_eq!(kept.depth.data, z.data);
+        let (bk, br) = (Bvh::build(&kept.mesh), Bvh::build(&reference.mesh));
+        // Across the middle row, and down the middle column.
+        for t in [19.9f32, 20.05, 21.2, 42.8, 43.95, 44.1] {
+            let inside = (20.0..44.0).contains(&t);
+            for film in [Vec2::new(t, 32.0), Vec2::new(32.0, t)] {
+                let zk = hit_depth(&bk, &c, film).unwrap();
+                assert!(
+                    (zk - if inside { 4.0 } else { 10.0 }).abs() < 1e-3,
+                    "kept, film {film}: depth {zk}"
+                );
+                let zr = hit_depth(&br, &c, film).unwrap();
+                let in_ref = (21.5..42.5).contains(&t);
+                assert!(
+                    (zr - if in_ref { 4.0 } else { 10.0 }).abs() < 1e-3,
+                    "reference, film {film}: depth {zr}"
+                );
+            }
+        }
+        // The corner reaches the pixels' corner.
+        assert!((hit_depth(&bk, &c, Vec2::new(20.05, 20.05)).unwrap() - 4.0).abs() < 1e-3);
+        assert!((hit_depth(&bk, &c, Vec2::new(19.95, 19.95)).unwrap() - 10.0).abs() < 1e-3);
+    }
+
+    /// A predicted depth map smears an edge over pixels between the two
+    /// depths; those still move to the background, as in the reference,
+    /// and only the object's own edge pixel stays.
+    #[test]
+    fn pixels_between_two_depths_still_move_back() {
+        let n = 32;
+        let z = GrayImage::from_fn(n, n, |x, _| match x {
+            0..=11 => 4.0,
+            12 => 6.0,
+            13 => 8.0,
+            _ => 10.0,
+        });
+        let m = mesh_from_depth(&z, &cam(n), &MeshParams::default()).unwrap();
+        for y in 1..n - 1 {
+            assert_eq!(m.depth.get(11, y), 4.0, "row {y}: the edge keeps its depth");
+            assert_eq!(m.depth.get(12, y), 10.0, "row {y}");
+            assert_eq!(m.depth.get(13, y), 10.0, "row {y}");
+        }
     }
 
     #[test]

@@ -20,6 +20,7 @@ pub use complete::{
 };
 pub use depth_mesh::{
     mesh_for_view, mesh_from_depth, vertex_normals, DepthMesh, MeshError, MeshParams, MeshStats,
+    Silhouettes,
 };
 pub use mesh::{Portal, TriMesh, PROJECTED};
 pub use planes::{fit_planes, view_up, Plane, PlaneFit, PlaneKind, PlaneParams};

@@ -438,7 +438,9 @@ mod tests {
     fn frozen_estimator_matches_the_forward_renderer_through_partly_open_walls() {
         let t = crate::testutil::partly_open_room(4, 16, 0.3);
         assert!(t.scene.has_openness());
-        same_as_forward(t, 256);
+        // Two independent estimates: at 256 spp their difference was 1.0 %
+        // of the image's energy for some meshes of the same room.
+        same_as_forward(t, 512);
     }
 
     /// The same in a room closed with solid walls, lit through the

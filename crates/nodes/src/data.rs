@@ -5,7 +5,7 @@ use std::path::Path;
 
 use glam::{Vec2, Vec3};
 use matflow_engine::{NodeError, ParamSpec, ParamType};
-use matflow_geom::{mesh_for_view, Portal, TriMesh};
+use matflow_geom::{mesh_for_view, MeshParams, Portal, TriMesh};
 use matflow_inverse::paths::{PathCache, PathWords};
 use matflow_render::{EnvMap, PixelFilter, RenderOptions, RenderScene};
 use matflow_scene::{io, Camera, GrayImage, MaterialMaps, RgbImage};
@@ -279,8 +279,8 @@ pub fn scene_of(
         .map_err(failed)
 }
 
-pub(crate) fn mesh_of(depth: &GrayImage, angle: f64) -> Result<TriMesh, NodeError> {
-    Ok(mesh_for_view(depth, angle)
+pub(crate) fn mesh_of(depth: &GrayImage, params: &MeshParams) -> Result<TriMesh, NodeError> {
+    Ok(mesh_for_view(depth, params)
         .map_err(|e| err(format!("meshing the depth map: {e}")))?
         .1
         .mesh)

@@ -413,9 +413,15 @@ mod tests {
                 base
             }
         });
-        scene_from_depth(&depth, &maps, EnvMap::new(&sky).unwrap(), 6.0, None)
-            .unwrap()
-            .0
+        scene_from_depth(
+            &depth,
+            &maps,
+            EnvMap::new(&sky).unwrap(),
+            matflow_geom::MeshParams::default(),
+            None,
+        )
+        .unwrap()
+        .0
     }
 
     fn render(scene: &RenderScene, spp: u32, seed: u64) -> RgbImage {

@@ -18,7 +18,7 @@
 //! on the means of `block`×`block` pixel blocks, and over the blocks where
 //! the hypotheses' renders differ (elsewhere they all score alike).
 
-use matflow_geom::CompleteParams;
+use matflow_geom::{CompleteParams, MeshParams};
 use matflow_scene::color::linear_to_gamma;
 use matflow_scene::{GrayImage, MaterialMaps, RgbImage};
 
@@ -214,7 +214,7 @@ pub fn choose_completion(
     depth: &GrayImage,
     maps: &MaterialMaps,
     env: &EnvMap,
-    mesh_angle_deg: f64,
+    mesh_params: MeshParams,
     photo: &RgbImage,
     hypotheses: &[Hypothesis],
     opts: &EvidenceOptions,
@@ -223,7 +223,7 @@ pub fn choose_completion(
         depth,
         maps,
         env,
-        mesh_angle_deg,
+        mesh_params,
         photo,
     };
     view.choose(hypotheses, opts, &mut Vec::new())
@@ -246,7 +246,7 @@ fn choose_cached(
         depth,
         maps,
         env,
-        mesh_angle_deg,
+        mesh_params,
         photo,
     } = *view;
     let t_all = std::time::Instant::now();
@@ -275,7 +275,7 @@ fn choose_cached(
             .par_iter()
             .map(|h| {
                 let t0 = std::time::Instant::now();
-                let (cam, mut m) = matflow_geom::mesh_for_view(depth, mesh_angle_deg)?;
+                let (cam, mut m) = matflow_geom::mesh_for_view(depth, &mesh_params)?;
                 if let Some(p) = h.params.as_ref() {
                     matflow_geom::complete_beyond_frame(&mut m.mesh, depth, &cam, p);
                 }
@@ -434,7 +434,7 @@ pub struct PhotoView<'a> {
     pub depth: &'a GrayImage,
     pub maps: &'a MaterialMaps,
     pub env: &'a EnvMap,
-    pub mesh_angle_deg: f64,
+    pub mesh_params: MeshParams,
     pub photo: &'a RgbImage,
 }
 
@@ -880,7 +880,7 @@ pub fn clip_level(photo: &RgbImage) -> f32 {
 pub fn choose_under_seen_sky(
     depth: &GrayImage,
     maps: &MaterialMaps,
-    mesh_angle_deg: f64,
+    mesh_params: MeshParams,
     photo: &RgbImage,
     hypotheses: &[Hypothesis],
     opts: &EvidenceOptions,
@@ -897,7 +897,7 @@ pub fn choose_under_seen_sky(
         return Ok(None);
     }
     let env = EnvMap::new(&sky.env)?;
-    let choice = choose_completion(depth, maps, &env, mesh_angle_deg, photo, hypotheses, opts)?;
+    let choice = choose_completion(depth, maps, &env, mesh_params, photo, hypotheses, opts)?;
     Ok(Some((choice, sky)))
 }
 
@@ -963,7 +963,8 @@ mod tests {
     /// The photo: the view rendered on hypothesis `k`'s completion.
     fn photo(depth: &GrayImage, maps: &MaterialMaps, k: usize) -> RgbImage {
         let h = &hyps()[k];
-        let (scene, _, _) = scene_from_depth(depth, maps, sky(), 6.0, h.params.as_ref()).unwrap();
+        let (scene, _, _) =
+            scene_from_depth(depth, maps, sky(), MeshParams::default(), h.params.as_ref()).unwrap();
         let o = RenderOptions {
             spp: 64,
             seed: 99,
@@ -984,7 +985,16 @@ mod tests {
         // The choice on the photo rendered with hypothesis k.
         let choose = |k: usize| {
             let photo = photo(&depth, &maps, k);
-            choose_completion(&depth, &maps, &sky(), 6.0, &photo, &hyps(), &opts).unwrap()
+            choose_completion(
+                &depth,
+                &maps,
+                &sky(),
+                MeshParams::default(),
+                &photo,
+                &hyps(),
+                &opts,
+            )
+            .unwrap()
         };
         // Open: the sky lights the floor and the wall; a closed room
         // would shut most of it out.
@@ -1026,7 +1036,8 @@ mod tests {
             ..Default::default()
         };
         let shot = |p: &CompleteParams, seed: u64| {
-            let (scene, _, _) = scene_from_depth(&depth, &maps, sky(), 6.0, Some(p)).unwrap();
+            let (scene, _, _) =
+                scene_from_depth(&depth, &maps, sky(), MeshParams::default(), Some(p)).unwrap();
             let o = RenderOptions {
                 spp: 256,
                 seed,
@@ -1061,7 +1072,7 @@ mod tests {
                 depth: &depth,
                 maps: &maps,
                 env: &env,
-                mesh_angle_deg: 6.0,
+                mesh_params: MeshParams::default(),
                 photo: &photo,
             };
             let w = choose_windows(&view, &base, &opts)
@@ -1109,7 +1120,7 @@ mod tests {
             depth: &sky_only,
             maps: &m16,
             env: &env,
-            mesh_angle_deg: 6.0,
+            mesh_params: MeshParams::default(),
             photo: &photo,
         };
         assert!(choose_windows(&view, &base, &opts).unwrap().is_none());
@@ -1129,7 +1140,8 @@ mod tests {
         };
         let start = hyps()[1].clone();
         let shot = |p: Option<&CompleteParams>| {
-            let (scene, _, _) = scene_from_depth(&depth, &maps, sky(), 6.0, p).unwrap();
+            let (scene, _, _) =
+                scene_from_depth(&depth, &maps, sky(), MeshParams::default(), p).unwrap();
             let o = RenderOptions {
                 spp: 256,
                 seed: 99,
@@ -1149,7 +1161,7 @@ mod tests {
             depth: &depth,
             maps: &maps,
             env: &env,
-            mesh_angle_deg: 6.0,
+            mesh_params: MeshParams::default(),
             photo,
         };
         let w = choose_walls(&view(&photo), &start, &room, &opts)
@@ -1182,7 +1194,16 @@ mod tests {
                 .build()
                 .unwrap()
                 .install(|| {
-                    choose_completion(&depth, &maps, &sky(), 6.0, &photo, &hyps(), &opts).unwrap()
+                    choose_completion(
+                        &depth,
+                        &maps,
+                        &sky(),
+                        MeshParams::default(),
+                        &photo,
+                        &hyps(),
+                        &opts,
+                    )
+                    .unwrap()
                 })
         };
         let numbers = |c: &CompletionChoice| {
@@ -1216,7 +1237,7 @@ mod tests {
             &depth,
             &maps,
             &sky(),
-            6.0,
+            MeshParams::default(),
             &photo,
             &hyps(),
             &EvidenceOptions::default(),

@@ -4,7 +4,7 @@
 use glam::{Vec2, Vec3};
 use matflow_geom::{
     complete_beyond_frame, mesh_for_view, vertex_normals, Bvh, CompleteParams, Completion,
-    DepthMesh, MeshStats, Portal, TriMesh,
+    DepthMesh, MeshParams, MeshStats, Portal, TriMesh,
 };
 use matflow_scene::{Camera, GrayImage, MaterialMaps};
 
@@ -30,7 +30,7 @@ pub fn materials_from_maps(maps: &MaterialMaps) -> Vec<Material> {
 
 /// The scene of a depth map (camera-space z, 0 for sky) seen by the
 /// default camera of its size: the mesh cut at depth discontinuities
-/// (`mesh_angle_deg`, the reference's angle test), its BVH, the
+/// (`mesh_params`: the angle test and the silhouettes), its BVH, the
 /// screen-space materials and the envmap. The one way the CLI and the
 /// pipeline nodes turn a bundle's depth into something to render; the
 /// mesh's statistics come back too. With `complete`, the geometry is
@@ -42,10 +42,10 @@ pub fn scene_from_depth(
     depth: &GrayImage,
     maps: &MaterialMaps,
     env: EnvMap,
-    mesh_angle_deg: f64,
+    mesh_params: MeshParams,
     complete: Option<&CompleteParams>,
 ) -> Result<(RenderScene, MeshStats, Completion), RenderError> {
-    scene_from_depth_guided(depth, maps, env, mesh_angle_deg, complete, true)
+    scene_from_depth_guided(depth, maps, env, mesh_params, complete, true)
 }
 
 /// As [`scene_from_depth`], the light guide built or not
@@ -54,7 +54,7 @@ pub fn scene_from_depth_guided(
     depth: &GrayImage,
     maps: &MaterialMaps,
     env: EnvMap,
-    mesh_angle_deg: f64,
+    mesh_params: MeshParams,
     complete: Option<&CompleteParams>,
     guided: bool,
 ) -> Result<(RenderScene, MeshStats, Completion), RenderError> {
@@ -63,7 +63,7 @@ pub fn scene_from_depth_guided(
         DepthMesh {
             mut mesh, stats, ..
         },
-    ) = mesh_for_view(depth, mesh_angle_deg)?;
+    ) = mesh_for_view(depth, &mesh_params)?;
     let completion = complete
         .map(|p| complete_beyond_frame(&mut mesh, depth, &cam, p))
         .unwrap_or_default();

@@ -4,7 +4,7 @@ use std::collections::BTreeMap;
 
 use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
 
-use matflow_geom::{complete_beyond_frame, CompleteParams};
+use matflow_geom::{complete_beyond_frame, CompleteParams, MeshParams, Silhouettes};
 use matflow_render::evidence::{choose_under_seen_sky, completion_hypotheses, EvidenceOptions};
 use matflow_scene::Camera;
 
@@ -18,7 +18,7 @@ const COMPLETE_CHOICES: [&str; 5] = ["auto", "none", "planes", "room", "closed"]
 /// The mode `auto` takes for the scene `s`: the photo's choice under the
 /// sky it shows, else room (no photo, or no open sky to weigh the light
 /// by: a sky seen only through windows comes with light it does not show).
-fn auto_mode(s: &SceneData, angle: f64) -> Result<&'static str, NodeError> {
+fn auto_mode(s: &SceneData, mesh: MeshParams) -> Result<&'static str, NodeError> {
     let Some(photo) = &s.target else {
         return Ok("room");
     };
@@ -27,7 +27,7 @@ fn auto_mode(s: &SceneData, angle: f64) -> Result<&'static str, NodeError> {
         filter: matflow_render::PixelFilter::Box,
         ..Default::default()
     };
-    let tested = choose_under_seen_sky(&s.depth, &s.pred, angle, photo, &hyps, &opts)
+    let tested = choose_under_seen_sky(&s.depth, &s.pred, mesh, photo, &hyps, &opts)
         .map_err(|e| crate::err(format!("testing the geometry past the frame: {e}")))?;
     Ok(match tested {
         Some((c, _)) => matflow_geom::COMPLETE_MODES[c.chosen],
@@ -37,7 +37,7 @@ fn auto_mode(s: &SceneData, angle: f64) -> Result<&'static str, NodeError> {
 
 const MESH_INFO: NodeInfo = NodeInfo {
     kind: "mesh",
-    version: 6,
+    version: 7,
     doc: "The triangle mesh of a scene's depth map (one vertex per pixel, cut at depth \
          discontinuities found by the reference's angle test), optionally completed past the \
          frame.",
@@ -58,6 +58,16 @@ const MESH_INFO: NodeInfo = NodeInfo {
             default: Some("6"),
             unit: "degrees",
             doc: "boundary threshold: triangles seen more obliquely than this are cut",
+        },
+        ParamSpec {
+            name: "silhouettes",
+            ty: ParamType::Choice(&Silhouettes::NAMES),
+            default: Some("kept"),
+            unit: "",
+            doc: "the near side of a depth discontinuity: kept (an object's edge keeps its depth \
+                  and reaches the pixel border; only pixels between two depths move back) or \
+                  reference (every boundary pixel takes the background's depth, as the reference \
+                  implementation: objects lose a pixel and a half)",
         },
         ParamSpec {
             name: "complete",
@@ -85,9 +95,14 @@ impl Node for MeshNode {
     }
     fn run(&self, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
         let s = SceneData::decode(ctx.input("scene")?)?;
-        let mut tri = mesh_of(&s.depth, ctx.params.f64("angle"))?;
+        let mesh = MeshParams {
+            min_angle_deg: ctx.params.f64("angle"),
+            silhouettes: Silhouettes::parse(ctx.params.str("silhouettes"))
+                .ok_or_else(|| crate::err("silhouettes: not kept or reference"))?,
+        };
+        let mut tri = mesh_of(&s.depth, &mesh)?;
         let mode = match ctx.params.str("complete") {
-            "auto" => auto_mode(&s, ctx.params.f64("angle"))?,
+            "auto" => auto_mode(&s, mesh)?,
             m => m,
         };
         if let Some(p) = CompleteParams::for_mode(mode) {
@@ -122,8 +137,14 @@ mod tests {
         let s = matflow_scene::synthetic::generate(3, 48, 48);
         let target = photo.then(|| {
             let env = matflow_render::EnvMap::new(&s.envmap).unwrap();
-            let (scene, _, _) =
-                matflow_render::scene_from_depth(&s.depth, &s.maps, env, 6.0, None).unwrap();
+            let (scene, _, _) = matflow_render::scene_from_depth(
+                &s.depth,
+                &s.maps,
+                env,
+                matflow_geom::MeshParams::default(),
+                None,
+            )
+            .unwrap();
             let o = matflow_render::RenderOptions {
                 spp: 32,
                 ..Default::default()
@@ -164,7 +185,7 @@ mod tests {
         let plain = mesh_with("none");
         assert!(plain.material_pixel.is_empty());
         let s = matflow_scene::synthetic::generate(3, 48, 48);
-        assert_eq!(plain, mesh_of(&s.depth, 6.0).unwrap());
+        assert_eq!(plain, mesh_of(&s.depth, &MeshParams::default()).unwrap());
         for mode in ["planes", "room"] {
             let done = mesh_with(mode);
             // The view's own mesh first, then what continues it, each

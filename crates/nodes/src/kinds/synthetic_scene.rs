@@ -14,7 +14,7 @@ pub struct SyntheticSceneNode;
 
 const SYNTHETIC_SCENE_INFO: NodeInfo = NodeInfo {
     kind: "synthetic_scene",
-    version: 2,
+    version: 3,
     doc: "A procedural room (floor, walls, a few objects with varied albedo, roughness and \
          metallic) under a procedural sky, its input image rendered by matflow's path tracer \
          on its depth mesh alone (so its `mesh` stage takes `complete: none`), and predictions \
@@ -93,7 +93,14 @@ impl Node for SyntheticSceneNode {
             s.maps.clone()
         };
         let env = EnvMap::new(&s.envmap).map_err(failed)?;
-        let (scene, _, _) = scene_from_depth(&s.depth, &s.maps, env, 6.0, None).map_err(failed)?;
+        let (scene, _, _) = scene_from_depth(
+            &s.depth,
+            &s.maps,
+            env,
+            matflow_geom::MeshParams::default(),
+            None,
+        )
+        .map_err(failed)?;
         let opts = RenderOptions {
             spp: p.i64("spp") as u32,
             seed,
