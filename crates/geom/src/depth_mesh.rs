@@ -20,7 +20,12 @@
 //!    deeper one); the foreground's own edge pixel keeps its depth and its
 //!    vertex moves half a pixel towards each deeper neighbour, so the
 //!    silhouette lies on the pixel border, midway between the last pixel
-//!    centre of the object and the first of what is behind it.
+//!    centre of the object and the first of what is behind it. A surface
+//!    seen at a grazing angle (distant ground: a long run of steep
+//!    segments whose 1/z steps alike, as a plane's do) is no boundary at
+//!    all under `Kept`: its pixels keep their depth and its triangles are
+//!    kept, where the reference cuts it into a staircase of camera-facing
+//!    steps that shade and shadow as walls.
 //! 4. **Triangulation** of every pixel quad along the "/" diagonal; a
 //!    triangle whose angle to the view ray is still ≤ τ joins two objects.
 //! 5. **Boundary duplication.** Such a triangle is rebuilt behind the
@@ -224,6 +229,83 @@ fn foreground_edge(g: &Grid, i: usize, j: usize, tau: f64) -> Option<Vec2> {
     Some(d.clamp(Vec2::splat(-0.5), Vec2::splat(0.5)))
 }
 
+/// Pixels of a surface seen at a grazing angle: runs of at least
+/// GRAZING_RUN steep segments along a row or a column whose inverse depth
+/// changes by the same step (a plane's 1/z is affine in the pixel
+/// coordinates; a depth discontinuity's step differs from the surface's
+/// beside it, and a predicted map's smeared edge is a few pixels long).
+fn grazing_planes(g: &Grid, h: usize, tau: f64) -> Vec<bool> {
+    const GRAZING_RUN: usize = 8;
+    const SAME_STEP: f64 = 0.25;
+    let w = g.w;
+    let mut out = vec![false; w * h];
+    // (start pixel, step between pixels, count) of every row and column.
+    let lines = (0..h)
+        .map(|i| (i * w, 1usize, w))
+        .chain((0..w).map(|j| (j, w, h)));
+    for (start, step, count) in lines {
+        let at = |t: usize| start + t * step;
+        let px = |t: usize| (at(t) / w, at(t) % w);
+        let valid = |t: usize| g.z[at(t)] > 0.0;
+        // Segment t joins pixels t and t + 1: its 1/z step when steep.
+        let steps: Vec<Option<f64>> = (0..count.saturating_sub(1))
+            .map(|t| {
+                (valid(t) && valid(t + 1) && seg_steep(g, px(t), px(t + 1), tau))
+                    .then(|| 1.0 / g.z[at(t + 1)] as f64 - 1.0 / g.z[at(t)] as f64)
+            })
+            .collect();
+        let flat = |t: usize| steps[t].is_none() && valid(t) && valid(t + 1);
+        let mut t = 0;
+        while t < steps.len() {
+            let Some(first) = steps[t] else {
+                t += 1;
+                continue;
+            };
+            // The run of steep segments stepping alike from segment t.
+            let (mut e, mut last) = (t, first);
+            while let Some(d) = steps.get(e + 1).copied().flatten() {
+                if (d - last).abs() > SAME_STEP * d.abs().max(last.abs()) {
+                    break;
+                }
+                last = d;
+                e += 1;
+            }
+            if e + 1 - t >= GRAZING_RUN {
+                // Pixels t..=e+1, and one more at either end where the
+                // surface goes on less steeply (not across a jump).
+                let lo = if t > 0 && flat(t - 1) { t - 1 } else { t };
+                let hi = if e + 1 < steps.len() && flat(e + 1) {
+                    e + 2
+                } else {
+                    e + 1
+                };
+                for q in lo..=hi {
+                    out[at(q)] = true;
+                }
+            }
+            t = e + 1;
+        }
+    }
+    out
+}
+
+/// Whether the segment between pixels a and b lies within τ of the view
+/// ray through its middle.
+fn seg_steep(g: &Grid, a: (usize, usize), b: (usize, usize), tau: f64) -> bool {
+    let (pa, pb) = (g.p(a.0, a.1), g.p(b.0, b.1));
+    let seg = pb - pa;
+    let mid = (pa + pb) * 0.5;
+    let (ls, lm) = (seg.length(), mid.length());
+    if !(ls > 0.0 && lm > 0.0) {
+        return false;
+    }
+    (seg.cross(mid).length() / (ls * lm))
+        .min(1.0)
+        .asin()
+        .to_degrees()
+        < tau
+}
+
 /// Angle in degrees between a triangle's plane and the ray to its centroid;
 /// NaN for degenerate triangles.
 #[inline]
@@ -344,11 +426,21 @@ pub fn mesh_from_depth(
     // Film offsets of the kept edges' vertices (empty for the reference).
     let mut offset: Vec<Vec2> = vec![Vec2::ZERO; if kept { w * h } else { 0 }];
     let mut kept_edges = 0;
+    let grazing = if kept {
+        grazing_planes(&g, h, tau)
+    } else {
+        Vec::new()
+    };
+    let on_plane = |k: usize| grazing.get(k).copied().unwrap_or(false);
     for k in 0..w * h {
         if refer[k] == NONE {
             continue;
         }
         boundary_pixels += 1;
+        if on_plane(k) {
+            kept_edges += 1;
+            continue;
+        }
         if kept {
             if let Some(d) = foreground_edge(&g, k / w, k % w, tau) {
                 offset[k] = d;
@@ -415,7 +507,11 @@ pub fn mesh_from_depth(
                     continue;
                 }
                 let ang = view_angle_deg(pos64[t[0]], pos64[t[1]], pos64[t[2]]);
-                s[n] = if ang > tau { 1 } else { 2 };
+                s[n] = if ang > tau || t.iter().all(|&k| on_plane(k)) {
+                    1
+                } else {
+                    2
+                };
             }
             s
         })
@@ -647,6 +743,63 @@ mod tests {
         // The corner reaches the pixels' corner.
         assert!((hit_depth(&bk, &c, Vec2::new(20.05, 20.05)).unwrap() - 4.0).abs() < 1e-3);
         assert!((hit_depth(&bk, &c, Vec2::new(19.95, 19.95)).unwrap() - 10.0).abs() < 1e-3);
+    }
+
+    /// Flat ground under a camera 1.5 high looking level: its far rows
+    /// are seen within 6° of the view ray. With kept silhouettes it stays
+    /// one plane (every triangle's normal points up, no copies); the
+    /// reference's rule cuts its far rows into camera-facing steps. A box
+    /// standing on it is still cut off from the ground behind.
+    #[test]
+    fn ground_seen_at_a_grazing_angle_stays_a_plane() {
+        let n = 64;
+        let c = cam(n);
+        let f = c.focal() as f64;
+        let cy = (n as f64 - 1.0) / 2.0;
+        // Ground y = -1.5: a pixel row i below the horizon sees it at z =
+        // 1.5 f / (i - cy); rows at or above the horizon see the sky (0).
+        let ground = |i: usize| {
+            if (i as f64) > cy + 0.5 {
+                (1.5 * f / (i as f64 - cy)) as f32
+            } else {
+                0.0
+            }
+        };
+        let z = GrayImage::from_fn(n, n, |_, y| ground(y));
+        let kept = mesh_from_depth(&z, &c, &MeshParams::default()).unwrap();
+        let reference = mesh_from_depth(&z, &c, &MeshParams::reference(6.0)).unwrap();
+        assert_eq!(kept.stats.copies, 0, "{:?}", kept.stats);
+        assert_eq!(kept.depth.data, z.data);
+        for t in 0..kept.mesh.triangle_count() {
+            let nrm = kept.mesh.face_normal(t);
+            assert!(nrm.y.abs() > 0.999, "triangle {t}: normal {nrm}");
+        }
+        assert!(reference.stats.copies > 0, "{:?}", reference.stats);
+        let steps = (0..reference.mesh.triangle_count())
+            .filter(|&t| reference.mesh.face_normal(t).y.abs() < 0.5)
+            .count();
+        assert!(steps > 0);
+        // A box on the ground, its front face at z = 8, columns 28..36, rows
+        // from the ground (row 50) up to row 40, where the ground behind
+        // is seen at a grazing angle (rows 33 to 42): the ground behind its
+        // top edge is not joined to it.
+        let top = 40;
+        let zb = GrayImage::from_fn(n, n, |x, y| {
+            let g = ground(y);
+            if (28..36).contains(&x) && y >= top && (g == 0.0 || g > 8.0) {
+                8.0
+            } else {
+                g
+            }
+        });
+        let m = mesh_from_depth(&zb, &c, &MeshParams::default()).unwrap();
+        let bvh = Bvh::build(&m.mesh);
+        // Just above the box's top edge (film row 30): the ground far
+        // behind, not a sheet at the box's depth.
+        let behind = hit_depth(&bvh, &c, Vec2::new(32.5, top as f32 - 0.2)).unwrap();
+        assert!(behind > 18.0, "above the box: depth {behind}");
+        let on = hit_depth(&bvh, &c, Vec2::new(32.5, top as f32 + 0.2)).unwrap();
+        assert!((on - 8.0).abs() < 1e-3, "the box's top row: depth {on}");
     }
 
     /// A predicted depth map smears an edge over pixels between the two
