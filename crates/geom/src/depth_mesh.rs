@@ -70,14 +70,6 @@ impl MeshParams {
             silhouettes: Silhouettes::Reference,
         }
     }
-
-    /// matflow's mesh at angle τ.
-    pub fn at_angle(min_angle_deg: f64) -> Self {
-        MeshParams {
-            min_angle_deg,
-            ..Default::default()
-        }
-    }
 }
 
 /// The near side of a depth discontinuity (step 3 of the module's doc).
@@ -204,20 +196,11 @@ impl Grid<'_> {
 /// pixel towards each of them, per axis at most half a pixel), or None when
 /// it is steep towards a nearer neighbour too (a pixel between two depths).
 fn foreground_edge(g: &Grid, i: usize, j: usize, tau: f64) -> Option<Vec2> {
-    let pc = g.p(i, j);
     let zc = g.zz(i, j);
     let mut d = Vec2::ZERO;
     for (di, dj) in [(1isize, 0isize), (-1, 0), (0, 1), (0, -1)] {
         let (a, b) = ((i as isize + di) as usize, (j as isize + dj) as usize);
-        let pn = g.p(a, b);
-        let seg = pn - pc;
-        let mid = (pn + pc) * 0.5;
-        let (ls, lm) = (seg.length(), mid.length());
-        if !(ls > 0.0 && lm > 0.0) {
-            continue;
-        }
-        let sin = (seg.cross(mid).length() / (ls * lm)).min(1.0);
-        if !(sin.asin().to_degrees() < tau) {
+        if !seg_steep(g, (i, j), (a, b), tau) {
             continue;
         }
         if g.zz(a, b) > zc {
@@ -659,18 +642,24 @@ mod tests {
         }
     }
 
-    /// A box in front of a wall: the silhouette must be closed by duplicated
-    /// background triangles, so rays between pixel centres never escape.
-    #[test]
-    fn boundary_duplication_leaves_no_gap() {
-        let n = 64;
-        let z = GrayImage::from_fn(n, n, |x, y| {
+    /// Pixels 20..44 on each axis at depth 4 (a box), the rest at 10 (a
+    /// wall behind it).
+    fn box_before_wall(n: usize) -> GrayImage {
+        GrayImage::from_fn(n, n, |x, y| {
             if (20..44).contains(&x) && (20..44).contains(&y) {
                 4.0
             } else {
                 10.0
             }
-        });
+        })
+    }
+
+    /// A box in front of a wall: the silhouette must be closed by duplicated
+    /// background triangles, so rays between pixel centres never escape.
+    #[test]
+    fn boundary_duplication_leaves_no_gap() {
+        let n = 64;
+        let z = box_before_wall(n);
         let c = cam(n);
         let m = mesh_from_depth(&z, &c, &MeshParams::default()).unwrap();
         assert!(m.stats.copies > 0, "{:?}", m.stats);
@@ -707,13 +696,7 @@ mod tests {
     #[test]
     fn kept_silhouettes_lie_on_the_pixel_border() {
         let n = 64;
-        let z = GrayImage::from_fn(n, n, |x, y| {
-            if (20..44).contains(&x) && (20..44).contains(&y) {
-                4.0
-            } else {
-                10.0
-            }
-        });
+        let z = box_before_wall(n);
         let c = cam(n);
         let kept = mesh_from_depth(&z, &c, &MeshParams::default()).unwrap();
         let reference = mesh_from_depth(&z, &c, &MeshParams::reference(6.0)).unwrap();
