@@ -46,7 +46,8 @@ pub struct RenderArgs {
     #[arg(long, default_value_t = 6.0)]
     pub mesh_angle: f64,
     /// The near side of a depth discontinuity: `kept` (an object's edge
-    /// keeps its depth and reaches the pixel border) or `reference` (every
+    /// keeps its depth and reaches the pixel border; a solid's unseen back
+    /// is its front mirrored about its silhouettes) or `reference` (every
     /// boundary pixel takes the background's depth, as the reference
     /// implementation). Default: for `best_results` written by `matflow
     /// invert`, the one it recovered them with; else reference with
@@ -188,7 +189,8 @@ pub struct MeshArgs {
     #[arg(long, default_value_t = 6.0)]
     pub angle: f64,
     /// The near side of a depth discontinuity: kept (an object's edge
-    /// keeps its depth and reaches the pixel border) or reference (every
+    /// keeps its depth and reaches the pixel border; a solid's unseen back
+    /// is its front mirrored about its silhouettes) or reference (every
     /// boundary pixel takes the background's depth, as the reference
     /// implementation's meshes).
     #[arg(long, default_value_t = Silhouettes::Kept)]
@@ -1304,7 +1306,7 @@ pub fn mesh(a: MeshArgs) -> Result<()> {
     m.mesh.write_ply(&mut buf, cam.width, cam.height)?;
     io::write_atomic(&a.out, &buf)?;
     outln!(
-        "mesh: {} vertices, {} triangles in {:.3} s ({} silhouettes: {} boundary pixels moved, {} kept as edges; {} copies, {} direct, {} after 1 copy, {} after 2, {} dropped) -> {}",
+        "mesh: {} vertices, {} triangles in {:.3} s ({} silhouettes: {} boundary pixels moved, {} kept as edges; {} copies, {} direct, {} after 1 copy, {} after 2, {} dropped; backs: {} vertices, {} triangles) -> {}",
         m.mesh.vertex_count(),
         m.mesh.triangle_count(),
         secs,
@@ -1316,6 +1318,8 @@ pub fn mesh(a: MeshArgs) -> Result<()> {
         m.stats.emitted_one_copy,
         m.stats.emitted_two_copies,
         m.stats.dropped,
+        m.stats.back_vertices,
+        m.stats.back_triangles,
         a.out.display()
     );
     Ok(())

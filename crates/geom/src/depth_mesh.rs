@@ -35,6 +35,14 @@
 //!    triangle is dropped. The foreground keeps its own vertices, and the
 //!    background continues behind it, so no hole (white border) opens at
 //!    object silhouettes.
+//! 6. **Backs** (matflow's, [`Silhouettes::Kept`] only; the reference's
+//!    mesh is a shell). A shell lets light through where a solid's unseen
+//!    back half should stop it: a cylinder casts the shadow of a sheet.
+//!    Each row's runs without a jump whose ends are silhouettes get a back,
+//!    the front mirrored about the surface through the ends
+//!    ([`mirrored_backs`]), with vertices of its own so the front's
+//!    shading normals are unchanged. A plane is its own mirror and gets
+//!    none.
 //!
 //! The reference code uses τ = 6° (the paper says 3°); 6° is the default.
 
@@ -79,7 +87,9 @@ pub enum Silhouettes {
     /// rule): objects lose a pixel and a half at their silhouettes.
     Reference,
     /// Only pixels between two depths take the background's depth; an
-    /// object's own edge keeps its depth and reaches the pixel border.
+    /// object's own edge keeps its depth and reaches the pixel border,
+    /// and a solid's unseen back is its front mirrored about its
+    /// silhouettes (step 6).
     #[default]
     Kept,
 }
@@ -128,6 +138,9 @@ pub struct MeshStats {
     pub emitted_one_copy: usize,
     pub emitted_two_copies: usize,
     pub dropped: usize,
+    /// Vertices and triangles of the solids' far sides ([`mirrored_backs`]).
+    pub back_vertices: usize,
+    pub back_triangles: usize,
 }
 
 #[derive(Clone, Debug)]
@@ -271,6 +284,169 @@ fn grazing_planes(g: &Grid, h: usize, tau: f64) -> Vec<bool> {
     }
     out
 }
+
+/// The far side of every convex solid the view shows, as a depth per
+/// pixel (0: no back; the pixel's own surface is all there is).
+///
+/// A depth mesh is a shell: it has the surfaces the camera sees and
+/// nothing behind them, so light that should cross an object's unseen back
+/// half passes (a cylinder casts the shadow of a sheet). Along each row, a
+/// run of pixels with no jump inside it whose ends meet something deeper
+/// (or the sky) is taken as the front of a solid whose silhouettes are at
+/// its ends. Its back is the front mirrored about the surface through the
+/// ends (1/z interpolated, so a plane is its own mirror): back =
+/// 2·z_mid − z_front where that lies behind the front, never deeper than
+/// what is seen beyond the ends. A cylinder or a sphere gets its back
+/// half, a box seen corner-on its hidden corner; a plane (a wall between
+/// two windows, the floor) and a concave run (a room's corner) get
+/// nothing. The run's end pixels lie a little nearer than the true
+/// silhouettes (the pixels on a curved flank seen edge-on are cut as
+/// steep), so backs come out thinner than the truth, not thicker.
+/// With one end at the frame, the run is mirrored about the depth of its
+/// one silhouette, but only when its nearest point is in view and the
+/// front turns away before the frame (an object cut past its middle); a
+/// surface still coming nearer at the frame may go on past it (a wall,
+/// the ground). A run that meets something nearer at either end is partly
+/// hidden, so its silhouette is unknown: no back.
+fn mirrored_backs(g: &Grid, h: usize, tau: f64, on_plane: &dyn Fn(usize) -> bool) -> Vec<f32> {
+    // Thinner than this share of the depth is no solid worth a back.
+    const MIN_THICKNESS: f64 = 0.01;
+    // A frame's end pixel this share deeper than the run's nearest pixel
+    // has turned away.
+    const TURN_TOLERANCE: f64 = 0.001;
+    let w = g.w;
+    let mut back = vec![0.0f32; w * h];
+    for i in 0..h {
+        let row = i * w;
+        let valid = |j: usize| g.z[row + j] > 0.0;
+        // Segment j..j+1 is a jump (not on a grazing plane).
+        let jump = |j: usize| {
+            seg_steep(g, (i, j), (i, j + 1), tau) && !(on_plane(row + j) && on_plane(row + j + 1))
+        };
+        let mut a = 0;
+        while a < w {
+            if !valid(a) {
+                a += 1;
+                continue;
+            }
+            let mut b = a;
+            while b + 1 < w && valid(b + 1) && !jump(b) {
+                b += 1;
+            }
+            let left = run_end(g, row, a, a.checked_sub(1));
+            let right = run_end(g, row, b, (b + 1 < w).then_some(b + 1));
+            if b >= a + 2 {
+                let (za, zb) = (g.z[row + a] as f64, g.z[row + b] as f64);
+                let (ia, ib) = (1.0 / za, 1.0 / zb);
+                let through_ends = |j: usize| {
+                    let t = (j - a) as f64 / (b - a) as f64;
+                    1.0 / (ia + (ib - ia) * t)
+                };
+                // The surface the front is mirrored about: through both
+                // silhouettes. With one end at the frame, the depth of the
+                // one silhouette seen (a solid is widest at its
+                // silhouette), but only where the run's nearest point is
+                // in view, the front turning away again before the frame
+                // (a cylinder cut past its axis). A surface still coming
+                // nearer at the frame (a wall, the ground, a panel seen
+                // obliquely) may go on past it: no back.
+                let (jmin, zmin) = (a..=b)
+                    .map(|j| (j, g.z[row + j] as f64))
+                    .fold((a, f64::INFINITY), |m, p| if p.1 < m.1 { p } else { m });
+                let turns_before_frame = |frame_end: usize, silhouette: usize| {
+                    jmin != silhouette
+                        && jmin.abs_diff(frame_end) >= 2
+                        && g.z[row + frame_end] as f64 > zmin * (1.0 + TURN_TOLERANCE)
+                };
+                let mirror: Option<Box<dyn Fn(usize) -> f64>> = match (left, right) {
+                    (RunEnd::Beyond(_), RunEnd::Beyond(_)) => Some(Box::new(through_ends)),
+                    (RunEnd::Beyond(_), RunEnd::Frame) if turns_before_frame(b, a) => {
+                        Some(Box::new(move |_| za))
+                    }
+                    (RunEnd::Frame, RunEnd::Beyond(_)) if turns_before_frame(a, b) => {
+                        Some(Box::new(move |_| zb))
+                    }
+                    _ => None,
+                };
+                if let Some(mirror) = mirror {
+                    // The far limit: what is seen beyond the ends.
+                    let far = |e: RunEnd| match e {
+                        RunEnd::Beyond(z) => 1.0 / z,
+                        _ => 0.0,
+                    };
+                    let (fa, fb) = (far(left), far(right));
+                    for j in a + 1..b {
+                        let t = (j - a) as f64 / (b - a) as f64;
+                        let front = g.z[row + j] as f64;
+                        let mut z = 2.0 * mirror(j) - front;
+                        let limit_inv = fa + (fb - fa) * t;
+                        if limit_inv > 0.0 {
+                            z = z.min(1.0 / limit_inv);
+                        }
+                        if z > front * (1.0 + MIN_THICKNESS) && z.is_finite() {
+                            back[row + j] = z as f32;
+                        }
+                    }
+                }
+            }
+            a = b + 1;
+        }
+    }
+    back
+}
+
+/// What the end pixel of a row's run meets past it.
+#[derive(Clone, Copy, Debug)]
+enum RunEnd {
+    /// Something deeper (at this depth) or the sky (infinity): the end
+    /// pixel is a silhouette.
+    Beyond(f64),
+    /// The frame's edge: the surface may go on.
+    Frame,
+    /// Something nearer: the run is partly hidden.
+    Hidden,
+}
+
+/// What run end pixel `end` of row `row` meets past it, `next` its
+/// neighbour outside the run (None at the frame). Beyond a silhouette
+/// lies the solid's own flank seen edge-on (pixels still steeper and
+/// deeper), then what is behind it: the depth beyond is where that chain
+/// of deeper pixels ends.
+fn run_end(g: &Grid, row: usize, end: usize, next: Option<usize>) -> RunEnd {
+    let Some(mut n) = next else {
+        return RunEnd::Frame;
+    };
+    let z = |j: usize| g.z[row + j];
+    if z(n) <= 0.0 {
+        return RunEnd::Beyond(f64::INFINITY);
+    }
+    if z(n) <= z(end) {
+        return RunEnd::Hidden;
+    }
+    let i = row / g.w;
+    let rightwards = n > end;
+    let outward = |j: usize| {
+        if rightwards {
+            j.checked_add(1).filter(|&k| k < g.w)
+        } else {
+            j.checked_sub(1)
+        }
+    };
+    while let Some(m) = outward(n) {
+        if z(m) <= 0.0 {
+            return RunEnd::Beyond(f64::INFINITY);
+        }
+        if !(z(m) > z(n) && seg_steep(g, (i, n.min(m)), (i, n.max(m)), FLANK_STEEP_DEG)) {
+            break;
+        }
+        n = m;
+    }
+    RunEnd::Beyond(z(n) as f64)
+}
+
+/// Segments steeper than this (degrees to the view ray) past a silhouette
+/// are still the solid's flank or the jump behind it.
+const FLANK_STEEP_DEG: f64 = 30.0;
 
 /// Whether the segment between pixels a and b lies within τ of the view
 /// ray through its middle.
@@ -566,6 +742,47 @@ pub fn mesh_from_depth(
         }
     }
 
+    // 6. Backs: the far side of what the view shows as a convex solid.
+    if kept {
+        let back = mirrored_backs(&gn, h, tau, &on_plane);
+        let mut back_of: Vec<u32> = vec![NONE; w * h];
+        for q in 0..(h - 1) * quads_w {
+            let (i, j) = (q / quads_w, q % quads_w);
+            for (n, second) in [false, true].into_iter().enumerate() {
+                if status[q][n] != 1 {
+                    continue;
+                }
+                let t = tri_of(i, j, second);
+                if !t.iter().any(|&k| back[k] > 0.0) {
+                    continue;
+                }
+                // Vertices of their own, even where the back meets the
+                // front (same place): the front's vertex normals, and so
+                // its shading, stay as they were.
+                let mut idx = [0u32; 3];
+                for (c, &pix) in t.iter().enumerate() {
+                    if back_of[pix] == NONE {
+                        let p = if back[pix] > 0.0 {
+                            let d = offset.get(pix).copied().unwrap_or(Vec2::ZERO);
+                            gn.point_off(pix / w, pix % w, d.y as f64, d.x as f64, back[pix] as f64)
+                        } else {
+                            pos64[pix]
+                        };
+                        back_of[pix] = pos64.len() as u32;
+                        pos64.push(p);
+                        positions.push(p.as_vec3());
+                        film.push(film[pix]);
+                        stats.back_vertices += 1;
+                    }
+                    idx[c] = back_of[pix];
+                }
+                // Reversed: the back faces away from the camera.
+                indices.push([idx[0], idx[2], idx[1]]);
+                stats.back_triangles += 1;
+            }
+        }
+    }
+
     Ok(DepthMesh {
         mesh: TriMesh {
             positions,
@@ -788,6 +1005,108 @@ mod tests {
     /// A predicted depth map smears an edge over pixels between the two
     /// depths; those still move to the background, as in the reference,
     /// and only the object's own edge pixel stays.
+    /// Depth of an upright cylinder (axis x = x0, z = −6, radius 1, rows
+    /// y ∈ [−1.5, 1]) before a wall at depth 10.
+    fn cylinder_before_wall(c: &Camera, x0: f32) -> GrayImage {
+        let (r, zc) = (1.0f32, 6.0f32);
+        GrayImage::from_fn(c.width, c.height, |x, y| {
+            let d = c.film_to_dir(Vec2::new(x as f32 + 0.5, y as f32 + 0.5));
+            // (dx t − x0)² + (zc − t)² = r², the nearest root.
+            let a = d.x * d.x + 1.0;
+            let b = -2.0 * (d.x * x0 + zc);
+            let k = x0 * x0 + zc * zc - r * r;
+            let disc = b * b - 4.0 * a * k;
+            if disc >= 0.0 {
+                let t = (-b - disc.sqrt()) / (2.0 * a);
+                if (-1.5..=1.0).contains(&(d.y * t)) {
+                    return t;
+                }
+            }
+            10.0
+        })
+    }
+
+    /// The first hit from `o` along `d` (any side), its distance.
+    fn hit_from(bvh: &Bvh, o: Vec3, d: Vec3) -> Option<f32> {
+        bvh.intersect(o, d.normalize(), 1e-4, f32::INFINITY)
+            .map(|h| h.t)
+    }
+
+    /// A depth mesh is a shell; a solid's unseen back half is the front
+    /// mirrored about its silhouettes, so light crossing the solid is
+    /// stopped (a cylinder casts a cylinder's shadow, not a sheet's).
+    #[test]
+    fn a_solid_gets_its_back_half() {
+        // The runs end at the last pixel whose segments are not edge-on
+        // (and pixels between two depths have moved back), a little nearer
+        // than the silhouette itself, so the back is thinner than the
+        // truth, never thicker: it stops light crossing the solid's
+        // middle, and lies within the radius.
+        let n = 256;
+        let c = cam(n);
+        let z = cylinder_before_wall(&c, 0.3);
+        let m = mesh_from_depth(&z, &c, &MeshParams::default()).unwrap();
+        assert!(m.stats.back_vertices > 0, "{:?}", m.stats);
+        let bvh = Bvh::build(&m.mesh);
+        let axis = Vec3::new(0.3, 0.0, -6.0);
+        // From the axis, away from the camera or sideways and backwards
+        // (towards a light behind and beside it): the back, within the
+        // radius, not the wall 4 away or nothing.
+        for d in [
+            Vec3::NEG_Z,
+            Vec3::new(1.0, 0.0, -1.0),
+            Vec3::new(-1.0, 0.3, -1.0),
+        ] {
+            let t = hit_from(&bvh, axis, d).unwrap();
+            assert!((0.4..1.02).contains(&t), "along {d}: hit at {t}, radius 1");
+        }
+        // The camera still sees the front (6 − 1 on the axis).
+        let front = hit_depth(&bvh, &c, c.project(axis).unwrap()).unwrap();
+        assert!((front - 5.0).abs() < 0.01, "front at depth {front}");
+        // The reference's mesh is the shell: the ray leaves through the
+        // open back (the wall behind the cylinder is not seen, so not
+        // there either).
+        let shell = mesh_from_depth(&z, &c, &MeshParams::reference(6.0)).unwrap();
+        assert_eq!(shell.stats.back_vertices, 0);
+        let t = hit_from(&Bvh::build(&shell.mesh), axis, Vec3::NEG_Z);
+        assert!(
+            t.is_none_or(|t| t > 3.9),
+            "the shell stops the ray at {t:?}"
+        );
+        // Cut by the frame past its nearest point: mirrored about its one
+        // silhouette seen, so it still has a back.
+        let cut =
+            mesh_from_depth(&cylinder_before_wall(&c, 1.0), &c, &MeshParams::default()).unwrap();
+        let bvh = Bvh::build(&cut.mesh);
+        let t = hit_from(&bvh, Vec3::new(1.0, 0.0, -6.0), Vec3::NEG_Z).unwrap();
+        assert!((0.4..1.02).contains(&t), "cut by the frame: back at {t}");
+    }
+
+    /// Planes get no back: a wall, a box's face, the ground, and a side
+    /// wall that comes nearer up to the frame's edge (it may go on past
+    /// it) and ends against the sky.
+    #[test]
+    fn planes_get_no_back() {
+        let n = 64;
+        let c = cam(n);
+        let f = c.focal() as f64;
+        let cx = (n as f64 - 1.0) / 2.0;
+        // Wall x = −2 from depth 2 to 12, the sky past it.
+        let side = GrayImage::from_fn(n, n, |x, _| {
+            let dx = (x as f64 - cx) / f;
+            let t = if dx < 0.0 { -2.0 / dx } else { 0.0 };
+            if (0.0..=12.0).contains(&t) {
+                t as f32
+            } else {
+                0.0
+            }
+        });
+        for z in [GrayImage::new(n, n, 5.0), box_before_wall(n), side] {
+            let m = mesh_from_depth(&z, &c, &MeshParams::default()).unwrap();
+            assert_eq!(m.stats.back_vertices, 0, "{:?}", m.stats);
+        }
+    }
+
     #[test]
     fn pixels_between_two_depths_still_move_back() {
         let n = 32;

@@ -37,7 +37,7 @@ fn auto_mode(s: &SceneData, mesh: MeshParams) -> Result<&'static str, NodeError>
 
 const MESH_INFO: NodeInfo = NodeInfo {
     kind: "mesh",
-    version: 7,
+    version: 8,
     doc: "The triangle mesh of a scene's depth map (one vertex per pixel, cut at depth \
          discontinuities found by the reference's angle test), optionally completed past the \
          frame.",
@@ -65,7 +65,8 @@ const MESH_INFO: NodeInfo = NodeInfo {
             default: Some("kept"),
             unit: "",
             doc: "the near side of a depth discontinuity: kept (an object's edge keeps its depth \
-                  and reaches the pixel border; only pixels between two depths move back) or \
+                  and reaches the pixel border; only pixels between two depths move back; a solid's \
+                  unseen back is its front mirrored about its silhouettes) or \
                   reference (every boundary pixel takes the background's depth, as the reference \
                   implementation: objects lose a pixel and a half)",
         },
