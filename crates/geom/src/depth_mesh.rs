@@ -350,25 +350,28 @@ fn mirrored_backs(g: &Grid, h: usize, tau: f64, on_plane: &dyn Fn(usize) -> bool
                 // (a cylinder cut past its axis). A surface still coming
                 // nearer at the frame (a wall, the ground, a panel seen
                 // obliquely) may go on past it: no back.
-                let (jmin, zmin) = (a..=b)
-                    .map(|j| (j, g.z[row + j] as f64))
-                    .fold((a, f64::INFINITY), |m, p| if p.1 < m.1 { p } else { m });
                 let turns_before_frame = |frame_end: usize, silhouette: usize| {
+                    // The run's nearest pixel.
+                    let (jmin, zmin) = (a..=b)
+                        .map(|j| (j, g.z[row + j] as f64))
+                        .fold((a, f64::INFINITY), |m, p| if p.1 < m.1 { p } else { m });
                     jmin != silhouette
                         && jmin.abs_diff(frame_end) >= 2
                         && g.z[row + frame_end] as f64 > zmin * (1.0 + TURN_TOLERANCE)
                 };
-                let mirror: Option<Box<dyn Fn(usize) -> f64>> = match (left, right) {
-                    (RunEnd::Beyond(_), RunEnd::Beyond(_)) => Some(Box::new(through_ends)),
+                // Some(None): about the surface through the ends;
+                // Some(Some(z)): about depth z.
+                let mirror: Option<Option<f64>> = match (left, right) {
+                    (RunEnd::Beyond(_), RunEnd::Beyond(_)) => Some(None),
                     (RunEnd::Beyond(_), RunEnd::Frame) if turns_before_frame(b, a) => {
-                        Some(Box::new(move |_| za))
+                        Some(Some(za))
                     }
                     (RunEnd::Frame, RunEnd::Beyond(_)) if turns_before_frame(a, b) => {
-                        Some(Box::new(move |_| zb))
+                        Some(Some(zb))
                     }
                     _ => None,
                 };
-                if let Some(mirror) = mirror {
+                if let Some(fixed) = mirror {
                     // The far limit: what is seen beyond the ends.
                     let far = |e: RunEnd| match e {
                         RunEnd::Beyond(z) => 1.0 / z,
@@ -378,7 +381,7 @@ fn mirrored_backs(g: &Grid, h: usize, tau: f64, on_plane: &dyn Fn(usize) -> bool
                     for j in a + 1..b {
                         let t = (j - a) as f64 / (b - a) as f64;
                         let front = g.z[row + j] as f64;
-                        let mut z = 2.0 * mirror(j) - front;
+                        let mut z = 2.0 * fixed.unwrap_or_else(|| through_ends(j)) - front;
                         let limit_inv = fa + (fb - fa) * t;
                         if limit_inv > 0.0 {
                             z = z.min(1.0 / limit_inv);
@@ -710,10 +713,8 @@ pub fn mesh_from_depth(
                         let pix = t[kmin];
                         if copy_of[pix] == NONE {
                             let p = gn.point(pix / w, pix % w, zmax);
-                            copy_of[pix] = pos64.len() as u32;
-                            pos64.push(p);
-                            positions.push(p.as_vec3());
-                            film.push(film[pix]);
+                            copy_of[pix] =
+                                push_vertex(&mut pos64, &mut positions, &mut film, p, pix);
                             stats.copies += 1;
                         }
                         idx[kmin] = copy_of[pix];
@@ -768,10 +769,7 @@ pub fn mesh_from_depth(
                         } else {
                             pos64[pix]
                         };
-                        back_of[pix] = pos64.len() as u32;
-                        pos64.push(p);
-                        positions.push(p.as_vec3());
-                        film.push(film[pix]);
+                        back_of[pix] = push_vertex(&mut pos64, &mut positions, &mut film, p, pix);
                         stats.back_vertices += 1;
                     }
                     idx[c] = back_of[pix];
@@ -795,6 +793,21 @@ pub fn mesh_from_depth(
         depth: GrayImage::from_vec(w, h, znew),
         stats,
     })
+}
+
+/// Appends a vertex at `p` made from pixel `pix`'s film position (a copy
+/// or a back of that pixel's own vertex); returns its index.
+fn push_vertex(
+    pos64: &mut Vec<DVec3>,
+    positions: &mut Vec<Vec3>,
+    film: &mut Vec<Vec2>,
+    p: DVec3,
+    pix: usize,
+) -> u32 {
+    pos64.push(p);
+    positions.push(p.as_vec3());
+    film.push(film[pix]);
+    (pos64.len() - 1) as u32
 }
 
 /// Angle-weighted vertex normals (as Mitsuba recomputes them for meshes

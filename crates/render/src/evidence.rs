@@ -960,6 +960,26 @@ mod tests {
         completion_hypotheses()
     }
 
+    /// The choice among every hypothesis under the test sky, on the
+    /// default mesh.
+    fn choose_on_sky(
+        depth: &GrayImage,
+        maps: &MaterialMaps,
+        photo: &RgbImage,
+        opts: &EvidenceOptions,
+    ) -> CompletionChoice {
+        choose_completion(
+            depth,
+            maps,
+            &sky(),
+            MeshParams::default(),
+            photo,
+            &hyps(),
+            opts,
+        )
+        .unwrap()
+    }
+
     /// The photo: the view rendered on hypothesis `k`'s completion.
     fn photo(depth: &GrayImage, maps: &MaterialMaps, k: usize) -> RgbImage {
         let h = &hyps()[k];
@@ -985,16 +1005,7 @@ mod tests {
         // The choice on the photo rendered with hypothesis k.
         let choose = |k: usize| {
             let photo = photo(&depth, &maps, k);
-            choose_completion(
-                &depth,
-                &maps,
-                &sky(),
-                MeshParams::default(),
-                &photo,
-                &hyps(),
-                &opts,
-            )
-            .unwrap()
+            choose_on_sky(&depth, &maps, &photo, &opts)
         };
         // Open: the sky lights the floor and the wall; a closed room
         // would shut most of it out.
@@ -1193,18 +1204,7 @@ mod tests {
                 .num_threads(threads)
                 .build()
                 .unwrap()
-                .install(|| {
-                    choose_completion(
-                        &depth,
-                        &maps,
-                        &sky(),
-                        MeshParams::default(),
-                        &photo,
-                        &hyps(),
-                        &opts,
-                    )
-                    .unwrap()
-                })
+                .install(|| choose_on_sky(&depth, &maps, &photo, &opts))
         };
         let numbers = |c: &CompletionChoice| {
             c.scores
@@ -1233,16 +1233,7 @@ mod tests {
         let depth = GrayImage::new(16, 16, 0.0);
         let maps = MaterialMaps::uniform(16, 16, Vec3::splat(0.5), 0.5, 0.0);
         let photo = RgbImage::new(16, 16, Vec3::splat(0.7));
-        let c = choose_completion(
-            &depth,
-            &maps,
-            &sky(),
-            MeshParams::default(),
-            &photo,
-            &hyps(),
-            &EvidenceOptions::default(),
-        )
-        .unwrap();
+        let c = choose_on_sky(&depth, &maps, &photo, &EvidenceOptions::default());
         assert_eq!(c.chosen, 0);
         assert!(!c.decisive && c.differing == 0.0, "{c:?}");
         assert!(
