@@ -304,14 +304,14 @@ fn the_shipped_meshes_are_what_matflow_shapes_writes() {
 }
 
 #[test]
-fn the_readme_documents_every_node_kind_as_matflow_kinds_prints_it() {
+fn the_pipeline_docs_document_every_node_kind_as_matflow_kinds_prints_it() {
     let o = matflow(&["kinds"]);
     assert!(o.status.success());
     let kinds = String::from_utf8_lossy(&o.stdout).replace("#### `", "##### `");
-    let readme = std::fs::read_to_string(repo().join("README.md")).unwrap();
+    let readme = std::fs::read_to_string(repo().join("docs/pipelines.md")).unwrap();
     assert!(
         readme.contains(kinds.trim()),
-        "README.md's node reference differs from `matflow kinds` (regenerate it)"
+        "docs/pipelines.md's node reference differs from `matflow kinds` (regenerate it)"
     );
 }
 

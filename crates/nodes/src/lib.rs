@@ -80,7 +80,7 @@ pub(crate) fn failed(e: impl std::error::Error) -> NodeError {
 }
 
 /// Markdown reference of every node kind: parameters with type, default,
-/// unit and meaning, and outputs (the README's pipeline section is this).
+/// unit and meaning, and outputs (docs/pipelines.md's node reference is this).
 pub fn reference_markdown() -> String {
     let mut s = String::new();
     for n in registry().iter() {
