@@ -396,9 +396,7 @@ impl CompletionDecision {
             .and_then(|e| e.walls.as_ref())
             .filter(|w| !w.kept_start)
         {
-            return CompleteMode::Room
-                .params()
-                .map(|r| matflow_render::evidence::walled(&r, w.mask));
+            return CompleteMode::Room.params().map(|r| w.params(&r));
         }
         match self.evidence.as_ref().and_then(|e| e.windows.as_ref()) {
             Some(w) if !w.typical => p.map(|p| matflow_geom::CompleteParams {
@@ -523,6 +521,15 @@ fn print_windows(w: &matflow_render::evidence::WindowChoice) {
 /// The wall search in words: each round's best and what was taken.
 fn print_walls(w: &matflow_render::evidence::WallChoice) {
     print_rounds("walls", &w.rounds);
+    if let (Some(t), Some(h)) = (&w.height_test, w.height) {
+        outln!(
+            "  walls' height: {h:.2} camera heights ({:.2} dB where the heights tried last differ)",
+            t.scores
+                .iter()
+                .map(|s| s.psnr_differing)
+                .fold(f64::NEG_INFINITY, f64::max)
+        );
+    }
     match &w.against_start {
         Some(t) => outln!(
             "  walls found {:.2} dB, {} {:.2} dB where they differ: {} taken ({:.2} s in all)",
@@ -563,6 +570,8 @@ fn walls_json(w: &matflow_render::evidence::WallChoice) -> serde_json::Value {
         "added": w.added.iter().map(plane).collect::<Vec<_>>(),
         "planes": w.planes.iter().map(plane).collect::<Vec<_>>(),
         "rounds": w.rounds.iter().map(scores).collect::<Vec<_>>(),
+        "height": w.height,
+        "height_test": w.height_test.as_ref().map(scores),
         "against_start": w.against_start.as_ref().map(scores),
         "seconds": w.seconds,
     })

@@ -95,17 +95,24 @@ pub struct CompleteParams {
     /// walls seen do too (else they stop at the highest point seen on
     /// them).
     pub assumed: Option<u32>,
+    /// With [`RAISE_WALLS_HIGH`] in `assumed`: how high the walls stand,
+    /// in camera heights above the floor (never lower than the room's
+    /// ceiling would be). The photo can tell it (the shadows the walls'
+    /// tops cast); [`HIGH_WALLS`] by default.
+    pub wall_height: f32,
 }
 
 /// The bit of [`CompleteParams::assumed`] that raises the walls seen of a
 /// room without a ceiling to the height its ceiling would have.
 pub const RAISE_SEEN_WALLS: u32 = 1 << 31;
 /// The bit of [`CompleteParams::assumed`] that raises every wall of a
-/// room without a ceiling, seen or assumed, to [`HIGH_WALLS`] camera
-/// heights above the floor (or the ceiling's height, if higher): a
-/// courtyard's walls, taller than a room's.
+/// room without a ceiling, seen or assumed, to
+/// [`CompleteParams::wall_height`] camera heights above the floor (or the
+/// ceiling's height, if higher): a courtyard's walls, taller than a
+/// room's.
 pub const RAISE_WALLS_HIGH: u32 = 1 << 30;
-/// How high [`RAISE_WALLS_HIGH`] raises walls, in camera heights.
+/// How high [`RAISE_WALLS_HIGH`] raises walls by default, in camera
+/// heights.
 pub const HIGH_WALLS: f32 = 3.0;
 
 impl Default for CompleteParams {
@@ -123,6 +130,7 @@ impl Default for CompleteParams {
             small_wall: 0.02,
             windows: None,
             assumed: None,
+            wall_height: HIGH_WALLS,
         }
     }
 }
@@ -817,7 +825,7 @@ pub fn extensions(z: &GrayImage, cam: &Camera, p: &CompleteParams) -> Extensions
         // room's ceiling would be, or higher.
         let raised = |bit: u32| room.filter(|_| p.assumed.is_some_and(|m| m & bit != 0));
         let raise_to = raised(RAISE_WALLS_HIGH)
-            .map(|rb| rb.height.max(HIGH_WALLS * rb.camera_height) - rb.camera_height)
+            .map(|rb| rb.height.max(p.wall_height * rb.camera_height) - rb.camera_height)
             .or(raised(RAISE_SEEN_WALLS).map(|rb| rb.height - rb.camera_height));
         if let Some(top) = raise_to.filter(|_| f.kind == PlaneKind::Wall && !has_ceiling) {
             poly = clip(&poly, -up, top);

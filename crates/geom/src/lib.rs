@@ -15,8 +15,8 @@ pub mod shapes;
 pub use bvh::{Bvh, Hit, PACKET};
 pub use complete::{
     assumed_planes, complete_beyond_frame, extensions, window_slots, AssumedPlane, CompleteParams,
-    Completion, Extension, Extensions, WindowSlot, COMPLETE_MODES, MAX_WINDOW_PLANES,
-    RAISE_SEEN_WALLS,
+    Completion, Extension, Extensions, WindowSlot, COMPLETE_MODES, HIGH_WALLS, MAX_WINDOW_PLANES,
+    RAISE_SEEN_WALLS, RAISE_WALLS_HIGH,
 };
 pub use depth_mesh::{
     mesh_for_view, mesh_from_depth, vertex_normals, DepthMesh, MeshError, MeshParams, MeshStats,

@@ -18,7 +18,7 @@
 //! on the means of `block`×`block` pixel blocks, and over the blocks where
 //! the hypotheses' renders differ (elsewhere they all score alike).
 
-use matflow_geom::{CompleteParams, MeshParams};
+use matflow_geom::{CompleteParams, MeshParams, RAISE_SEEN_WALLS, RAISE_WALLS_HIGH};
 use matflow_scene::color::linear_to_gamma;
 use matflow_scene::{GrayImage, MaterialMaps, RgbImage};
 
@@ -613,12 +613,34 @@ pub struct WallChoice {
     pub added: Vec<matflow_geom::AssumedPlane>,
     /// Each round's test: the view so far (first), and with one more.
     pub rounds: Vec<CompletionChoice>,
+    /// When walls were raised: the test of their height
+    /// ([`WALL_HEIGHTS`]), and the height taken (camera heights above
+    /// the floor, [`CompleteParams::wall_height`]).
+    pub height_test: Option<CompletionChoice>,
+    pub height: Option<f32>,
     /// The last test: the completion the first test took (`start`)
     /// against the one found; `kept_start` when that one stayed.
     pub against_start: Option<CompletionChoice>,
     pub kept_start: bool,
     pub seconds: f64,
 }
+
+impl WallChoice {
+    /// The completion found, from the room `base` would close.
+    pub fn params(&self, base: &CompleteParams) -> CompleteParams {
+        let mut p = walled(base, self.mask);
+        if let Some(h) = self.height {
+            p.wall_height = h;
+        }
+        p
+    }
+}
+
+/// The heights [`choose_walls`] tries for walls it found raised past the
+/// frame, in camera heights above the floor: from a room's (the ceiling
+/// [`CompleteParams::ceiling_ratio`] would assume) to a courtyard's. How
+/// far a wall's shadow reaches across the floor seen tells its height.
+pub const WALL_HEIGHTS: [f32; 8] = [1.8, 2.2, 2.6, 3.0, 3.5, 4.0, 5.0, 6.0];
 
 /// Whether the photo shows the effect of unseen walls (or a ceiling) in
 /// a view whose first test took an open completion (`start`: none or
@@ -650,13 +672,70 @@ pub fn choose_walls(
     let bits: Vec<u32> = planes.iter().map(|p| p.bit).collect();
     let mut cache = Rendered::new();
     let found = add_greedily(view, &bits, &with, MAX_WALLS, None, opts, &mut cache)?;
-    let mask = found.mask;
+    let mut mask = found.mask;
+    // Walls raised past the frame: how high, the photo tells (the
+    // shadows their tops cast). The best of the heights tried is taken,
+    // and then the best of it and the heights halfway to its neighbours.
+    let raise = RAISE_SEEN_WALLS | RAISE_WALLS_HIGH;
+    let (height_test, height) = if mask & raise != 0 {
+        let high = mask & !RAISE_SEEN_WALLS | RAISE_WALLS_HIGH;
+        let at = |h: f32| Hypothesis {
+            name: raised_name(&planes, mask & !raise, h),
+            params: Some(CompleteParams {
+                wall_height: h,
+                ..walled(base, high)
+            }),
+        };
+        let best = |c: &CompletionChoice| {
+            (0..c.scores.len())
+                .max_by(|&a, &b| {
+                    c.scores[a]
+                        .psnr_differing
+                        .total_cmp(&c.scores[b].psnr_differing)
+                        .then(b.cmp(&a))
+                })
+                .unwrap_or(0)
+        };
+        let coarse = view.choose(
+            &WALL_HEIGHTS.iter().map(|&h| at(h)).collect::<Vec<_>>(),
+            opts,
+            &mut cache,
+        )?;
+        let k = best(&coarse);
+        let mut fine = vec![WALL_HEIGHTS[k]];
+        if k > 0 {
+            fine.push(0.5 * (WALL_HEIGHTS[k - 1] + WALL_HEIGHTS[k]));
+        }
+        if k + 1 < WALL_HEIGHTS.len() {
+            fine.push(0.5 * (WALL_HEIGHTS[k] + WALL_HEIGHTS[k + 1]));
+        }
+        let test = view.choose(
+            &fine.iter().map(|&h| at(h)).collect::<Vec<_>>(),
+            opts,
+            &mut cache,
+        )?;
+        let h = fine[best(&test)];
+        mask = high;
+        (Some(test), Some(h))
+    } else {
+        (None, None)
+    };
     let added: Vec<matflow_geom::AssumedPlane> = found.added.iter().map(|&k| planes[k]).collect();
     let rounds = found.rounds;
     let (against_start, kept_start) = if mask == 0 {
         (None, true)
     } else {
-        let last = view.choose(&[start.clone(), with(mask)], opts, &mut cache)?;
+        let found = Hypothesis {
+            name: match height {
+                Some(h) => raised_name(&planes, mask & !raise, h),
+                None => wall_name(&planes, mask),
+            },
+            params: Some(CompleteParams {
+                wall_height: height.unwrap_or(base.wall_height),
+                ..walled(base, mask)
+            }),
+        };
+        let last = view.choose(&[start.clone(), found], opts, &mut cache)?;
         let kept = last.chosen == 0;
         (Some(last), kept)
     };
@@ -665,6 +744,8 @@ pub fn choose_walls(
         planes,
         added,
         rounds,
+        height_test,
+        height,
         against_start,
         kept_start,
         seconds: t0.elapsed().as_secs_f64(),
@@ -694,6 +775,15 @@ pub fn wall_name(planes: &[matflow_geom::AssumedPlane], mask: u32) -> String {
     } else {
         format!("the planes seen and {}", on.join(", "))
     }
+}
+
+/// The assumed walls of `mask` with every wall raised to `h` camera
+/// heights, in words.
+pub fn raised_name(planes: &[matflow_geom::AssumedPlane], mask: u32, h: f32) -> String {
+    format!(
+        "{}, every wall raised to {h:.2} camera heights",
+        wall_name(planes, mask)
+    )
 }
 
 /// A room's windows in words: "no window", else each slot opened.
@@ -1187,6 +1277,84 @@ mod tests {
             .unwrap()
             .expect("a room to close");
         assert!(w.kept_start, "{w:?}");
+    }
+
+    #[test]
+    fn the_photo_tells_how_high_unseen_walls_stand_from_their_shadows() {
+        // A floor 1.2 below the camera and a wall 7 ahead that runs past
+        // the frame's top (seen up to 2.8 camera heights above the floor).
+        let n = 96;
+        let cam = Camera::new(n, n);
+        let depth = GrayImage::from_fn(n, n, |x, y| {
+            let d = cam.backproject(x as f32, y as f32, 1.0);
+            let wall = 7.0 / -d.z;
+            if d.y < 0.0 {
+                wall.min(1.2 / -d.y)
+            } else {
+                wall
+            }
+        });
+        let maps = MaterialMaps::uniform(n, n, Vec3::splat(0.6), 0.8, 0.0);
+        let room = CompleteParams::for_mode("room").unwrap();
+        // The sky and a sun beyond the wall, 60 degrees up: the wall's
+        // shadow reaches across the floor towards the camera as far as
+        // its height takes it (at 3.25 camera heights to 4.75 ahead, at 4
+        // to 4.2; the floor is seen from 3.8 ahead to the wall).
+        let sun = Vec3::new(0.0, 0.866, -0.5);
+        let env = EnvMap::new(&RgbImage::from_fn(64, 32, |c, r| {
+            let d = crate::envmap::uv_to_dir((c as f32 + 0.5) / 64.0, r as f32 / 31.0);
+            if d.dot(sun) > 0.985 {
+                Vec3::splat(60.0)
+            } else if d.y > 0.0 {
+                Vec3::new(0.4, 0.45, 0.6)
+            } else {
+                Vec3::splat(0.05)
+            }
+        }))
+        .unwrap();
+        let opts = EvidenceOptions {
+            spp_half: 4,
+            block: 4,
+            ..Default::default()
+        };
+        let start = hyps()[1].clone();
+        for truth in [3.25f32, 4.0] {
+            let walls = CompleteParams {
+                wall_height: truth,
+                ..walled(&room, RAISE_WALLS_HIGH)
+            };
+            let (scene, _, _) = scene_from_depth(
+                &depth,
+                &maps,
+                env.clone(),
+                MeshParams::default(),
+                Some(&walls),
+            )
+            .unwrap();
+            let o = RenderOptions {
+                spp: 256,
+                seed: 99,
+                ..Default::default()
+            };
+            let photo = render(&scene, &o, &|_, _| {}).image;
+            let view = PhotoView {
+                depth: &depth,
+                maps: &maps,
+                env: &env,
+                mesh_params: MeshParams::default(),
+                photo: &photo,
+            };
+            let w = choose_walls(&view, &start, &room, &opts)
+                .unwrap()
+                .expect("a room to close");
+            assert!(!w.kept_start, "{truth}: {w:?}");
+            assert!(w.mask & RAISE_WALLS_HIGH != 0, "{truth}: {w:?}");
+            let got = w.height.expect("a height tried");
+            // 3.25 is halfway between two heights of the first test:
+            // the second finds it.
+            assert!((got - truth).abs() < 0.2, "{truth}: {got}: {w:?}");
+            assert_eq!(w.params(&room).wall_height, got);
+        }
     }
 
     #[test]
