@@ -42,7 +42,10 @@
 //!    the front mirrored about the surface through the ends
 //!    ([`mirrored_backs`]), with vertices of its own so the front's
 //!    shading normals are unchanged. A plane is its own mirror and gets
-//!    none.
+//!    none. Down each column, a solid standing on the ground whose top
+//!    the view looks down on gets the prism under its top's far edge
+//!    ([`extruded_backs`]): a box seen face-on, which its rows cannot
+//!    tell from a plane. The deeper of the two backs is taken.
 //!
 //! The reference code uses τ = 6° (the paper says 3°); 6° is the default.
 
@@ -309,8 +312,6 @@ fn grazing_planes(g: &Grid, h: usize, tau: f64) -> Vec<bool> {
 /// the ground). A run that meets something nearer at either end is partly
 /// hidden, so its silhouette is unknown: no back.
 fn mirrored_backs(g: &Grid, h: usize, tau: f64, on_plane: &dyn Fn(usize) -> bool) -> Vec<f32> {
-    // Thinner than this share of the depth is no solid worth a back.
-    const MIN_THICKNESS: f64 = 0.01;
     // A frame's end pixel this share deeper than the run's nearest pixel
     // has turned away.
     const TURN_TOLERANCE: f64 = 0.001;
@@ -333,8 +334,8 @@ fn mirrored_backs(g: &Grid, h: usize, tau: f64, on_plane: &dyn Fn(usize) -> bool
             while b + 1 < w && valid(b + 1) && !jump(b) {
                 b += 1;
             }
-            let left = run_end(g, row, a, a.checked_sub(1));
-            let right = run_end(g, row, b, (b + 1 < w).then_some(b + 1));
+            let left = run_end(g, Line::Row(i), a, a.checked_sub(1));
+            let right = run_end(g, Line::Row(i), b, (b + 1 < w).then_some(b + 1));
             if b >= a + 2 {
                 let (za, zb) = (g.z[row + a] as f64, g.z[row + b] as f64);
                 let (ia, ib) = (1.0 / za, 1.0 / zb);
@@ -386,7 +387,7 @@ fn mirrored_backs(g: &Grid, h: usize, tau: f64, on_plane: &dyn Fn(usize) -> bool
                         if limit_inv > 0.0 {
                             z = z.min(1.0 / limit_inv);
                         }
-                        if z > front * (1.0 + MIN_THICKNESS) && z.is_finite() {
+                        if z > front * (1.0 + BACK_MIN_THICKNESS) && z.is_finite() {
                             back[row + j] = z as f32;
                         }
                     }
@@ -397,6 +398,169 @@ fn mirrored_backs(g: &Grid, h: usize, tau: f64, on_plane: &dyn Fn(usize) -> bool
     }
     back
 }
+
+/// Backs of solids that stand on the ground, from the columns: where the
+/// view looks down on a solid's top, the top's far edge is its back.
+///
+/// [`mirrored_backs`] finds a solid from its silhouettes left and right,
+/// so a box seen face-on (a plane between them) gets none and casts the
+/// shadow of a sheet. Down a column, a run without a jump whose top end
+/// is a silhouette (something deeper, or the sky, above it) and whose
+/// bottom goes on into the ground (to the frame, or hidden by something
+/// nearer: no silhouette under it) is a solid standing on the ground,
+/// its top seen up to its far edge, if some of it is upright
+/// ([`UPRIGHT_COS`]). It is taken as the prism under that
+/// edge: each pixel's back is where its ray reaches the upright plane
+/// through the top silhouette that faces the camera (its normal the
+/// silhouette's ray, level), or the ground (level with its front's foot:
+/// the end of the first upright stretch down the run),
+/// whichever comes first, never deeper than what is seen above the
+/// silhouette; the ground before its foot gets none. Down from
+/// the silhouette the run must come nearer or stay ([`NEARING_SLACK`]):
+/// a surface that goes deeper again is open beneath (a table's top, then
+/// the floor under it). A box or a standing cylinder seen from above
+/// gets its far side; a wall facing the camera lies in that plane and
+/// gets nothing; a solid seen from below its top (no top in view) gets
+/// nothing either. A column of a table's leg runs from the top's far
+/// edge to the ground too: backs far deeper than the row run they lie in
+/// is wide ([`MAX_DEPTH_PER_WIDTH`]) are taken as such and dropped.
+fn extruded_backs(
+    g: &Grid,
+    h: usize,
+    tau: f64,
+    on_plane: &dyn Fn(usize) -> bool,
+    up: DVec3,
+) -> Vec<f32> {
+    let w = g.w;
+    let mut back = vec![0.0f32; w * h];
+    let up = up.normalize_or_zero();
+    if up == DVec3::ZERO {
+        return back;
+    }
+    for j in 0..w {
+        let valid = |i: usize| g.z[i * w + j] > 0.0;
+        let jump = |i: usize| {
+            seg_steep(g, (i, j), (i + 1, j), tau)
+                && !(on_plane(i * w + j) && on_plane((i + 1) * w + j))
+        };
+        let mut a = 0;
+        while a < h {
+            if !valid(a) {
+                a += 1;
+                continue;
+            }
+            let mut b = a;
+            while b + 1 < h && valid(b + 1) && !jump(b) {
+                b += 1;
+            }
+            let top = run_end(g, Line::Col(j), a, a.checked_sub(1));
+            let bottom = run_end(g, Line::Col(j), b, (b + 1 < h).then_some(b + 1));
+            // Down from its top's far edge, a solid standing on the
+            // ground comes nearer or stays (its top, its front, the
+            // ground before it); a surface that goes deeper again is open
+            // beneath (the floor under a table seen below its top).
+            let nearing = (a..b).all(|i| g.z[(i + 1) * w + j] <= g.z[i * w + j] * NEARING_SLACK);
+            // Its front: the first upright stretch down the run (gaps of
+            // UPRIGHT_GAP segments bridged), standing on the ground at its
+            // foot; the ground alone, however uneven, is no solid.
+            let upright = |i: usize| {
+                let s = g.p(i + 1, j) - g.p(i, j);
+                s.dot(up).abs() > UPRIGHT_COS * s.length()
+            };
+            let foot = (a..b).find(|&i| upright(i)).map(|first| {
+                let mut last = first;
+                for k in first + 1..b {
+                    if upright(k) {
+                        last = k;
+                    } else if k - last > UPRIGHT_GAP {
+                        break;
+                    }
+                }
+                last + 1
+            });
+            if let (RunEnd::Beyond(z_above), RunEnd::Frame | RunEnd::Hidden, true, Some(foot)) =
+                (top, bottom, nearing, foot)
+            {
+                let ps = g.p(a, j);
+                let n = (ps - up * up.dot(ps)).normalize_or_zero();
+                // The ground: the front's foot.
+                let ground = up.dot(g.p(foot, j));
+                if n != DVec3::ZERO && ground < up.dot(ps) {
+                    let far = n.dot(ps);
+                    let above = if z_above.is_finite() && a > 0 {
+                        n.dot(g.point(a - 1, j, z_above))
+                    } else {
+                        f64::INFINITY
+                    };
+                    for i in a + 1..=foot {
+                        let front = g.z[i * w + j] as f64;
+                        // The ray at depth 1.
+                        let d = g.point(i, j, 1.0);
+                        let nd = n.dot(d);
+                        if !(nd > 0.0) {
+                            continue;
+                        }
+                        let mut t = far.min(above) / nd;
+                        let ud = up.dot(d);
+                        if ud < 0.0 {
+                            t = t.min(ground / ud);
+                        }
+                        if t > front * (1.0 + BACK_MIN_THICKNESS) && t.is_finite() {
+                            back[i * w + j] = t as f32;
+                        }
+                    }
+                }
+            }
+            a = b + 1;
+        }
+    }
+    // A leg, a pole: backs deeper than MAX_DEPTH_PER_WIDTH times the
+    // width of the row run they lie in.
+    for i in 0..h {
+        let row = i * w;
+        let mut a = 0;
+        while a < w {
+            if back[row + a] <= 0.0 {
+                a += 1;
+                continue;
+            }
+            let mut b = a;
+            while b + 1 < w && back[row + b + 1] > 0.0 {
+                b += 1;
+            }
+            let (mut width, mut deepest) = (0.0f64, 0.0f64);
+            for j in a..=b {
+                let front = g.z[row + j] as f64;
+                width += front / g.f;
+                deepest = deepest.max(back[row + j] as f64 - front);
+            }
+            if deepest > MAX_DEPTH_PER_WIDTH * width {
+                back[row + a..=row + b].fill(0.0);
+            }
+            a = b + 1;
+        }
+    }
+    back
+}
+
+/// How much deeper a pixel of an [`extruded_backs`] column may be than
+/// the one above it (noise in a predicted depth map).
+const NEARING_SLACK: f32 = 1.005;
+
+/// A segment of an [`extruded_backs`] column this close to "up" (cos 45°)
+/// is upright: a solid's front, not the ground.
+const UPRIGHT_COS: f64 = std::f64::consts::FRAC_1_SQRT_2;
+
+/// How many segments that are not upright an [`extruded_backs`] front
+/// may have in a row (a predicted depth map's noise).
+const UPRIGHT_GAP: usize = 2;
+
+/// Backs thinner than this share of the depth are no solid worth one.
+const BACK_MIN_THICKNESS: f64 = 0.01;
+
+/// An [`extruded_backs`] prism at most this many times as deep as it is
+/// wide.
+const MAX_DEPTH_PER_WIDTH: f64 = 2.0;
 
 /// What the end pixel of a row's run meets past it.
 #[derive(Clone, Copy, Debug)]
@@ -410,36 +574,64 @@ enum RunEnd {
     Hidden,
 }
 
-/// What run end pixel `end` of row `row` meets past it, `next` its
+/// A row or a column of pixels.
+#[derive(Clone, Copy, Debug)]
+enum Line {
+    Row(usize),
+    Col(usize),
+}
+
+impl Line {
+    /// Pixel (row, column) of the line's `k`-th pixel.
+    #[inline]
+    fn pix(self, k: usize) -> (usize, usize) {
+        match self {
+            Line::Row(i) => (i, k),
+            Line::Col(j) => (k, j),
+        }
+    }
+    /// How many pixels it has.
+    fn len(self, g: &Grid) -> usize {
+        match self {
+            Line::Row(_) => g.w,
+            Line::Col(_) => g.z.len() / g.w,
+        }
+    }
+}
+
+/// What run end pixel `end` of `line` meets past it, `next` its
 /// neighbour outside the run (None at the frame). Beyond a silhouette
 /// lies the solid's own flank seen edge-on (pixels still steeper and
 /// deeper), then what is behind it: the depth beyond is where that chain
 /// of deeper pixels ends.
-fn run_end(g: &Grid, row: usize, end: usize, next: Option<usize>) -> RunEnd {
+fn run_end(g: &Grid, line: Line, end: usize, next: Option<usize>) -> RunEnd {
     let Some(mut n) = next else {
         return RunEnd::Frame;
     };
-    let z = |j: usize| g.z[row + j];
+    let z = |k: usize| {
+        let (i, j) = line.pix(k);
+        g.zz(i, j)
+    };
     if z(n) <= 0.0 {
         return RunEnd::Beyond(f64::INFINITY);
     }
     if z(n) <= z(end) {
         return RunEnd::Hidden;
     }
-    let i = row / g.w;
-    let rightwards = n > end;
-    let outward = |j: usize| {
-        if rightwards {
-            j.checked_add(1).filter(|&k| k < g.w)
+    let len = line.len(g);
+    let outward = n > end;
+    let step = |k: usize| {
+        if outward {
+            k.checked_add(1).filter(|&m| m < len)
         } else {
-            j.checked_sub(1)
+            k.checked_sub(1)
         }
     };
-    while let Some(m) = outward(n) {
+    while let Some(m) = step(n) {
         if z(m) <= 0.0 {
             return RunEnd::Beyond(f64::INFINITY);
         }
-        if !(z(m) > z(n) && seg_steep(g, (i, n.min(m)), (i, n.max(m)), FLANK_STEEP_DEG)) {
+        if !(z(m) > z(n) && seg_steep(g, line.pix(n.min(m)), line.pix(n.max(m)), FLANK_STEEP_DEG)) {
             break;
         }
         n = m;
@@ -745,7 +937,12 @@ pub fn mesh_from_depth(
 
     // 6. Backs: the far side of what the view shows as a convex solid.
     if kept {
-        let back = mirrored_backs(&gn, h, tau, &on_plane);
+        let mut back = mirrored_backs(&gn, h, tau, &on_plane);
+        let up = crate::planes::view_up(z, cam, &crate::planes::PlaneParams::default());
+        let from_columns = extruded_backs(&gn, h, tau, &on_plane, up.as_dvec3());
+        for (b, c) in back.iter_mut().zip(&from_columns) {
+            *b = b.max(*c);
+        }
         let mut back_of: Vec<u32> = vec![NONE; w * h];
         for q in 0..(h - 1) * quads_w {
             let (i, j) = (q / quads_w, q % quads_w);
@@ -1093,6 +1290,84 @@ mod tests {
         let bvh = Bvh::build(&cut.mesh);
         let t = hit_from(&bvh, Vec3::new(1.0, 0.0, -6.0), Vec3::NEG_Z).unwrap();
         assert!((0.4..1.02).contains(&t), "cut by the frame: back at {t}");
+    }
+
+    /// Depth of axis-aligned boxes (min, max corners) on a floor 1.5
+    /// below the camera, before a wall 10 away.
+    fn boxes_on_floor(c: &Camera, boxes: &[(Vec3, Vec3)]) -> GrayImage {
+        GrayImage::from_fn(c.width, c.height, |x, y| {
+            let d = c.film_to_dir(Vec2::new(x as f32 + 0.5, y as f32 + 0.5));
+            let d = d / -d.z;
+            let mut best = 10.0f32;
+            if d.y < 0.0 {
+                best = best.min(1.5 / -d.y);
+            }
+            for (lo, hi) in boxes {
+                // Slabs: the ray p = d·t.
+                let (mut t0, mut t1) = (0.0f32, f32::INFINITY);
+                for k in 0..3 {
+                    let (a, b) = (lo[k] / d[k], hi[k] / d[k]);
+                    let (a, b) = if a < b { (a, b) } else { (b, a) };
+                    t0 = t0.max(a);
+                    t1 = t1.min(b);
+                }
+                if t0 <= t1 && t0 > 0.0 {
+                    best = best.min(t0);
+                }
+            }
+            best
+        })
+    }
+
+    /// A box seen face-on has no silhouettes left and right to mirror
+    /// its front about (a plane), but seen from above, its top's far edge
+    /// is its back: it stops light crossing it. A table open beneath its
+    /// top gets no such back.
+    #[test]
+    fn a_box_standing_on_the_ground_gets_the_back_its_top_shows() {
+        let n = 128;
+        let c = cam(n);
+        // A box 1 wide, 0.8 high, 1 deep, its front 5 away.
+        let block = (Vec3::new(-0.5, -1.5, -6.0), Vec3::new(0.5, -0.7, -5.0));
+        let m = mesh_from_depth(&boxes_on_floor(&c, &[block]), &c, &MeshParams::default()).unwrap();
+        assert!(m.stats.back_vertices > 0, "{:?}", m.stats);
+        let bvh = Bvh::build(&m.mesh);
+        // From just behind its front, away from the camera: the back,
+        // at most the box's depth on (a little nearer: the silhouette
+        // pixel lies before the true edge), not the wall 5 on.
+        for x in [-0.3f32, 0.0, 0.3] {
+            for y in [-1.3f32, -1.0, -0.8] {
+                let t = hit_from(&bvh, Vec3::new(x, y, -5.02), Vec3::NEG_Z).unwrap();
+                assert!((0.6..1.0).contains(&t), "from ({x}, {y}): hit at {t}");
+            }
+        }
+        // The camera still sees the front.
+        let front = hit_depth(&bvh, &c, c.project(Vec3::new(0.0, -1.0, -5.0)).unwrap()).unwrap();
+        assert!((front - 5.0).abs() < 0.01, "front at depth {front}");
+        // A table 0.5 deep, its top 0.1 thick over two panels set 0.05
+        // back from its front edge (0.3 wide: no pole) and two thin legs
+        // at its back corners; open beneath. Down a panel's column the
+        // depth steps back under the top's edge: no prism under the top.
+        let table = [
+            (Vec3::new(-0.6, -0.8, -5.5), Vec3::new(0.6, -0.7, -5.0)),
+            (Vec3::new(-0.55, -1.5, -5.1), Vec3::new(-0.25, -0.8, -5.05)),
+            (Vec3::new(0.25, -1.5, -5.1), Vec3::new(0.55, -0.8, -5.05)),
+            (Vec3::new(-0.6, -1.5, -5.5), Vec3::new(-0.56, -0.8, -5.46)),
+            (Vec3::new(0.56, -1.5, -5.5), Vec3::new(0.6, -0.8, -5.46)),
+        ];
+        let m = mesh_from_depth(&boxes_on_floor(&c, &table), &c, &MeshParams::default()).unwrap();
+        let bvh = Bvh::build(&m.mesh);
+        // Beneath its top, between and behind its panels: nothing, or the
+        // wall.
+        for x in [-0.4f32, 0.0, 0.4] {
+            for y in [-1.3f32, -1.0] {
+                let t = hit_from(&bvh, Vec3::new(x, y, -5.12), Vec3::NEG_Z);
+                assert!(
+                    t.is_none_or(|t| t > 4.5),
+                    "under the table at ({x}, {y}): hit at {t:?}"
+                );
+            }
+        }
     }
 
     /// Planes get no back: a wall, a box's face, the ground, and a side

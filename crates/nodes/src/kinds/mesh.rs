@@ -37,7 +37,7 @@ fn auto_mode(s: &SceneData, mesh: MeshParams) -> Result<&'static str, NodeError>
 
 const MESH_INFO: NodeInfo = NodeInfo {
     kind: "mesh",
-    version: 8,
+    version: 9,
     doc: "The triangle mesh of a scene's depth map (one vertex per pixel, cut at depth \
          discontinuities found by the reference's angle test), optionally completed past the \
          frame.",
