@@ -270,16 +270,21 @@ fn choose_cached(
     let mut scores: Vec<HypothesisScore> = Vec::with_capacity(hypotheses.len());
     let mut keys: Vec<u64> = Vec::with_capacity(hypotheses.len());
     let chunk = rayon::current_num_threads().max(1);
+    // The depth mesh is every hypothesis's own: built once, each
+    // completion added to a copy.
+    let t_mesh = std::time::Instant::now();
+    let (cam, depth_mesh) = matflow_geom::mesh_for_view(depth, &mesh_params)?;
+    let mesh_seconds = t_mesh.elapsed().as_secs_f64();
     for group in hypotheses.chunks(chunk) {
         let built: Vec<(matflow_scene::Camera, matflow_geom::TriMesh, f64)> = group
             .par_iter()
             .map(|h| {
                 let t0 = std::time::Instant::now();
-                let (cam, mut m) = matflow_geom::mesh_for_view(depth, &mesh_params)?;
+                let mut m = depth_mesh.mesh.clone();
                 if let Some(p) = h.params.as_ref() {
-                    matflow_geom::complete_beyond_frame(&mut m.mesh, depth, &cam, p);
+                    matflow_geom::complete_beyond_frame(&mut m, depth, &cam, p);
                 }
-                Ok((cam, m.mesh, t0.elapsed().as_secs_f64()))
+                Ok((cam, m, mesh_seconds + t0.elapsed().as_secs_f64()))
             })
             .collect::<Result<_, RenderError>>()?;
         // Earlier hypotheses, this group's included, are pushed below
