@@ -319,21 +319,7 @@ fn mirrored_backs(g: &Grid, h: usize, tau: f64, on_plane: &dyn Fn(usize) -> bool
     let mut back = vec![0.0f32; w * h];
     for i in 0..h {
         let row = i * w;
-        let valid = |j: usize| g.z[row + j] > 0.0;
-        // Segment j..j+1 is a jump (not on a grazing plane).
-        let jump = |j: usize| {
-            seg_steep(g, (i, j), (i, j + 1), tau) && !(on_plane(row + j) && on_plane(row + j + 1))
-        };
-        let mut a = 0;
-        while a < w {
-            if !valid(a) {
-                a += 1;
-                continue;
-            }
-            let mut b = a;
-            while b + 1 < w && valid(b + 1) && !jump(b) {
-                b += 1;
-            }
+        for (a, b) in runs(g, Line::Row(i), tau, on_plane) {
             let left = run_end(g, Line::Row(i), a, a.checked_sub(1));
             let right = run_end(g, Line::Row(i), b, (b + 1 < w).then_some(b + 1));
             if b >= a + 2 {
@@ -393,10 +379,40 @@ fn mirrored_backs(g: &Grid, h: usize, tau: f64, on_plane: &dyn Fn(usize) -> bool
                     }
                 }
             }
-            a = b + 1;
         }
     }
     back
+}
+
+/// The runs `(first, last)` of `line`'s pixels with geometry and no jump
+/// between neighbours (a segment within τ of the view ray that is not on
+/// a grazing plane), in order.
+fn runs(g: &Grid, line: Line, tau: f64, on_plane: &dyn Fn(usize) -> bool) -> Vec<(usize, usize)> {
+    let len = line.len(g);
+    let index = |k: usize| {
+        let (i, j) = line.pix(k);
+        i * g.w + j
+    };
+    let valid = |k: usize| g.z[index(k)] > 0.0;
+    let jump = |k: usize| {
+        seg_steep(g, line.pix(k), line.pix(k + 1), tau)
+            && !(on_plane(index(k)) && on_plane(index(k + 1)))
+    };
+    let mut out = Vec::new();
+    let mut a = 0;
+    while a < len {
+        if !valid(a) {
+            a += 1;
+            continue;
+        }
+        let mut b = a;
+        while b + 1 < len && valid(b + 1) && !jump(b) {
+            b += 1;
+        }
+        out.push((a, b));
+        a = b + 1;
+    }
+    out
 }
 
 /// Backs of solids that stand on the ground, from the columns: where the
@@ -438,28 +454,22 @@ fn extruded_backs(
         return back;
     }
     for j in 0..w {
-        let valid = |i: usize| g.z[i * w + j] > 0.0;
-        let jump = |i: usize| {
-            seg_steep(g, (i, j), (i + 1, j), tau)
-                && !(on_plane(i * w + j) && on_plane((i + 1) * w + j))
-        };
-        let mut a = 0;
-        while a < h {
-            if !valid(a) {
-                a += 1;
+        for (a, b) in runs(g, Line::Col(j), tau, on_plane) {
+            // A silhouette on top, the ground going on below.
+            let RunEnd::Beyond(z_above) = run_end(g, Line::Col(j), a, a.checked_sub(1)) else {
+                continue;
+            };
+            let bottom = run_end(g, Line::Col(j), b, (b + 1 < h).then_some(b + 1));
+            if !matches!(bottom, RunEnd::Frame | RunEnd::Hidden) {
                 continue;
             }
-            let mut b = a;
-            while b + 1 < h && valid(b + 1) && !jump(b) {
-                b += 1;
-            }
-            let top = run_end(g, Line::Col(j), a, a.checked_sub(1));
-            let bottom = run_end(g, Line::Col(j), b, (b + 1 < h).then_some(b + 1));
             // Down from its top's far edge, a solid standing on the
             // ground comes nearer or stays (its top, its front, the
             // ground before it); a surface that goes deeper again is open
             // beneath (the floor under a table seen below its top).
-            let nearing = (a..b).all(|i| g.z[(i + 1) * w + j] <= g.z[i * w + j] * NEARING_SLACK);
+            if !(a..b).all(|i| g.z[(i + 1) * w + j] <= g.z[i * w + j] * NEARING_SLACK) {
+                continue;
+            }
             // Its front: the first upright stretch down the run (gaps of
             // UPRIGHT_GAP segments bridged), standing on the ground at its
             // foot; the ground alone, however uneven, is no solid.
@@ -467,51 +477,48 @@ fn extruded_backs(
                 let s = g.p(i + 1, j) - g.p(i, j);
                 s.dot(up).abs() > UPRIGHT_COS * s.length()
             };
-            let foot = (a..b).find(|&i| upright(i)).map(|first| {
-                let mut last = first;
-                for k in first + 1..b {
-                    if upright(k) {
-                        last = k;
-                    } else if k - last > UPRIGHT_GAP {
-                        break;
-                    }
-                }
-                last + 1
-            });
-            if let (RunEnd::Beyond(z_above), RunEnd::Frame | RunEnd::Hidden, true, Some(foot)) =
-                (top, bottom, nearing, foot)
-            {
-                let ps = g.p(a, j);
-                let n = (ps - up * up.dot(ps)).normalize_or_zero();
-                // The ground: the front's foot.
-                let ground = up.dot(g.p(foot, j));
-                if n != DVec3::ZERO && ground < up.dot(ps) {
-                    let far = n.dot(ps);
-                    let above = if z_above.is_finite() && a > 0 {
-                        n.dot(g.point(a - 1, j, z_above))
-                    } else {
-                        f64::INFINITY
-                    };
-                    for i in a + 1..=foot {
-                        let front = g.z[i * w + j] as f64;
-                        // The ray at depth 1.
-                        let d = g.point(i, j, 1.0);
-                        let nd = n.dot(d);
-                        if !(nd > 0.0) {
-                            continue;
-                        }
-                        let mut t = far.min(above) / nd;
-                        let ud = up.dot(d);
-                        if ud < 0.0 {
-                            t = t.min(ground / ud);
-                        }
-                        if t > front * (1.0 + BACK_MIN_THICKNESS) && t.is_finite() {
-                            back[i * w + j] = t as f32;
-                        }
-                    }
+            let Some(first) = (a..b).find(|&i| upright(i)) else {
+                continue;
+            };
+            let mut last = first;
+            for k in first + 1..b {
+                if upright(k) {
+                    last = k;
+                } else if k - last > UPRIGHT_GAP {
+                    break;
                 }
             }
-            a = b + 1;
+            let foot = last + 1;
+            let ps = g.p(a, j);
+            let n = (ps - up * up.dot(ps)).normalize_or_zero();
+            // The ground: the front's foot.
+            let ground = up.dot(g.p(foot, j));
+            if n == DVec3::ZERO || ground >= up.dot(ps) {
+                continue;
+            }
+            let far = n.dot(ps);
+            let above = if z_above.is_finite() && a > 0 {
+                n.dot(g.point(a - 1, j, z_above))
+            } else {
+                f64::INFINITY
+            };
+            for i in a + 1..=foot {
+                let front = g.z[i * w + j] as f64;
+                // The ray at depth 1.
+                let d = g.point(i, j, 1.0);
+                let nd = n.dot(d);
+                if !(nd > 0.0) {
+                    continue;
+                }
+                let mut t = far.min(above) / nd;
+                let ud = up.dot(d);
+                if ud < 0.0 {
+                    t = t.min(ground / ud);
+                }
+                if t > front * (1.0 + BACK_MIN_THICKNESS) && t.is_finite() {
+                    back[i * w + j] = t as f32;
+                }
+            }
         }
     }
     // A leg, a pole: backs deeper than MAX_DEPTH_PER_WIDTH times the

@@ -380,14 +380,7 @@ fn choose_cached(
         s.gain = light_gain(hv, &photo_blocks, region);
         s.psnr_gained = psnr_over(hv, &photo_blocks, region, s.gain as f32);
     }
-    let best = (0..scores.len())
-        .max_by(|&a, &b| {
-            scores[a]
-                .psnr_differing
-                .total_cmp(&scores[b].psnr_differing)
-                .then(b.cmp(&a))
-        })
-        .unwrap_or(0);
+    let best = best_scored(&scores);
     let (chosen, decisive, reason) = if differing == 0.0 {
         (
             0,
@@ -430,6 +423,19 @@ fn choose_cached(
         reason,
         seconds: t_all.elapsed().as_secs_f64(),
     })
+}
+
+/// The index of the score with the highest PSNR where the hypotheses
+/// differ (the first on ties; 0 when there is none).
+fn best_scored(scores: &[HypothesisScore]) -> usize {
+    (0..scores.len())
+        .max_by(|&a, &b| {
+            scores[a]
+                .psnr_differing
+                .total_cmp(&scores[b].psnr_differing)
+                .then(b.cmp(&a))
+        })
+        .unwrap_or(0)
 }
 
 /// What the finer tests ([`choose_windows`], [`choose_walls`]) test
@@ -633,11 +639,7 @@ pub struct WallChoice {
 impl WallChoice {
     /// The completion found, from the room `base` would close.
     pub fn params(&self, base: &CompleteParams) -> CompleteParams {
-        let mut p = walled(base, self.mask);
-        if let Some(h) = self.height {
-            p.wall_height = h;
-        }
-        p
+        walled_at(base, self.mask, self.height)
     }
 }
 
@@ -670,10 +672,16 @@ pub fn choose_walls(
     if planes.is_empty() {
         return Ok(None);
     }
-    let with = |mask: u32| Hypothesis {
-        name: wall_name(&planes, mask),
-        params: Some(walled(base, mask)),
+    let raise = RAISE_SEEN_WALLS | RAISE_WALLS_HIGH;
+    // The walls of `mask`, raised to `height` camera heights if given.
+    let at = |mask: u32, height: Option<f32>| Hypothesis {
+        name: match height {
+            Some(h) => raised_name(&planes, mask & !raise, h),
+            None => wall_name(&planes, mask),
+        },
+        params: Some(walled_at(base, mask, height)),
     };
+    let with = |mask: u32| at(mask, None);
     let bits: Vec<u32> = planes.iter().map(|p| p.bit).collect();
     let mut cache = Rendered::new();
     let found = add_greedily(view, &bits, &with, MAX_WALLS, None, opts, &mut cache)?;
@@ -681,32 +689,13 @@ pub fn choose_walls(
     // Walls raised past the frame: how high, the photo tells (the
     // shadows their tops cast). The best of the heights tried is taken,
     // and then the best of it and the heights halfway to its neighbours.
-    let raise = RAISE_SEEN_WALLS | RAISE_WALLS_HIGH;
     let (height_test, height) = if mask & raise != 0 {
-        let high = mask & !RAISE_SEEN_WALLS | RAISE_WALLS_HIGH;
-        let at = |h: f32| Hypothesis {
-            name: raised_name(&planes, mask & !raise, h),
-            params: Some(CompleteParams {
-                wall_height: h,
-                ..walled(base, high)
-            }),
+        mask = mask & !RAISE_SEEN_WALLS | RAISE_WALLS_HIGH;
+        let test = |heights: &[f32], cache: &mut Rendered| {
+            let hyps: Vec<Hypothesis> = heights.iter().map(|&h| at(mask, Some(h))).collect();
+            view.choose(&hyps, opts, cache)
         };
-        let best = |c: &CompletionChoice| {
-            (0..c.scores.len())
-                .max_by(|&a, &b| {
-                    c.scores[a]
-                        .psnr_differing
-                        .total_cmp(&c.scores[b].psnr_differing)
-                        .then(b.cmp(&a))
-                })
-                .unwrap_or(0)
-        };
-        let coarse = view.choose(
-            &WALL_HEIGHTS.iter().map(|&h| at(h)).collect::<Vec<_>>(),
-            opts,
-            &mut cache,
-        )?;
-        let k = best(&coarse);
+        let k = best_scored(&test(&WALL_HEIGHTS, &mut cache)?.scores);
         let mut fine = vec![WALL_HEIGHTS[k]];
         if k > 0 {
             fine.push(0.5 * (WALL_HEIGHTS[k - 1] + WALL_HEIGHTS[k]));
@@ -714,14 +703,9 @@ pub fn choose_walls(
         if k + 1 < WALL_HEIGHTS.len() {
             fine.push(0.5 * (WALL_HEIGHTS[k] + WALL_HEIGHTS[k + 1]));
         }
-        let test = view.choose(
-            &fine.iter().map(|&h| at(h)).collect::<Vec<_>>(),
-            opts,
-            &mut cache,
-        )?;
-        let h = fine[best(&test)];
-        mask = high;
-        (Some(test), Some(h))
+        let last = test(&fine, &mut cache)?;
+        let h = fine[best_scored(&last.scores)];
+        (Some(last), Some(h))
     } else {
         (None, None)
     };
@@ -730,17 +714,7 @@ pub fn choose_walls(
     let (against_start, kept_start) = if mask == 0 {
         (None, true)
     } else {
-        let found = Hypothesis {
-            name: match height {
-                Some(h) => raised_name(&planes, mask & !raise, h),
-                None => wall_name(&planes, mask),
-            },
-            params: Some(CompleteParams {
-                wall_height: height.unwrap_or(base.wall_height),
-                ..walled(base, mask)
-            }),
-        };
-        let last = view.choose(&[start.clone(), found], opts, &mut cache)?;
+        let last = view.choose(&[start.clone(), at(mask, height)], opts, &mut cache)?;
         let kept = last.chosen == 0;
         (Some(last), kept)
     };
@@ -765,6 +739,15 @@ pub fn walled(base: &CompleteParams, mask: u32) -> CompleteParams {
         assumed: Some(mask),
         windows: Some(0),
         ..*base
+    }
+}
+
+/// [`walled`], its walls raised to `height` camera heights
+/// ([`CompleteParams::wall_height`]) if given.
+pub fn walled_at(base: &CompleteParams, mask: u32, height: Option<f32>) -> CompleteParams {
+    CompleteParams {
+        wall_height: height.unwrap_or(base.wall_height),
+        ..walled(base, mask)
     }
 }
 
@@ -1051,6 +1034,23 @@ mod tests {
         .unwrap()
     }
 
+    /// The view of `depth` with `maps`, lit by `env`, photographed as
+    /// `photo`, on the default mesh.
+    fn photo_view<'a>(
+        depth: &'a GrayImage,
+        maps: &'a MaterialMaps,
+        env: &'a EnvMap,
+        photo: &'a RgbImage,
+    ) -> PhotoView<'a> {
+        PhotoView {
+            depth,
+            maps,
+            env,
+            mesh_params: MeshParams::default(),
+            photo,
+        }
+    }
+
     fn hyps() -> Vec<Hypothesis> {
         completion_hypotheses()
     }
@@ -1174,13 +1174,7 @@ mod tests {
             };
             let photo = shot(&truth, 99);
             let env = sky();
-            let view = PhotoView {
-                depth: &depth,
-                maps: &maps,
-                env: &env,
-                mesh_params: MeshParams::default(),
-                photo: &photo,
-            };
+            let view = photo_view(&depth, &maps, &env, &photo);
             let w = choose_windows(&view, &base, &opts)
                 .unwrap()
                 .expect("a closed room");
@@ -1222,13 +1216,7 @@ mod tests {
         let m16 = MaterialMaps::uniform(16, 16, Vec3::splat(0.5), 0.5, 0.0);
         let photo = RgbImage::new(16, 16, Vec3::splat(0.7));
         let env = sky();
-        let view = PhotoView {
-            depth: &sky_only,
-            maps: &m16,
-            env: &env,
-            mesh_params: MeshParams::default(),
-            photo: &photo,
-        };
+        let view = photo_view(&sky_only, &m16, &env, &photo);
         assert!(choose_windows(&view, &base, &opts).unwrap().is_none());
     }
 
@@ -1263,13 +1251,7 @@ mod tests {
             .expect("a wall behind");
         let photo = shot(Some(&walled(&room, 1 << behind.bit)));
         let env = sky();
-        let view = |photo| PhotoView {
-            depth: &depth,
-            maps: &maps,
-            env: &env,
-            mesh_params: MeshParams::default(),
-            photo,
-        };
+        let view = |photo| photo_view(&depth, &maps, &env, photo);
         let w = choose_walls(&view(&photo), &start, &room, &opts)
             .unwrap()
             .expect("a room to close");
@@ -1342,13 +1324,7 @@ mod tests {
                 ..Default::default()
             };
             let photo = render(&scene, &o, &|_, _| {}).image;
-            let view = PhotoView {
-                depth: &depth,
-                maps: &maps,
-                env: &env,
-                mesh_params: MeshParams::default(),
-                photo: &photo,
-            };
+            let view = photo_view(&depth, &maps, &env, &photo);
             let w = choose_walls(&view, &start, &room, &opts)
                 .unwrap()
                 .expect("a room to close");
