@@ -71,15 +71,16 @@ pub struct InvertArgs {
     /// kept or reference.
     #[arg(long, default_value_t = Silhouettes::Kept)]
     pub silhouettes: Silhouettes,
-    /// Geometry past the frame (see `render --complete`): room, closed,
-    /// planes, none (the depth mesh alone), or auto: each tested with the
-    /// predicted maps under the sky the photo shows (room where it shows
-    /// none; measured per kind of scene in docs/completion.md: it helps
-    /// open rooms, stages and outdoor scenes and costs closed rooms whose
-    /// windows show the sky, so it is not the default yet). Default: the
-    /// completion the bundle declares for its own geometry (geometry.json,
-    /// which `matflow synth` writes), otherwise room. `render` on the
-    /// result uses the same unless told otherwise.
+    /// Geometry past the frame (see `render --complete`): auto, room,
+    /// closed, planes, or none (the depth mesh alone). Auto tests each
+    /// with the predicted maps under the sky the photo shows, and takes
+    /// room where it shows none open (only through openings: under a
+    /// lintel, or framed by one wall) or where the least assuming needs
+    /// ten times the light of that sky (measured per kind of scene in
+    /// docs/completion.md). Default: the completion the bundle declares
+    /// for its own geometry (geometry.json, which `matflow synth`
+    /// writes), otherwise auto. `render` on the result uses the same
+    /// unless told otherwise.
     #[arg(long)]
     pub complete: Option<crate::commands::CompleteArg>,
     /// À-trous denoising passes over the per-pixel tables (0: off).
@@ -411,7 +412,7 @@ pub fn write_bundle(
 }
 
 /// The completion `invert` recovers with: the one asked for; else the one
-/// the bundle declares (geometry.json); else room. Asked for auto, the one
+/// the bundle declares (geometry.json); else (and asked for auto) the one
 /// the photo supports: where the photo shows the sky unclipped, each completion is rendered
 /// with the predicted maps under that sky (extended alike past what the
 /// view shows, [`matflow_render::evidence::seen_sky_light`]) and tested
@@ -419,7 +420,8 @@ pub fn write_bundle(
 /// light. Where it shows none, every completion explains the photo with
 /// a light of its own (fitted, each re-renders it alike), so nothing
 /// weighs them: `room`, which closes a room only where the view shows
-/// one, as before.
+/// one; so too where the one the test takes needs far more light than the
+/// sky gives ([`matflow_render::evidence::UNSEEN_LIGHT_GAIN`]).
 fn invert_completion(a: &InvertArgs) -> Result<crate::commands::CompletionDecision> {
     use crate::commands::{declared_completion, CompleteMode, CompletionDecision};
     if let Some(m) = a.complete.and_then(crate::commands::CompleteArg::forced) {
@@ -437,11 +439,6 @@ fn invert_completion(a: &InvertArgs) -> Result<crate::commands::CompletionDecisi
                 evidence: None,
             });
         }
-        return Ok(CompletionDecision {
-            mode: CompleteMode::Room,
-            why: "the default".into(),
-            evidence: None,
-        });
     }
     let bundle = Bundle::open(&a.bundle)?;
     let photo = bundle.load_gt_image()?;
@@ -488,8 +485,8 @@ fn invert_completion(a: &InvertArgs) -> Result<crate::commands::CompletionDecisi
 
 /// Why `invert --complete auto` keeps `room` on a photo without sky.
 pub const NO_SKY: &str = "auto: the photo shows no unclipped open sky (none, or only through \
-     openings with geometry above them: a room's windows, which let in more light than the sky \
-     they show), so nothing weighs the light each completion needs (every one explains the photo \
+     openings: under geometry, or framed by one surface: a room's windows, which let in more \
+     light than the sky they show), so nothing weighs the light each completion needs (every one explains the photo \
      with a light of its own); room, which closes a room only where the view shows one";
 
 /// The mesh `invert` recovers on.

@@ -818,11 +818,139 @@ pub struct SeenSky {
     pub seen_texels: usize,
     /// Their mean radiance (linear RGB).
     pub level: [f32; 3],
-    /// Of those, the ones with no geometry above them in their column of
-    /// the image: sky seen past the scene, not through an opening in
-    /// what the view shows (a window under its lintel, a missing wall
-    /// under the ceiling).
+    /// Of those, the ones seen past the scene, not through an opening in
+    /// what the view shows: none with geometry above it in its column (a
+    /// window under its lintel, a missing wall under the ceiling), nor in
+    /// a patch of sky framed left and right by one surface
+    /// ([`framed_sky`]: a window whose top the frame cuts).
     pub open_pixels: usize,
+}
+
+/// Share of a sky patch's rows whose two ends must lie on one surface
+/// for [`framed_sky`] to call it an opening in that surface.
+pub const FRAMED_ROWS: f64 = 0.5;
+
+/// Pixels past each end of a row of sky where the framing surface is
+/// looked for (and twice as far).
+pub const FRAMED_REACH: usize = 3;
+
+/// Distance from the framing surface, as a share of the point's depth,
+/// within which a row's end lies on it (the plane fit's own tolerance,
+/// [`matflow_geom::PlaneParams`]).
+pub const FRAMED_TOLERANCE: f32 = 0.01;
+
+/// Which pixels of `depth` (no geometry: not positive) are sky seen
+/// through an opening of one surface: a 4-connected patch of sky at
+/// least [`FRAMED_ROWS`] of whose rows end, left and right, inside the
+/// frame on one plane: the surface seen [`FRAMED_REACH`] and twice that
+/// many pixels past each end lies on it (within [`FRAMED_TOLERANCE`] of
+/// its depth). A window in a wall whose top the frame cuts is such a patch;
+/// the sky above a wall's top, beside a wall that ends, or between two
+/// different surfaces is not.
+///
+/// The plane is searched among those through the near points of both
+/// sides of one row and one side of another, on at most 24 rows spread over the patch
+/// (deterministic).
+pub fn framed_sky(depth: &GrayImage, cam: &matflow_scene::Camera) -> Vec<bool> {
+    let (w, h) = (depth.width, depth.height);
+    let sky = |x: usize, y: usize| !(depth.get(x, y) > 0.0);
+    let mut label = vec![usize::MAX; w * h];
+    let mut framed = vec![false; w * h];
+    let mut stack = Vec::new();
+    for start in 0..w * h {
+        if label[start] != usize::MAX || !sky(start % w, start / w) {
+            continue;
+        }
+        // The patch, by flood fill; its extent in each row.
+        let mut rows: std::collections::BTreeMap<usize, (usize, usize)> = Default::default();
+        let mut members = Vec::new();
+        label[start] = start;
+        stack.push(start);
+        while let Some(i) = stack.pop() {
+            let (x, y) = (i % w, i / w);
+            members.push(i);
+            let e = rows.entry(y).or_insert((x, x));
+            e.0 = e.0.min(x);
+            e.1 = e.1.max(x);
+            let mut visit = |j: usize| {
+                if label[j] == usize::MAX && sky(j % w, j / w) {
+                    label[j] = start;
+                    stack.push(j);
+                }
+            };
+            if x > 0 {
+                visit(i - 1);
+            }
+            if x + 1 < w {
+                visit(i + 1);
+            }
+            if y > 0 {
+                visit(i - w);
+            }
+            if y + 1 < h {
+                visit(i + w);
+            }
+        }
+        // Rows ending on geometry on both sides inside the frame, with
+        // the surface seen FRAMED_REACH and twice that many pixels past
+        // each end (not the end pixels themselves: a window's reveal is
+        // set back from its wall). Two such points a side, as two
+        // parallel lines lie on one plane and a second point tells one
+        // wall from two.
+        let point = |x: usize, y: usize| {
+            let z = depth.get(x, y);
+            (z > 0.0 && z.is_finite()).then(|| cam.backproject(x as f32, y as f32, z))
+        };
+        let far = 2 * FRAMED_REACH;
+        let ends: Vec<[glam::Vec3; 4]> = rows
+            .iter()
+            .filter(|(_, &(lo, hi))| lo > far && hi + far < w)
+            .filter_map(|(&y, &(lo, hi))| {
+                Some([
+                    point(lo - FRAMED_REACH, y)?,
+                    point(hi + FRAMED_REACH, y)?,
+                    point(lo - far, y)?,
+                    point(hi + far, y)?,
+                ])
+            })
+            .collect();
+        let need = (FRAMED_ROWS * rows.len() as f64).ceil() as usize;
+        if ends.len() < need.max(2) {
+            continue;
+        }
+        let on = |n: glam::Vec3, d: f32, p: &glam::Vec3| {
+            (n.dot(*p) + d).abs() <= FRAMED_TOLERANCE * -p.z
+        };
+        let picks: Vec<usize> = (0..24.min(ends.len()))
+            .map(|k| k * (ends.len() - 1) / 23.min(ends.len() - 1).max(1))
+            .collect();
+        let mut best = 0;
+        for &a in &picks {
+            for &b in &picks {
+                if a == b {
+                    continue;
+                }
+                let [l, r, ..] = ends[a];
+                for c in [ends[b][0], ends[b][1]] {
+                    let Some(n) = (r - l).cross(c - l).try_normalize() else {
+                        continue;
+                    };
+                    let d = -n.dot(l);
+                    let held = ends
+                        .iter()
+                        .filter(|e| e.iter().all(|p| on(n, d, p)))
+                        .count();
+                    best = best.max(held);
+                }
+            }
+        }
+        if best >= need {
+            for i in members {
+                framed[i] = true;
+            }
+        }
+    }
+    framed
 }
 
 /// Radiance of the ground (below the horizon) in [`seen_sky_light`], as a
@@ -861,6 +989,7 @@ pub fn seen_sky_light(
     let mut total = [0.0f64; 3];
     let mut pixels = 0usize;
     let mut open_pixels = 0usize;
+    let framed = framed_sky(depth, cam);
     // Per column, the first row (from the top) that shows geometry.
     let top: Vec<usize> = (0..depth.width)
         .map(|x| {
@@ -876,7 +1005,7 @@ pub fn seen_sky_light(
             if z > 0.0 || !v.is_finite() || v.max_element() >= saturated || v.min_element() < 0.0 {
                 continue;
             }
-            if y < top[x] {
+            if y < top[x] && !framed[y * depth.width + x] {
                 open_pixels += 1;
             }
             let d = cam
@@ -953,8 +1082,11 @@ pub fn clip_level(photo: &RgbImage) -> f32 {
 /// predicted `maps` under the sky the photo shows ([`seen_sky_light`],
 /// 32×16, "up" from the view's planes) and tested as
 /// [`choose_completion`] tests them. `None` when the photo shows too
-/// little unclipped sky: then every hypothesis explains the photo with a
-/// light of its own, and nothing weighs them.
+/// little unclipped open sky: then every hypothesis explains the photo
+/// with a light of its own, and nothing weighs them. When the hypothesis
+/// taken needs more than [`UNSEEN_LIGHT_GAIN`] times the seen sky's
+/// light, that sky is not the view's light either: the choice is `room`
+/// (when among `hypotheses`), not decisive, with the scores kept.
 pub fn choose_under_seen_sky(
     depth: &GrayImage,
     maps: &MaterialMaps,
@@ -975,9 +1107,42 @@ pub fn choose_under_seen_sky(
         return Ok(None);
     }
     let env = EnvMap::new(&sky.env)?;
-    let choice = choose_completion(depth, maps, &env, mesh_params, photo, hypotheses, opts)?;
+    let mut choice = choose_completion(depth, maps, &env, mesh_params, photo, hypotheses, opts)?;
+    let gain = choice.scores[choice.chosen].gain;
+    let room = hypotheses.iter().position(|h| h.name == "room");
+    if let Some(room) = room.filter(|_| gain > UNSEEN_LIGHT_GAIN) {
+        // The seen sky is not what lights the view: every hypothesis is
+        // weighed under a light that is not the photo's.
+        let others = (0..choice.scores.len())
+            .filter(|&i| i != room && choice.scores[i].same_as.is_none())
+            .map(|i| choice.scores[i].psnr_differing)
+            .fold(f64::NEG_INFINITY, f64::max);
+        choice.reason = format!(
+            "{} explains the photo best under the sky it shows, but needs {gain:.1} times that \
+             sky's light (more than {UNSEEN_LIGHT_GAIN}): the light comes from what the view \
+             does not show (lamps, the sun through openings), so the seen sky weighs nothing; \
+             room, which closes a room only where the view shows one",
+            choice.scores[choice.chosen].name
+        );
+        choice.margin_db = if others.is_finite() {
+            choice.scores[room].psnr_differing - others
+        } else {
+            0.0
+        };
+        choice.chosen = room;
+        choice.decisive = false;
+    }
     Ok(Some((choice, sky)))
 }
+
+/// Most light, as a factor on the sky a photo shows, that the hypothesis
+/// [`choose_under_seen_sky`] takes may need for that sky to count as the
+/// view's light. Views open to the sky need about the sky they show, or
+/// a few times it with the sun out of view (0.5–5.5 on matflow's
+/// validation scenes: open rooms, stages, outdoors, some at a low sun);
+/// a room lit by lamps that shows a dark sky through a missing wall
+/// needed 17. Beyond it the test takes `room`, as without a sky.
+pub const UNSEEN_LIGHT_GAIN: f64 = 10.0;
 
 impl SeenSky {
     /// In words, for reports.
@@ -1458,5 +1623,124 @@ mod tests {
         assert!(seen_sky_light(&photo, &depth, &cam, Vec3::Y, 32, 16, 0.98).is_none());
         let full = GrayImage::new(N, N, 3.0);
         assert!(seen_sky_light(&photo, &full, &cam, Vec3::Y, 32, 16, 0.98).is_none());
+    }
+
+    /// Depth of a view whose upper part is walls: `wall(x)` gives the
+    /// depth of the wall at column x at the centre row (slanted walls
+    /// have depth changing along the row), a floor 1.2 below the camera,
+    /// and sky where `hole(x, y)`.
+    fn walls_with_hole(
+        wall: impl Fn(f32) -> (f32, f32),
+        hole: impl Fn(usize, usize) -> bool,
+    ) -> GrayImage {
+        let cam = Camera::new(N, N);
+        GrayImage::from_fn(N, N, |x, y| {
+            if hole(x, y) {
+                return 0.0;
+            }
+            let d = cam.backproject(x as f32, y as f32, 1.0);
+            // The wall through (0, 0, -z0) whose depth grows by `slope`
+            // per unit of camera x: z = z0 + slope * px.
+            let (z0, slope) = wall(x as f32);
+            let t_wall = z0 / (-d.z - slope * d.x);
+            let t_floor = if d.y < 0.0 { 1.2 / -d.y } else { f32::INFINITY };
+            t_wall.min(t_floor)
+        })
+    }
+
+    #[test]
+    fn a_window_whose_top_the_frame_cuts_is_no_open_sky() {
+        let cam = Camera::new(N, N);
+        let window = |x: usize, y: usize| (14..30).contains(&x) && y < 16;
+        let sky_share = |depth: &GrayImage| {
+            let photo = RgbImage::from_fn(N, N, |_, _| Vec3::new(0.3, 0.5, 0.9));
+            let s = seen_sky_light(&photo, depth, &cam, Vec3::Y, 32, 16, 0.98).unwrap();
+            (s.pixels, s.open_pixels)
+        };
+        // A window in one wall, facing the camera or turned away from it:
+        // sky framed left and right by one surface, seen through it.
+        for slope in [0.0, 0.6, -0.4] {
+            let mut depth = walls_with_hole(|_| (5.0, slope), window);
+            // Its reveal, set back from the wall, seen beside the sky.
+            for y in 0..16 {
+                for x in [13, 30] {
+                    depth.data[y * N + x] += 0.15;
+                }
+            }
+            let framed = framed_sky(&depth, &cam);
+            for y in 0..N {
+                for x in 0..N {
+                    assert_eq!(framed[y * N + x], window(x, y), "slope {slope}: {x},{y}");
+                }
+            }
+            assert_eq!(sky_share(&depth), (16 * 16, 0), "slope {slope}");
+        }
+        // The same patch between two different walls (the right one
+        // further back): the sky past their ends, not a window.
+        let two = walls_with_hole(|x| (if x < 22.0 { 5.0 } else { 6.0 }, 0.0), window);
+        assert!(framed_sky(&two, &cam).iter().all(|&f| !f));
+        assert_eq!(sky_share(&two), (16 * 16, 16 * 16));
+        // A wall that ends inside the frame, sky beside it and above:
+        // open.
+        let ends = walls_with_hole(|_| (5.0, 0.0), |x, y| x >= 30 && y < 16 || y < 4);
+        assert!(framed_sky(&ends, &cam).iter().all(|&f| !f));
+        let (pixels, open) = sky_share(&ends);
+        assert_eq!(open, pixels);
+        // Most of the patch's rows reach the frame's side (the sky above
+        // a wall, with a notch in it): open.
+        let notch = walls_with_hole(
+            |_| (5.0, 0.0),
+            |x, y| y < 10 || (14..30).contains(&x) && y < 13,
+        );
+        assert!(framed_sky(&notch, &cam).iter().all(|&f| !f));
+        // And under the lintel, as before: not open.
+        let lintel = walls_with_hole(
+            |_| (5.0, 0.0),
+            |x, y| (14..30).contains(&x) && (4..16).contains(&y),
+        );
+        assert_eq!(sky_share(&lintel), (16 * 12, 0));
+    }
+
+    #[test]
+    fn a_view_lit_by_far_more_than_its_sky_is_tested_as_a_room() {
+        let depth = floor_and_wall();
+        let maps = MaterialMaps::uniform(N, N, Vec3::splat(0.6), 0.8, 0.0);
+        let opts = EvidenceOptions {
+            spp_half: 4,
+            block: 4,
+            ..Default::default()
+        };
+        // The open view rendered under its own sky: the sky it shows is
+        // its light, and the test takes the depth mesh alone.
+        let photo = photo(&depth, &maps, 0);
+        let lit = |k: f32| {
+            let mut p = photo.clone();
+            for (i, v) in p.data.iter_mut().enumerate() {
+                if depth.data[i] > 0.0 {
+                    *v *= k;
+                }
+            }
+            let (c, _) =
+                choose_under_seen_sky(&depth, &maps, MeshParams::default(), &p, &hyps(), &opts)
+                    .unwrap()
+                    .expect("open sky");
+            c
+        };
+        let own = lit(1.0);
+        assert_eq!(own.chosen, 0, "{own:?}");
+        assert!((own.scores[0].gain - 1.0).abs() < 0.2, "{own:?}");
+        // Three times brighter (a sun out of view): still its sky's view.
+        let sun = lit(3.0);
+        assert_eq!(sun.chosen, 0, "{sun:?}");
+        // (Blocks with sky in them keep their level: the gain over the
+        // blocks is less than 3.)
+        assert!(sun.scores[0].gain > 2.0, "{sun:?}");
+        // Twenty times (lamps it does not show, a dark sky through a
+        // missing wall): the seen sky weighs nothing; room.
+        let lamps = lit(20.0);
+        assert_eq!(lamps.chosen, 2, "{lamps:?}");
+        assert!(!lamps.decisive, "{lamps:?}");
+        assert!(lamps.scores[0].gain > UNSEEN_LIGHT_GAIN, "{lamps:?}");
+        assert!(lamps.reason.contains("times that sky's light"), "{lamps:?}");
     }
 }

@@ -17,7 +17,8 @@ const COMPLETE_CHOICES: [&str; 5] = ["auto", "none", "planes", "room", "closed"]
 
 /// The mode `auto` takes for the scene `s`: the photo's choice under the
 /// sky it shows, else room (no photo, or no open sky to weigh the light
-/// by: a sky seen only through windows comes with light it does not show).
+/// by: a sky seen only through windows comes with light it does not show,
+/// and so does a view that needs far more light than its sky gives).
 fn auto_mode(s: &SceneData, mesh: MeshParams) -> Result<&'static str, NodeError> {
     let Some(photo) = &s.target else {
         return Ok("room");
@@ -37,7 +38,7 @@ fn auto_mode(s: &SceneData, mesh: MeshParams) -> Result<&'static str, NodeError>
 
 const MESH_INFO: NodeInfo = NodeInfo {
     kind: "mesh",
-    version: 9,
+    version: 10,
     doc: "The triangle mesh of a scene's depth map (one vertex per pixel, cut at depth \
          discontinuities found by the reference's angle test), optionally completed past the \
          frame.",
@@ -73,14 +74,16 @@ const MESH_INFO: NodeInfo = NodeInfo {
         ParamSpec {
             name: "complete",
             ty: ParamType::Choice(&COMPLETE_CHOICES),
-            default: Some("room"),
+            default: Some("auto"),
             unit: "",
             doc: "geometry past the frame: none (the depth mesh alone); planes (the floor, walls and ceiling seen, \
                   extended and filled behind what hides them, and objects cut by the border \
                   continued); room (also a room the view shows closed, each assumed wall with a \
                   typical window); closed (assumed walls without windows); auto (the least \
                   assuming the photo supports, each tested with the predicted maps under the sky \
-                  the photo shows, as `invert --complete auto`; room where it shows no open sky: none, or only through windows)",
+                  the photo shows, as `invert`; room where it shows no open sky (none, or only \
+                  through openings: under a lintel, or framed by one wall), or where the least \
+                  assuming needs ten times the light of the sky it shows)",
         },
     ],
     outputs: &[OutputSpec {
@@ -182,7 +185,7 @@ mod tests {
     }
 
     #[test]
-    fn the_mesh_stage_completes_the_room_past_the_frame_by_default() {
+    fn the_mesh_stage_completes_the_room_past_the_frame() {
         let plain = mesh_with("none");
         assert!(plain.material_pixel.is_empty());
         let s = matflow_scene::synthetic::generate(3, 48, 48);
@@ -205,10 +208,8 @@ mod tests {
         let room = mesh_with("room");
         assert!(!room.portals.is_empty());
         assert!(room.portals.iter().all(|p| p.is_valid()));
-        // The same depth completes the same way every time, and `room`
-        // is what a stage that says nothing gets.
+        // The same depth completes the same way every time.
         assert_eq!(room, mesh_with("room"));
-        assert_eq!(room, mesh_with_param(None));
     }
 
     #[test]
@@ -218,7 +219,10 @@ mod tests {
         let s = matflow_scene::synthetic::generate(3, 48, 48);
         assert!(s.depth.data.iter().filter(|&&z| z <= 0.0).count() > 48 * 48 / 50);
         assert_eq!(mesh_of_scene(Some("auto"), true), mesh_with("none"));
-        // Without a photo there is nothing to test: room, as by default.
+        // Auto is what a stage that says nothing gets.
+        assert_eq!(mesh_of_scene(None, true), mesh_with("none"));
+        // Without a photo there is nothing to test: room.
         assert_eq!(mesh_of_scene(Some("auto"), false), mesh_with("room"));
+        assert_eq!(mesh_of_scene(None, false), mesh_with("room"));
     }
 }
