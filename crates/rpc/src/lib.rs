@@ -5,8 +5,7 @@
 //! - [`reapi`]: a store tier that speaks the Remote Execution API's
 //!   Capabilities, ContentAddressableStorage, ByteStream and ActionCache
 //!   to any compliant cache server (bazel-remote, Buildbarn, NativeLink,
-//!   buildbox-casd), and [`cas_server`], the same API served over a local
-//!   store (so a submitter's own cache can be the workers' store).
+//!   buildbox-casd).
 //! - [`worker`]: the node service over the engine's registry.
 //! - [`remote`]: the executor that places stages on workers by free
 //!   slots, with deadlines, heartbeats and bounded re-dispatch.
@@ -19,13 +18,12 @@ pub mod pb {
 }
 
 pub mod auth;
-pub mod cas_server;
 pub mod convert;
 pub mod net;
 pub mod reapi;
 pub mod remote;
 pub mod worker;
 
-/// The largest request a worker or the store server accepts, and the
+/// The largest request a worker accepts, and the
 /// largest blob sent in one batch message.
 pub const MAX_MESSAGE_BYTES: usize = 4 << 20;
