@@ -5,26 +5,12 @@
 //! manifest's BLAKE3 digests (Python's own `blake3`), `merge` finds
 //! damage, and bad specs get errors with a line and column.
 
+mod support;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
-
-fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("matflow-dataset-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
-fn matflow(args: &[&str], threads: usize) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_matflow"))
-        .args(args)
-        .env_remove("MATFLOW_CACHE")
-        .env("RAYON_NUM_THREADS", threads.to_string())
-        .output()
-        .expect("run matflow")
-}
+use support::{matflow, s, scratch};
 
 /// `matflow dataset SPEC --out OUT --cache CACHE --quiet EXTRA…` on
 /// `threads` threads.
@@ -39,7 +25,7 @@ fn generate(spec: &Path, out: &Path, cache: &Path, extra: &[&str], threads: usiz
         "--quiet",
     ];
     args.extend_from_slice(extra);
-    matflow(&args, threads)
+    matflow(&args, Some(threads))
 }
 
 fn text(o: &Output) -> String {
@@ -48,10 +34,6 @@ fn text(o: &Output) -> String {
         String::from_utf8_lossy(&o.stdout),
         String::from_utf8_lossy(&o.stderr)
     )
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
 }
 
 /// A small refraction dataset spec: `samples` at 32², 4 spp.
@@ -90,7 +72,7 @@ fn report(path: &Path) -> serde_json::Value {
 
 #[test]
 fn one_process_or_three_on_one_thread_or_two_give_the_same_bytes() {
-    let w = tmp("split");
+    let w = scratch("dataset", "split");
     let f = spec(&w, 8, 3, 4);
     // One process, one thread.
     let (out1, cache1) = (w.join("one"), w.join("cache1"));
@@ -128,7 +110,7 @@ fn one_process_or_three_on_one_thread_or_two_give_the_same_bytes() {
     // The three processes leave the shards; merging checks and indexes
     // them (one process that wrote every shard merged them already).
     assert!(!out3.join("manifest.jsonl").exists());
-    let o = matflow(&["dataset", "merge", s(&out3)], 1);
+    let o = matflow(&["dataset", "merge", s(&out3)], Some(1));
     assert!(o.status.success(), "{}", text(&o));
     assert!(text(&o).contains("8 samples in 3 shards"), "{}", text(&o));
     let (a, b) = (files(&out1), files(&out3));
@@ -205,7 +187,7 @@ fn one_process_or_three_on_one_thread_or_two_give_the_same_bytes() {
 
 #[test]
 fn a_killed_job_resumes_with_identical_bytes_and_no_recomputation() {
-    let w = tmp("kill");
+    let w = scratch("dataset", "kill");
     let f = spec(&w, 24, 4, 48);
     // The answer, from a run never interrupted.
     let want = w.join("want");
@@ -290,7 +272,7 @@ fn walk(d: &Path) -> Vec<PathBuf> {
 /// and ranges.
 #[test]
 fn python_reads_the_shards_and_the_manifest_digests_match() {
-    let w = tmp("python");
+    let w = scratch("dataset", "python");
     let f = spec(&w, 5, 2, 4);
     let out = w.join("out");
     let o = generate(&f, &out, &w.join("c"), &[], 2);
@@ -344,7 +326,7 @@ print("ok", seen)
     let at = b.len() - 1024 - 100;
     b[at] ^= 0xff;
     std::fs::write(&tar, &b).unwrap();
-    let o = matflow(&["dataset", "merge", s(&out)], 1);
+    let o = matflow(&["dataset", "merge", s(&out)], Some(1));
     assert!(!o.status.success());
     assert!(
         text(&o).contains("tiny-000001.tar") && text(&o).contains("BLAKE3"),
@@ -354,14 +336,14 @@ print("ok", seen)
     assert!(!out.join("manifest.jsonl").exists());
     // A missing shard is named too.
     std::fs::remove_file(out.join("tiny-000002.tar")).unwrap();
-    let o = matflow(&["dataset", "merge", s(&out)], 1);
+    let o = matflow(&["dataset", "merge", s(&out)], Some(1));
     assert!(text(&o).contains("tiny-000002.tar"), "{}", text(&o));
     let _ = std::fs::remove_dir_all(&w);
 }
 
 #[test]
 fn bad_specs_are_located_and_nothing_runs() {
-    let w = tmp("bad");
+    let w = scratch("dataset", "bad");
     let cases: &[(&str, &str)] = &[
         (
             "dataset:\n  generator: refraction\n  samples: 0\n",
@@ -405,7 +387,7 @@ fn bad_specs_are_located_and_nothing_runs() {
                 "--cache",
                 s(&w.join("c")),
             ],
-            1,
+            Some(1),
         );
         assert!(!o.status.success(), "case {k} ran");
         assert!(text(&o).contains(want), "case {k}: {}", text(&o));
@@ -415,7 +397,7 @@ fn bad_specs_are_located_and_nothing_runs() {
     let f = spec(&w, 2, 1, 1);
     let o = matflow(
         &["dataset", s(&f), "--out", s(&w), "--cache", s(&w.join("c"))],
-        1,
+        Some(1),
     );
     assert!(text(&o).contains("holds the dataset spec"), "{}", text(&o));
     let _ = std::fs::remove_dir_all(&w);
@@ -427,7 +409,7 @@ fn bad_specs_are_located_and_nothing_runs() {
 /// equal).
 #[test]
 fn a_rooms_sample_unpacks_into_a_bundle_that_renders() {
-    let w = tmp("rooms");
+    let w = scratch("dataset", "rooms");
     let f = w.join("rooms.yaml");
     std::fs::write(
         &f,
@@ -440,7 +422,7 @@ fn a_rooms_sample_unpacks_into_a_bundle_that_renders() {
     let b = w.join("bundle");
     let o = matflow(
         &["dataset", "unpack", s(&out), "s00000001", "--to", s(&b)],
-        1,
+        Some(1),
     );
     assert!(o.status.success(), "{}", text(&o));
     for f in [
@@ -474,7 +456,7 @@ fn a_rooms_sample_unpacks_into_a_bundle_that_renders() {
             "--compare",
             s(&b.join("gt_image.exr")),
         ],
-        2,
+        Some(2),
     );
     assert!(o.status.success(), "{}", text(&o));
     let t = text(&o);
@@ -488,7 +470,7 @@ fn a_rooms_sample_unpacks_into_a_bundle_that_renders() {
     // A key that is not there is named.
     let o = matflow(
         &["dataset", "unpack", s(&out), "s00000009", "--to", s(&b)],
-        1,
+        Some(1),
     );
     assert!(text(&o).contains("no sample `s00000009`"), "{}", text(&o));
     let _ = std::fs::remove_dir_all(&w);
@@ -501,7 +483,7 @@ fn a_rooms_sample_unpacks_into_a_bundle_that_renders() {
 /// file and what was expected.
 #[test]
 fn refraction_length_runs_on_both_backends_and_names_bad_models() {
-    let w = tmp("onnx");
+    let w = scratch("dataset", "onnx");
     let p = w.join("lengths.yaml");
     std::fs::write(
         &p,
@@ -524,7 +506,7 @@ fn refraction_length_runs_on_both_backends_and_names_bad_models() {
             s(&rep),
         ];
         args.extend_from_slice(extra);
-        let o = matflow(&args, 2);
+        let o = matflow(&args, Some(2));
         let r = std::fs::read(&rep)
             .ok()
             .and_then(|b| serde_json::from_slice(&b).ok());
@@ -602,7 +584,7 @@ fn refraction_length_runs_on_both_backends_and_names_bad_models() {
 /// lighting the file; the labels see the mesh.
 #[test]
 fn user_meshes_and_envmap_files_join_the_draw() {
-    let w = tmp("user");
+    let w = scratch("dataset", "user");
     let meshes = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../pipelines/meshes");
     let hdr = w.join("sky.hdr");
     matflow_scene::io::write_hdr(&hdr, &matflow_scene::synthetic::procedural_sky(4, 64, 32))
@@ -656,7 +638,7 @@ fn user_meshes_and_envmap_files_join_the_draw() {
             "--cache",
             s(&w.join("c")),
         ],
-        1,
+        Some(1),
     );
     assert!(
         text(&o).contains("holds no .obj or .ply files"),
@@ -671,7 +653,7 @@ fn user_meshes_and_envmap_files_join_the_draw() {
 /// engine run.
 #[test]
 fn a_pipeline_with_a_dataset_section_runs_both() {
-    let w = tmp("section");
+    let w = scratch("dataset", "section");
     let f = w.join("both.yaml");
     std::fs::write(
         &f,
@@ -692,7 +674,7 @@ fn a_pipeline_with_a_dataset_section_runs_both() {
             "--report",
             s(&rep),
         ],
-        2,
+        Some(2),
     );
     assert!(o.status.success(), "{}", text(&o));
     let r = report(&rep);

@@ -11,6 +11,7 @@
 //! store holds.
 
 mod support;
+use support::s;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -26,10 +27,6 @@ fn bin() -> PathBuf {
 
 fn demo() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../../pipelines/demo.yaml")
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
 }
 
 /// `matflow run` of the demo; returns the process output and the report.

@@ -1,16 +1,9 @@
 //! End-to-end tests over the `matflow` binary on scenes it generates itself.
 
+mod support;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
-
-fn matflow(args: &[&str], threads: Option<usize>) -> Output {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_matflow"));
-    c.args(args);
-    if let Some(t) = threads {
-        c.env("RAYON_NUM_THREADS", t.to_string());
-    }
-    c.output().expect("run matflow")
-}
+use std::process::Output;
+use support::{matflow, s};
 
 fn ok(o: &Output) -> String {
     let out = String::from_utf8_lossy(&o.stdout).into_owned();
@@ -21,10 +14,6 @@ fn ok(o: &Output) -> String {
         String::from_utf8_lossy(&o.stderr)
     );
     out
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
 }
 
 fn synth(dir: &Path) -> PathBuf {

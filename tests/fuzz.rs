@@ -11,8 +11,10 @@
 //! `MATFLOW_FUZZ_CASES` (default 1000). Longer runs:
 //! `MATFLOW_FUZZ_CASES=20000 cargo test --release --test fuzz -- --nocapture`.
 
+mod support;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
+use support::{repo, scratch};
 
 use proptest::prelude::*;
 use proptest::test_runner::{Config, TestCaseError, TestRunner};
@@ -42,17 +44,6 @@ fn cases() -> u32 {
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(1000)
-}
-
-fn repo() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
-}
-
-fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("matflow-fuzz-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
 }
 
 /// Runs `matflow args…` and expects it to succeed (building a corpus).
@@ -216,7 +207,7 @@ fn pipeline_files() {
 
 #[test]
 fn image_readers() {
-    let dir = tmp("images");
+    let dir = scratch("fuzz", "images");
     let mut exr = Vec::new();
     for (w, h) in [(4, 3), (17, 5)] {
         let p = dir.join("seed.exr");
@@ -261,7 +252,7 @@ fn image_readers() {
 
 #[test]
 fn bundles() {
-    let dir = tmp("bundle");
+    let dir = scratch("fuzz", "bundle");
     let seed = dir.join("seed");
     matflow_ok(&[
         "synth",
@@ -301,7 +292,7 @@ fn bundles() {
 fn cache_entries() {
     use matflow_engine::store::{Digest, Store};
     use matflow_nodes::artifact::Artifact;
-    let dir = tmp("cache");
+    let dir = scratch("fuzz", "cache");
     let file = dir.join("p.yaml");
     std::fs::write(
         &file,
@@ -378,7 +369,7 @@ fn copy_dir(from: &Path, to: &Path) {
 fn mesh_files() {
     // OBJ (with an MTL beside it) and PLY, ASCII and binary, through the
     // readers and object placement.
-    let dir = tmp("meshes");
+    let dir = scratch("fuzz", "meshes");
     std::fs::write(
         dir.join("m.mtl"),
         "newmtl g\nKd 0.5 0.5 0.5\nNi 1.4\nd 0.2\nillum 7\n",

@@ -3,16 +3,11 @@
 //! naming the file and the line and column (or the flag), quickly and in
 //! bounded memory — never a crash, a hang, or a false success.
 
+mod support;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::time::{Duration, Instant};
-
-fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("matflow-hostile-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
+use support::scratch;
 
 /// `matflow args…` under the shell resource limits `limits` (e.g.
 /// `ulimit -v N`), and how long it took.
@@ -88,7 +83,7 @@ fn refused(dir: &Path, name: &str, pipeline: &str, extra: &[&str], expect: &str)
 
 #[test]
 fn yaml_bombs_end_in_a_located_error_at_once_and_in_bounded_memory() {
-    let dir = tmp("yaml");
+    let dir = scratch("hostile", "yaml");
     // Billion laughs: 9^11 lists of nine strings if expanded.
     let mut bomb = String::from("a0: &a0 [lol, lol, lol, lol, lol, lol, lol, lol, lol]\n");
     for i in 1..12 {
@@ -151,7 +146,7 @@ fn render_pipeline(output: &str, spp: u32) -> String {
 
 #[test]
 fn outputs_may_not_destroy_inputs_or_each_other() {
-    let dir = tmp("outputs");
+    let dir = scratch("hostile", "outputs");
     let bundle = synth_bundle(&dir, "bundle");
     // The PNG written beside `p.exr` would be the pipeline file itself.
     let e = refused(
@@ -218,7 +213,7 @@ fn outputs_may_not_destroy_inputs_or_each_other() {
 #[test]
 fn a_cached_run_leaves_output_files_alone_and_a_change_rewrites_them() {
     use std::os::unix::fs::MetadataExt;
-    let dir = tmp("rewrite");
+    let dir = scratch("hostile", "rewrite");
     let cache = dir.join("cache");
     let run = |spp: u32| {
         let file = dir.join("p.yaml");
@@ -268,7 +263,7 @@ fn synth_bundle(dir: &Path, name: &str) -> PathBuf {
 #[test]
 fn inputs_are_checked_before_any_stage_runs() {
     use matflow_scene::{io, Image};
-    let dir = tmp("inputs");
+    let dir = scratch("hostile", "inputs");
     let cache = dir.join("cache");
     let edit = |mask: &str| {
         format!(
@@ -406,7 +401,7 @@ fn inputs_are_checked_before_any_stage_runs() {
 
 #[test]
 fn runs_estimated_above_an_hour_are_refused_with_the_estimate() {
-    let dir = tmp("cost");
+    let dir = scratch("hostile", "cost");
     // 4096² at 65,536 spp: days of tracing for the scene alone.
     let e = refused(
         &dir,
@@ -462,7 +457,7 @@ fn entries(cache: &Path) -> std::collections::BTreeMap<String, PathBuf> {
 
 #[test]
 fn gc_keep_never_deletes_intact_entries_below_a_damaged_one() {
-    let dir = tmp("gc");
+    let dir = scratch("hostile", "gc");
     let cache = dir.join("cache");
     let e = populate(&dir, &cache);
     assert_eq!(e.len(), 3, "{e:?}");
@@ -518,7 +513,7 @@ fn gc_keep_never_deletes_intact_entries_below_a_damaged_one() {
 
 #[test]
 fn an_entry_pointing_at_a_blob_of_the_wrong_type_is_a_miss_and_verify_reports_it() {
-    let dir = tmp("wrongtype");
+    let dir = scratch("hostile", "wrongtype");
     let cache = dir.join("cache");
     let e = populate(&dir, &cache);
     // The mesh entry now names the scene's (intact) blob as its mesh.
@@ -560,7 +555,7 @@ fn an_entry_pointing_at_a_blob_of_the_wrong_type_is_a_miss_and_verify_reports_it
 
 #[test]
 fn cache_tools_count_only_what_they_removed_and_fail_when_they_cannot() {
-    let dir = tmp("undeletable");
+    let dir = scratch("hostile", "undeletable");
     let cache = dir.join("cache");
     let e = populate(&dir, &cache);
     // An entry and a blob that cannot be removed, even by root: each is
@@ -592,7 +587,7 @@ fn cache_tools_count_only_what_they_removed_and_fail_when_they_cannot() {
 
 #[test]
 fn listing_into_a_closed_pipe_ends_quietly() {
-    let dir = tmp("pipe");
+    let dir = scratch("hostile", "pipe");
     let cache = dir.join("cache");
     populate(&dir, &cache);
     for args in [
@@ -615,7 +610,7 @@ fn listing_into_a_closed_pipe_ends_quietly() {
 
 #[test]
 fn a_write_error_mid_run_fails_cleanly_and_the_next_run_completes() {
-    let dir = tmp("efbig");
+    let dir = scratch("hostile", "efbig");
     let cache = dir.join("cache");
     let file = dir.join("p.yaml");
     std::fs::write(&file, render_pipeline("out/p.exr", 2)).unwrap();

@@ -3,31 +3,14 @@
 //! object's material), `render --insert`, the shipped meshes, and clear
 //! errors for bad objects files.
 
+mod support;
 use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::path::Path;
+use std::process::Output;
+use support::{matflow, repo, s, scratch};
 
 use matflow_scene::io;
 use serde_json::Value;
-
-fn repo() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
-}
-
-fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("matflow-insert-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
-fn matflow(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_matflow"))
-        .args(args)
-        .env_remove("MATFLOW_CACHE")
-        .output()
-        .expect("run matflow")
-}
 
 fn text(o: &Output) -> String {
     format!(
@@ -35,10 +18,6 @@ fn text(o: &Output) -> String {
         String::from_utf8_lossy(&o.stdout),
         String::from_utf8_lossy(&o.stderr)
     )
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
 }
 
 /// The insert pipeline's objects at 64², meshes by absolute path.
@@ -77,7 +56,7 @@ fn run_pipeline(
         args.push(set);
     }
     args.extend_from_slice(extra);
-    let out = matflow(&args);
+    let out = matflow(&args, None);
     if !out.status.success() {
         return (out, Value::Null);
     }
@@ -141,7 +120,7 @@ fn run_insert(cache: &Path, work: &Path, extra: &[String]) -> (Output, BTreeMap<
 
 #[test]
 fn the_insert_pipeline_composites_and_re_edits_an_object_from_kept_paths() {
-    let work = tmp("pipeline");
+    let work = scratch("insert", "pipeline");
     let cache = work.join("cache");
     let (out, st) = run_insert(&cache, &work, &[]);
     assert!(out.status.success(), "{}", text(&out));
@@ -192,12 +171,15 @@ fn the_insert_pipeline_composites_and_re_edits_an_object_from_kept_paths() {
 
 #[test]
 fn render_insert_reads_an_objects_file_and_reports_its_mistakes() {
-    let work = tmp("cli");
+    let work = scratch("insert", "cli");
     let bundle = work.join("room");
-    let o = matflow(&["synth", "--size", "48", "--spp", "8", "--out", s(&bundle)]);
+    let o = matflow(
+        &["synth", "--size", "48", "--spp", "8", "--out", s(&bundle)],
+        None,
+    );
     assert!(o.status.success(), "{}", text(&o));
     std::fs::create_dir_all(work.join("meshes")).unwrap();
-    let o = matflow(&["shapes", "--out", s(&work.join("meshes"))]);
+    let o = matflow(&["shapes", "--out", s(&work.join("meshes"))], None);
     assert!(o.status.success(), "{}", text(&o));
     let file = work.join("objects.yaml");
     std::fs::write(
@@ -207,21 +189,24 @@ fn render_insert_reads_an_objects_file_and_reports_its_mistakes() {
     .unwrap();
     for composite in ["differential", "full"] {
         let out = work.join(format!("{composite}.exr"));
-        let o = matflow(&[
-            "render",
-            "--bundle",
-            s(&bundle),
-            "--materials",
-            "ground_truth",
-            "--spp",
-            "4",
-            "--insert",
-            s(&file),
-            "--composite",
-            composite,
-            "--out",
-            s(&out),
-        ]);
+        let o = matflow(
+            &[
+                "render",
+                "--bundle",
+                s(&bundle),
+                "--materials",
+                "ground_truth",
+                "--spp",
+                "4",
+                "--insert",
+                s(&file),
+                "--composite",
+                composite,
+                "--out",
+                s(&out),
+            ],
+            None,
+        );
         assert!(o.status.success(), "{}", text(&o));
         assert!(text(&o).contains("inserted 1 object(s)"), "{}", text(&o));
         assert!(out.is_file());
@@ -266,19 +251,22 @@ fn render_insert_reads_an_objects_file_and_reports_its_mistakes() {
     ];
     for (yaml, at, want) in cases {
         std::fs::write(&file, yaml).unwrap();
-        let o = matflow(&[
-            "render",
-            "--bundle",
-            s(&bundle),
-            "--materials",
-            "ground_truth",
-            "--spp",
-            "1",
-            "--insert",
-            s(&file),
-            "--out",
-            s(&work.join("bad.exr")),
-        ]);
+        let o = matflow(
+            &[
+                "render",
+                "--bundle",
+                s(&bundle),
+                "--materials",
+                "ground_truth",
+                "--spp",
+                "1",
+                "--insert",
+                s(&file),
+                "--out",
+                s(&work.join("bad.exr")),
+            ],
+            None,
+        );
         let t = text(&o);
         assert!(!o.status.success(), "accepted:\n{yaml}");
         assert!(t.contains(at) && t.contains(want), "{yaml}\n{t}");
@@ -289,8 +277,8 @@ fn render_insert_reads_an_objects_file_and_reports_its_mistakes() {
 
 #[test]
 fn the_shipped_meshes_are_what_matflow_shapes_writes() {
-    let work = tmp("shapes");
-    let o = matflow(&["shapes", "--out", s(&work)]);
+    let work = scratch("insert", "shapes");
+    let o = matflow(&["shapes", "--out", s(&work)], None);
     assert!(o.status.success(), "{}", text(&o));
     for name in ["jug", "torus", "sphere", "cube"] {
         let shipped = std::fs::read(repo().join(format!("pipelines/meshes/{name}.obj"))).unwrap();
@@ -305,7 +293,7 @@ fn the_shipped_meshes_are_what_matflow_shapes_writes() {
 
 #[test]
 fn the_pipeline_docs_document_every_node_kind_as_matflow_kinds_prints_it() {
-    let o = matflow(&["kinds"]);
+    let o = matflow(&["kinds"], None);
     assert!(o.status.success());
     let kinds = String::from_utf8_lossy(&o.stdout).replace("#### `", "##### `");
     let readme = std::fs::read_to_string(repo().join("docs/pipelines.md")).unwrap();
@@ -317,7 +305,7 @@ fn the_pipeline_docs_document_every_node_kind_as_matflow_kinds_prints_it() {
 
 #[test]
 fn the_glass_pipeline_makes_a_region_transparent_and_re_edits_t_from_kept_paths() {
-    let work = tmp("glass");
+    let work = scratch("insert", "glass");
     let cache = work.join("cache");
     let glass_yaml = repo().join("pipelines/glass.yaml");
     let sets: Vec<String> = [

@@ -7,30 +7,14 @@
 //! any work starts.
 
 mod support;
+use support::{matflow, repo, s};
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
 use support::SMALL;
 
 use serde_json::Value;
-
-fn repo() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
-}
-
-fn matflow(args: &[&str], threads: Option<usize>) -> Output {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_matflow"));
-    c.args(args).env_remove("MATFLOW_CACHE");
-    if let Some(t) = threads {
-        c.env("RAYON_NUM_THREADS", t.to_string());
-    }
-    c.output().expect("run matflow")
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
-}
 
 struct Run {
     out: Output,

