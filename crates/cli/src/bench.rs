@@ -14,7 +14,7 @@ use matflow_scene::metrics::psnr_gamma;
 use matflow_scene::{io, MaterialSource};
 use rayon::prelude::*;
 
-use crate::bench_pipeline::median;
+use crate::bench_harness::median;
 use crate::commands::load_scene;
 
 /// Runs this binary as a child `matflow ARGS` (its stdout shown or

@@ -16,7 +16,7 @@ use matflow_onnx::refraction::{expand, prepare, CROP, IN_CH, OUT_CH};
 use matflow_onnx::{Backend, Model};
 use matflow_scene::{Camera, GrayImage, Image};
 
-use crate::bench_pipeline::median;
+use crate::bench_harness::{matflow_exe, median};
 
 #[derive(Args)]
 pub struct BenchDatasetArgs {
@@ -34,10 +34,6 @@ pub struct BenchDatasetArgs {
     pub work: PathBuf,
 }
 
-fn exe() -> Result<PathBuf> {
-    std::env::current_exe().context("finding the matflow binary")
-}
-
 /// One `matflow dataset` job split over `procs` processes of `threads`
 /// rayon threads each, all at once, on a fresh cache: its wall time.
 fn job(spec: &Path, work: &Path, procs: u64, threads: usize, parallel: usize) -> Result<f64> {
@@ -48,7 +44,7 @@ fn job(spec: &Path, work: &Path, procs: u64, threads: usize, parallel: usize) ->
     let t0 = Instant::now();
     let kids: Vec<_> = (0..procs)
         .map(|i| {
-            let mut c = Command::new(exe()?);
+            let mut c = Command::new(matflow_exe()?);
             c.args(["dataset"])
                 .arg(spec)
                 .arg("--out")
@@ -276,7 +272,7 @@ pub fn bench_refraction(a: BenchRefractionArgs) -> Result<()> {
         "crop+net+map ms"
     );
     for b in Backend::NAMES {
-        let mut c = Command::new(exe()?);
+        let mut c = Command::new(matflow_exe()?);
         c.args(["bench", "refraction", "--only-backend", b, "--runs"])
             .arg(a.runs.to_string());
         if let Some(m) = &a.model {

@@ -14,7 +14,7 @@ use std::process::{Child, Command, Stdio};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use crate::bench_pipeline::median;
+use crate::bench_harness::median;
 use anyhow::{bail, Context, Result};
 use matflow_engine::exec::Silent;
 use matflow_engine::{

@@ -21,7 +21,7 @@ use matflow_geom::mesh_for_view;
 use matflow_render::{render, EnvMap, RenderOptions, RenderScene};
 use matflow_scene::metrics::psnr_gamma;
 
-use crate::bench_pipeline::{median, run_child, with_outputs};
+use crate::bench_harness::{median, run_child, with_outputs};
 
 #[derive(Args)]
 pub struct BenchInsertArgs {
@@ -61,7 +61,7 @@ fn objects_yaml(size: usize, meshes: &Path, jug: &str) -> String {
 const GLASS: &str = "{type: glass, ior: 1.5}";
 
 pub fn bench_insert(a: BenchInsertArgs) -> Result<()> {
-    let exe = std::env::current_exe()?;
+    let exe = crate::bench_harness::matflow_exe()?;
     if a.work.exists() {
         std::fs::remove_dir_all(&a.work)?;
     }

@@ -157,7 +157,7 @@ fn reference_psnr(bundle: &Path) -> Option<f64> {
 }
 
 pub fn bench_invert(a: BenchInvertArgs) -> Result<()> {
-    let exe = std::env::current_exe()?;
+    let exe = crate::bench_harness::matflow_exe()?;
     std::fs::create_dir_all(&a.work)?;
     if let Some(dir) = &a.validation {
         let v = crate::bench_relight::load_validation(dir)?;

@@ -24,7 +24,7 @@ use matflow_onnx::matnet::network_input;
 use matflow_onnx::Backend;
 use matflow_scene::{Bundle, GrayImage, Image, MaterialMaps, MaterialSource, RgbImage};
 
-use crate::bench_pipeline::median;
+use crate::bench_harness::{matflow_exe, median, peak_rss_mib};
 
 #[derive(Args)]
 pub struct BenchMatnetArgs {
@@ -62,23 +62,6 @@ pub struct BenchMatnetArgs {
     pub only_model: Option<PathBuf>,
 }
 
-fn exe() -> Result<PathBuf> {
-    std::env::current_exe().context("finding the matflow binary")
-}
-
-fn peak_rss_mb() -> f64 {
-    std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("VmHWM:"))
-                .and_then(|l| l.split_whitespace().nth(1))
-                .and_then(|v| v.parse::<f64>().ok())
-        })
-        .map(|kb| kb / 1024.0)
-        .unwrap_or(f64::NAN)
-}
-
 /// The child: load once, predict `runs` times; one JSON line.
 fn time_one(a: &BenchMatnetArgs, backend: Backend) -> Result<()> {
     let photo = read_matnet_photo(&a.photo).map_err(anyhow::Error::msg)?;
@@ -105,7 +88,7 @@ fn time_one(a: &BenchMatnetArgs, backend: Backend) -> Result<()> {
             "load_s": load,
             "predict_s": median(whole),
             "network_s": median(net),
-            "peak_mb": peak_rss_mb(),
+            "peak_mb": peak_rss_mib(),
             "input": m.contract.input,
             "mb": m.info.bytes as f64 / 1e6,
             "blake3": m.info.blake3,
@@ -140,7 +123,7 @@ fn timing_table(a: &BenchMatnetArgs) -> Result<()> {
     );
     for (name, path, runs) in &models {
         for b in &backends {
-            let mut c = Command::new(exe()?);
+            let mut c = Command::new(matflow_exe()?);
             c.args(["bench", "matnet", "--only-backend", b.name()])
                 .arg("--photo")
                 .arg(&a.photo)
@@ -385,7 +368,7 @@ fn e2e(a: &BenchMatnetArgs, names: &[&str]) -> Result<()> {
         let mut row = vec![];
         for from in ["ours", "official"] {
             let out = a.work.join(format!("{n}-{from}.exr"));
-            let mut c = Command::new(exe()?);
+            let mut c = Command::new(matflow_exe()?);
             c.args(["run", "pipelines/photo.yaml", "--quiet", "--cache"])
                 .arg(a.work.join("cache"))
                 .arg("--set")

@@ -8,6 +8,8 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 
+use crate::bench_harness::{median, run_child, with_outputs};
+
 #[derive(Args)]
 pub struct BenchPipelineArgs {
     /// The pipeline (its `shiny` edit is changed between runs).
@@ -135,63 +137,8 @@ fn big_pipelines(
     Ok(())
 }
 
-/// `matflow run FILE --quiet --cache CACHE --set S…` (the `sets`, then
-/// `extra`) as a child process, as a user runs it: its wall time and the
-/// summary line it ends with.
-pub(crate) fn run_child(
-    exe: &std::path::Path,
-    file: &std::path::Path,
-    cache: &std::path::Path,
-    sets: &[String],
-    extra: &[String],
-) -> Result<(f64, String)> {
-    let mut c = Command::new(exe);
-    c.arg("run")
-        .arg(file)
-        .arg("--quiet")
-        .arg("--cache")
-        .arg(cache);
-    for s in sets.iter().chain(extra) {
-        c.arg("--set").arg(s);
-    }
-    let t = Instant::now();
-    let out = c.output()?;
-    let secs = t.elapsed().as_secs_f64();
-    if !out.status.success() {
-        bail!(
-            "matflow run failed:\n{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-    }
-    let text = String::from_utf8_lossy(&out.stdout).into_owned();
-    Ok((secs, text.lines().last().unwrap_or("").to_string()))
-}
-
-/// The text of the pipeline `file` with its `outputs:` line replaced by
-/// `outputs: OUTPUTS` (a benchmark appends its own check stages).
-pub(crate) fn with_outputs(file: &std::path::Path, outputs: &str) -> Result<String> {
-    let text = std::fs::read_to_string(file)?;
-    let Some(i) = text.find("\noutputs:") else {
-        bail!("{}: no `outputs:` line", file.display());
-    };
-    let end = text[i + 1..]
-        .find('\n')
-        .map(|j| i + 1 + j)
-        .unwrap_or(text.len());
-    Ok(format!(
-        "{}\noutputs: {outputs}{}",
-        &text[..i],
-        &text[end..]
-    ))
-}
-
-pub(crate) fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(|a, b| a.total_cmp(b));
-    v[v.len() / 2]
-}
-
 pub fn bench_pipeline(a: BenchPipelineArgs) -> Result<()> {
-    let exe = std::env::current_exe()?;
+    let exe = crate::bench_harness::matflow_exe()?;
     if a.work.exists() {
         std::fs::remove_dir_all(&a.work)
             .with_context(|| format!("emptying {}", a.work.display()))?;

@@ -32,7 +32,7 @@ use matflow_scene::metrics::psnr_gamma;
 use matflow_scene::{io, Bundle, MaterialSource, RgbImage};
 
 use crate::bench::{child, path_arg as s};
-use crate::bench_pipeline::median;
+use crate::bench_harness::median;
 use crate::commands::CompleteArg;
 
 /// The validation set's index (`validation.json`).

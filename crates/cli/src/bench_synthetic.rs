@@ -217,7 +217,7 @@ fn print_row(r: &Row) {
 const HEADER: &str = "| seed | budget (s) | configuration | wall (s) | rerender PSNR / SSIM | relight PSNR | envmap SSIM / PSNR / MSE / SH error | albedo PSNR / R MAE / M MAE | peak (MB) |\n|---|---|---|---|---|---|---|---|---|";
 
 pub fn bench_synthetic(a: BenchSyntheticArgs) -> Result<()> {
-    let exe = std::env::current_exe()?;
+    let exe = crate::bench_harness::matflow_exe()?;
     std::fs::create_dir_all(&a.work)?;
     outln!(
         "bench synthetic: {} thread(s), scenes {}², ground truth at {} spp; \

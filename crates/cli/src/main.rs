@@ -40,6 +40,7 @@ mod bench_compare;
 mod bench_dataset;
 mod bench_distributed;
 mod bench_glass;
+mod bench_harness;
 mod bench_insert;
 mod bench_invert;
 mod bench_matnet;
