@@ -187,26 +187,27 @@ fn render_insert_reads_an_objects_file_and_reports_its_mistakes() {
         "- mesh: meshes/sphere.obj\n  anchor: [24, 44]\n  scale: 0.5\n  material: {type: glass, roughness: 0.2}\n",
     )
     .unwrap();
+    // `render` of the bundle's true maps at `spp` with the objects file,
+    // `extra` flags, to `out`.
+    let insert = |spp: &str, extra: &[&str], out: &Path| {
+        let mut args = vec![
+            "render",
+            "--bundle",
+            s(&bundle),
+            "--materials",
+            "ground_truth",
+            "--spp",
+            spp,
+            "--insert",
+            s(&file),
+        ];
+        args.extend_from_slice(extra);
+        args.extend(["--out", s(out)]);
+        matflow(&args, None)
+    };
     for composite in ["differential", "full"] {
         let out = work.join(format!("{composite}.exr"));
-        let o = matflow(
-            &[
-                "render",
-                "--bundle",
-                s(&bundle),
-                "--materials",
-                "ground_truth",
-                "--spp",
-                "4",
-                "--insert",
-                s(&file),
-                "--composite",
-                composite,
-                "--out",
-                s(&out),
-            ],
-            None,
-        );
+        let o = insert("4", &["--composite", composite], &out);
         assert!(o.status.success(), "{}", text(&o));
         assert!(text(&o).contains("inserted 1 object(s)"), "{}", text(&o));
         assert!(out.is_file());
@@ -251,22 +252,7 @@ fn render_insert_reads_an_objects_file_and_reports_its_mistakes() {
     ];
     for (yaml, at, want) in cases {
         std::fs::write(&file, yaml).unwrap();
-        let o = matflow(
-            &[
-                "render",
-                "--bundle",
-                s(&bundle),
-                "--materials",
-                "ground_truth",
-                "--spp",
-                "1",
-                "--insert",
-                s(&file),
-                "--out",
-                s(&work.join("bad.exr")),
-            ],
-            None,
-        );
+        let o = insert("1", &[], &work.join("bad.exr"));
         let t = text(&o);
         assert!(!o.status.success(), "accepted:\n{yaml}");
         assert!(t.contains(at) && t.contains(want), "{yaml}\n{t}");

@@ -405,24 +405,30 @@ fn choose_cached(
             )
         }
     };
-    let others = (0..scores.len())
-        .filter(|&i| i != chosen && scores[i].same_as.is_none())
-        .map(|i| scores[i].psnr_differing)
-        .fold(f64::NEG_INFINITY, f64::max);
-    let margin_db = if others.is_finite() {
-        scores[chosen].psnr_differing - others
-    } else {
-        0.0
-    };
     Ok(CompletionChoice {
         chosen,
+        margin_db: margin_db(&scores, chosen),
         scores,
         differing,
-        margin_db,
         decisive,
         reason,
         seconds: t_all.elapsed().as_secs_f64(),
     })
+}
+
+/// The score `chosen`'s PSNR where the hypotheses differ less the best
+/// of the others' (hypotheses that reuse another's score aside); 0 when
+/// there is no other.
+fn margin_db(scores: &[HypothesisScore], chosen: usize) -> f64 {
+    let others = (0..scores.len())
+        .filter(|&i| i != chosen && scores[i].same_as.is_none())
+        .map(|i| scores[i].psnr_differing)
+        .fold(f64::NEG_INFINITY, f64::max);
+    if others.is_finite() {
+        scores[chosen].psnr_differing - others
+    } else {
+        0.0
+    }
 }
 
 /// The index of the score with the highest PSNR where the hypotheses
@@ -854,17 +860,17 @@ pub const FRAMED_TOLERANCE: f32 = 0.01;
 pub fn framed_sky(depth: &GrayImage, cam: &matflow_scene::Camera) -> Vec<bool> {
     let (w, h) = (depth.width, depth.height);
     let sky = |x: usize, y: usize| !(depth.get(x, y) > 0.0);
-    let mut label = vec![usize::MAX; w * h];
+    let mut seen = vec![false; w * h];
     let mut framed = vec![false; w * h];
     let mut stack = Vec::new();
     for start in 0..w * h {
-        if label[start] != usize::MAX || !sky(start % w, start / w) {
+        if seen[start] || !sky(start % w, start / w) {
             continue;
         }
         // The patch, by flood fill; its extent in each row.
         let mut rows: std::collections::BTreeMap<usize, (usize, usize)> = Default::default();
         let mut members = Vec::new();
-        label[start] = start;
+        seen[start] = true;
         stack.push(start);
         while let Some(i) = stack.pop() {
             let (x, y) = (i % w, i / w);
@@ -873,8 +879,8 @@ pub fn framed_sky(depth: &GrayImage, cam: &matflow_scene::Camera) -> Vec<bool> {
             e.0 = e.0.min(x);
             e.1 = e.1.max(x);
             let mut visit = |j: usize| {
-                if label[j] == usize::MAX && sky(j % w, j / w) {
-                    label[j] = start;
+                if !seen[j] && sky(j % w, j / w) {
+                    seen[j] = true;
                     stack.push(j);
                 }
             };
@@ -921,9 +927,9 @@ pub fn framed_sky(depth: &GrayImage, cam: &matflow_scene::Camera) -> Vec<bool> {
         let on = |n: glam::Vec3, d: f32, p: &glam::Vec3| {
             (n.dot(*p) + d).abs() <= FRAMED_TOLERANCE * -p.z
         };
-        let picks: Vec<usize> = (0..24.min(ends.len()))
-            .map(|k| k * (ends.len() - 1) / 23.min(ends.len() - 1).max(1))
-            .collect();
+        // At most 24 rows, spread evenly from the first to the last.
+        let (n, m) = (ends.len(), ends.len().min(24));
+        let picks: Vec<usize> = (0..m).map(|k| k * (n - 1) / (m - 1).max(1)).collect();
         let mut best = 0;
         for &a in &picks {
             for &b in &picks {
@@ -1113,22 +1119,14 @@ pub fn choose_under_seen_sky(
     if let Some(room) = room.filter(|_| gain > UNSEEN_LIGHT_GAIN) {
         // The seen sky is not what lights the view: every hypothesis is
         // weighed under a light that is not the photo's.
-        let others = (0..choice.scores.len())
-            .filter(|&i| i != room && choice.scores[i].same_as.is_none())
-            .map(|i| choice.scores[i].psnr_differing)
-            .fold(f64::NEG_INFINITY, f64::max);
         choice.reason = format!(
-            "{} explains the photo best under the sky it shows, but needs {gain:.1} times that \
+            "{} is what the photo supports under the sky it shows, but needs {gain:.1} times that \
              sky's light (more than {UNSEEN_LIGHT_GAIN}): the light comes from what the view \
              does not show (lamps, the sun through openings), so the seen sky weighs nothing; \
              room, which closes a room only where the view shows one",
             choice.scores[choice.chosen].name
         );
-        choice.margin_db = if others.is_finite() {
-            choice.scores[room].psnr_differing - others
-        } else {
-            0.0
-        };
+        choice.margin_db = margin_db(&choice.scores, room);
         choice.chosen = room;
         choice.decisive = false;
     }
@@ -1216,6 +1214,20 @@ mod tests {
         }
     }
 
+    /// Grey, rough, dielectric maps of the test view.
+    fn grey_maps() -> MaterialMaps {
+        MaterialMaps::uniform(N, N, Vec3::splat(0.6), 0.8, 0.0)
+    }
+
+    /// Four samples a half, 4×4 blocks: the tests' view is small.
+    fn fine_opts() -> EvidenceOptions {
+        EvidenceOptions {
+            spp_half: 4,
+            block: 4,
+            ..Default::default()
+        }
+    }
+
     fn hyps() -> Vec<Hypothesis> {
         completion_hypotheses()
     }
@@ -1256,12 +1268,8 @@ mod tests {
     #[test]
     fn the_photo_picks_the_geometry_it_was_rendered_with() {
         let depth = floor_and_wall();
-        let maps = MaterialMaps::uniform(N, N, Vec3::splat(0.6), 0.8, 0.0);
-        let opts = EvidenceOptions {
-            spp_half: 4,
-            block: 4,
-            ..Default::default()
-        };
+        let maps = grey_maps();
+        let opts = fine_opts();
         // The choice on the photo rendered with hypothesis k.
         let choose = |k: usize| {
             let photo = photo(&depth, &maps, k);
@@ -1297,15 +1305,11 @@ mod tests {
     #[test]
     fn the_photo_places_a_closed_room_s_windows_where_they_explain_it() {
         let depth = floor_and_wall();
-        let maps = MaterialMaps::uniform(N, N, Vec3::splat(0.6), 0.8, 0.0);
+        let maps = grey_maps();
         let cam = Camera::new(N, N);
         let base = CompleteParams::for_mode("room").unwrap();
         let slots = matflow_geom::window_slots(&depth, &cam, &base);
-        let opts = EvidenceOptions {
-            spp_half: 4,
-            block: 4,
-            ..Default::default()
-        };
+        let opts = fine_opts();
         let shot = |p: &CompleteParams, seed: u64| {
             let (scene, _, _) =
                 scene_from_depth(&depth, &maps, sky(), MeshParams::default(), Some(p)).unwrap();
@@ -1388,15 +1392,11 @@ mod tests {
     #[test]
     fn the_photo_adds_an_unseen_wall_whose_effect_it_shows() {
         let depth = floor_and_wall();
-        let maps = MaterialMaps::uniform(N, N, Vec3::splat(0.6), 0.8, 0.0);
+        let maps = grey_maps();
         let cam = Camera::new(N, N);
         let room = CompleteParams::for_mode("room").unwrap();
         let planes = matflow_geom::assumed_planes(&depth, &cam, &room);
-        let opts = EvidenceOptions {
-            spp_half: 4,
-            block: 4,
-            ..Default::default()
-        };
+        let opts = fine_opts();
         let start = hyps()[1].clone();
         let shot = |p: Option<&CompleteParams>| {
             let (scene, _, _) =
@@ -1464,11 +1464,7 @@ mod tests {
             }
         }))
         .unwrap();
-        let opts = EvidenceOptions {
-            spp_half: 4,
-            block: 4,
-            ..Default::default()
-        };
+        let opts = fine_opts();
         let start = hyps()[1].clone();
         for truth in [3.25f32, 4.0] {
             let walls = CompleteParams {
@@ -1506,7 +1502,7 @@ mod tests {
     #[test]
     fn the_choice_is_the_same_on_any_number_of_threads() {
         let depth = floor_and_wall();
-        let maps = MaterialMaps::uniform(N, N, Vec3::splat(0.6), 0.8, 0.0);
+        let maps = grey_maps();
         let photo = photo(&depth, &maps, 2);
         let opts = EvidenceOptions {
             spp_half: 2,
@@ -1704,12 +1700,8 @@ mod tests {
     #[test]
     fn a_view_lit_by_far_more_than_its_sky_is_tested_as_a_room() {
         let depth = floor_and_wall();
-        let maps = MaterialMaps::uniform(N, N, Vec3::splat(0.6), 0.8, 0.0);
-        let opts = EvidenceOptions {
-            spp_half: 4,
-            block: 4,
-            ..Default::default()
-        };
+        let maps = grey_maps();
+        let opts = fine_opts();
         // The open view rendered under its own sky: the sky it shows is
         // its light, and the test takes the depth mesh alone.
         let photo = photo(&depth, &maps, 0);
