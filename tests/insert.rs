@@ -278,18 +278,6 @@ fn the_shipped_meshes_are_what_matflow_shapes_writes() {
 }
 
 #[test]
-fn the_pipeline_docs_document_every_node_kind_as_matflow_kinds_prints_it() {
-    let o = matflow(&["kinds"], None);
-    assert!(o.status.success());
-    let kinds = String::from_utf8_lossy(&o.stdout).replace("#### `", "##### `");
-    let readme = std::fs::read_to_string(repo().join("docs/pipelines.md")).unwrap();
-    assert!(
-        readme.contains(kinds.trim()),
-        "docs/pipelines.md's node reference differs from `matflow kinds` (regenerate it)"
-    );
-}
-
-#[test]
 fn the_glass_pipeline_makes_a_region_transparent_and_re_edits_t_from_kept_paths() {
     let work = scratch("insert", "glass");
     let cache = work.join("cache");

@@ -80,7 +80,7 @@ fn indoor_best_results_reproduce_the_stored_render() {
     let Some(b) = data("indoor") else { return };
     let dir = tempfile::tempdir().unwrap();
     let stored = b.join("best_results/rendered_img.exr");
-    // 16 spp keeps CI fast; 64 spp gives 32.2 dB (see docs/results.md).
+    // 16 spp keeps CI fast; 64 spp gives 32.2 dB (see docs/results/rendering.md).
     let out = run(&[
         "render",
         "--bundle",

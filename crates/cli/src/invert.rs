@@ -77,7 +77,7 @@ pub struct InvertArgs {
     /// room where it shows none open (only through openings: under a
     /// lintel, or framed by one wall) or where the least assuming needs
     /// ten times the light of that sky (measured per kind of scene in
-    /// docs/completion.md). Default: the completion the bundle declares
+    /// docs/results/completion.md). Default: the completion the bundle declares
     /// for its own geometry (geometry.json, which `matflow synth`
     /// writes), otherwise auto. `render` on the result uses the same
     /// unless told otherwise.

@@ -1,113 +1,7 @@
 //! `matflow`: single-image inverse rendering and physically based editing.
+//! The commands live in the library (`lib.rs`); this is only the entry.
 
-/// `println!` for the command's output: a closed pipe (`matflow cache ls
-/// | head`) ends the process quietly with status 0 instead of a panic.
-macro_rules! outln {
-    () => {
-        $crate::write_out(format_args!(""), true)
-    };
-    ($($t:tt)*) => {
-        $crate::write_out(format_args!($($t)*), true)
-    };
-}
-
-/// `print!` with the same handling of a closed pipe.
-macro_rules! out {
-    ($($t:tt)*) => {
-        $crate::write_out(format_args!($($t)*), false)
-    };
-}
-
-/// Writes to stdout; exits quietly when the reader has gone, with an
-/// error for any other write failure (a full disk behind a redirect).
-pub fn write_out(args: std::fmt::Arguments, newline: bool) {
-    use std::io::Write;
-    let mut o = std::io::stdout().lock();
-    let r = o
-        .write_fmt(args)
-        .and_then(|_| if newline { o.write_all(b"\n") } else { Ok(()) });
-    if let Err(e) = r {
-        if e.kind() == std::io::ErrorKind::BrokenPipe {
-            std::process::exit(0);
-        }
-        eprintln!("error: writing the output: {e}");
-        std::process::exit(1);
-    }
-}
-
-mod bench;
-mod bench_compare;
-mod bench_dataset;
-mod bench_distributed;
-mod bench_glass;
-mod bench_harness;
-mod bench_insert;
-mod bench_invert;
-mod bench_matnet;
-mod bench_pipeline;
-mod bench_relight;
-mod bench_synthetic;
-mod cluster;
-mod commands;
-mod dataset;
-mod invert;
-mod lamps;
-mod predict;
-mod routes;
-mod run;
-
-use anyhow::Result;
-use clap::{Parser, Subcommand};
-
-#[derive(Parser)]
-#[command(
-    name = "matflow",
-    version,
-    about = "Turn one photograph into an editable, physically based scene"
-)]
-struct Cli {
-    #[command(subcommand)]
-    cmd: Cmd,
-}
-
-#[derive(Subcommand)]
-enum Cmd {
-    /// Path-trace a bundle (geometry from its depth) and write EXR + PNG.
-    Render(commands::RenderArgs),
-    /// Build the mesh from a bundle's depth and write it as binary PLY.
-    Mesh(commands::MeshArgs),
-    /// Write matflow's procedural meshes for insertion (jug, torus,
-    /// sphere, cube) as OBJ files.
-    Shapes(commands::ShapesArgs),
-    /// Generate a procedural scene bundle (room, objects, known materials)
-    /// and render its input image.
-    Synth(commands::SynthArgs),
-    /// Recover the envmap and materials from a bundle's image and
-    /// predictions; writes best_results/ and summary.json.
-    Invert(invert::InvertArgs),
-    /// Predict a bundle from a photo (MatNet's stage: depth, albedo,
-    /// roughness, metallic, normals) with the bundled model or another
-    /// ONNX model under MatNet's contract.
-    Predict(predict::PredictArgs),
-    /// Run a pipeline file: only what its outputs need, cached stages
-    /// served from the content-addressed store.
-    Run(run::RunArgs),
-    /// Generate a dataset's WebDataset shards from a spec (`dataset:`
-    /// section), all or one process's share; `dataset merge DIR` checks
-    /// and indexes them.
-    Dataset(dataset::DatasetArgs),
-    /// Print the node kinds a pipeline may use: parameters (type, default,
-    /// unit) and outputs, as markdown.
-    Kinds,
-    /// Inspect and clean the content-addressed cache.
-    #[command(subcommand)]
-    Cache(run::CacheCmd),
-    /// Serve every node kind over gRPC for `matflow run --workers`.
-    Worker(cluster::WorkerArgs),
-    /// Benchmarks that print numbers.
-    #[command(subcommand)]
-    Bench(bench::BenchCmd),
-}
+use clap::Parser;
 
 fn main() {
     tracing_subscriber::fmt()
@@ -117,28 +11,7 @@ fn main() {
         )
         .with_writer(std::io::stderr)
         .init();
-    let cli = Cli::parse();
-    let res: Result<()> = match cli.cmd {
-        Cmd::Render(a) => commands::render(a),
-        Cmd::Mesh(a) => commands::mesh(a),
-        Cmd::Shapes(a) => commands::shapes(a),
-        Cmd::Synth(a) => commands::synth(a),
-        Cmd::Invert(a) => invert::invert_cmd(a),
-        Cmd::Predict(a) => predict::predict(a),
-        Cmd::Run(a) => run::run(a),
-        Cmd::Dataset(a) => dataset::dataset(a),
-        Cmd::Cache(c) => run::cache(c),
-        Cmd::Kinds => {
-            out!("{}", matflow_nodes::reference_markdown());
-            Ok(())
-        }
-        Cmd::Bench(b) => bench::run(b),
-        Cmd::Worker(w) => {
-            let dir = run::cache_dir(w.cache.as_deref());
-            cluster::worker(w, dir)
-        }
-    };
-    if let Err(e) = res {
+    if let Err(e) = matflow_cli::run_cli(matflow_cli::Cli::parse()) {
         eprintln!("error: {e:#}");
         std::process::exit(1);
     }

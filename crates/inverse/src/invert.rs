@@ -106,7 +106,7 @@ pub struct InvertOptions {
     /// material stage ([`crate::segments`]; only when R and M are not
     /// trusted and materials are recovered). Off by default: on the
     /// validation set's tuning half it recovers metals but does not
-    /// improve relighting (docs/results.md, *Relighting on unseen scenes*).
+    /// improve relighting (docs/notes/2026-11-relighting-log.md).
     pub rm_search: bool,
     /// How much better (relative loss) a segment's best (R, M) must
     /// explain it than its anchor for the anchor to move.
@@ -169,7 +169,7 @@ fn fresh_tables(
 /// the fit may move the mean albedo per channel by up to 25 % from the
 /// prediction's, about a material network's own error in level and
 /// colour; past it the light takes the gain. Measured on the validation
-/// set's tuning half (docs/results.md, *Relighting on unseen scenes*): rooms whose
+/// set's tuning half (docs/notes/2026-11-relighting-log.md): rooms whose
 /// fit stays inside are recovered bit for bit as with the level free, and
 /// the one that drifted (a dimmed sky, a 1.5× albedo) relights 0.8 /
 /// 2.5 dB better.

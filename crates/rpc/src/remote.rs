@@ -294,7 +294,7 @@ impl RemoteExecutor {
     /// slots each, inside this process: each runs its stages with
     /// [`execute_job`] on `worker_store` (its tiers in front of the store
     /// shared with `store`), so everything but the network is real. For
-    /// measuring the scheduler (`matflow bench pipeline`).
+    /// measuring the scheduler (`matflow-bench pipeline`).
     pub fn simulated(
         workers: usize,
         slots: u32,

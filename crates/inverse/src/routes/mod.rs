@@ -11,7 +11,7 @@
 //! [`ENV_ROUTES`] or [`MAT_ROUTES`]. The CLI (`matflow invert
 //! --env-route/--mat-route` and one flag per option), the pipeline schema
 //! (`matflow kinds`: the `env_route`/`mat_route` choices and one parameter
-//! per option) and `matflow bench invert` are built from these lists.
+//! per option) and `matflow-bench invert` are built from these lists.
 
 use std::collections::BTreeMap;
 use std::fmt;

@@ -1,0 +1,13 @@
+//! One module per suite; each prints its table and the command behind it.
+
+pub mod compare;
+pub mod dataset;
+pub mod distributed;
+pub mod glass;
+pub mod insert;
+pub mod invert;
+pub mod matnet;
+pub mod pipeline;
+pub mod relight;
+pub mod render;
+pub mod synthetic;
