@@ -348,7 +348,7 @@ fn bad_inputs_fail_with_messages_naming_the_problem() {
     // Values out of range are refused, naming the option and the range.
     for (option, value, range) in [
         ("--rm-margin", "1.5", "not in [0, 1)"),
-        ("--albedo-level-band", "0.99", "not in [0, 0.95)"),
+        ("--albedo-level-band", "0.99", "a number in [0, 0.95]"),
     ] {
         let o = matflow(
             &[

@@ -25,18 +25,14 @@ pub struct InvertArgs {
     /// summary.json.
     #[arg(long)]
     pub out: PathBuf,
-    /// Time budget on the reference 2-core machine; sets sample and step
-    /// counts through a fixed cost model (results never depend on the
-    /// clock).
-    #[arg(long, default_value_t = 60.0)]
-    pub budget_seconds: f64,
     /// The envmap and material routes and their options.
     #[command(flatten)]
     pub routes: RouteArgs,
-    /// Trust the predicted roughness and metallic (synthetic data). By
-    /// default they start at 0.7 / 0.05 as the reference does for photos.
-    #[arg(long)]
-    pub trust_rm: bool,
+    /// The options `invert` shares with the `material_opt` stage, declared
+    /// by that kind (`--budget-seconds`, `--trust-rm`, `--delta`,
+    /// `--loops`, `--albedo-level`, `--albedo-level-band`).
+    #[command(flatten)]
+    pub recovery: RecoveryFlags,
     /// Where the starting materials come from: the predictions (`pred`)
     /// or, on synthetic bundles, `ground_truth`.
     #[arg(long, default_value = "pred")]
@@ -44,18 +40,12 @@ pub struct InvertArgs {
     /// Recover only the envmap; materials stay at --materials as given.
     #[arg(long)]
     pub env_only: bool,
-    /// Consistency weight δ.
-    #[arg(long, default_value_t = 0.1)]
-    pub delta: f32,
     /// Paths per pixel of the frozen cache (default: from the budget).
     #[arg(long)]
     pub spp: Option<u32>,
     /// Samples per pixel of the final re-render (default: from the budget).
     #[arg(long)]
     pub final_spp: Option<u32>,
-    /// Envmap/material alternations (default: from the budget).
-    #[arg(long)]
-    pub loops: Option<usize>,
     /// Maximum steps per optimisation stage (default: from the budget).
     #[arg(long)]
     pub steps: Option<usize>,
@@ -114,19 +104,6 @@ pub struct InvertArgs {
     /// explain it than the prediction's for the anchor to move.
     #[arg(long, default_value_t = 0.1, value_parser = margin_in_range)]
     pub rm_margin: f64,
-    /// The albedo's level and colour (its mean per channel over the
-    /// surfaces in view): `pred` (the default) holds them near the
-    /// prediction's after each albedo stage (within
-    /// `--albedo-level-band`), the light taking the gain, since one image
-    /// cannot tell a brighter light from a brighter albedo; `free` leaves
-    /// them to the fit.
-    #[arg(long, value_enum, default_value = "pred")]
-    pub albedo_level: AlbedoLevel,
-    /// With `--albedo-level pred`: how far (a share, per channel) the
-    /// albedo's mean may move from the prediction's before it is held
-    /// (0: held exactly).
-    #[arg(long, default_value_t = matflow_inverse::invert::LEVEL_BAND, value_parser = band_in_range)]
-    pub albedo_level_band: f32,
     /// Lamps the view does not show, in a room the completion closed
     /// (`--complete room` or `closed`): `on` fits point lights at a grid
     /// of sites under its ceiling with the envmap (texel route; a
@@ -153,15 +130,6 @@ pub struct InvertArgs {
     /// Hide the progress bar.
     #[arg(long)]
     pub quiet: bool,
-}
-
-/// Who sets the albedo's level and colour (`--albedo-level`).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
-pub enum AlbedoLevel {
-    /// The fit.
-    Free,
-    /// The prediction.
-    Pred,
 }
 
 /// Metrics of an image against the input, in sRGB (γ 2.2, clipped).
@@ -247,22 +215,50 @@ fn margin_in_range(s: &str) -> Result<f64, String> {
     below(s, 1.0)
 }
 
-fn band_in_range(s: &str) -> Result<f32, String> {
-    below(s, matflow_inverse::invert::MAX_LEVEL_BAND).map(|v| v as f32)
+/// `material_opt`'s parameters that `invert` takes as flags.
+const RECOVERY: &[&str] = &[
+    "budget_seconds",
+    "trust_rm",
+    "delta",
+    "loops",
+    "albedo_level",
+    "albedo_level_band",
+];
+
+/// `invert`'s flags declared by the `material_opt` kind, as the stage's
+/// validated parameters.
+#[derive(Clone, Debug)]
+pub struct RecoveryFlags(pub matflow_engine::node::Params);
+
+impl clap::FromArgMatches for RecoveryFlags {
+    fn from_arg_matches(m: &clap::ArgMatches) -> Result<Self, clap::Error> {
+        crate::stage_flags::params(m, "material_opt", RECOVERY).map(RecoveryFlags)
+    }
+    fn update_from_arg_matches(&mut self, m: &clap::ArgMatches) -> Result<(), clap::Error> {
+        *self = Self::from_arg_matches(m)?;
+        Ok(())
+    }
+}
+
+impl clap::Args for RecoveryFlags {
+    fn augment_args(cmd: clap::Command) -> clap::Command {
+        crate::stage_flags::augment(cmd, "material_opt", RECOVERY)
+    }
+    fn augment_args_for_update(cmd: clap::Command) -> clap::Command {
+        Self::augment_args(cmd)
+    }
 }
 
 pub fn options_from(a: &InvertArgs) -> InvertOptions {
-    InvertOptions {
-        budget_seconds: a.budget_seconds,
+    use matflow_nodes::recovery::{budget_options, material_options};
+    let p = &a.recovery.0;
+    let o = InvertOptions {
         env_route: a.routes.env.clone(),
         mat_route: a.routes.mat.clone(),
-        trust_rm: a.trust_rm,
         max_depth: a.depth,
-        delta: a.delta,
         seed: a.seed,
         spp: a.spp,
         final_spp: a.final_spp,
-        loops: a.loops,
         env_steps: a.steps,
         mat_steps: a.steps,
         early_stop: !a.no_early_stop,
@@ -274,11 +270,10 @@ pub fn options_from(a: &InvertArgs) -> InvertOptions {
         portals: a.portals.on(),
         rm_search: a.rm_search.on(),
         rm_margin: a.rm_margin,
-        level_from_pred: a.albedo_level == AlbedoLevel::Pred,
-        level_band: a.albedo_level_band,
         sun: a.sun.on(),
         ..Default::default()
-    }
+    };
+    material_options(p, budget_options(p, o))
 }
 
 /// Runs the recovery with a progress bar; returns its result and each
@@ -606,4 +601,85 @@ pub fn invert_cmd(a: InvertArgs) -> Result<()> {
     );
     crate::commands::report_photo_psnr("the recovered scene's re-render", rerender.psnr);
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+    use matflow_engine::value::parse_override;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        a: InvertArgs,
+    }
+
+    fn cli(extra: &[&str]) -> InvertOptions {
+        let mut args = vec!["invert", "--bundle", "b", "--out", "o"];
+        args.extend_from_slice(extra);
+        options_from(&Cli::try_parse_from(args).unwrap().a)
+    }
+
+    /// The `material_opt` stage's parameters as the engine fills them:
+    /// the kind's defaults, then `given` (YAML text, as a pipeline says).
+    fn stage(given: &[(&str, &str)]) -> InvertOptions {
+        let reg = matflow_nodes::registry();
+        let node = reg.get("material_opt").unwrap();
+        let mut p = matflow_engine::node::Params::default();
+        for s in node.params() {
+            let text = given
+                .iter()
+                .find(|(n, _)| *n == s.name)
+                .map(|(_, v)| *v)
+                .or(s.default)
+                .unwrap_or("~");
+            let v = parse_override(text).unwrap();
+            p.0.insert(s.name.into(), s.ty.normalize(&v).unwrap_or(v));
+        }
+        use matflow_nodes::recovery::{budget_options, material_options};
+        material_options(&p, budget_options(&p, InvertOptions::default()))
+    }
+
+    /// What `invert` and a `material_opt` stage share they read the same
+    /// way: the same defaults, and the same values for the same words.
+    #[test]
+    fn invert_and_the_material_stage_read_shared_options_alike() {
+        let same = |a: &InvertOptions, b: &InvertOptions| {
+            assert_eq!(a.budget_seconds, b.budget_seconds);
+            assert_eq!(a.trust_rm, b.trust_rm);
+            assert_eq!(a.delta.to_bits(), b.delta.to_bits());
+            assert_eq!(a.loops, b.loops);
+            assert_eq!(a.level_from_pred, b.level_from_pred);
+            assert_eq!(a.level_band.to_bits(), b.level_band.to_bits());
+        };
+        same(&cli(&[]), &stage(&[]));
+        same(
+            &cli(&[
+                "--budget-seconds",
+                "7.5",
+                "--trust-rm",
+                "--delta",
+                "0.3",
+                "--loops",
+                "2",
+                "--albedo-level",
+                "free",
+                "--albedo-level-band",
+                "0.4",
+            ]),
+            &stage(&[
+                ("budget_seconds", "7.5"),
+                ("trust_rm", "true"),
+                ("delta", "0.3"),
+                ("loops", "2"),
+                ("albedo_level", "free"),
+                ("albedo_level_band", "0.4"),
+            ]),
+        );
+        // And the defaults are the library's where it has one.
+        let d = cli(&[]);
+        assert_eq!(d.level_band, matflow_inverse::invert::LEVEL_BAND);
+        assert!(d.level_from_pred);
+    }
 }

@@ -49,6 +49,7 @@ pub mod predict;
 pub mod reference;
 pub mod routes;
 pub mod run;
+pub mod stage_flags;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};

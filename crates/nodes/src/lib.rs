@@ -26,7 +26,7 @@ pub use kinds::refraction_length::{
 };
 mod kinds;
 pub mod objects;
-mod recovery;
+pub mod recovery;
 #[cfg(test)]
 mod testutil;
 

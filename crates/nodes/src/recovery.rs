@@ -30,7 +30,7 @@ pub(crate) const BUDGET: ParamSpec = ParamSpec {
         min: 1.0,
         max: 86400.0,
     },
-    default: Some("30"),
+    default: Some("60"),
     unit: "s",
     doc: "time budget on the reference 2-core machine; sets sample and step counts through \
           a fixed cost model (results never depend on the clock)",
@@ -129,12 +129,34 @@ pub(crate) fn mat_route(p: &Params) -> Result<Chosen<dyn MatRoute>, NodeError> {
 /// The options both kinds set.
 pub(crate) fn base_options(p: &Params, seed: u64) -> Result<InvertOptions, NodeError> {
     Ok(InvertOptions {
-        budget_seconds: p.f64("budget_seconds"),
         env_route: env_route(p)?,
-        trust_rm: p.bool("trust_rm"),
         seed,
-        ..Default::default()
+        ..budget_options(p, InvertOptions::default())
     })
+}
+
+/// What `budget_seconds` and `trust_rm` set, over `o`. `matflow invert`
+/// reads its flags of the same names (built from these specs) through
+/// this too.
+pub fn budget_options(p: &Params, o: InvertOptions) -> InvertOptions {
+    InvertOptions {
+        budget_seconds: p.f64("budget_seconds"),
+        trust_rm: p.bool("trust_rm"),
+        ..o
+    }
+}
+
+/// What `material_opt`'s own numeric and choice parameters set (`delta`,
+/// `loops`, `albedo_level`, `albedo_level_band`), over `o`; shared with
+/// `matflow invert` as [`budget_options`] is.
+pub fn material_options(p: &Params, o: InvertOptions) -> InvertOptions {
+    InvertOptions {
+        delta: p.f32("delta"),
+        loops: p.opt_i64("loops").map(|l| l as usize),
+        level_from_pred: p.str("albedo_level") == "pred",
+        level_band: p.f32("albedo_level_band"),
+        ..o
+    }
 }
 
 /// A deterministic summary (the report holds no timings: the blob must

@@ -12,7 +12,8 @@ use matflow_inverse::routes::Side;
 use crate::data::{encode_image, encode_materials, envmap_from, MESH, SCENE};
 use crate::err;
 use crate::recovery::{
-    base_options, env_route, mat_route, on_event, prepare, summary, with_route_params,
+    base_options, env_route, mat_route, material_options, on_event, prepare, summary,
+    with_route_params,
 };
 use crate::recovery::{BUDGET, ENV_ROUTE, MAT_ROUTE, REPORT, TRUST};
 
@@ -121,15 +122,14 @@ impl Node for MaterialOptNode {
             Some(b) => Some(envmap_from(b)?),
             None => None,
         };
-        let opts = InvertOptions {
-            mat_route: mat_route(p)?,
-            delta: p.f32("delta"),
-            loops: p.opt_i64("loops").map(|l| l as usize),
-            level_from_pred: p.str("albedo_level") == "pred",
-            level_band: p.f32("albedo_level_band"),
-            init_env,
-            ..base_options(p, ctx.seed)?
-        };
+        let opts = material_options(
+            p,
+            InvertOptions {
+                mat_route: mat_route(p)?,
+                init_env,
+                ..base_options(p, ctx.seed)?
+            },
+        );
         let (w, h) = (pr.target.width, pr.target.height);
         let res = invert(pr.scene, &pr.target, &pr.start, &opts, &|e| {
             on_event(ctx, e)
@@ -193,10 +193,9 @@ mod tests {
     /// The report of the stage on `inputs` with `albedo_level` set, or at
     /// its default.
     fn report_with(inputs: &[(String, Arc<Vec<u8>>); 2], level: Option<&str>) -> serde_json::Value {
-        let given: Vec<(&str, Value)> = level
-            .map(|l| ("albedo_level", Value::Str(l.into())))
-            .into_iter()
-            .collect();
+        // A 30 s budget: what the test was sized for at 24².
+        let mut given = vec![("budget_seconds", Value::Float(30.0))];
+        given.extend(level.map(|l| ("albedo_level", Value::Str(l.into()))));
         let p = params_of(MaterialOptNode.info(), &given);
         let out = MaterialOptNode
             .run(&RunContext {
