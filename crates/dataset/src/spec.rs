@@ -87,196 +87,52 @@ pub fn split_overrides(all: &[Override]) -> (Vec<Override>, Vec<Override>) {
     all.iter().cloned().partition(|o| o.stage == "dataset")
 }
 
-/// Reads the `dataset:` section (`v` at `loc`) of `file`, with overrides.
+/// The keys a `dataset:` section may have.
+const KEYS: &[&str] = &[
+    "name",
+    "description",
+    "generator",
+    "samples",
+    "seed",
+    "shard_size",
+    "out",
+    "params",
+];
+
+/// Reads the `dataset:` section (`v` at `loc`) of `file`, with overrides:
+/// its fields as written and overridden, then the generator, the counts,
+/// the name, the output folder and the generator's parameters.
 pub fn parse_section(
     v: &Value,
     loc: Loc,
     file: &Path,
     overrides: &[Override],
 ) -> Result<DatasetSpec, SpecError> {
-    let err = |loc: Option<Loc>, message: String| SpecError {
-        file: file.to_path_buf(),
-        loc,
-        message,
-    };
     let base = match file.parent() {
         Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
         _ => PathBuf::from("."),
     };
+    let mut s = Section {
+        file,
+        loc,
+        fields: BTreeMap::new(),
+    };
     let Value::Map(entries) = v else {
-        return Err(err(
+        return Err(s.err(
             Some(loc),
             "`dataset` must be a mapping with `generator`, `samples`, …".into(),
         ));
     };
-    // Field → (value, key location, value location); overrides carry none.
-    let mut fields: BTreeMap<String, (Value, Option<Loc>, Option<Loc>)> = BTreeMap::new();
-    for (k, kl, fv, vl) in entries {
-        fields.insert(k.clone(), (fv.clone(), Some(*kl), Some(*vl)));
-    }
-    const KEYS: &[&str] = &[
-        "name",
-        "description",
-        "generator",
-        "samples",
-        "seed",
-        "shard_size",
-        "out",
-        "params",
-    ];
-    let mut param_overrides = Vec::new();
-    for o in overrides {
-        if let Some(p) = o.param.strip_prefix("params.") {
-            param_overrides.push((p.to_string(), o));
-        } else if KEYS.contains(&o.param.as_str()) {
-            fields.insert(o.param.clone(), (o.value.clone(), None, None));
-        } else {
-            return Err(err(
-                None,
-                format!(
-                    "--set {}: a dataset has no `{}` (it has: {}, params.NAME)",
-                    clip(&o.text),
-                    clip(&o.param),
-                    KEYS.join(", ")
-                ),
-            ));
-        }
-    }
-    for (k, (_, kl, _)) in &fields {
-        if !KEYS.contains(&k.as_str()) {
-            return Err(err(
-                *kl,
-                format!(
-                    "dataset: unknown key `{}` (a dataset has {})",
-                    clip(k),
-                    KEYS.join(", ")
-                ),
-            ));
-        }
-    }
-    let at = |name: &str| fields.get(name).and_then(|f| f.2).or(Some(loc));
-    let get = |name: &str| fields.get(name).map(|f| &f.0);
-    let int = |name: &str, min: i64, max: i64, default: Option<i64>| -> Result<i64, SpecError> {
-        match get(name) {
-            Some(Value::Int(i)) if (min..=max).contains(i) => Ok(*i),
-            Some(v) => Err(err(
-                at(name),
-                format!(
-                    "dataset `{name}`: expected an integer in [{min}, {max}], got {}",
-                    clip(&v.to_string())
-                ),
-            )),
-            None => default.ok_or_else(|| {
-                err(
-                    Some(loc),
-                    format!("dataset: missing `{name}` (an integer in [{min}, {max}])"),
-                )
-            }),
-        }
-    };
-    let generator_name = match get("generator") {
-        Some(Value::Str(s)) => s.clone(),
-        Some(v) => {
-            return Err(err(
-                at("generator"),
-                format!(
-                    "dataset `generator`: expected a generator name, got {}",
-                    clip(&v.to_string())
-                ),
-            ))
-        }
-        None => {
-            return Err(err(
-                Some(loc),
-                format!(
-                    "dataset: missing `generator` (one of: {})",
-                    GENERATORS.join(", ")
-                ),
-            ))
-        }
-    };
-    let gen = generator(&generator_name).ok_or_else(|| {
-        err(
-            at("generator"),
-            format!(
-                "dataset: unknown generator `{}` (one of: {})",
-                clip(&generator_name),
-                GENERATORS.join(", ")
-            ),
-        )
-    })?;
-    let samples = int("samples", 1, MAX_SAMPLES, None)? as u64;
-    let seed = int("seed", 0, i64::MAX, Some(0))? as u64;
-    let shard_size = int("shard_size", 1, 1 << 20, Some(DEFAULT_SHARD_SIZE))? as u64;
-    let name = match get("name") {
-        None => file
-            .file_stem()
-            .map(|s| s.to_string_lossy().into_owned())
-            .unwrap_or_else(|| "dataset".into()),
-        Some(Value::Str(s))
-            if !s.is_empty()
-                && s.len() <= 64
-                && s.chars()
-                    .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-') =>
-        {
-            s.clone()
-        }
-        Some(v) => {
-            return Err(err(
-                at("name"),
-                format!(
-                    "dataset `name`: use 1 to 64 letters, digits, `_` and `-`, got {}",
-                    clip(&v.to_string())
-                ),
-            ))
-        }
-    };
-    let out = match get("out") {
-        None | Some(Value::Null) => None,
-        Some(Value::Str(s)) => Some(match fields["out"].2 {
-            Some(_) => resolve_path(&base, s),
-            None => resolve_path(Path::new("."), s),
-        }),
-        Some(v) => {
-            return Err(err(
-                at("out"),
-                format!(
-                    "dataset `out`: expected a folder, got {}",
-                    clip(&v.to_string())
-                ),
-            ))
-        }
-    };
-    // The generator's parameters, checked like a record parameter.
-    let mut given = match get("params") {
-        None | Some(Value::Null) => Vec::new(),
-        Some(Value::Map(m)) => m.clone(),
-        Some(v) => {
-            return Err(err(
-                at("params"),
-                format!(
-                    "dataset `params`: expected a mapping, got {}",
-                    clip(&v.to_string())
-                ),
-            ))
-        }
-    };
-    for (name, o) in param_overrides {
-        given.retain(|e| e.0 != name);
-        given.push((name, Loc::default(), o.value.clone(), Loc::default()));
-    }
-    let params_loc = at("params");
+    let param_overrides = s.collect_fields(entries, overrides)?;
+    let gen = s.generator()?;
+    let samples = s.int("samples", 1, MAX_SAMPLES, None)? as u64;
+    let seed = s.int("seed", 0, i64::MAX, Some(0))? as u64;
+    let shard_size = s.int("shard_size", 1, 1 << 20, Some(DEFAULT_SHARD_SIZE))? as u64;
+    let name = s.name()?;
+    let out = s.out(&base)?;
+    let params_loc = s.at("params");
     let mut reads = Vec::new();
-    let ty = ParamType::Record(gen.params());
-    let params = normalize_fields(
-        &ty,
-        &Value::Map(given),
-        params_loc,
-        &base,
-        "the dataset's `params`",
-        &mut reads,
-    )
-    .map_err(|(l, m)| err(l.or(params_loc), format!("dataset `params`{m}")))?;
+    let params = s.generator_params(gen, param_overrides, &base, &mut reads)?;
     let spec = DatasetSpec {
         file: file.to_path_buf(),
         loc,
@@ -290,8 +146,221 @@ pub fn parse_section(
         reads,
     };
     gen.check(&spec)
-        .map_err(|m| err(params_loc, format!("dataset `params`: {m}")))?;
+        .map_err(|m| s.err(params_loc, format!("dataset `params`: {m}")))?;
     Ok(spec)
+}
+
+/// A `dataset:` section being read: field → (value, key location, value
+/// location); overrides carry no locations.
+struct Section<'a> {
+    file: &'a Path,
+    loc: Loc,
+    fields: BTreeMap<String, (Value, Option<Loc>, Option<Loc>)>,
+}
+
+impl Section<'_> {
+    fn err(&self, loc: Option<Loc>, message: String) -> SpecError {
+        SpecError {
+            file: self.file.to_path_buf(),
+            loc,
+            message,
+        }
+    }
+
+    /// Where field `name`'s value stands (the section's place if absent
+    /// or overridden).
+    fn at(&self, name: &str) -> Option<Loc> {
+        self.fields.get(name).and_then(|f| f.2).or(Some(self.loc))
+    }
+
+    fn get(&self, name: &str) -> Option<&Value> {
+        self.fields.get(name).map(|f| &f.0)
+    }
+
+    /// The section's fields with the overrides applied; returns the
+    /// overrides of the generator's parameters (`params.NAME`). Unknown
+    /// keys, written or overridden, are errors.
+    fn collect_fields<'o>(
+        &mut self,
+        entries: &[(String, Loc, Value, Loc)],
+        overrides: &'o [Override],
+    ) -> Result<Vec<(String, &'o Override)>, SpecError> {
+        for (k, kl, fv, vl) in entries {
+            self.fields
+                .insert(k.clone(), (fv.clone(), Some(*kl), Some(*vl)));
+        }
+        let mut param_overrides = Vec::new();
+        for o in overrides {
+            if let Some(p) = o.param.strip_prefix("params.") {
+                param_overrides.push((p.to_string(), o));
+            } else if KEYS.contains(&o.param.as_str()) {
+                self.fields
+                    .insert(o.param.clone(), (o.value.clone(), None, None));
+            } else {
+                return Err(self.err(
+                    None,
+                    format!(
+                        "--set {}: a dataset has no `{}` (it has: {}, params.NAME)",
+                        clip(&o.text),
+                        clip(&o.param),
+                        KEYS.join(", ")
+                    ),
+                ));
+            }
+        }
+        for (k, (_, kl, _)) in &self.fields {
+            if !KEYS.contains(&k.as_str()) {
+                return Err(self.err(
+                    *kl,
+                    format!(
+                        "dataset: unknown key `{}` (a dataset has {})",
+                        clip(k),
+                        KEYS.join(", ")
+                    ),
+                ));
+            }
+        }
+        Ok(param_overrides)
+    }
+
+    /// Integer field `name` in [min, max], or its default.
+    fn int(&self, name: &str, min: i64, max: i64, default: Option<i64>) -> Result<i64, SpecError> {
+        match self.get(name) {
+            Some(Value::Int(i)) if (min..=max).contains(i) => Ok(*i),
+            Some(v) => Err(self.err(
+                self.at(name),
+                format!(
+                    "dataset `{name}`: expected an integer in [{min}, {max}], got {}",
+                    clip(&v.to_string())
+                ),
+            )),
+            None => default.ok_or_else(|| {
+                self.err(
+                    Some(self.loc),
+                    format!("dataset: missing `{name}` (an integer in [{min}, {max}])"),
+                )
+            }),
+        }
+    }
+
+    fn generator(&self) -> Result<&'static dyn Generator, SpecError> {
+        let generator_name = match self.get("generator") {
+            Some(Value::Str(s)) => s.clone(),
+            Some(v) => {
+                return Err(self.err(
+                    self.at("generator"),
+                    format!(
+                        "dataset `generator`: expected a generator name, got {}",
+                        clip(&v.to_string())
+                    ),
+                ))
+            }
+            None => {
+                return Err(self.err(
+                    Some(self.loc),
+                    format!(
+                        "dataset: missing `generator` (one of: {})",
+                        GENERATORS.join(", ")
+                    ),
+                ))
+            }
+        };
+        generator(&generator_name).ok_or_else(|| {
+            self.err(
+                self.at("generator"),
+                format!(
+                    "dataset: unknown generator `{}` (one of: {})",
+                    clip(&generator_name),
+                    GENERATORS.join(", ")
+                ),
+            )
+        })
+    }
+
+    /// `name`: 1 to 64 letters, digits, `_` and `-`; the file's stem by
+    /// default.
+    fn name(&self) -> Result<String, SpecError> {
+        match self.get("name") {
+            None => Ok(self
+                .file
+                .file_stem()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_else(|| "dataset".into())),
+            Some(Value::Str(s))
+                if !s.is_empty()
+                    && s.len() <= 64
+                    && s.chars()
+                        .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-') =>
+            {
+                Ok(s.clone())
+            }
+            Some(v) => Err(self.err(
+                self.at("name"),
+                format!(
+                    "dataset `name`: use 1 to 64 letters, digits, `_` and `-`, got {}",
+                    clip(&v.to_string())
+                ),
+            )),
+        }
+    }
+
+    /// `out`: a folder relative to the file's (to the current one when
+    /// overridden); none by default.
+    fn out(&self, base: &Path) -> Result<Option<PathBuf>, SpecError> {
+        match self.get("out") {
+            None | Some(Value::Null) => Ok(None),
+            Some(Value::Str(s)) => Ok(Some(match self.fields["out"].2 {
+                Some(_) => resolve_path(base, s),
+                None => resolve_path(Path::new("."), s),
+            })),
+            Some(v) => Err(self.err(
+                self.at("out"),
+                format!(
+                    "dataset `out`: expected a folder, got {}",
+                    clip(&v.to_string())
+                ),
+            )),
+        }
+    }
+
+    /// The generator's parameters (`params`, then its overrides), checked
+    /// like a record parameter; the files they read go to `reads`.
+    fn generator_params(
+        &self,
+        gen: &'static dyn Generator,
+        param_overrides: Vec<(String, &Override)>,
+        base: &Path,
+        reads: &mut Vec<(PathBuf, String)>,
+    ) -> Result<Value, SpecError> {
+        let mut given = match self.get("params") {
+            None | Some(Value::Null) => Vec::new(),
+            Some(Value::Map(m)) => m.clone(),
+            Some(v) => {
+                return Err(self.err(
+                    self.at("params"),
+                    format!(
+                        "dataset `params`: expected a mapping, got {}",
+                        clip(&v.to_string())
+                    ),
+                ))
+            }
+        };
+        for (name, o) in param_overrides {
+            given.retain(|e| e.0 != name);
+            given.push((name, Loc::default(), o.value.clone(), Loc::default()));
+        }
+        let params_loc = self.at("params");
+        let ty = ParamType::Record(gen.params());
+        normalize_fields(
+            &ty,
+            &Value::Map(given),
+            params_loc,
+            base,
+            "the dataset's `params`",
+            reads,
+        )
+        .map_err(|(l, m)| self.err(l.or(params_loc), format!("dataset `params`{m}")))
+    }
 }
 
 /// Reads a dataset spec file: a YAML file with a `dataset:` section.

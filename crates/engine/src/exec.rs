@@ -500,311 +500,25 @@ pub fn run_pipeline(
     obs: &dyn Observer,
 ) -> Report {
     let t0 = Instant::now();
-    let order = plan::order(p);
-    let by_name: HashMap<&str, &crate::spec::Stage> =
-        p.stages.iter().map(|s| (s.name.as_str(), s)).collect();
-    let needed: BTreeSet<String> = order.iter().cloned().collect();
-    let mut dependents: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
-    let mut slots: BTreeMap<String, Slot> = BTreeMap::new();
-    for n in &order {
-        let s = by_name[n.as_str()];
-        let ups: BTreeSet<String> = s.refs.values().map(|(u, _)| u.clone()).collect();
-        for u in &ups {
-            dependents.entry(u.clone()).or_default().insert(n.clone());
-        }
-        slots.insert(
-            n.clone(),
-            Slot {
-                state: State::Waiting(ups),
-                skip_cache: false,
-                recomputes: 0,
-                report: None,
-                key: None,
-            },
-        );
-    }
     let (tx, rx) = mpsc::channel::<Event>();
     let tx = Mutex::new(tx);
     let sink: Sink = Arc::new(move |e| {
         let _ = tx.lock().unwrap().send(e);
     });
-    let mut in_flight = 0usize;
-    let mut ready: std::collections::VecDeque<String> = order
-        .iter()
-        .filter(|n| matches!(&slots[*n].state, State::Waiting(w) if w.is_empty()))
-        .cloned()
-        .collect();
+    let mut s = Scheduler::new(p, reg, store, exec, obs, sink);
     loop {
-        // Submit everything ready, in plan order.
-        while let Some(n) = ready.pop_front() {
-            let stage = by_name[n.as_str()];
-            let node = reg.get(&stage.kind).expect("validated kind");
-            let slot = slots.get(&n).unwrap();
-            let mut inputs = BTreeMap::new();
-            let mut problem = None;
-            for (param, (up, out)) in &stage.refs {
-                if let State::Done(ds) = &slots[up].state {
-                    match ds.get(out) {
-                        Some(d) => {
-                            inputs.insert(param.clone(), *d);
-                        }
-                        None => {
-                            problem = Some(format!(
-                            "input `{up}.{out}` was not produced (stage `{up}` has no such result)"
-                        ))
-                        }
-                    }
-                }
-            }
-            let key = match problem {
-                Some(e) => Err(e),
-                None => node_key(node, &stage.params, &inputs)
-                    .map_err(|e| format!("reading inputs: {e}")),
-            };
-            let slot_skip = slot.skip_cache;
-            match key {
-                Ok(key) => {
-                    let slot = slots.get_mut(&n).unwrap();
-                    slot.key = Some(key);
-                    slot.state = State::Running;
-                    in_flight += 1;
-                    // A hit served here goes through the same events as
-                    // one the executor serves.
-                    let inline = exec.serves_cache_inline() && !slot_skip && !store.has_remote();
-                    let hit = if inline {
-                        store.lookup(&key).ok().flatten()
-                    } else {
-                        None
-                    };
-                    if let Some(ds) = hit {
-                        sink(Event::Started {
-                            stage: n.clone(),
-                            worker: "local".into(),
-                        });
-                        sink(Event::Finished {
-                            stage: n.clone(),
-                            result: Ok(Done {
-                                status: Status::Cached,
-                                outputs: ds,
-                                worker: "local".into(),
-                                bytes_in: 0,
-                                bytes_out: 0,
-                            }),
-                        });
-                        continue;
-                    }
-                    exec.submit(
-                        Job {
-                            stage: n.clone(),
-                            kind: stage.kind.clone(),
-                            pipeline: p.name.clone(),
-                            params: stage.params.clone(),
-                            key,
-                            inputs,
-                            // A miss found here is not looked up again.
-                            skip_cache: slot_skip || inline,
-                            local_only: reads_local_files(node, &stage.params),
-                        },
-                        sink.clone(),
-                    );
-                }
-                Err(e) => {
-                    let mut rep = StageReport::new(&n, &stage.kind, Status::Failed);
-                    rep.error = Some(e);
-                    obs.finished(&rep);
-                    let slot = slots.get_mut(&n).unwrap();
-                    slot.state = State::Failed;
-                    slot.report = Some(rep);
-                }
-            }
-        }
-        if in_flight == 0 {
+        s.submit_ready();
+        if s.in_flight == 0 {
             break;
         }
         let Ok(ev) = rx.recv() else { break };
         match ev {
-            Event::Started { stage, worker } => {
-                let kind = &by_name[stage.as_str()].kind;
-                let slot = slots.get_mut(&stage).unwrap();
-                let rep = slot
-                    .report
-                    .get_or_insert_with(|| StageReport::new(&stage, kind, Status::Executed));
-                rep.worker = Some(worker.clone());
-                rep.attempts += 1;
-                rep.started = Some(Instant::now());
-                obs.started(&stage, kind, &worker);
-            }
+            Event::Started { stage, worker } => s.on_started(&stage, &worker),
             Event::Progress { stage, done, total } => obs.progress(&stage, done, total),
-            Event::Retry { stage, reason } => {
-                let kind = &by_name[stage.as_str()].kind;
-                let slot = slots.get_mut(&stage).unwrap();
-                slot.report
-                    .get_or_insert_with(|| StageReport::new(&stage, kind, Status::Executed))
-                    .retries
-                    .push(reason.clone());
-                obs.retried(&stage, &reason);
-            }
-            Event::Finished {
-                stage: name,
-                result,
-            } => {
-                in_flight -= 1;
-                let stage = by_name[name.as_str()];
-                let node = reg.get(&stage.kind).expect("validated kind");
-                let slot = slots.get_mut(&name).unwrap();
-                let key = slot.key.expect("submitted stages have keys");
-                let mut rep = slot
-                    .report
-                    .take()
-                    .unwrap_or_else(|| StageReport::new(&name, &stage.kind, Status::Executed));
-                rep.seconds += rep
-                    .started
-                    .take()
-                    .map(|t| t.elapsed().as_secs_f64())
-                    .unwrap_or(0.0);
-                rep.key = Some(key.hex());
-                match result {
-                    Ok(done) => {
-                        // Results the user asked for on disk are written
-                        // here, on the submitter.
-                        match materialize(node, stage, &done.outputs, store) {
-                            Ok(files) => {
-                                rep.status = done.status;
-                                rep.worker = Some(done.worker);
-                                rep.bytes_in += done.bytes_in;
-                                rep.bytes_out += done.bytes_out;
-                                rep.outputs = done
-                                    .outputs
-                                    .iter()
-                                    .map(|(k, d)| (k.clone(), d.hex()))
-                                    .collect();
-                                rep.files = files;
-                                rep.notes = notes(node, &done.outputs, store);
-                                rep.error = None;
-                                obs.finished(&rep);
-                                slot.state = State::Done(done.outputs);
-                                slot.report = Some(rep);
-                                for dn in dependents.get(&name).into_iter().flatten() {
-                                    let ds = slots.get_mut(dn).unwrap();
-                                    if let State::Waiting(w) = &mut ds.state {
-                                        if w.remove(&name) && w.is_empty() {
-                                            ready.push_back(dn.clone());
-                                        }
-                                    }
-                                }
-                            }
-                            Err(Failure::InputsMissing(_)) if slot.recomputes < MAX_RECOMPUTES => {
-                                // Its own result is unreadable: run it again.
-                                slot.recomputes += 1;
-                                slot.skip_cache = true;
-                                store.remove_action(&key);
-                                let why = "its cached result is missing or corrupt".to_string();
-                                rep.retries.push(why.clone());
-                                obs.retried(&name, &why);
-                                slot.report = Some(rep);
-                                slot.state = State::Waiting(BTreeSet::new());
-                                ready.push_back(name.clone());
-                            }
-                            Err(f) => slot.fail(rep, f.message(), obs),
-                        }
-                    }
-                    Err(Failure::InputsMissing(params)) => {
-                        // Send the producers back to run uncached; this
-                        // stage waits for them again.
-                        let mut ups = BTreeSet::new();
-                        let mut exhausted = None;
-                        for param in &params {
-                            let Some((up, out)) = stage.refs.get(param) else {
-                                continue;
-                            };
-                            if let State::Done(ds) = &slots[up].state {
-                                if let Some(d) = ds.get(out) {
-                                    store.invalidate(d);
-                                }
-                            }
-                            ups.insert(up.clone());
-                        }
-                        for up in &ups {
-                            if slots[up].recomputes >= MAX_RECOMPUTES {
-                                exhausted = Some(up.clone());
-                            }
-                        }
-                        let slot = slots.get_mut(&name).unwrap();
-                        if ups.is_empty() || exhausted.is_some() {
-                            let msg = format!(
-                                "{} (after recomputing {} {MAX_RECOMPUTES} times)",
-                                Failure::InputsMissing(params).message(),
-                                exhausted.unwrap_or_default()
-                            );
-                            slot.fail(rep, msg, obs);
-                        } else {
-                            let why = format!(
-                                "input{} from {} missing or corrupt: recomputing",
-                                if params.len() > 1 { "s" } else { "" },
-                                ups.iter().cloned().collect::<Vec<_>>().join(", ")
-                            );
-                            rep.retries.push(why.clone());
-                            obs.retried(&name, &why);
-                            slot.report = Some(rep);
-                            slot.state = State::Waiting(ups.clone());
-                            for up in ups {
-                                let us = slots.get_mut(&up).unwrap();
-                                let why = format!(
-                                    "recomputed: its result was missing or corrupt in the store when `{name}` read it"
-                                );
-                                if let Some(r) = us.report.as_mut() {
-                                    r.retries.push(why.clone());
-                                }
-                                obs.retried(&up, &why);
-                                us.recomputes += 1;
-                                us.skip_cache = true;
-                                if let Some(k) = us.key {
-                                    store.remove_action(&k);
-                                }
-                                if matches!(us.state, State::Done(_)) {
-                                    us.state = State::Waiting(BTreeSet::new());
-                                    ready.push_back(up.clone());
-                                }
-                                // Every other consumer already waiting
-                                // for it keeps waiting; ones not yet
-                                // submitted wait for the new result.
-                                for dn in dependents.get(&up).into_iter().flatten() {
-                                    if dn == &name {
-                                        continue;
-                                    }
-                                    if let State::Waiting(w) = &mut slots.get_mut(dn).unwrap().state
-                                    {
-                                        w.insert(up.clone());
-                                    }
-                                }
-                            }
-                        }
-                    }
-                    Err(f) => slot.fail(rep, f.message(), obs),
-                }
-            }
+            Event::Retry { stage, reason } => s.on_retry(&stage, &reason),
+            Event::Finished { stage, result } => s.on_finished(&stage, result),
         }
     }
-    let stages = p
-        .stages
-        .iter()
-        .map(|s| {
-            match slots.get_mut(&s.name).and_then(|sl| sl.report.take()) {
-                Some(r) => r,
-                None => {
-                    // Not needed, or blocked by a failure upstream.
-                    let mut r = StageReport::new(&s.name, &s.kind, Status::Skipped);
-                    let blocked = slots
-                        .get(&s.name)
-                        .is_some_and(|sl| matches!(sl.state, State::Waiting(_) | State::Failed));
-                    if needed.contains(&s.name) && !blocked {
-                        r.error = Some("not run".into());
-                    }
-                    r
-                }
-            }
-        })
-        .collect();
     let (up, down) = store.moved();
     Report {
         pipeline: p.name.clone(),
@@ -814,7 +528,365 @@ pub fn run_pipeline(
         seconds: t0.elapsed().as_secs_f64(),
         bytes_uploaded: up,
         bytes_downloaded: down,
-        stages,
+        stages: s.stage_reports(),
+    }
+}
+
+/// The state of one run: each needed stage's slot, who waits for whom,
+/// what is ready to submit and how many stages are out.
+struct Scheduler<'a> {
+    p: &'a Pipeline,
+    reg: &'a Registry,
+    store: &'a Tiered,
+    exec: &'a dyn Executor,
+    obs: &'a dyn Observer,
+    sink: Sink,
+    by_name: HashMap<&'a str, &'a crate::spec::Stage>,
+    needed: BTreeSet<String>,
+    dependents: BTreeMap<String, BTreeSet<String>>,
+    slots: BTreeMap<String, Slot>,
+    ready: std::collections::VecDeque<String>,
+    in_flight: usize,
+}
+
+impl<'a> Scheduler<'a> {
+    fn new(
+        p: &'a Pipeline,
+        reg: &'a Registry,
+        store: &'a Tiered,
+        exec: &'a dyn Executor,
+        obs: &'a dyn Observer,
+        sink: Sink,
+    ) -> Scheduler<'a> {
+        let order = plan::order(p);
+        let by_name: HashMap<&str, &crate::spec::Stage> =
+            p.stages.iter().map(|s| (s.name.as_str(), s)).collect();
+        let mut dependents: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
+        let mut slots: BTreeMap<String, Slot> = BTreeMap::new();
+        for n in &order {
+            let s = by_name[n.as_str()];
+            let ups: BTreeSet<String> = s.refs.values().map(|(u, _)| u.clone()).collect();
+            for u in &ups {
+                dependents.entry(u.clone()).or_default().insert(n.clone());
+            }
+            slots.insert(
+                n.clone(),
+                Slot {
+                    state: State::Waiting(ups),
+                    skip_cache: false,
+                    recomputes: 0,
+                    report: None,
+                    key: None,
+                },
+            );
+        }
+        let ready = order
+            .iter()
+            .filter(|n| matches!(&slots[*n].state, State::Waiting(w) if w.is_empty()))
+            .cloned()
+            .collect();
+        Scheduler {
+            p,
+            reg,
+            store,
+            exec,
+            obs,
+            sink,
+            by_name,
+            needed: order.into_iter().collect(),
+            dependents,
+            slots,
+            ready,
+            in_flight: 0,
+        }
+    }
+
+    /// Submits everything ready, in plan order.
+    fn submit_ready(&mut self) {
+        while let Some(n) = self.ready.pop_front() {
+            self.submit(n);
+        }
+    }
+
+    /// Keys stage `n` from its inputs' digests and serves it from the
+    /// cache here, or hands it to the executor.
+    fn submit(&mut self, n: String) {
+        let stage = self.by_name[n.as_str()];
+        let node = self.reg.get(&stage.kind).expect("validated kind");
+        let mut inputs = BTreeMap::new();
+        let mut problem = None;
+        for (param, (up, out)) in &stage.refs {
+            if let State::Done(ds) = &self.slots[up].state {
+                match ds.get(out) {
+                    Some(d) => {
+                        inputs.insert(param.clone(), *d);
+                    }
+                    None => {
+                        problem = Some(format!(
+                            "input `{up}.{out}` was not produced (stage `{up}` has no such result)"
+                        ))
+                    }
+                }
+            }
+        }
+        let key = match problem {
+            Some(e) => Err(e),
+            None => {
+                node_key(node, &stage.params, &inputs).map_err(|e| format!("reading inputs: {e}"))
+            }
+        };
+        let key = match key {
+            Ok(key) => key,
+            Err(e) => {
+                let mut rep = StageReport::new(&n, &stage.kind, Status::Failed);
+                rep.error = Some(e);
+                self.obs.finished(&rep);
+                let slot = self.slots.get_mut(&n).unwrap();
+                slot.state = State::Failed;
+                slot.report = Some(rep);
+                return;
+            }
+        };
+        let slot = self.slots.get_mut(&n).unwrap();
+        let slot_skip = slot.skip_cache;
+        slot.key = Some(key);
+        slot.state = State::Running;
+        self.in_flight += 1;
+        // A hit served here goes through the same events as one the
+        // executor serves.
+        let inline = self.exec.serves_cache_inline() && !slot_skip && !self.store.has_remote();
+        let hit = if inline {
+            self.store.lookup(&key).ok().flatten()
+        } else {
+            None
+        };
+        if let Some(ds) = hit {
+            (self.sink)(Event::Started {
+                stage: n.clone(),
+                worker: "local".into(),
+            });
+            (self.sink)(Event::Finished {
+                stage: n,
+                result: Ok(Done {
+                    status: Status::Cached,
+                    outputs: ds,
+                    worker: "local".into(),
+                    bytes_in: 0,
+                    bytes_out: 0,
+                }),
+            });
+            return;
+        }
+        self.exec.submit(
+            Job {
+                stage: n,
+                kind: stage.kind.clone(),
+                pipeline: self.p.name.clone(),
+                params: stage.params.clone(),
+                key,
+                inputs,
+                // A miss found here is not looked up again.
+                skip_cache: slot_skip || inline,
+                local_only: reads_local_files(node, &stage.params),
+            },
+            self.sink.clone(),
+        );
+    }
+
+    fn on_started(&mut self, stage: &str, worker: &str) {
+        let kind = &self.by_name[stage].kind;
+        let slot = self.slots.get_mut(stage).unwrap();
+        let rep = slot
+            .report
+            .get_or_insert_with(|| StageReport::new(stage, kind, Status::Executed));
+        rep.worker = Some(worker.to_string());
+        rep.attempts += 1;
+        rep.started = Some(Instant::now());
+        self.obs.started(stage, kind, worker);
+    }
+
+    fn on_retry(&mut self, stage: &str, reason: &str) {
+        let kind = &self.by_name[stage].kind;
+        let slot = self.slots.get_mut(stage).unwrap();
+        slot.report
+            .get_or_insert_with(|| StageReport::new(stage, kind, Status::Executed))
+            .retries
+            .push(reason.to_string());
+        self.obs.retried(stage, reason);
+    }
+
+    fn on_finished(&mut self, name: &str, result: Result<Done, Failure>) {
+        self.in_flight -= 1;
+        let stage = self.by_name[name];
+        let slot = self.slots.get_mut(name).unwrap();
+        let key = slot.key.expect("submitted stages have keys");
+        let mut rep = slot
+            .report
+            .take()
+            .unwrap_or_else(|| StageReport::new(name, &stage.kind, Status::Executed));
+        rep.seconds += rep
+            .started
+            .take()
+            .map(|t| t.elapsed().as_secs_f64())
+            .unwrap_or(0.0);
+        rep.key = Some(key.hex());
+        match result {
+            Ok(done) => self.on_done(name, key, rep, done),
+            Err(Failure::InputsMissing(params)) => self.on_inputs_missing(name, rep, params),
+            Err(f) => slot.fail(rep, f.message(), self.obs),
+        }
+    }
+
+    /// A stage's results are in: the files asked for are written here, on
+    /// the submitter, and its dependents may become ready. If its own
+    /// result cannot be read back, it runs again uncached (bounded).
+    fn on_done(&mut self, name: &str, key: Digest, mut rep: StageReport, done: Done) {
+        let stage = self.by_name[name];
+        let node = self.reg.get(&stage.kind).expect("validated kind");
+        let slot = self.slots.get_mut(name).unwrap();
+        match materialize(node, stage, &done.outputs, self.store) {
+            Ok(files) => {
+                rep.status = done.status;
+                rep.worker = Some(done.worker);
+                rep.bytes_in += done.bytes_in;
+                rep.bytes_out += done.bytes_out;
+                rep.outputs = done
+                    .outputs
+                    .iter()
+                    .map(|(k, d)| (k.clone(), d.hex()))
+                    .collect();
+                rep.files = files;
+                rep.notes = notes(node, &done.outputs, self.store);
+                rep.error = None;
+                self.obs.finished(&rep);
+                slot.state = State::Done(done.outputs);
+                slot.report = Some(rep);
+                for dn in self.dependents.get(name).into_iter().flatten() {
+                    let ds = self.slots.get_mut(dn).unwrap();
+                    if let State::Waiting(w) = &mut ds.state {
+                        if w.remove(name) && w.is_empty() {
+                            self.ready.push_back(dn.clone());
+                        }
+                    }
+                }
+            }
+            Err(Failure::InputsMissing(_)) if slot.recomputes < MAX_RECOMPUTES => {
+                // Its own result is unreadable: run it again.
+                slot.recomputes += 1;
+                slot.skip_cache = true;
+                self.store.remove_action(&key);
+                let why = "its cached result is missing or corrupt".to_string();
+                rep.retries.push(why.clone());
+                self.obs.retried(name, &why);
+                slot.report = Some(rep);
+                slot.state = State::Waiting(BTreeSet::new());
+                self.ready.push_back(name.to_string());
+            }
+            Err(f) => slot.fail(rep, f.message(), self.obs),
+        }
+    }
+
+    /// A stage found inputs missing or corrupt: the producers are sent
+    /// back to run uncached and the stage waits for them again, unless a
+    /// producer has been recomputed too often.
+    fn on_inputs_missing(&mut self, name: &str, mut rep: StageReport, params: Vec<String>) {
+        let stage = self.by_name[name];
+        let mut ups = BTreeSet::new();
+        let mut exhausted = None;
+        for param in &params {
+            let Some((up, out)) = stage.refs.get(param) else {
+                continue;
+            };
+            if let State::Done(ds) = &self.slots[up].state {
+                if let Some(d) = ds.get(out) {
+                    self.store.invalidate(d);
+                }
+            }
+            ups.insert(up.clone());
+        }
+        for up in &ups {
+            if self.slots[up].recomputes >= MAX_RECOMPUTES {
+                exhausted = Some(up.clone());
+            }
+        }
+        let slot = self.slots.get_mut(name).unwrap();
+        if ups.is_empty() || exhausted.is_some() {
+            let msg = format!(
+                "{} (after recomputing {} {MAX_RECOMPUTES} times)",
+                Failure::InputsMissing(params).message(),
+                exhausted.unwrap_or_default()
+            );
+            slot.fail(rep, msg, self.obs);
+            return;
+        }
+        let why = format!(
+            "input{} from {} missing or corrupt: recomputing",
+            if params.len() > 1 { "s" } else { "" },
+            ups.iter().cloned().collect::<Vec<_>>().join(", ")
+        );
+        rep.retries.push(why.clone());
+        self.obs.retried(name, &why);
+        slot.report = Some(rep);
+        slot.state = State::Waiting(ups.clone());
+        for up in ups {
+            self.recompute(&up, name);
+        }
+    }
+
+    /// Producer `up` runs again uncached because `reader` found its
+    /// result missing or corrupt.
+    fn recompute(&mut self, up: &str, reader: &str) {
+        let us = self.slots.get_mut(up).unwrap();
+        let why = format!(
+            "recomputed: its result was missing or corrupt in the store when `{reader}` read it"
+        );
+        if let Some(r) = us.report.as_mut() {
+            r.retries.push(why.clone());
+        }
+        self.obs.retried(up, &why);
+        us.recomputes += 1;
+        us.skip_cache = true;
+        if let Some(k) = us.key {
+            self.store.remove_action(&k);
+        }
+        if matches!(us.state, State::Done(_)) {
+            us.state = State::Waiting(BTreeSet::new());
+            self.ready.push_back(up.to_string());
+        }
+        // Every other consumer already waiting for it keeps waiting; ones
+        // not yet submitted wait for the new result.
+        for dn in self.dependents.get(up).into_iter().flatten() {
+            if dn == reader {
+                continue;
+            }
+            if let State::Waiting(w) = &mut self.slots.get_mut(dn).unwrap().state {
+                w.insert(up.to_string());
+            }
+        }
+    }
+
+    /// Every stage's report, in the file's order: a stage not run is
+    /// skipped (not needed, or blocked by a failure upstream).
+    fn stage_reports(&mut self) -> Vec<StageReport> {
+        self.p
+            .stages
+            .iter()
+            .map(
+                |s| match self.slots.get_mut(&s.name).and_then(|sl| sl.report.take()) {
+                    Some(r) => r,
+                    None => {
+                        let mut r = StageReport::new(&s.name, &s.kind, Status::Skipped);
+                        let blocked = self.slots.get(&s.name).is_some_and(|sl| {
+                            matches!(sl.state, State::Waiting(_) | State::Failed)
+                        });
+                        if self.needed.contains(&s.name) && !blocked {
+                            r.error = Some("not run".into());
+                        }
+                        r
+                    }
+                },
+            )
+            .collect()
     }
 }
 

@@ -151,7 +151,9 @@ pub fn parse(
 
 /// Validates a pipeline already parsed from YAML (`root`, at `root_loc`
 /// of `path`); what [`parse`] does after parsing, and how a dataset's
-/// generated stages join a file's own.
+/// generated stages join a file's own. In steps: the top-level keys, the
+/// stages as written, the `--set` overrides, each stage against its kind,
+/// the files read and written, the outputs, cycles and film sizes.
 pub fn parse_value(
     root: Value,
     root_loc: Loc,
@@ -159,13 +161,71 @@ pub fn parse_value(
     reg: &Registry,
     overrides: &[Override],
 ) -> Result<Pipeline, SpecError> {
-    let err = |loc: Option<Loc>, message: String| SpecError {
-        file: path.to_path_buf(),
-        loc,
-        message,
+    let mut cx = Checker {
+        path,
+        base: folder_of(path),
+        reg,
+        reads: vec![(real_path(path), "the pipeline file".into())],
+        writes: Vec::new(),
     };
-    let base = path
-        .parent()
+    let top = cx.top_level(root, root_loc)?;
+    let empty = Value::Map(Vec::new());
+    let (stages_v, stages_loc) = match &top.stages {
+        Some((v, l)) => (v, *l),
+        // A dataset spec alone: its stages are generated.
+        None if top.dataset.is_some() && top.outputs.is_none() => (&empty, root_loc),
+        None => return Err(cx.err(Some(root_loc), "missing `stages:`".into())),
+    };
+    let mut raws = cx.raw_stages(stages_v, stages_loc)?;
+    cx.apply_overrides(&mut raws, overrides)?;
+    let stage_names: BTreeSet<String> = raws.iter().map(|r| r.name.clone()).collect();
+    let kind_of: std::collections::HashMap<&str, &str> = raws
+        .iter()
+        .map(|r| (r.name.as_str(), r.kind.as_str()))
+        .collect();
+    let stages = raws
+        .iter()
+        .map(|r| cx.stage(r, &stage_names, &kind_of))
+        .collect::<Result<Vec<_>, _>>()?;
+    check_writes(&cx.reads, &cx.writes).map_err(|(w, msg)| {
+        if w.loc.is_none() {
+            cx.err(None, format!("--set {}.{}: {msg}", w.stage, w.param))
+        } else {
+            cx.err(w.loc, format!("stage `{}`, `{}`: {msg}", w.stage, w.param))
+        }
+    })?;
+    let no_outputs = Value::List(Vec::new());
+    let (outputs_v, outputs_loc) = match &top.outputs {
+        Some((v, l)) => (v, *l),
+        None if top.dataset.is_some() && stages.is_empty() => (&no_outputs, root_loc),
+        None => {
+            return Err(cx.err(
+                Some(root_loc),
+                "missing `outputs:` (the stages whose results are wanted)".into(),
+            ))
+        }
+    };
+    let outputs = cx.outputs(outputs_v, outputs_loc, &stage_names, stages.is_empty())?;
+    let p = Pipeline {
+        name: top.name,
+        file: path.to_path_buf(),
+        stages,
+        outputs,
+        remote_cache: top.remote_cache,
+        dataset: top.dataset,
+    };
+    if let Some(cycle) = crate::plan::find_cycle(&p) {
+        let first = p.stage(&cycle[0]).map(|s| s.loc);
+        return Err(cx.err(first, format!("cycle: {}", cycle.join(" -> "))));
+    }
+    check_film_sizes(&p, reg)
+        .map_err(|(s, m)| cx.err(Some(s.loc), format!("stage `{}`: {m}", s.name)))?;
+    Ok(p)
+}
+
+/// The folder a pipeline file's relative paths are relative to.
+fn folder_of(path: &Path) -> PathBuf {
+    path.parent()
         .map(|p| {
             if p.as_os_str().is_empty() {
                 PathBuf::from(".")
@@ -173,222 +233,265 @@ pub fn parse_value(
                 p.to_path_buf()
             }
         })
-        .unwrap_or_else(|| PathBuf::from("."));
-    let Value::Map(top) = root else {
-        return Err(err(
-            Some(root_loc),
-            "a pipeline is a mapping with `stages:` and `outputs:`".into(),
-        ));
-    };
-    let mut name = path
-        .file_stem()
-        .map(|s| s.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "pipeline".into());
-    let mut stages_node = None;
-    let mut outputs_node = None;
-    let mut remote_cache = None;
-    let mut dataset = None;
-    for (k, kl, v, vl) in &top {
-        match k.as_str() {
-            "pipeline" => match v {
-                Value::Str(s) => name = s.clone(),
-                _ => return Err(err(Some(*vl), "`pipeline` must be a name".into())),
-            },
-            "description" => {}
-            "remote_cache" => match v {
-                Value::Str(s) if s.starts_with("grpc://") || s.starts_with("grpcs://") => {
-                    remote_cache = Some(s.clone())
+        .unwrap_or_else(|| PathBuf::from("."))
+}
+
+/// The top-level keys of a pipeline, each where it was written.
+struct TopLevel {
+    name: String,
+    stages: Option<(Value, Loc)>,
+    outputs: Option<(Value, Loc)>,
+    remote_cache: Option<String>,
+    dataset: Option<(Value, Loc)>,
+}
+
+/// A stage as written: its kind and its parameters with where each key and
+/// value stand (none for an override).
+struct Raw {
+    name: String,
+    kind: String,
+    loc: Loc,
+    params: BTreeMap<String, (Value, Option<Loc>, Option<Loc>)>,
+}
+
+/// What checking one pipeline accumulates: the files it reads and writes
+/// (checked against each other before anything runs).
+struct Checker<'a> {
+    path: &'a Path,
+    /// The pipeline file's folder: relative paths in the file start there.
+    base: PathBuf,
+    reg: &'a Registry,
+    reads: Vec<(PathBuf, String)>,
+    writes: Vec<Written>,
+}
+
+impl Checker<'_> {
+    fn err(&self, loc: Option<Loc>, message: String) -> SpecError {
+        SpecError {
+            file: self.path.to_path_buf(),
+            loc,
+            message,
+        }
+    }
+
+    fn top_level(&self, root: Value, root_loc: Loc) -> Result<TopLevel, SpecError> {
+        let Value::Map(top) = root else {
+            return Err(self.err(
+                Some(root_loc),
+                "a pipeline is a mapping with `stages:` and `outputs:`".into(),
+            ));
+        };
+        let mut t = TopLevel {
+            name: self
+                .path
+                .file_stem()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_else(|| "pipeline".into()),
+            stages: None,
+            outputs: None,
+            remote_cache: None,
+            dataset: None,
+        };
+        for (k, kl, v, vl) in top {
+            match k.as_str() {
+                "pipeline" => match v {
+                    Value::Str(s) => t.name = s,
+                    _ => return Err(self.err(Some(vl), "`pipeline` must be a name".into())),
+                },
+                "description" => {}
+                "remote_cache" => {
+                    match v {
+                        Value::Str(s) if s.starts_with("grpc://") || s.starts_with("grpcs://") => {
+                            t.remote_cache = Some(s)
+                        }
+                        Value::Null => {}
+                        _ => return Err(self.err(
+                            Some(vl),
+                            "`remote_cache` is an endpoint: grpc://HOST:PORT or grpcs://HOST:PORT"
+                                .into(),
+                        )),
+                    }
                 }
-                Value::Null => {}
+                "stages" => t.stages = Some((v, vl)),
+                "outputs" => t.outputs = Some((v, vl)),
+                "dataset" => t.dataset = Some((v, vl)),
                 _ => {
-                    return Err(err(
-                        Some(*vl),
-                        "`remote_cache` is an endpoint: grpc://HOST:PORT or grpcs://HOST:PORT"
-                            .into(),
+                    return Err(self.err(
+                        Some(kl),
+                        format!(
+                            "unknown key `{}` (a pipeline has pipeline, description, \
+                             remote_cache, stages, outputs, dataset)",
+                            clip(&k)
+                        ),
                     ))
                 }
-            },
-            "stages" => stages_node = Some((v, *vl)),
-            "outputs" => outputs_node = Some((v, *vl)),
-            "dataset" => dataset = Some((v.clone(), *vl)),
-            _ => {
-                return Err(err(
-                    Some(*kl),
-                    format!(
-                        "unknown key `{}` (a pipeline has pipeline, description, remote_cache, \
-                         stages, outputs, dataset)",
-                        clip(k)
-                    ),
-                ))
             }
         }
+        Ok(t)
     }
-    let empty = Value::Map(Vec::new());
-    let (stages_v, stages_loc) = match stages_node {
-        Some(s) => s,
-        // A dataset spec alone: its stages are generated.
-        None if dataset.is_some() && outputs_node.is_none() => (&empty, root_loc),
-        None => return Err(err(Some(root_loc), "missing `stages:`".into())),
-    };
-    let Value::Map(stage_entries) = stages_v else {
-        return Err(err(
-            Some(stages_loc),
-            "`stages` must map stage names to stages".into(),
-        ));
-    };
-    // Raw stages: name → (kind, params with locations).
-    struct Raw {
-        name: String,
-        kind: String,
-        loc: Loc,
-        params: BTreeMap<String, (Value, Option<Loc>, Option<Loc>)>,
-    }
-    let mut raws: Vec<Raw> = Vec::new();
-    let mut seen = BTreeSet::new();
-    for (sname, sl, sv, svl) in stage_entries {
-        if !valid_name(sname) {
-            return Err(err(
-                Some(*sl),
-                format!(
-                    "stage name `{}`: use letters, digits, `_` and `-`",
-                    clip(sname)
-                ),
-            ));
-        }
-        if !seen.insert(sname.clone()) {
-            return Err(err(
-                Some(*sl),
-                format!("stage `{}` is defined twice", clip(sname)),
-            ));
-        }
-        let Value::Map(fields) = sv else {
-            return Err(err(
-                Some(*svl),
-                format!("stage `{}` must be a mapping with a `kind`", clip(sname)),
+
+    /// The stages as written: names valid and unique, each a mapping with
+    /// a known `kind`.
+    fn raw_stages(&self, stages_v: &Value, stages_loc: Loc) -> Result<Vec<Raw>, SpecError> {
+        let Value::Map(stage_entries) = stages_v else {
+            return Err(self.err(
+                Some(stages_loc),
+                "`stages` must map stage names to stages".into(),
             ));
         };
-        let mut kind = None;
-        let mut params = BTreeMap::new();
-        for (k, kl, v, vl) in fields {
-            if k == "kind" {
-                match v {
-                    Value::Str(s) => kind = Some((s.clone(), *vl)),
-                    _ => return Err(err(Some(*vl), "`kind` must be a node kind name".into())),
-                }
-            } else {
-                if params.contains_key(k) {
-                    return Err(err(Some(*kl), format!("`{}` is given twice", clip(k))));
-                }
-                params.insert(k.clone(), (v.clone(), Some(*kl), Some(*vl)));
-            }
-        }
-        let Some((kind, kind_loc)) = kind else {
-            return Err(err(
-                Some(*sl),
-                format!(
-                    "stage `{sname}` has no `kind` (one of: {})",
-                    reg.kinds().join(", ")
-                ),
-            ));
-        };
-        if reg.get(&kind).is_none() {
-            return Err(err(
-                Some(kind_loc),
-                format!(
-                    "stage `{sname}`: unknown kind `{}` (one of: {})",
-                    clip(&kind),
-                    reg.kinds().join(", ")
-                ),
-            ));
-        }
-        raws.push(Raw {
-            name: sname.clone(),
-            kind,
-            loc: *sl,
-            params,
-        });
-    }
-    // `--set STAGE.kind=KIND` replaces the stage: the file's parameters
-    // for it are dropped, its other overrides and the kind's defaults
-    // make the new stage (how one pipeline runs on a generated scene or
-    // on a photo's bundle).
-    if let Some(o) = overrides
-        .iter()
-        .find(|o| !raws.iter().any(|r| r.name == o.stage))
-    {
-        return Err(err(
-            None,
-            format!(
-                "--set {}: there is no stage `{}`",
-                clip(&o.text),
-                clip(&o.stage)
-            ),
-        ));
-    }
-    for o in overrides.iter().filter(|o| o.param == "kind") {
-        let r = raws
-            .iter_mut()
-            .find(|r| r.name == o.stage)
-            .expect("stages checked");
-        match &o.value {
-            Value::Str(k) if reg.get(k).is_some() => {
-                r.kind = k.clone();
-                r.params.clear();
-            }
-            v => {
-                return Err(err(
-                    None,
+        let mut raws: Vec<Raw> = Vec::new();
+        let mut seen = BTreeSet::new();
+        for (sname, sl, sv, svl) in stage_entries {
+            if !valid_name(sname) {
+                return Err(self.err(
+                    Some(*sl),
                     format!(
-                        "--set {}: `{}` is not a node kind (one of: {})",
-                        clip(&o.text),
-                        clip(&v.to_string()),
-                        reg.kinds().join(", ")
+                        "stage name `{}`: use letters, digits, `_` and `-`",
+                        clip(sname)
                     ),
-                ))
+                ));
             }
+            if !seen.insert(sname.clone()) {
+                return Err(self.err(
+                    Some(*sl),
+                    format!("stage `{}` is defined twice", clip(sname)),
+                ));
+            }
+            let Value::Map(fields) = sv else {
+                return Err(self.err(
+                    Some(*svl),
+                    format!("stage `{}` must be a mapping with a `kind`", clip(sname)),
+                ));
+            };
+            let mut kind = None;
+            let mut params = BTreeMap::new();
+            for (k, kl, v, vl) in fields {
+                if k == "kind" {
+                    match v {
+                        Value::Str(s) => kind = Some((s.clone(), *vl)),
+                        _ => {
+                            return Err(
+                                self.err(Some(*vl), "`kind` must be a node kind name".into())
+                            )
+                        }
+                    }
+                } else {
+                    if params.contains_key(k) {
+                        return Err(self.err(Some(*kl), format!("`{}` is given twice", clip(k))));
+                    }
+                    params.insert(k.clone(), (v.clone(), Some(*kl), Some(*vl)));
+                }
+            }
+            let Some((kind, kind_loc)) = kind else {
+                return Err(self.err(
+                    Some(*sl),
+                    format!(
+                        "stage `{sname}` has no `kind` (one of: {})",
+                        self.reg.kinds().join(", ")
+                    ),
+                ));
+            };
+            if self.reg.get(&kind).is_none() {
+                return Err(self.err(
+                    Some(kind_loc),
+                    format!(
+                        "stage `{sname}`: unknown kind `{}` (one of: {})",
+                        clip(&kind),
+                        self.reg.kinds().join(", ")
+                    ),
+                ));
+            }
+            raws.push(Raw {
+                name: sname.clone(),
+                kind,
+                loc: *sl,
+                params,
+            });
         }
+        Ok(raws)
     }
-    // Overrides replace or add parameters; they carry no location.
-    for o in overrides.iter().filter(|o| o.param != "kind") {
-        let r = raws
-            .iter_mut()
-            .find(|r| r.name == o.stage)
-            .expect("stages checked");
-        let node = reg.get(&r.kind).expect("kind checked");
-        if !node.params().iter().any(|p| p.name == o.param) {
-            return Err(err(
+
+    /// `--set STAGE.kind=KIND` replaces the stage: the file's parameters
+    /// for it are dropped, its other overrides and the kind's defaults
+    /// make the new stage (how one pipeline runs on a generated scene or
+    /// on a photo's bundle). Other overrides replace or add parameters;
+    /// they carry no location.
+    fn apply_overrides(&self, raws: &mut [Raw], overrides: &[Override]) -> Result<(), SpecError> {
+        if let Some(o) = overrides
+            .iter()
+            .find(|o| !raws.iter().any(|r| r.name == o.stage))
+        {
+            return Err(self.err(
                 None,
                 format!(
-                    "--set {}: a {} stage has no parameter `{}` (it has: {})",
+                    "--set {}: there is no stage `{}`",
                     clip(&o.text),
-                    r.kind,
-                    clip(&o.param),
-                    names(node.params().iter().map(|p| p.name))
+                    clip(&o.stage)
                 ),
             ));
         }
-        r.params
-            .insert(o.param.clone(), (o.value.clone(), None, None));
+        for o in overrides.iter().filter(|o| o.param == "kind") {
+            let r = raws
+                .iter_mut()
+                .find(|r| r.name == o.stage)
+                .expect("stages checked");
+            match &o.value {
+                Value::Str(k) if self.reg.get(k).is_some() => {
+                    r.kind = k.clone();
+                    r.params.clear();
+                }
+                v => {
+                    return Err(self.err(
+                        None,
+                        format!(
+                            "--set {}: `{}` is not a node kind (one of: {})",
+                            clip(&o.text),
+                            clip(&v.to_string()),
+                            self.reg.kinds().join(", ")
+                        ),
+                    ))
+                }
+            }
+        }
+        for o in overrides.iter().filter(|o| o.param != "kind") {
+            let r = raws
+                .iter_mut()
+                .find(|r| r.name == o.stage)
+                .expect("stages checked");
+            let node = self.reg.get(&r.kind).expect("kind checked");
+            if !node.params().iter().any(|p| p.name == o.param) {
+                return Err(self.err(
+                    None,
+                    format!(
+                        "--set {}: a {} stage has no parameter `{}` (it has: {})",
+                        clip(&o.text),
+                        r.kind,
+                        clip(&o.param),
+                        names(node.params().iter().map(|p| p.name))
+                    ),
+                ));
+            }
+            r.params
+                .insert(o.param.clone(), (o.value.clone(), None, None));
+        }
+        Ok(())
     }
-    let cwd = PathBuf::from(".");
-    let stage_names: BTreeSet<String> = raws.iter().map(|r| r.name.clone()).collect();
-    let kind_of: std::collections::HashMap<&str, &str> = raws
-        .iter()
-        .map(|r| (r.name.as_str(), r.kind.as_str()))
-        .collect();
-    let mut stages = Vec::new();
-    // Files the pipeline reads (the pipeline itself, every input path)
-    // and writes, by their real paths, to check before anything runs.
-    let mut reads: Vec<(PathBuf, String)> = vec![(real_path(path), "the pipeline file".into())];
-    let mut writes: Vec<Written> = Vec::new();
-    for r in &raws {
-        let node = reg.get(&r.kind).expect("kind checked");
+
+    /// One stage checked against its kind: every parameter given is
+    /// declared, every declared one given or defaulted and of its type,
+    /// references resolved to an upstream output; the kind's own checks;
+    /// the files it writes noted.
+    fn stage(
+        &mut self,
+        r: &Raw,
+        stage_names: &BTreeSet<String>,
+        kind_of: &std::collections::HashMap<&str, &str>,
+    ) -> Result<Stage, SpecError> {
+        let node = self.reg.get(&r.kind).expect("kind checked");
         let specs = node.params();
-        // Where the stage's output path was given, for messages.
-        let mut out_at: Option<(&str, Option<Loc>)> = None;
         for (k, (_, kl, _)) in &r.params {
             if !specs.iter().any(|p| p.name == k) {
-                return Err(err(
+                return Err(self.err(
                     *kl,
                     format!(
                         "stage `{}`: unknown parameter `{}` for kind {} (it has: {})",
@@ -400,159 +503,26 @@ pub fn parse_value(
                 ));
             }
         }
-        let mut params = Params::default();
-        let mut refs = BTreeMap::new();
+        let mut st = StageParams {
+            params: Params::default(),
+            refs: BTreeMap::new(),
+            out_at: None,
+        };
         for p in specs {
-            let (v, loc) = match r.params.get(p.name) {
-                Some((v, _, l)) => (v.clone(), *l),
-                None => match p.default {
-                    None => {
-                        return Err(err(
-                            Some(r.loc),
-                            format!(
-                                "stage `{}`: missing parameter `{}` ({})",
-                                r.name,
-                                p.name,
-                                p.ty.describe()
-                            ),
-                        ))
-                    }
-                    Some(d) => (
-                        parse_override(d).expect("defaults are valid YAML"),
-                        Some(Loc::default()),
-                    ),
-                },
-            };
-            let from_file = matches!(loc, Some(l) if l.line > 0);
-            let where_ = |msg: String| {
-                if loc.is_none() {
-                    err(None, format!("--set {}.{}: {msg}", r.name, p.name))
-                } else {
-                    err(loc, format!("stage `{}`, `{}`: {msg}", r.name, p.name))
-                }
-            };
-            if matches!(v, Value::Null) {
-                if p.default.is_none() {
-                    return Err(where_(format!(
-                        "is required ({}), got nothing",
-                        p.ty.describe()
-                    )));
-                }
-                params.0.insert(p.name.to_string(), Value::Null);
-                continue;
-            }
-            let bad = |v: &Value| {
-                where_(format!(
-                    "expected {}, got {}",
-                    p.ty.describe(),
-                    clip(&v.to_string())
-                ))
-            };
-            let norm = match p.ty {
-                ParamType::Bool
-                | ParamType::Int { .. }
-                | ParamType::Float { .. }
-                | ParamType::Choice(_)
-                | ParamType::Floats { .. } => match p.ty.normalize(&v) {
-                    Some(n) => n,
-                    None => return Err(bad(&v)),
-                },
-                ParamType::FloatOrFloats { .. } => match p.ty.normalize(&v) {
-                    Some(n) => n,
-                    None => return Err(bad(&v)),
-                },
-                ParamType::Records { .. } | ParamType::Record(_) => {
-                    let dir = if from_file || loc == Some(Loc::default()) {
-                        &base
-                    } else {
-                        &cwd
-                    };
-                    let what = format!("stage `{}`'s `{}`", r.name, p.name);
-                    match normalize_fields(&p.ty, &v, loc, dir, &what, &mut reads) {
-                        Ok(n) => n,
-                        Err((at, msg)) => {
-                            return Err(if loc.is_none() {
-                                err(None, format!("--set {}.{}{msg}", r.name, p.name))
-                            } else {
-                                err(at.or(loc), format!("stage `{}`, `{}`{msg}", r.name, p.name))
-                            })
-                        }
-                    }
-                }
-                ParamType::InPath | ParamType::OutPath => match &v {
-                    Value::Str(s) => {
-                        let full = if from_file || loc == Some(Loc::default()) {
-                            resolve_path(&base, s)
-                        } else {
-                            resolve_path(&cwd, s)
-                        };
-                        if matches!(p.ty, ParamType::InPath) {
-                            if let Err(e) = std::fs::metadata(&full) {
-                                return Err(where_(format!("{}: {e}", full.display())));
-                            }
-                            reads.push((
-                                real_path(&full),
-                                format!("stage `{}`'s `{}`", r.name, p.name),
-                            ));
-                        } else if out_at.is_none() {
-                            out_at = Some((p.name, loc));
-                        }
-                        Value::Str(full.to_string_lossy().into_owned())
-                    }
-                    _ => return Err(bad(&v)),
-                },
-                ParamType::Ref(accepts) => {
-                    let Value::Str(s) = &v else {
-                        return Err(bad(&v));
-                    };
-                    let (up, out) = match s.split_once('.') {
-                        Some((a, b)) => (a.to_string(), Some(b.to_string())),
-                        None => (s.clone(), None),
-                    };
-                    if !stage_names.contains(&up) {
-                        return Err(where_(format!("there is no stage `{}`", clip(&up))));
-                    }
-                    if up == r.name {
-                        return Err(where_(format!(
-                            "stage `{up}` refers to itself (cycle: {up} -> {up})"
-                        )));
-                    }
-                    let up_kind = kind_of[up.as_str()];
-                    let up_node = reg.get(up_kind).expect("kind checked");
-                    let chosen = match &out {
-                        Some(o) => up_node.outputs().iter().find(|x| x.name == o),
-                        None => up_node.outputs().iter().find(|x| accepts.contains(&x.ty)),
-                    };
-                    match chosen {
-                        Some(o) if accepts.contains(&o.ty) => {
-                            refs.insert(p.name.to_string(), (up.clone(), o.name.to_string()));
-                        }
-                        _ => {
-                            return Err(where_(format!(
-                                "stage `{up}` ({up_kind}) has no output of type {} \
-                                 (its outputs: {})",
-                                accepts.join(" or "),
-                                names(
-                                    up_node
-                                        .outputs()
-                                        .iter()
-                                        .map(|o| format!("{} ({})", o.name, o.ty))
-                                )
-                            )))
-                        }
-                    }
-                    v
-                }
-            };
-            params.0.insert(p.name.to_string(), norm);
+            self.param(r, p, &mut st, stage_names, kind_of)?;
         }
+        let StageParams {
+            params,
+            refs,
+            out_at,
+        } = st;
         node.check(&params)
-            .map_err(|m| err(Some(r.loc), format!("stage `{}`: {m}", r.name)))?;
+            .map_err(|m| self.err(Some(r.loc), format!("stage `{}`: {m}", r.name)))?;
         node.preflight(&params)
-            .map_err(|m| err(Some(r.loc), format!("stage `{}`: {m}", r.name)))?;
+            .map_err(|m| self.err(Some(r.loc), format!("stage `{}`: {m}", r.name)))?;
         for f in node.output_files(&params) {
             let (param, loc) = out_at.unwrap_or(("output", Some(r.loc)));
-            writes.push(Written {
+            self.writes.push(Written {
                 real: real_path(&f),
                 file: f,
                 stage: r.name.clone(),
@@ -560,78 +530,209 @@ pub fn parse_value(
                 loc,
             });
         }
-        stages.push(Stage {
+        Ok(Stage {
             name: r.name.clone(),
             kind: r.kind.clone(),
             loc: r.loc,
             params,
             refs,
-        });
+        })
     }
-    check_writes(&reads, &writes).map_err(|(w, msg)| {
-        if w.loc.is_none() {
-            err(None, format!("--set {}.{}: {msg}", w.stage, w.param))
+
+    /// One declared parameter of stage `r`: its value as given (or its
+    /// default), checked and normalised into `st`.
+    fn param(
+        &mut self,
+        r: &Raw,
+        p: &crate::node::ParamSpec,
+        st: &mut StageParams,
+        stage_names: &BTreeSet<String>,
+        kind_of: &std::collections::HashMap<&str, &str>,
+    ) -> Result<(), SpecError> {
+        let (v, loc) = match r.params.get(p.name) {
+            Some((v, _, l)) => (v.clone(), *l),
+            None => match p.default {
+                None => {
+                    return Err(self.err(
+                        Some(r.loc),
+                        format!(
+                            "stage `{}`: missing parameter `{}` ({})",
+                            r.name,
+                            p.name,
+                            p.ty.describe()
+                        ),
+                    ))
+                }
+                Some(d) => (
+                    parse_override(d).expect("defaults are valid YAML"),
+                    Some(Loc::default()),
+                ),
+            },
+        };
+        // Paths in the file (and defaults) are relative to its folder;
+        // paths given with `--set`, to the current one.
+        let from_file = matches!(loc, Some(l) if l.line > 0) || loc == Some(Loc::default());
+        let dir = if from_file {
+            self.base.clone()
         } else {
-            err(w.loc, format!("stage `{}`, `{}`: {msg}", w.stage, w.param))
+            PathBuf::from(".")
+        };
+        let where_ = |msg: String| {
+            if loc.is_none() {
+                self.err(None, format!("--set {}.{}: {msg}", r.name, p.name))
+            } else {
+                self.err(loc, format!("stage `{}`, `{}`: {msg}", r.name, p.name))
+            }
+        };
+        if matches!(v, Value::Null) {
+            if p.default.is_none() {
+                return Err(where_(format!(
+                    "is required ({}), got nothing",
+                    p.ty.describe()
+                )));
+            }
+            st.params.0.insert(p.name.to_string(), Value::Null);
+            return Ok(());
         }
-    })?;
-    // Outputs.
-    let no_outputs = Value::List(Vec::new());
-    let (outputs_v, outputs_loc) = match outputs_node {
-        Some(o) => o,
-        None if dataset.is_some() && stages.is_empty() => (&no_outputs, root_loc),
-        None => {
-            return Err(err(
-                Some(root_loc),
-                "missing `outputs:` (the stages whose results are wanted)".into(),
+        let bad = |v: &Value| {
+            where_(format!(
+                "expected {}, got {}",
+                p.ty.describe(),
+                clip(&v.to_string())
             ))
+        };
+        let norm = match p.ty {
+            ParamType::Bool
+            | ParamType::Int { .. }
+            | ParamType::Float { .. }
+            | ParamType::Choice(_)
+            | ParamType::Floats { .. }
+            | ParamType::FloatOrFloats { .. } => match p.ty.normalize(&v) {
+                Some(n) => n,
+                None => return Err(bad(&v)),
+            },
+            ParamType::Records { .. } | ParamType::Record(_) => {
+                let what = format!("stage `{}`'s `{}`", r.name, p.name);
+                match normalize_fields(&p.ty, &v, loc, &dir, &what, &mut self.reads) {
+                    Ok(n) => n,
+                    Err((at, msg)) => {
+                        return Err(if loc.is_none() {
+                            self.err(None, format!("--set {}.{}{msg}", r.name, p.name))
+                        } else {
+                            self.err(at.or(loc), format!("stage `{}`, `{}`{msg}", r.name, p.name))
+                        })
+                    }
+                }
+            }
+            ParamType::InPath | ParamType::OutPath => match &v {
+                Value::Str(s) => {
+                    let full = resolve_path(&dir, s);
+                    if matches!(p.ty, ParamType::InPath) {
+                        if let Err(e) = std::fs::metadata(&full) {
+                            return Err(where_(format!("{}: {e}", full.display())));
+                        }
+                        self.reads.push((
+                            real_path(&full),
+                            format!("stage `{}`'s `{}`", r.name, p.name),
+                        ));
+                    } else if st.out_at.is_none() {
+                        st.out_at = Some((p.name, loc));
+                    }
+                    Value::Str(full.to_string_lossy().into_owned())
+                }
+                _ => return Err(bad(&v)),
+            },
+            ParamType::Ref(accepts) => {
+                let Value::Str(s) = &v else {
+                    return Err(bad(&v));
+                };
+                let (up, out) = match s.split_once('.') {
+                    Some((a, b)) => (a.to_string(), Some(b.to_string())),
+                    None => (s.clone(), None),
+                };
+                if !stage_names.contains(&up) {
+                    return Err(where_(format!("there is no stage `{}`", clip(&up))));
+                }
+                if up == r.name {
+                    return Err(where_(format!(
+                        "stage `{up}` refers to itself (cycle: {up} -> {up})"
+                    )));
+                }
+                let up_kind = kind_of[up.as_str()];
+                let up_node = self.reg.get(up_kind).expect("kind checked");
+                let chosen = match &out {
+                    Some(o) => up_node.outputs().iter().find(|x| x.name == o),
+                    None => up_node.outputs().iter().find(|x| accepts.contains(&x.ty)),
+                };
+                match chosen {
+                    Some(o) if accepts.contains(&o.ty) => {
+                        st.refs
+                            .insert(p.name.to_string(), (up.clone(), o.name.to_string()));
+                    }
+                    _ => {
+                        return Err(where_(format!(
+                            "stage `{up}` ({up_kind}) has no output of type {} \
+                             (its outputs: {})",
+                            accepts.join(" or "),
+                            names(
+                                up_node
+                                    .outputs()
+                                    .iter()
+                                    .map(|o| format!("{} ({})", o.name, o.ty))
+                            )
+                        )))
+                    }
+                }
+                v
+            }
+        };
+        st.params.0.insert(p.name.to_string(), norm);
+        Ok(())
+    }
+
+    /// `outputs:`: a stage name or a list of them, not empty when there
+    /// are stages.
+    fn outputs(
+        &self,
+        outputs_v: &Value,
+        outputs_loc: Loc,
+        stage_names: &BTreeSet<String>,
+        no_stages: bool,
+    ) -> Result<Vec<String>, SpecError> {
+        let not_names = || self.err(Some(outputs_loc), "`outputs` must list stage names".into());
+        let outputs: Vec<String> = match outputs_v {
+            Value::List(xs) => xs
+                .iter()
+                .map(|x| match x {
+                    Value::Str(s) => Ok(s.clone()),
+                    _ => Err(not_names()),
+                })
+                .collect::<Result<_, _>>()?,
+            Value::Str(s) => vec![s.clone()],
+            _ => return Err(not_names()),
+        };
+        if outputs.is_empty() && !no_stages {
+            return Err(self.err(Some(outputs_loc), "`outputs` is empty".into()));
         }
-    };
-    let outputs: Vec<String> = match outputs_v {
-        Value::List(xs) => xs
-            .iter()
-            .map(|x| match x {
-                Value::Str(s) => Ok(s.clone()),
-                _ => Err(err(
+        for o in &outputs {
+            if !stage_names.contains(o) {
+                return Err(self.err(
                     Some(outputs_loc),
-                    "`outputs` must list stage names".into(),
-                )),
-            })
-            .collect::<Result<_, _>>()?,
-        Value::Str(s) => vec![s.clone()],
-        _ => {
-            return Err(err(
-                Some(outputs_loc),
-                "`outputs` must list stage names".into(),
-            ))
+                    format!("`outputs` names `{}`, which is not a stage", clip(o)),
+                ));
+            }
         }
-    };
-    if outputs.is_empty() && !stages.is_empty() {
-        return Err(err(Some(outputs_loc), "`outputs` is empty".into()));
+        Ok(outputs)
     }
-    for o in &outputs {
-        if !stage_names.contains(o) {
-            return Err(err(
-                Some(outputs_loc),
-                format!("`outputs` names `{}`, which is not a stage", clip(o)),
-            ));
-        }
-    }
-    let p = Pipeline {
-        name,
-        file: path.to_path_buf(),
-        stages,
-        outputs,
-        remote_cache,
-        dataset,
-    };
-    if let Some(cycle) = crate::plan::find_cycle(&p) {
-        let first = p.stage(&cycle[0]).map(|s| s.loc);
-        return Err(err(first, format!("cycle: {}", cycle.join(" -> "))));
-    }
-    check_film_sizes(&p, reg)
-        .map_err(|(s, m)| err(Some(s.loc), format!("stage `{}`: {m}", s.name)))?;
-    Ok(p)
+}
+
+/// What checking a stage's parameters builds up: the values, the
+/// references to upstream outputs, and where its output path was given
+/// (for messages about the files it writes).
+struct StageParams {
+    params: Params,
+    refs: BTreeMap<String, (String, String)>,
+    out_at: Option<(&'static str, Option<Loc>)>,
 }
 
 /// A file a stage writes: its path as given and as resolved, and where

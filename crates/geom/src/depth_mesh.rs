@@ -694,38 +694,35 @@ pub fn mesh_for_view(
     Ok((cam, mesh))
 }
 
-/// Builds the mesh from camera-space depth `z` (0 = no geometry).
+/// A pixel with no boundary pointer (see [`boundary_pointers`]).
+const NONE: u32 = u32::MAX;
+
+/// The mesh's vertices as built: f64 positions (for the angle tests), the
+/// f32 ones it keeps, and each vertex's film position.
+struct Verts {
+    pos64: Vec<DVec3>,
+    positions: Vec<Vec3>,
+    film: Vec<Vec2>,
+}
+
+impl Verts {
+    /// A copy of pixel `pix`'s vertex moved to `p`.
+    fn copy(&mut self, p: DVec3, pix: usize) -> u32 {
+        push_vertex(&mut self.pos64, &mut self.positions, &mut self.film, p, pix)
+    }
+}
+
+/// Builds the mesh from camera-space depth `z` (0 = no geometry), in the
+/// reference's steps: boundary pointers, depth replacement along them,
+/// the grid's vertices, each quad's triangles tested, then emitted with
+/// boundary vertices duplicated; with kept silhouettes, solids' backs.
 pub fn mesh_from_depth(
     z: &GrayImage,
     cam: &Camera,
     params: &MeshParams,
 ) -> Result<DepthMesh, MeshError> {
+    check_depth(z, cam)?;
     let (w, h) = (z.width, z.height);
-    if w != cam.width || h != cam.height {
-        return Err(MeshError::Size {
-            got_w: w,
-            got_h: h,
-            want_w: cam.width,
-            want_h: cam.height,
-        });
-    }
-    if w < 2 || h < 2 {
-        return Err(MeshError::TooSmall);
-    }
-    let bad: Vec<usize> = z
-        .data
-        .iter()
-        .enumerate()
-        .filter(|(_, v)| !v.is_finite() || **v < 0.0)
-        .map(|(i, _)| i)
-        .collect();
-    if let Some(&first) = bad.first() {
-        return Err(MeshError::BadDepth {
-            count: bad.len(),
-            x: first % w,
-            y: first / w,
-        });
-    }
     let pp = cam.principal_point();
     let g = Grid {
         z: &z.data,
@@ -737,48 +734,7 @@ pub fn mesh_from_depth(
     let tau = params.min_angle_deg;
 
     // 2. Boundary detection: refer[k] = index of the deeper pixel, or NONE.
-    const NONE: u32 = u32::MAX;
-    let refer: Vec<u32> = (0..h)
-        .into_par_iter()
-        .flat_map_iter(|i| {
-            let g = &g;
-            (0..w).map(move |j| {
-                if i == 0 || j == 0 || i + 1 >= h || j + 1 >= w {
-                    return NONE;
-                }
-                let nb = [(i, j), (i + 1, j), (i, j + 1), (i - 1, j), (i, j - 1)];
-                if nb.iter().any(|&(a, b)| g.zz(a, b) == 0.0) {
-                    return NONE;
-                }
-                let p: Vec<DVec3> = nb.iter().map(|&(a, b)| g.p(a, b)).collect();
-                const FANS: [(usize, usize, isize, isize); 4] =
-                    [(1, 2, 1, 1), (2, 3, -1, 1), (3, 4, -1, -1), (4, 1, 1, -1)];
-                let zc = g.zz(i, j);
-                let mut best: Option<(usize, usize)> = None;
-                for (a, b, dr, dc) in FANS {
-                    let ang = view_angle_deg(p[0], p[a], p[b]);
-                    if !(ang < tau) {
-                        continue;
-                    }
-                    let rn = ((i as isize + dr) as usize, j);
-                    let cn = (i, (j as isize + dc) as usize);
-                    let (zr, zcn) = (g.zz(rn.0, rn.1), g.zz(cn.0, cn.1));
-                    if !(zc < zcn || zc < zr) {
-                        continue;
-                    }
-                    let cand = if zcn > zr { cn } else { rn };
-                    let better = match best {
-                        None => true,
-                        Some(bp) => g.zz(cand.0, cand.1) > g.zz(bp.0, bp.1),
-                    };
-                    if better {
-                        best = Some(cand);
-                    }
-                }
-                best.map(|(a, b)| (a * w + b) as u32).unwrap_or(NONE)
-            })
-        })
-        .collect();
+    let refer = boundary_pointers(&g, h, tau);
 
     // 3. Depth replacement by following pointer chains.
     let mut znew = z.data.clone();
@@ -824,9 +780,161 @@ pub fn mesh_from_depth(
     };
 
     // Vertices: the full grid (masked ones at the origin), then copies.
-    let mut positions: Vec<Vec3> = Vec::with_capacity(w * h + w * h / 32);
-    let mut film: Vec<Vec2> = Vec::with_capacity(w * h + w * h / 32);
-    let mut pos64: Vec<DVec3> = Vec::with_capacity(w * h + w * h / 32);
+    let mut v = grid_vertices(&gn, h, &offset, &znew);
+
+    // 4. Validity of every quad's two triangles, in parallel.
+    let status = quad_status(w, h, &znew, &v.pos64, tau, &on_plane);
+
+    // 5. Emit, duplicating boundary vertices sequentially (copies are shared).
+    let mut stats = MeshStats {
+        boundary_pixels,
+        kept_edges,
+        ..Default::default()
+    };
+    let quads_w = w - 1;
+    let mut indices: Vec<[u32; 3]> = Vec::with_capacity(2 * (h - 1) * quads_w);
+    let mut copy_of: Vec<u32> = vec![NONE; w * h];
+    for q in 0..(h - 1) * quads_w {
+        let (i, j) = (q / quads_w, q % quads_w);
+        for (n, second) in [false, true].into_iter().enumerate() {
+            let t = tri_of(w, i, j, second);
+            match status[q][n] {
+                0 => {}
+                1 => {
+                    indices.push(t.map(|k| k as u32));
+                    stats.emitted_direct += 1;
+                }
+                _ => match duplicated(&gn, t, &znew, &mut v, &mut copy_of, &mut stats, tau) {
+                    Some((idx, round)) => {
+                        indices.push(idx);
+                        if round == 0 {
+                            stats.emitted_one_copy += 1;
+                        } else {
+                            stats.emitted_two_copies += 1;
+                        }
+                    }
+                    None => stats.dropped += 1,
+                },
+            }
+        }
+    }
+
+    // 6. Backs: the far side of what the view shows as a convex solid.
+    if kept {
+        let up = crate::planes::view_up(z, cam, &crate::planes::PlaneParams::default());
+        let backs = Backs {
+            g: &gn,
+            h,
+            tau,
+            offset: &offset,
+            status: &status,
+        };
+        backs.add(up.as_dvec3(), &on_plane, &mut v, &mut indices, &mut stats);
+    }
+
+    Ok(DepthMesh {
+        mesh: TriMesh {
+            positions: v.positions,
+            indices,
+            film: v.film,
+            material_pixel: Vec::new(),
+            openness: Vec::new(),
+            portals: Vec::new(),
+        },
+        depth: GrayImage::from_vec(w, h, znew),
+        stats,
+    })
+}
+
+/// The depth map fits the camera, is at least 2×2 and holds no NaN,
+/// infinity or negative depth (the first such pixel is named).
+fn check_depth(z: &GrayImage, cam: &Camera) -> Result<(), MeshError> {
+    let (w, h) = (z.width, z.height);
+    if w != cam.width || h != cam.height {
+        return Err(MeshError::Size {
+            got_w: w,
+            got_h: h,
+            want_w: cam.width,
+            want_h: cam.height,
+        });
+    }
+    if w < 2 || h < 2 {
+        return Err(MeshError::TooSmall);
+    }
+    let bad: Vec<usize> = z
+        .data
+        .iter()
+        .enumerate()
+        .filter(|(_, v)| !v.is_finite() || **v < 0.0)
+        .map(|(i, _)| i)
+        .collect();
+    if let Some(&first) = bad.first() {
+        return Err(MeshError::BadDepth {
+            count: bad.len(),
+            x: first % w,
+            y: first / w,
+        });
+    }
+    Ok(())
+}
+
+/// Per pixel, the deeper neighbour its depth is replaced from (the
+/// reference's boundary detection), or [`NONE`]: an inner pixel is a
+/// boundary where one of its four fans is seen at a grazing angle (under
+/// `tau`) and it is nearer than a neighbour of that fan.
+fn boundary_pointers(g: &Grid, h: usize, tau: f64) -> Vec<u32> {
+    let w = g.w;
+    (0..h)
+        .into_par_iter()
+        .flat_map_iter(|i| {
+            (0..w).map(move |j| {
+                if i == 0 || j == 0 || i + 1 >= h || j + 1 >= w {
+                    return NONE;
+                }
+                let nb = [(i, j), (i + 1, j), (i, j + 1), (i - 1, j), (i, j - 1)];
+                if nb.iter().any(|&(a, b)| g.zz(a, b) == 0.0) {
+                    return NONE;
+                }
+                let p: Vec<DVec3> = nb.iter().map(|&(a, b)| g.p(a, b)).collect();
+                const FANS: [(usize, usize, isize, isize); 4] =
+                    [(1, 2, 1, 1), (2, 3, -1, 1), (3, 4, -1, -1), (4, 1, 1, -1)];
+                let zc = g.zz(i, j);
+                let mut best: Option<(usize, usize)> = None;
+                for (a, b, dr, dc) in FANS {
+                    let ang = view_angle_deg(p[0], p[a], p[b]);
+                    if !(ang < tau) {
+                        continue;
+                    }
+                    let rn = ((i as isize + dr) as usize, j);
+                    let cn = (i, (j as isize + dc) as usize);
+                    let (zr, zcn) = (g.zz(rn.0, rn.1), g.zz(cn.0, cn.1));
+                    if !(zc < zcn || zc < zr) {
+                        continue;
+                    }
+                    let cand = if zcn > zr { cn } else { rn };
+                    let better = match best {
+                        None => true,
+                        Some(bp) => g.zz(cand.0, cand.1) > g.zz(bp.0, bp.1),
+                    };
+                    if better {
+                        best = Some(cand);
+                    }
+                }
+                best.map(|(a, b)| (a * w + b) as u32).unwrap_or(NONE)
+            })
+        })
+        .collect()
+}
+
+/// One vertex per pixel (masked ones at the origin); a kept edge's
+/// vertex moves by its film offset.
+fn grid_vertices(gn: &Grid, h: usize, offset: &[Vec2], znew: &[f32]) -> Verts {
+    let w = gn.w;
+    let mut v = Verts {
+        positions: Vec::with_capacity(w * h + w * h / 32),
+        film: Vec::with_capacity(w * h + w * h / 32),
+        pos64: Vec::with_capacity(w * h + w * h / 32),
+    };
     for i in 0..h {
         for j in 0..w {
             let p = match offset.get(i * w + j) {
@@ -835,34 +943,46 @@ pub fn mesh_from_depth(
                 }
                 _ => gn.p(i, j),
             };
-            pos64.push(p);
-            positions.push(p.as_vec3());
-            film.push(Vec2::new(j as f32 + 0.5, i as f32 + 0.5));
+            v.pos64.push(p);
+            v.positions.push(p.as_vec3());
+            v.film.push(Vec2::new(j as f32 + 0.5, i as f32 + 0.5));
         }
     }
+    v
+}
 
-    // 4. Validity of every quad's two triangles, in parallel.
+/// The pixels of quad (i, j)'s first or second triangle.
+fn tri_of(w: usize, i: usize, j: usize, second: bool) -> [usize; 3] {
+    let v = |a: usize, b: usize| a * w + b;
+    if second {
+        [v(i, j + 1), v(i + 1, j), v(i + 1, j + 1)]
+    } else {
+        [v(i, j), v(i + 1, j), v(i, j + 1)]
+    }
+}
+
+/// Per quad and triangle: 0 = skipped (a masked vertex), 1 = valid,
+/// 2 = seen at a grazing angle, to emit with duplicated vertices.
+fn quad_status(
+    w: usize,
+    h: usize,
+    znew: &[f32],
+    pos64: &[DVec3],
+    tau: f64,
+    on_plane: &(dyn Fn(usize) -> bool + Sync),
+) -> Vec<[u8; 2]> {
     let quads_w = w - 1;
-    let tri_of = |i: usize, j: usize, second: bool| -> [usize; 3] {
-        let v = |a: usize, b: usize| a * w + b;
-        if second {
-            [v(i, j + 1), v(i + 1, j), v(i + 1, j + 1)]
-        } else {
-            [v(i, j), v(i + 1, j), v(i, j + 1)]
-        }
-    };
-    // 0 = skip, 1 = valid, 2 = needs duplication.
-    let status: Vec<[u8; 2]> = (0..(h - 1) * quads_w)
+    (0..(h - 1) * quads_w)
         .into_par_iter()
         .map(|q| {
             let (i, j) = (q / quads_w, q % quads_w);
-            let t1 = tri_of(i, j, false);
+            let t1 = tri_of(w, i, j, false);
             if t1.iter().any(|&k| znew[k] == 0.0) {
                 return [0, 0];
             }
             let mut s = [0u8; 2];
             for (n, second) in [false, true].into_iter().enumerate() {
-                let t = tri_of(i, j, second);
+                let t = tri_of(w, i, j, second);
                 if t.iter().any(|&k| znew[k] == 0.0) {
                     s[n] = 0;
                     continue;
@@ -876,88 +996,93 @@ pub fn mesh_from_depth(
             }
             s
         })
-        .collect();
+        .collect()
+}
 
-    // 5. Emit, duplicating boundary vertices sequentially (copies are shared).
-    let mut stats = MeshStats {
-        boundary_pixels,
-        kept_edges,
-        ..Default::default()
-    };
-    let mut indices: Vec<[u32; 3]> = Vec::with_capacity(2 * (h - 1) * quads_w);
-    let mut copy_of: Vec<u32> = vec![NONE; w * h];
-    for q in 0..(h - 1) * quads_w {
-        let (i, j) = (q / quads_w, q % quads_w);
-        for (n, second) in [false, true].into_iter().enumerate() {
-            let t = tri_of(i, j, second);
-            match status[q][n] {
-                0 => {}
-                1 => {
-                    indices.push(t.map(|k| k as u32));
-                    stats.emitted_direct += 1;
-                }
-                _ => {
-                    let mut d = t.map(|k| znew[k] as f64);
-                    let zmax = d.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-                    let mut idx = t.map(|k| k as u32);
-                    let mut emitted = false;
-                    for round in 0..2 {
-                        // argmin, first index on ties.
-                        let mut kmin = 0;
-                        for c in 1..3 {
-                            if d[c] < d[kmin] {
-                                kmin = c;
-                            }
-                        }
-                        let pix = t[kmin];
-                        if copy_of[pix] == NONE {
-                            let p = gn.point(pix / w, pix % w, zmax);
-                            copy_of[pix] =
-                                push_vertex(&mut pos64, &mut positions, &mut film, p, pix);
-                            stats.copies += 1;
-                        }
-                        idx[kmin] = copy_of[pix];
-                        let ang = view_angle_deg(
-                            pos64[idx[0] as usize],
-                            pos64[idx[1] as usize],
-                            pos64[idx[2] as usize],
-                        );
-                        if ang > tau {
-                            indices.push(idx);
-                            if round == 0 {
-                                stats.emitted_one_copy += 1;
-                            } else {
-                                stats.emitted_two_copies += 1;
-                            }
-                            emitted = true;
-                            break;
-                        }
-                        d[kmin] = zmax;
-                    }
-                    if !emitted {
-                        stats.dropped += 1;
-                    }
-                }
+/// A grazing triangle `t` re-emitted with its nearest vertex (then the
+/// next nearest) copied back to the triangle's farthest depth, until it
+/// faces the camera by more than `tau`: its indices and how many rounds
+/// that took (0 or 1), or `None` (dropped). Copies are shared between
+/// triangles through `copy_of`.
+fn duplicated(
+    gn: &Grid,
+    t: [usize; 3],
+    znew: &[f32],
+    v: &mut Verts,
+    copy_of: &mut [u32],
+    stats: &mut MeshStats,
+    tau: f64,
+) -> Option<([u32; 3], usize)> {
+    let w = gn.w;
+    let mut d = t.map(|k| znew[k] as f64);
+    let zmax = d.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    let mut idx = t.map(|k| k as u32);
+    for round in 0..2 {
+        // argmin, first index on ties.
+        let mut kmin = 0;
+        for c in 1..3 {
+            if d[c] < d[kmin] {
+                kmin = c;
             }
         }
+        let pix = t[kmin];
+        if copy_of[pix] == NONE {
+            let p = gn.point(pix / w, pix % w, zmax);
+            copy_of[pix] = v.copy(p, pix);
+            stats.copies += 1;
+        }
+        idx[kmin] = copy_of[pix];
+        let ang = view_angle_deg(
+            v.pos64[idx[0] as usize],
+            v.pos64[idx[1] as usize],
+            v.pos64[idx[2] as usize],
+        );
+        if ang > tau {
+            return Some((idx, round));
+        }
+        d[kmin] = zmax;
     }
+    None
+}
 
-    // 6. Backs: the far side of what the view shows as a convex solid.
-    if kept {
-        let mut back = mirrored_backs(&gn, h, tau, &on_plane);
-        let up = crate::planes::view_up(z, cam, &crate::planes::PlaneParams::default());
-        let from_columns = extruded_backs(&gn, h, tau, &on_plane, up.as_dvec3());
+/// What adding solids' backs needs: the replaced depth's grid, the kept
+/// edges' film offsets and each triangle's status.
+struct Backs<'a> {
+    g: &'a Grid<'a>,
+    h: usize,
+    tau: f64,
+    offset: &'a [Vec2],
+    status: &'a [[u8; 2]],
+}
+
+impl Backs<'_> {
+    /// The far side of what the view shows as a convex solid (mirrored
+    /// about its silhouettes, or extruded along `up` from its columns, the
+    /// deeper of the two), added behind every valid triangle that has
+    /// one, facing away from the camera.
+    fn add(
+        &self,
+        up: DVec3,
+        on_plane: &dyn Fn(usize) -> bool,
+        v: &mut Verts,
+        indices: &mut Vec<[u32; 3]>,
+        stats: &mut MeshStats,
+    ) {
+        let (gn, h, w) = (self.g, self.h, self.g.w);
+        let mut back = mirrored_backs(gn, h, self.tau, on_plane);
+        let from_columns = extruded_backs(gn, h, self.tau, on_plane, up);
         for (b, c) in back.iter_mut().zip(&from_columns) {
             *b = b.max(*c);
         }
+        let quads_w = w - 1;
         let mut back_of: Vec<u32> = vec![NONE; w * h];
         for q in 0..(h - 1) * quads_w {
             let (i, j) = (q / quads_w, q % quads_w);
             for (n, second) in [false, true].into_iter().enumerate() {
-                if status[q][n] != 1 {
+                if self.status[q][n] != 1 {
                     continue;
                 }
-                let t = tri_of(i, j, second);
+                let t = tri_of(w, i, j, second);
                 if !t.iter().any(|&k| back[k] > 0.0) {
                     continue;
                 }
@@ -968,12 +1093,12 @@ pub fn mesh_from_depth(
                 for (c, &pix) in t.iter().enumerate() {
                     if back_of[pix] == NONE {
                         let p = if back[pix] > 0.0 {
-                            let d = offset.get(pix).copied().unwrap_or(Vec2::ZERO);
+                            let d = self.offset.get(pix).copied().unwrap_or(Vec2::ZERO);
                             gn.point_off(pix / w, pix % w, d.y as f64, d.x as f64, back[pix] as f64)
                         } else {
-                            pos64[pix]
+                            v.pos64[pix]
                         };
-                        back_of[pix] = push_vertex(&mut pos64, &mut positions, &mut film, p, pix);
+                        back_of[pix] = v.copy(p, pix);
                         stats.back_vertices += 1;
                     }
                     idx[c] = back_of[pix];
@@ -984,19 +1109,6 @@ pub fn mesh_from_depth(
             }
         }
     }
-
-    Ok(DepthMesh {
-        mesh: TriMesh {
-            positions,
-            indices,
-            film,
-            material_pixel: Vec::new(),
-            openness: Vec::new(),
-            portals: Vec::new(),
-        },
-        depth: GrayImage::from_vec(w, h, znew),
-        stats,
-    })
 }
 
 /// Appends a vertex at `p` made from pixel `pix`'s film position (a copy

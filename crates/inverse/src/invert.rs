@@ -602,6 +602,162 @@ impl Run<'_> {
     }
 }
 
+/// What the options ask of the envmap route (a start envmap, lamps, a
+/// sun) it can do, and the lamps fit the frozen paths' limits; checked
+/// before anything runs.
+fn check_options(opts: &InvertOptions, env_route: &dyn EnvRoute) -> Result<(), InvertError> {
+    if opts.init_env.is_some() && !env_route.takes_start_envmap() {
+        return Err(InvertError::StartEnvmapNotTaken {
+            route: opts.env_route.name(),
+        });
+    }
+    let (ew, eh) = (opts.env_width, opts.env_height);
+    let sites = opts.lamp_sites.len();
+    if opts.sun && !env_route.fits_lamps() {
+        return Err(InvertError::SunNotFitted {
+            route: opts.env_route.name(),
+        });
+    }
+    if sites > 0 || opts.sun {
+        if !env_route.fits_lamps() {
+            return Err(InvertError::LampsNotFitted {
+                sites,
+                route: opts.env_route.name(),
+            });
+        }
+        // The frozen paths' own limits (a sun takes the entry after the
+        // sites').
+        let slots = sites + opts.sun as usize;
+        check_lamps(slots, ew, eh, opts.lamp_scale).map_err(|e| match e {
+            CacheError::Lamps { .. } => InvertError::TooManyLamps {
+                sites: slots,
+                width: ew,
+            },
+            CacheError::LampScale(s) => InvertError::LampScale(s),
+            e => InvertError::Cache(e),
+        })?;
+        if let Some(index) = opts.lamp_sites.iter().position(|p| !p.is_finite()) {
+            return Err(InvertError::LampSite { index });
+        }
+    }
+    Ok(())
+}
+
+/// R and M per segment (`--rm-search`): segments that one albedo under
+/// another (R, M) explains clearly better move their anchor in `pred` and
+/// their start in `mats`.
+fn rm_per_segment(
+    run: &mut Run,
+    (cache, env, guide): (&PathCache, &[Vec3], &Guide),
+    dist: &[f32],
+    pred: &mut [Material],
+    mats: &mut [Material],
+) -> RmSearchReport {
+    let opts = run.opts;
+    let (w, h) = (run.scene.camera.width, run.scene.camera.height);
+    let name = "R/M per segment";
+    run.begin(name, 1);
+    let tabs = fresh_tables(cache, mats, env, guide, opts.denoise);
+    let tabs = &tabs;
+    let albedo: Vec<Vec3> = pred.iter().map(|m| m.albedo).collect();
+    let (labels, count) = segment(&albedo, dist, w, h, &SegmentParams::default());
+    let choices = search_rm(
+        tabs,
+        &run.target,
+        &labels,
+        count,
+        pred,
+        1.0,
+        &SearchParams {
+            margin: opts.rm_margin,
+            ..SearchParams::new(resolvable_roughness(opts.env_width, opts.env_height))
+        },
+    );
+    let moved_pixels = apply(&choices, &labels, pred, mats);
+    let metal = choices
+        .iter()
+        .filter(|c| c.moved && c.metallic > 0.5)
+        .map(|c| c.pixels)
+        .sum();
+    run.end(StageReport::plain(name, choices.len()));
+    RmSearchReport {
+        segments: count,
+        scored: choices.len(),
+        moved: choices.iter().filter(|c| c.moved).count(),
+        moved_pixels,
+        metal_pixels: metal,
+    }
+}
+
+/// With the albedo's level held: after a stage that fits albedo, its mean
+/// per channel over `surface` goes back to within `band` of `pred`'s and
+/// the light (`env`, the envmap fit's state) takes the gain, which
+/// accumulates in `total`.
+fn hold_level(
+    mats: &mut [Material],
+    pred: &[Material],
+    surface: &[bool],
+    band: f32,
+    env: &mut [Vec3],
+    env_fit: &mut dyn EnvFitter,
+    total: &mut Vec3,
+) {
+    let over = level_gain(mats, pred, surface)
+        .map(|g| g / g.clamp(Vec3::splat(1.0 - band), Vec3::splat(1.0 + band)))
+        .filter(|g| *g != Vec3::ONE);
+    if let Some(g) = over {
+        for m in mats.iter_mut() {
+            m.albedo = (m.albedo / g).clamp(Vec3::ZERO, Vec3::ONE);
+        }
+        for e in env.iter_mut() {
+            *e *= g;
+        }
+        env_fit.rescale(g);
+        *total *= g;
+    }
+}
+
+/// The independent re-render of the recovered scene (fresh random
+/// numbers), denoised when asked: the image and, denoised, the same
+/// samples unfiltered.
+fn final_render(run: &mut Run, guide: &Guide, final_spp: u32) -> (RgbImage, Option<RgbImage>) {
+    let (opts, events) = (run.opts, run.events);
+    run.begin("render", run.scene.camera.height);
+    let render_opts = RenderOptions {
+        spp: final_spp,
+        max_depth: opts.max_depth,
+        glass_depth: matflow_render::integrator::DEFAULT_GLASS_DEPTH,
+        seed: opts.seed ^ 0xf1_4a1,
+        filter: FIT_FILTER,
+        reference_compat: false,
+        tile_size: 16,
+        crop: None,
+    };
+    let trace = |d: usize, t: usize| events(Event::Trace { done: d, total: t });
+    let denoised = opts
+        .denoise_render
+        .then(|| {
+            let passes = matflow_render::denoise::RENDER_PASSES;
+            matflow_render::denoise::render_denoised(
+                &run.scene,
+                guide,
+                &render_opts,
+                passes,
+                &trace,
+            )
+        })
+        .flatten();
+    let out = match denoised {
+        Some(d) => (d.image, Some(d.raw)),
+        None => (
+            matflow_render::render(&run.scene, &render_opts, &trace).image,
+            None,
+        ),
+    };
+    run.end(StageReport::plain("render", final_spp as usize));
+    out
+}
+
 /// Recovers envmap and materials. `scene` carries camera and geometry (its
 /// materials and envmap are replaced); `target` is the linear input image;
 /// `pred` the predicted materials.
@@ -632,40 +788,9 @@ pub fn invert(
     }
     let env_route = opts.env_route.build();
     let mat_route = opts.mat_route.build();
-    if opts.init_env.is_some() && !env_route.takes_start_envmap() {
-        return Err(InvertError::StartEnvmapNotTaken {
-            route: opts.env_route.name(),
-        });
-    }
+    check_options(opts, &*env_route)?;
     let (ew, eh) = (opts.env_width, opts.env_height);
     let sites = opts.lamp_sites.len();
-    if opts.sun && !env_route.fits_lamps() {
-        return Err(InvertError::SunNotFitted {
-            route: opts.env_route.name(),
-        });
-    }
-    if sites > 0 || opts.sun {
-        if !env_route.fits_lamps() {
-            return Err(InvertError::LampsNotFitted {
-                sites,
-                route: opts.env_route.name(),
-            });
-        }
-        // The frozen paths' own limits, checked before anything runs (a
-        // sun takes the entry after the sites').
-        let slots = sites + opts.sun as usize;
-        check_lamps(slots, ew, eh, opts.lamp_scale).map_err(|e| match e {
-            CacheError::Lamps { .. } => InvertError::TooManyLamps {
-                sites: slots,
-                width: ew,
-            },
-            CacheError::LampScale(s) => InvertError::LampScale(s),
-            e => InvertError::Cache(e),
-        })?;
-        if let Some(index) = opts.lamp_sites.iter().position(|p| !p.is_finite()) {
-            return Err(InvertError::LampSite { index });
-        }
-    }
     // The light vector: the envmap's texels, then (with lamp sites) the
     // lamps' entries and their padding (zero).
     let lights = light_len(ew, eh, sites);
@@ -786,40 +911,15 @@ pub fn invert(
         Vec::new()
     };
     let mut pred = pred;
-    let mut rm_search = None;
-    if opts.searches_rm() {
-        let name = "R/M per segment";
-        run.begin(name, 1);
-        let tabs = fresh_tables(&cache, &mats, &env, &guide, opts.denoise);
-        let albedo: Vec<Vec3> = pred.iter().map(|m| m.albedo).collect();
-        let (labels, count) = segment(&albedo, &dist, w, h, &SegmentParams::default());
-        let choices = search_rm(
-            &tabs,
-            &run.target,
-            &labels,
-            count,
-            &pred,
-            1.0,
-            &SearchParams {
-                margin: opts.rm_margin,
-                ..SearchParams::new(resolvable_roughness(ew, eh))
-            },
-        );
-        let moved_pixels = apply(&choices, &labels, &mut pred, &mut mats);
-        let metal = choices
-            .iter()
-            .filter(|c| c.moved && c.metallic > 0.5)
-            .map(|c| c.pixels)
-            .sum();
-        rm_search = Some(RmSearchReport {
-            segments: count,
-            scored: choices.len(),
-            moved: choices.iter().filter(|c| c.moved).count(),
-            moved_pixels,
-            metal_pixels: metal,
-        });
-        run.end(StageReport::plain(name, choices.len()));
-    }
+    let rm_search = opts.searches_rm().then(|| {
+        rm_per_segment(
+            &mut run,
+            (&cache, &env, &guide),
+            &dist,
+            &mut pred,
+            &mut mats,
+        )
+    });
 
     // 3. Alternation. With the level held, after each stage that fits
     // albedo its mean per channel goes back to the prediction's (past the
@@ -869,19 +969,15 @@ pub fn invert(
             }
             env_fit.rescale(Vec3::splat(fit.scale));
             if let Some(total) = level_total.as_mut().filter(|_| parts.albedo) {
-                let over = level_gain(&mats, &pred, &surface)
-                    .map(|g| g / g.clamp(Vec3::splat(1.0 - band), Vec3::splat(1.0 + band)))
-                    .filter(|g| *g != Vec3::ONE);
-                if let Some(g) = over {
-                    for m in mats.iter_mut() {
-                        m.albedo = (m.albedo / g).clamp(Vec3::ZERO, Vec3::ONE);
-                    }
-                    for e in env.iter_mut() {
-                        *e *= g;
-                    }
-                    env_fit.rescale(g);
-                    *total *= g;
-                }
+                hold_level(
+                    &mut mats,
+                    &pred,
+                    &surface,
+                    band,
+                    &mut env,
+                    &mut *env_fit,
+                    total,
+                );
             }
             run.end(StageReport::fit(&name, &fit.trace));
         }
@@ -903,39 +999,7 @@ pub fn invert(
 
     // 5. Independent re-render.
     run.set_scene(&mats, &env)?;
-    run.begin("render", h);
-    let render_opts = RenderOptions {
-        spp: plan.final_spp,
-        max_depth: opts.max_depth,
-        glass_depth: matflow_render::integrator::DEFAULT_GLASS_DEPTH,
-        seed: opts.seed ^ 0xf1_4a1,
-        filter: FIT_FILTER,
-        reference_compat: false,
-        tile_size: 16,
-        crop: None,
-    };
-    let trace = |d: usize, t: usize| events(Event::Trace { done: d, total: t });
-    let denoised = opts
-        .denoise_render
-        .then(|| {
-            let passes = matflow_render::denoise::RENDER_PASSES;
-            matflow_render::denoise::render_denoised(
-                &run.scene,
-                &guide,
-                &render_opts,
-                passes,
-                &trace,
-            )
-        })
-        .flatten();
-    let (rendered, rendered_raw) = match denoised {
-        Some(d) => (d.image, Some(d.raw)),
-        None => (
-            matflow_render::render(&run.scene, &render_opts, &trace).image,
-            None,
-        ),
-    };
-    run.end(StageReport::plain("render", plan.final_spp as usize));
+    let (rendered, rendered_raw) = final_render(&mut run, &guide, plan.final_spp);
     let lamps = lamps_of(&env, opts, run.sun);
     if let (Some(r), Some(sun)) = (sun_report.as_mut(), lamps.last()) {
         if r.found {

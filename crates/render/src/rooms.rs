@@ -117,28 +117,52 @@ fn shape_object(s: Shape, to_cam: &dyn Fn(Vec3) -> Vec3, turn: Mat3, m: Material
     }
 }
 
-/// The room of `seed`.
-pub fn room(seed: u64) -> Room {
-    let mut r = Rng(seed.wrapping_mul(0x2545_f491_4f6c_dd1d) ^ 0x0005_eed0_0f00);
-    // The room in world space: the camera at the origin, the floor below.
+/// Where a room's surfaces stand (world space, the camera at the origin,
+/// the floor below) and which of them are there.
+struct Shell {
+    floor: f32,
+    ceil: f32,
+    /// Left and right walls (x), back wall and the opening behind the
+    /// camera (z).
+    x0: f32,
+    x1: f32,
+    z0: f32,
+    z1: f32,
+    has_left: bool,
+    has_right: bool,
+    has_ceiling: bool,
+}
+
+fn shell(r: &mut Rng) -> Shell {
     let floor = -r.range(1.0, 1.8);
     let height = r.range(2.4, 3.4);
-    let ceil = floor + height;
     let back = -r.range(5.0, 10.0);
     let left = -r.range(1.8, 4.0);
     let right = r.range(1.8, 4.0);
     let front = r.range(1.0, 3.0);
-    let has_left = r.chance(0.8);
-    let has_right = r.chance(0.6);
-    let has_ceiling = r.chance(0.25);
-    // The camera: yaw and a downward tilt.
-    let yaw = r.range(-25.0, 25.0).to_radians();
-    let pitch = r.range(-22.0, 4.0).to_radians();
-    let to_world = Mat3::from_rotation_y(yaw) * Mat3::from_rotation_x(pitch);
-    let turn = to_world.transpose();
-    let to_cam = move |p: Vec3| turn * p;
-    let mut objects = Vec::new();
-    let mut plane = |corners: [Vec3; 4], uv_scale: f32, m: Material, tex: Option<RgbImage>| {
+    Shell {
+        floor,
+        ceil: floor + height,
+        x0: left,
+        x1: right,
+        z0: back,
+        z1: front,
+        has_left: r.chance(0.8),
+        has_right: r.chance(0.6),
+        has_ceiling: r.chance(0.25),
+    }
+}
+
+/// A room's objects in the camera's frame, added one by one.
+struct Objects {
+    /// World → camera.
+    turn: Mat3,
+    list: Vec<SceneObject>,
+}
+
+impl Objects {
+    /// A textured quad given in world space.
+    fn plane(&mut self, corners: [Vec3; 4], uv_scale: f32, m: Material, tex: Option<RgbImage>) {
         let uv = corners.map(|c| {
             // Texture coordinates from the plane's two long axes.
             let n = (corners[1] - corners[0]).cross(corners[2] - corners[0]);
@@ -152,16 +176,27 @@ pub fn room(seed: u64) -> Room {
             };
             Vec2::new(s, t) * uv_scale
         });
-        let (mesh, uvs) = quad(corners.map(to_cam), uv);
-        objects.push(SceneObject {
+        let (mesh, uvs) = quad(corners.map(|c| self.turn * c), uv);
+        self.list.push(SceneObject {
             mesh,
             normals: Vec::new(),
             surface: Surface::Principled(m),
             uvs,
             texture: tex.map(Arc::new),
         });
-    };
-    // Floor: plain, tiled or planked; a glossy finish now and then.
+    }
+
+    /// A shape standing at `at` (world space).
+    fn shape(&mut self, s: Shape, at: Vec3, m: Material) {
+        let turn = self.turn;
+        self.list
+            .push(shape_object(s, &|p| turn * (p + at), turn, m));
+    }
+}
+
+/// The floor (plain, tiled or planked; a glossy finish now and then), the
+/// walls there are and the ceiling if there is one.
+fn floor_and_walls(r: &mut Rng, s: &Shell, o: &mut Objects) {
     let floor_mat = Material {
         albedo: hsv(r.range(0.0, 0.15), r.range(0.05, 0.6), r.range(0.2, 0.85)),
         roughness: if r.chance(0.4) {
@@ -171,15 +206,15 @@ pub fn room(seed: u64) -> Room {
         },
         metallic: 0.0,
     };
-    let tex = floor_texture(&mut r);
+    let tex = floor_texture(r);
     let tile = r.range(0.3, 0.9);
-    let (x0, x1, z0, z1) = (left, right, back, front);
+    let (x0, x1, z0, z1, floor, ceil) = (s.x0, s.x1, s.z0, s.z1, s.floor, s.ceil);
     // Where a side is open the floor runs on (a bigger hall).
     let (fx0, fx1) = (
-        if has_left { x0 } else { x0 - 20.0 },
-        if has_right { x1 } else { x1 + 20.0 },
+        if s.has_left { x0 } else { x0 - 20.0 },
+        if s.has_right { x1 } else { x1 + 20.0 },
     );
-    plane(
+    o.plane(
         [
             Vec3::new(fx0, floor, z1),
             Vec3::new(fx1, floor, z1),
@@ -190,67 +225,61 @@ pub fn room(seed: u64) -> Room {
         floor_mat,
         tex,
     );
-    let wall_mat = |r: &mut Rng| Material {
-        albedo: hsv(r.f(), r.range(0.0, 0.45), r.range(0.3, 0.9)),
-        roughness: r.range(0.5, 1.0),
-        metallic: 0.0,
-    };
-    // Back wall (facing +z), side walls facing inwards, the ceiling down.
-    let m = wall_mat(&mut r);
-    plane(
-        [
-            Vec3::new(x0, floor, z0),
-            Vec3::new(x1, floor, z0),
-            Vec3::new(x1, ceil, z0),
-            Vec3::new(x0, ceil, z0),
-        ],
-        1.0,
-        m,
-        None,
-    );
-    let m = wall_mat(&mut r);
-    if has_left {
-        plane(
+    // Back wall (facing +z), side walls facing inwards, the ceiling down;
+    // each draws its material whether it is there or not.
+    let walls = [
+        (
+            true,
+            [
+                Vec3::new(x0, floor, z0),
+                Vec3::new(x1, floor, z0),
+                Vec3::new(x1, ceil, z0),
+                Vec3::new(x0, ceil, z0),
+            ],
+        ),
+        (
+            s.has_left,
             [
                 Vec3::new(x0, floor, z1),
                 Vec3::new(x0, floor, z0),
                 Vec3::new(x0, ceil, z0),
                 Vec3::new(x0, ceil, z1),
             ],
-            1.0,
-            m,
-            None,
-        );
-    }
-    let m = wall_mat(&mut r);
-    if has_right {
-        plane(
+        ),
+        (
+            s.has_right,
             [
                 Vec3::new(x1, floor, z0),
                 Vec3::new(x1, floor, z1),
                 Vec3::new(x1, ceil, z1),
                 Vec3::new(x1, ceil, z0),
             ],
-            1.0,
-            m,
-            None,
-        );
-    }
-    let m = wall_mat(&mut r);
-    if has_ceiling {
-        plane(
+        ),
+        (
+            s.has_ceiling,
             [
                 Vec3::new(x0, ceil, z0),
                 Vec3::new(x1, ceil, z0),
                 Vec3::new(x1, ceil, z1),
                 Vec3::new(x0, ceil, z1),
             ],
-            1.0,
-            m,
-            None,
-        );
+        ),
+    ];
+    for (there, corners) in walls {
+        let m = Material {
+            albedo: hsv(r.f(), r.range(0.0, 0.45), r.range(0.3, 0.9)),
+            roughness: r.range(0.5, 1.0),
+            metallic: 0.0,
+        };
+        if there {
+            o.plane(corners, 1.0, m, None);
+        }
     }
-    // Furniture and objects on the floor, in front of the camera, apart.
+}
+
+/// Furniture and objects on the floor, in front of the camera, apart: two
+/// to six, each at the first of 12 tries that keeps clear of the others.
+fn furniture(r: &mut Rng, s: &Shell, o: &mut Objects) {
     let mut taken: Vec<(Vec2, f32)> = Vec::new();
     let n_items = 2 + r.below(5);
     for _ in 0..n_items {
@@ -264,8 +293,8 @@ pub fn room(seed: u64) -> Room {
         let mut spot = None;
         for _ in 0..12 {
             let c = Vec2::new(
-                r.range(x0 + radius, x1 - radius),
-                r.range(z0 + radius, -1.5 - radius),
+                r.range(s.x0 + radius, s.x1 - radius),
+                r.range(s.z0 + radius, -1.5 - radius),
             );
             if taken.iter().all(|(p, q)| (*p - c).length() > q + radius) {
                 spot = Some(c);
@@ -276,108 +305,122 @@ pub fn room(seed: u64) -> Room {
             continue;
         };
         taken.push((c, radius));
-        let m = object_material(&mut r);
-        let at = |p: Vec3| to_cam(p + Vec3::new(c.x, floor, c.y));
-        match kind {
-            0 => {
-                // A table: a top on four legs, sometimes with a thing on it.
-                let top_h = r.range(0.65, 0.85);
-                let (hx, hz) = (radius, radius * r.range(0.55, 0.9));
-                let t = 0.04;
-                let mut parts = vec![cuboid(
-                    Vec3::new(-hx, top_h - t, -hz),
-                    Vec3::new(hx, top_h, hz),
-                )];
-                let l = 0.04;
-                for (sx, sz) in [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)] {
-                    let (px, pz) = (sx * (hx - 2.0 * l), sz * (hz - 2.0 * l));
-                    parts.push(cuboid(
-                        Vec3::new(px - l, 0.0, pz - l),
-                        Vec3::new(px + l, top_h - t, pz + l),
-                    ));
-                }
-                for p in parts {
-                    objects.push(shape_object(p, &at, turn, m));
-                }
-                if r.chance(0.7) {
-                    let s = r.range(0.1, 0.2);
-                    let m2 = object_material(&mut r);
-                    let thing = if r.chance(0.5) {
-                        sphere(s, 16, 32).transformed(1.0, Vec3::new(0.0, top_h + s, 0.0))
-                    } else {
-                        jug(32).transformed(2.0 * s, Vec3::new(0.0, top_h, 0.0))
-                    };
-                    objects.push(shape_object(thing, &at, turn, m2));
-                }
-            }
-            1 | 2 => {
-                // A cabinet (a block) or a shelf (a tall, shallow block).
-                let h = if kind == 1 {
-                    r.range(0.6, 1.2)
-                } else {
-                    r.range(1.3, 2.0)
-                };
-                let d = if kind == 1 {
-                    radius * 0.8
-                } else {
-                    radius * 0.4
-                };
-                objects.push(shape_object(
-                    cuboid(Vec3::new(-radius, 0.0, -d), Vec3::new(radius, h, d)),
-                    &at,
-                    turn,
-                    m,
+        let m = object_material(r);
+        item(r, kind, radius, Vec3::new(c.x, s.floor, c.y), m, o);
+    }
+}
+
+/// One piece of furniture or object of `kind` and size `radius`, standing
+/// at `at`.
+fn item(r: &mut Rng, kind: u64, radius: f32, at: Vec3, m: Material, o: &mut Objects) {
+    match kind {
+        0 => {
+            // A table: a top on four legs, sometimes with a thing on it.
+            let top_h = r.range(0.65, 0.85);
+            let (hx, hz) = (radius, radius * r.range(0.55, 0.9));
+            let t = 0.04;
+            let mut parts = vec![cuboid(
+                Vec3::new(-hx, top_h - t, -hz),
+                Vec3::new(hx, top_h, hz),
+            )];
+            let l = 0.04;
+            for (sx, sz) in [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)] {
+                let (px, pz) = (sx * (hx - 2.0 * l), sz * (hz - 2.0 * l));
+                parts.push(cuboid(
+                    Vec3::new(px - l, 0.0, pz - l),
+                    Vec3::new(px + l, top_h - t, pz + l),
                 ));
             }
-            3 => objects.push(shape_object(
-                sphere(radius, 24, 48).transformed(1.0, Vec3::new(0.0, radius, 0.0)),
-                &at,
-                turn,
-                m,
-            )),
-            4 => {
-                let h = r.range(0.3, 1.0);
-                let cyl = revolve(
-                    &[
-                        Vec2::new(0.0, 0.0),
-                        Vec2::new(radius, 0.0),
-                        Vec2::new(radius, h),
-                        Vec2::new(0.0, h),
-                    ],
-                    Some(&[
-                        Vec2::new(0.0, -1.0),
-                        Vec2::new(1.0, 0.0),
-                        Vec2::new(1.0, 0.0),
-                        Vec2::new(0.0, 1.0),
-                    ]),
-                    48,
-                );
-                objects.push(shape_object(cyl, &at, turn, m));
+            for p in parts {
+                o.shape(p, at, m);
             }
-            5 => {
-                let tube = radius * 0.3;
-                objects.push(shape_object(
-                    torus(radius - tube, tube, 16, 48).transformed(1.0, Vec3::new(0.0, tube, 0.0)),
-                    &at,
-                    turn,
-                    m,
-                ))
+            if r.chance(0.7) {
+                let s = r.range(0.1, 0.2);
+                let m2 = object_material(r);
+                let thing = if r.chance(0.5) {
+                    sphere(s, 16, 32).transformed(1.0, Vec3::new(0.0, top_h + s, 0.0))
+                } else {
+                    jug(32).transformed(2.0 * s, Vec3::new(0.0, top_h, 0.0))
+                };
+                o.shape(thing, at, m2);
             }
-            _ => objects.push(shape_object(
-                jug(40).transformed(2.0 * radius, Vec3::ZERO),
-                &at,
-                turn,
-                m,
-            )),
         }
+        1 | 2 => {
+            // A cabinet (a block) or a shelf (a tall, shallow block).
+            let h = if kind == 1 {
+                r.range(0.6, 1.2)
+            } else {
+                r.range(1.3, 2.0)
+            };
+            let d = if kind == 1 {
+                radius * 0.8
+            } else {
+                radius * 0.4
+            };
+            o.shape(
+                cuboid(Vec3::new(-radius, 0.0, -d), Vec3::new(radius, h, d)),
+                at,
+                m,
+            );
+        }
+        3 => o.shape(
+            sphere(radius, 24, 48).transformed(1.0, Vec3::new(0.0, radius, 0.0)),
+            at,
+            m,
+        ),
+        4 => {
+            let h = r.range(0.3, 1.0);
+            let cyl = revolve(
+                &[
+                    Vec2::new(0.0, 0.0),
+                    Vec2::new(radius, 0.0),
+                    Vec2::new(radius, h),
+                    Vec2::new(0.0, h),
+                ],
+                Some(&[
+                    Vec2::new(0.0, -1.0),
+                    Vec2::new(1.0, 0.0),
+                    Vec2::new(1.0, 0.0),
+                    Vec2::new(0.0, 1.0),
+                ]),
+                48,
+            );
+            o.shape(cyl, at, m);
+        }
+        5 => {
+            let tube = radius * 0.3;
+            o.shape(
+                torus(radius - tube, tube, 16, 48).transformed(1.0, Vec3::new(0.0, tube, 0.0)),
+                at,
+                m,
+            )
+        }
+        _ => o.shape(jug(40).transformed(2.0 * radius, Vec3::ZERO), at, m),
     }
+}
+
+/// The room of `seed`: its shell, the camera's yaw and tilt, floor and
+/// walls, furniture, then the lighting's kind and seed and the exposure.
+pub fn room(seed: u64) -> Room {
+    let mut r = Rng(seed.wrapping_mul(0x2545_f491_4f6c_dd1d) ^ 0x0005_eed0_0f00);
+    let shell = shell(&mut r);
+    // The camera: yaw and a downward tilt.
+    let yaw = r.range(-25.0, 25.0).to_radians();
+    let pitch = r.range(-22.0, 4.0).to_radians();
+    let to_world = Mat3::from_rotation_y(yaw) * Mat3::from_rotation_x(pitch);
+    let mut objects = Objects {
+        turn: to_world.transpose(),
+        list: Vec::new(),
+    };
+    floor_and_walls(&mut r, &shell, &mut objects);
+    furniture(&mut r, &shell, &mut objects);
     let env_kind = if r.chance(0.5) {
         EnvKind::Sky
     } else {
         EnvKind::Room
     };
     Room {
-        objects,
+        objects: objects.list,
         env_kind,
         env_seed: r.next_u64() >> 1,
         to_world,
