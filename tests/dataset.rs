@@ -587,7 +587,7 @@ fn user_meshes_and_envmap_files_join_the_draw() {
     let w = scratch("dataset", "user");
     let meshes = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../pipelines/meshes");
     let hdr = w.join("sky.hdr");
-    matflow_scene::io::write_hdr(&hdr, &matflow_scene::synthetic::procedural_sky(4, 64, 32))
+    matflow_scene::io::write_hdr(&hdr, &matflow_procgen::synthetic::procedural_sky(4, 64, 32))
         .unwrap();
     let f = w.join("user.yaml");
     std::fs::write(

@@ -343,16 +343,6 @@ fn stages_with_seconds(res: &InvertResult, seconds: &[f64]) -> serde_json::Value
     v
 }
 
-/// Removes `path`, left by an earlier run, where this run writes nothing.
-fn remove_stale(path: &Path) -> Result<()> {
-    match std::fs::remove_file(path) {
-        Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
-            Err(e).with_context(|| format!("removing the stale {}", path.display()))
-        }
-        _ => Ok(()),
-    }
-}
-
 /// Writes the output bundle: geometry inputs and predictions (so that
 /// `matflow render --bundle OUT --materials best_results` re-renders the
 /// result; geometry.json declaring the completion recovered with),
@@ -368,26 +358,17 @@ pub fn write_bundle(
     let b = Bundle::create(out)?;
     b.write_depth(depth)?;
     b.write_predictions(pred)?;
-    io::write_exr_rgb(&b.path("gt_image.exr"), target)?;
-    io::write_png_gamma(&b.path("gt_image.png"), target)?;
-    let (w, h) = (target.width, target.height);
-    let mut maps = materials_to_maps(w, h, &res.materials);
+    b.write_gt_image(target)?;
+    let mut maps = materials_to_maps(target.width, target.height, &res.materials);
     maps.normal = pred.normal.clone();
-    b.write_materials("best_results", &maps)?;
-    io::write_hdr(&b.path("best_results/envmap.hdr"), &res.envmap)?;
-    let lamps = b.path(crate::lamps::LAMPS_FILE);
-    if res.lamps.is_empty() {
-        remove_stale(&lamps)?;
-    } else {
-        crate::lamps::write_lamps(&lamps, &res.lamps)?;
-    }
-    io::write_exr_rgb(&b.path("best_results/rendered_img.exr"), &res.rendered)?;
-    io::write_png_gamma(&b.path("best_results/rendered_img.png"), &res.rendered)?;
-    let raw = b.path("best_results/rendered_raw.exr");
-    match &res.rendered_raw {
-        Some(im) => io::write_exr_rgb(&raw, im)?,
-        None => remove_stale(&raw)?,
-    }
+    b.write_best_results(&matflow_scene::BestResults {
+        maps: &maps,
+        envmap: &res.envmap,
+        lamps: &res.lamps,
+        rendered: &res.rendered,
+        rendered_raw: res.rendered_raw.as_ref(),
+        fit_image: &res.fit_image,
+    })?;
     // The result holds the input's depth and was recovered on one
     // completion of it: geometry.json declares that one (and, when the
     // photo chose it, the evidence), so `mesh` on the result builds what
@@ -396,11 +377,6 @@ pub fn write_bundle(
         &b.path(crate::commands::GEOMETRY_FILE),
         serde_json::to_string_pretty(&summary["completion"])?.as_bytes(),
     )?;
-    // The frozen-path estimator's image for the recovered parameters (what
-    // the optimiser fitted), and a viewable albedo.
-    io::write_exr_rgb(&b.path("best_results/fit_img.exr"), &res.fit_image)?;
-    io::write_png_gamma(&b.path("best_results/fit_img.png"), &res.fit_image)?;
-    io::write_png_gamma(&b.path("best_results/albedo.png"), &maps.albedo)?;
     let text = serde_json::to_string_pretty(summary)?;
     io::write_atomic(&b.path("summary.json"), text.as_bytes())?;
     Ok(())

@@ -44,7 +44,6 @@ pub mod cluster;
 pub mod commands;
 pub mod dataset;
 pub mod invert;
-pub mod lamps;
 pub mod predict;
 pub mod reference;
 pub mod routes;

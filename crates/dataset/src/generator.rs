@@ -71,11 +71,11 @@ pub fn generator(name: &str) -> Option<&'static dyn Generator> {
 
 /// Sample i's random stream for one purpose (`salt`): SplitMix64 seeded
 /// from (seed, i, salt) alone.
-pub struct Rng(matflow_scene::synthetic::Rng);
+pub struct Rng(matflow_scene::rng::Rng);
 
 impl Rng {
     pub fn for_sample(seed: u64, i: u64, salt: u64) -> Rng {
-        use matflow_scene::synthetic::Rng as SplitMix;
+        use matflow_scene::rng::Rng as SplitMix;
         let a = SplitMix(seed ^ salt.wrapping_mul(0xd1b5_4a32_d192_ed03)).next_u64();
         Rng(SplitMix(a ^ i.wrapping_mul(0x9e37_79b9_7f4a_7c15)))
     }

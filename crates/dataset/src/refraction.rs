@@ -15,8 +15,8 @@ use std::path::{Path, PathBuf};
 
 use matflow_engine::spec::SpecError;
 use matflow_engine::{ParamSpec, ParamType, Value};
-use matflow_geom::shapes::REFRACTION_OBJECT_NAMES;
-use matflow_scene::envgen::EnvKind;
+use matflow_procgen::envgen::EnvKind;
+use matflow_procgen::shapes::REFRACTION_OBJECT_NAMES;
 
 use crate::generator::{json_of, Generator, Plan, Rng, Sample, SampleStage};
 use crate::spec::DatasetSpec;
@@ -452,7 +452,7 @@ fn object_name(o: &ObjectSource) -> String {
 
 fn hollow_of(o: &ObjectSource) -> bool {
     match o {
-        ObjectSource::Builtin(n) => matflow_geom::shapes::refraction_object_is_hollow(n),
+        ObjectSource::Builtin(n) => matflow_procgen::shapes::refraction_object_is_hollow(n),
         ObjectSource::File { hollow, .. } => *hollow,
     }
 }

@@ -1,7 +1,7 @@
 //! Generator `rooms`: synthetic interiors with ground truth, for training
 //! and validating the prediction stage (MatNet's contract). Sample i is a
 //! room drawn from (seed, i): its shape, furniture, materials (matte,
-//! glossy, metal), camera and lighting (`matflow_render::rooms`),
+//! glossy, metal), camera and lighting (`matflow_procgen::rooms`),
 //! path-traced by matflow's renderer; its members are the files of a
 //! reference bundle (the photograph, depth, sky mask, true albedo,
 //! roughness, metallic, normals and lighting).

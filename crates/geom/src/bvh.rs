@@ -977,22 +977,17 @@ mod tests {
     use super::*;
     use crate::mesh::TriMesh;
 
-    /// A deterministic xorshift for test rays.
-    struct Rng(u64);
-    impl Rng {
-        fn f(&mut self) -> f32 {
-            self.0 ^= self.0 << 13;
-            self.0 ^= self.0 >> 7;
-            self.0 ^= self.0 << 17;
-            (self.0 >> 40) as f32 / (1u64 << 24) as f32
-        }
+    use matflow_scene::rng::Rng;
+
+    /// Test rays' directions: uniform in the unit ball's shell past 0.1,
+    /// normalised.
+    trait Dir {
+        fn dir(&mut self) -> Vec3;
+    }
+    impl Dir for Rng {
         fn dir(&mut self) -> Vec3 {
             loop {
-                let v = Vec3::new(
-                    self.f() * 2.0 - 1.0,
-                    self.f() * 2.0 - 1.0,
-                    self.f() * 2.0 - 1.0,
-                );
+                let v = Vec3::new(self.signed(), self.signed(), self.signed());
                 let l = v.length();
                 if l > 0.1 && l <= 1.0 {
                     return v / l;

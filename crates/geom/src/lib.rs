@@ -9,8 +9,6 @@ pub mod complete;
 pub mod depth_mesh;
 pub mod mesh;
 pub mod planes;
-pub mod refraction;
-pub mod shapes;
 
 pub use bvh::{Bvh, Hit, PACKET};
 pub use complete::{

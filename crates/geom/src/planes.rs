@@ -3,7 +3,7 @@
 //! (issue 19), where the scene evidently continues.
 //!
 //! Sequential RANSAC on the back-projected pixels, deterministic (the
-//! candidate triples come from a fixed SplitMix stream over a fixed pixel
+//! candidate triples come from a fixed SplitMix64 stream ([`Rng`]) over a fixed pixel
 //! grid, so the planes do not depend on threads or machine): the plane with
 //! the most inliers is refined by least squares (its normal the
 //! eigenvector of the inliers' smallest covariance eigenvalue, in f64),
@@ -16,6 +16,7 @@
 //! join.
 
 use glam::{DMat3, DVec3, Vec3};
+use matflow_scene::rng::Rng;
 use matflow_scene::{Camera, GrayImage};
 
 /// How a plane lies: against the floor's normal when a floor is found
@@ -97,21 +98,6 @@ impl Default for PlaneParams {
 
 /// Pixels between a pixel and the neighbours its normal is taken from.
 pub const NORMAL_SPAN: usize = 3;
-
-struct SplitMix(u64);
-
-impl SplitMix {
-    fn next(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
-    }
-    fn below(&mut self, n: usize) -> usize {
-        (self.next() % n.max(1) as u64) as usize
-    }
-}
 
 /// The unit eigenvector of the smallest eigenvalue of a symmetric
 /// positive semi-definite matrix, by inverse iteration on a slightly
@@ -249,7 +235,7 @@ pub(crate) struct PlaneSearch {
     normals: Vec<Option<DVec3>>,
     valid: Vec<usize>,
     remaining: Vec<bool>,
-    rng: SplitMix,
+    rng: Rng,
     /// Cosine of `normal_tolerance_deg`.
     cos_tol: f64,
     /// The last search's best candidate when it fell short.
@@ -328,7 +314,7 @@ impl PlaneSearch {
             normals,
             valid,
             remaining,
-            rng: SplitMix(0x5eed_01a7_e5f1_77ed),
+            rng: Rng(0x5eed_01a7_e5f1_77ed),
             cos_tol,
             pending: None,
         })
@@ -364,9 +350,9 @@ impl PlaneSearch {
             None => {
                 let mut best: Option<(DVec3, f64, usize)> = None;
                 for _ in 0..self.p.iterations {
-                    let a = grid[self.rng.below(grid.len())];
-                    let b = grid[self.rng.below(grid.len())];
-                    let c = grid[self.rng.below(grid.len())];
+                    let a = grid[self.rng.below_mod(grid.len())];
+                    let b = grid[self.rng.below_mod(grid.len())];
+                    let c = grid[self.rng.below_mod(grid.len())];
                     let Some((n, d)) = through(self.points[a], self.points[b], self.points[c])
                     else {
                         continue;
@@ -558,9 +544,9 @@ mod tests {
         let n = Vec3::new(0.0, 0.8, 0.6).normalize();
         let mut z = render_planes(&cam, &[(n, 2.0)]);
         // 0.3 % multiplicative noise, deterministic.
-        let mut r = SplitMix(7);
+        let mut r = Rng(7);
         for v in z.data.iter_mut().filter(|v| **v > 0.0) {
-            *v *= 1.0 + 0.003 * ((r.next() % 2001) as f32 / 1000.0 - 1.0);
+            *v *= 1.0 + 0.003 * ((r.next_u64() % 2001) as f32 / 1000.0 - 1.0);
         }
         let fits = fit_planes(&z, &cam, &PlaneParams::default());
         assert_eq!(fits.len(), 1, "{fits:?}");

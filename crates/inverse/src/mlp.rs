@@ -74,16 +74,6 @@ pub fn position_feature_count(multires: usize) -> usize {
     2 + 4 * multires
 }
 
-/// SplitMix64 → uniform in [−1, 1).
-fn uniform(state: &mut u64) -> f32 {
-    *state = state.wrapping_add(0x9e37_79b9_7f4a_7c15);
-    let mut z = *state;
-    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-    z ^= z >> 31;
-    ((z >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
-}
-
 impl PosMlp {
     /// `depth` hidden layers of `width` units; `skips` are hidden-layer
     /// indices (1-based like the reference's `skip_connection = [1, 3]`,
@@ -127,14 +117,14 @@ impl PosMlp {
             n_in = n_out_l;
         }
         let mut params = vec![0f32; off];
-        let mut state = seed ^ 0x6d6c_705f_696e_6974;
+        let mut rng = matflow_scene::rng::Rng(seed ^ 0x6d6c_705f_696e_6974);
         for ly in &layers {
             if !ly.sine {
                 continue; // the output layer starts at zero
             }
             let bound = 1.0 / (ly.n_in as f32).sqrt();
             for p in &mut params[ly.w..ly.b + ly.n_out] {
-                *p = bound * uniform(&mut state);
+                *p = bound * rng.signed();
             }
         }
         PosMlp {
@@ -331,9 +321,9 @@ mod tests {
         // Give the zero-initialised output layer values so every weight
         // has a gradient.
         let last = *m.layers.last().unwrap();
-        let mut st = 99u64;
+        let mut rng = matflow_scene::rng::Rng(99);
         for p in &mut m.params[last.w..last.b + last.n_out] {
-            *p = 0.3 * uniform(&mut st);
+            *p = 0.3 * rng.signed();
         }
         m
     }

@@ -4,8 +4,9 @@
 
 use glam::Vec3;
 use matflow_geom::{mesh_from_depth, MeshParams};
+use matflow_procgen::synthetic;
 use matflow_render::{EnvMap, Material, RenderOptions, RenderScene};
-use matflow_scene::{synthetic, Camera, GrayImage, Image, MaterialMaps, RgbImage};
+use matflow_scene::{Camera, GrayImage, Image, MaterialMaps, RgbImage};
 
 use crate::invert::{invert, InvertOptions, InvertResult};
 use crate::routes::{env_route, mat_route};

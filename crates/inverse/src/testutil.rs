@@ -2,8 +2,9 @@
 
 use glam::Vec3;
 use matflow_geom::{mesh_from_depth, MeshParams};
+use matflow_procgen::synthetic;
 use matflow_render::{EnvMap, RenderScene};
-use matflow_scene::{synthetic, Camera, MaterialMaps, RgbImage};
+use matflow_scene::{Camera, MaterialMaps, RgbImage};
 
 pub struct TestScene {
     pub scene: RenderScene,

@@ -721,7 +721,7 @@ mod tests {
     use crate::kinds::insert::composite_differential;
     use crate::kinds::render::rerender_kept;
     use crate::testutil::{check_retrace, opts, small_room, trace_kept};
-    use matflow_geom::shapes;
+    use matflow_procgen::shapes;
     use matflow_render::{render, EnvMap, RenderScene};
     use matflow_scene::meshfile::obj_text;
     use matflow_scene::GrayImage;

@@ -6,15 +6,15 @@ use std::collections::BTreeSet;
 
 use matflow_geom::TriMesh;
 use matflow_inverse::paths::{CacheOptions, PathCache};
+use matflow_procgen::synthetic::SyntheticScene;
 use matflow_render::{render, PixelFilter, RenderOptions, RenderScene, SceneObject};
-use matflow_scene::synthetic::SyntheticScene;
 use matflow_scene::{Camera, MaterialMaps, RgbImage};
 
 use crate::data::Kept;
 
 /// The procedural room at `n`², its camera and depth mesh.
 pub(crate) fn small_room(n: usize) -> (SyntheticScene, Camera, TriMesh) {
-    let s = matflow_scene::synthetic::generate(3, n, n);
+    let s = matflow_procgen::synthetic::generate(3, n, n);
     let cam = Camera::new(n, n);
     let tri = matflow_geom::mesh_from_depth(&s.depth, &cam, &Default::default())
         .unwrap()

@@ -16,7 +16,6 @@ pub mod guide;
 pub mod integrator;
 pub mod portal;
 pub mod rng;
-pub mod rooms;
 pub mod scene;
 pub mod warp;
 

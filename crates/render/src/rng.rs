@@ -4,14 +4,9 @@
 //! are the same whatever the thread count or tile order. [`Pcg32`] is a
 //! plain stream for tests and benchmarks.
 
-/// SplitMix64 finaliser: a strong 64-bit mixing function.
-#[inline]
-pub fn mix64(mut z: u64) -> u64 {
-    z = z.wrapping_add(0x9e37_79b9_7f4a_7c15);
-    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-    z ^ (z >> 31)
-}
+/// SplitMix64 finaliser: a strong 64-bit mixing function (the one
+/// stream's, [`matflow_scene::rng`]).
+pub use matflow_scene::rng::mix64;
 
 /// PCG32 (XSH-RR), O'Neill 2014: for tests and the benchmark's random
 /// rays (rendering samples with [`Sampler`]).

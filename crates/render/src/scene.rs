@@ -212,65 +212,7 @@ pub(crate) fn transmittance_stream(
 /// [`ScreenGlass::surface`] of a pixel that sees the sky.
 pub const NO_SURFACE: u32 = u32::MAX;
 
-/// Where a [`Lamp`] is.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum LampAt {
-    /// An isotropic point light inside the scene at this camera-space
-    /// position: a surface at distance r receives intensity·cos θ / r²
-    /// (radiant intensity, per channel, in the envmap's radiance units
-    /// times area).
-    Point(Vec3),
-    /// A distant light, the sun: in this camera-space direction (unit,
-    /// towards the light), seen under a vanishing angle; a surface that
-    /// sees it receives intensity·cos θ (the irradiance at normal
-    /// incidence, in the envmap's radiance units times solid angle).
-    Distant(Vec3),
-}
-
-/// A light without area besides the envmap: a lamp in the room or the
-/// sun ([`LampAt`]). The camera never sees one (it has no area), and a
-/// BSDF sample never meets one; next-event estimation alone brings its
-/// light, to every surface it reaches.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Lamp {
-    pub at: LampAt,
-    pub intensity: Vec3,
-}
-
-impl Lamp {
-    /// An isotropic point light.
-    pub fn point(position: Vec3, intensity: Vec3) -> Lamp {
-        Lamp {
-            at: LampAt::Point(position),
-            intensity,
-        }
-    }
-
-    /// A distant light in `direction` (normalised here; a zero or
-    /// non-finite one gives a lamp that is not [`Lamp::is_valid`]) giving
-    /// `irradiance` at normal incidence.
-    pub fn sun(direction: Vec3, irradiance: Vec3) -> Lamp {
-        Lamp {
-            at: LampAt::Distant(direction.try_normalize().unwrap_or(Vec3::NAN)),
-            intensity: irradiance,
-        }
-    }
-
-    /// Whether it is the sun.
-    pub fn is_distant(&self) -> bool {
-        matches!(self.at, LampAt::Distant(_))
-    }
-
-    /// Finite position (a unit direction for a distant lamp), finite
-    /// non-negative intensity.
-    pub fn is_valid(&self) -> bool {
-        let at = match self.at {
-            LampAt::Point(p) => p.is_finite(),
-            LampAt::Distant(d) => d.is_finite() && (d.length() - 1.0).abs() < 1e-3,
-        };
-        at && self.intensity.is_finite() && self.intensity.min_element() >= 0.0
-    }
-}
+pub use matflow_scene::lamps::{Lamp, LampAt};
 
 pub struct RenderScene {
     pub camera: Camera,

@@ -1,8 +1,8 @@
 //! Known answers for glass and inserted objects in the path tracer.
 
 use glam::Vec3;
-use matflow_geom::shapes::{cuboid, sphere, Shape};
 use matflow_geom::{mesh_from_depth, MeshParams, TriMesh};
+use matflow_procgen::shapes::{cuboid, sphere, Shape};
 use matflow_render::envmap::uv_to_dir;
 use matflow_render::integrator::render_pixels;
 use matflow_render::{

@@ -424,6 +424,62 @@ impl Bundle {
     pub fn write_depth(&self, z: &GrayImage) -> Result<()> {
         io::write_exr_gray(&self.path("depth.exr"), z)
     }
+
+    /// Writes the input photograph as `gt_image.exr` (linear) and
+    /// `gt_image.png` (sRGB).
+    pub fn write_gt_image(&self, image: &RgbImage) -> Result<()> {
+        io::write_exr_rgb(&self.path("gt_image.exr"), image)?;
+        io::write_png_gamma(&self.path("gt_image.png"), image)
+    }
+
+    /// Writes a recovery's `best_results/`: the maps, `envmap.hdr`,
+    /// `lamps.json` (removed when there are none), the independent
+    /// re-render (`rendered_img`, and `rendered_raw.exr` when it was
+    /// denoised, else removed), the fitted image (`fit_img`) and a
+    /// viewable `albedo.png`. A file an earlier run left where this one
+    /// writes nothing is removed, so the folder never mixes two runs.
+    pub fn write_best_results(&self, r: &BestResults) -> Result<()> {
+        self.write_materials("best_results", r.maps)?;
+        io::write_hdr(&self.path("best_results/envmap.hdr"), r.envmap)?;
+        let lamps = self.path(crate::lamps::LAMPS_FILE);
+        if r.lamps.is_empty() {
+            remove_stale(&lamps)?;
+        } else {
+            crate::lamps::write_lamps(&lamps, r.lamps)?;
+        }
+        io::write_exr_rgb(&self.path("best_results/rendered_img.exr"), r.rendered)?;
+        io::write_png_gamma(&self.path("best_results/rendered_img.png"), r.rendered)?;
+        let raw = self.path("best_results/rendered_raw.exr");
+        match r.rendered_raw {
+            Some(im) => io::write_exr_rgb(&raw, im)?,
+            None => remove_stale(&raw)?,
+        }
+        io::write_exr_rgb(&self.path("best_results/fit_img.exr"), r.fit_image)?;
+        io::write_png_gamma(&self.path("best_results/fit_img.png"), r.fit_image)?;
+        io::write_png_gamma(&self.path("best_results/albedo.png"), &r.maps.albedo)
+    }
+}
+
+/// What a recovery writes to `best_results/` ([`Bundle::write_best_results`]).
+pub struct BestResults<'a> {
+    /// Albedo, roughness, metallic (and the normals it was recovered with).
+    pub maps: &'a MaterialMaps,
+    pub envmap: &'a RgbImage,
+    pub lamps: &'a [crate::lamps::Lamp],
+    /// The independent re-render of the result, as written.
+    pub rendered: &'a RgbImage,
+    /// The same samples unfiltered, when `rendered` was denoised.
+    pub rendered_raw: Option<&'a RgbImage>,
+    /// What the optimiser fitted: the frozen paths' image of the result.
+    pub fit_image: &'a RgbImage,
+}
+
+/// Removes `path`, left by an earlier run, where this run writes nothing.
+fn remove_stale(path: &Path) -> Result<()> {
+    match std::fs::remove_file(path) {
+        Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(SceneError::io(path, e)),
+        _ => Ok(()),
+    }
 }
 
 /// Nearest and farthest depth a scene may have, in the depth map's units:

@@ -15,7 +15,8 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use glam::Vec3;
-use matflow_geom::{shapes, TriMesh};
+use matflow_geom::TriMesh;
+use matflow_procgen::shapes;
 use matflow_render::{
     render, Dielectric, EnvMap, PixelFilter, RenderOptions, RenderScene, SceneObject, Surface,
 };
@@ -81,7 +82,7 @@ pub fn bench_glass(a: BenchGlassArgs) -> Result<()> {
     let n = a.size;
     std::fs::create_dir_all(&a.work)?;
     let cam = Camera::new(n, n);
-    let env_img = matflow_scene::synthetic::generate(1, 16, 16).envmap;
+    let env_img = matflow_procgen::synthetic::generate(1, 16, 16).envmap;
     let env = EnvMap::new(&env_img)?;
     io::write_exr_rgb(
         &a.work.join("envmap.exr"),

@@ -79,7 +79,7 @@ pub fn bench_insert(a: BenchInsertArgs) -> Result<()> {
     );
 
     // 1. Render time with and without the objects.
-    let s = matflow_scene::synthetic::generate(1, n, n);
+    let s = matflow_procgen::synthetic::generate(1, n, n);
     let (cam, dm) = mesh_for_view(&s.depth, &matflow_geom::MeshParams::default())?;
     let v = matflow_engine::value::parse_override(&objects_yaml(n, &meshes, GLASS))
         .map_err(anyhow::Error::msg)?;

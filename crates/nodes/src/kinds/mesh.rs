@@ -138,7 +138,7 @@ mod tests {
     /// The stage's mesh of synthetic scene 3, with its photo (rendered on
     /// the depth mesh alone, under its own sky) when `photo`.
     fn mesh_of_scene(complete: Option<&str>, photo: bool) -> TriMesh {
-        let s = matflow_scene::synthetic::generate(3, 48, 48);
+        let s = matflow_procgen::synthetic::generate(3, 48, 48);
         let target = photo.then(|| {
             let env = matflow_render::EnvMap::new(&s.envmap).unwrap();
             let (scene, _, _) = matflow_render::scene_from_depth(
@@ -188,7 +188,7 @@ mod tests {
     fn the_mesh_stage_completes_the_room_past_the_frame() {
         let plain = mesh_with("none");
         assert!(plain.material_pixel.is_empty());
-        let s = matflow_scene::synthetic::generate(3, 48, 48);
+        let s = matflow_procgen::synthetic::generate(3, 48, 48);
         assert_eq!(plain, mesh_of(&s.depth, &MeshParams::default()).unwrap());
         for mode in ["planes", "room"] {
             let done = mesh_with(mode);
@@ -216,7 +216,7 @@ mod tests {
     fn auto_takes_the_completion_the_photo_supports() {
         // Scene 3 shows its sky; its photo was rendered on the depth mesh
         // alone, which the photo supports and which assumes least.
-        let s = matflow_scene::synthetic::generate(3, 48, 48);
+        let s = matflow_procgen::synthetic::generate(3, 48, 48);
         assert!(s.depth.data.iter().filter(|&&z| z <= 0.0).count() > 48 * 48 / 50);
         assert_eq!(mesh_of_scene(Some("auto"), true), mesh_with("none"));
         // Auto is what a stage that says nothing gets.

@@ -1,5 +1,5 @@
 //! `room_sample`: one sample of the `rooms` dataset — a synthetic
-//! interior (`matflow_render::rooms`) path-traced by matflow's renderer,
+//! interior (`matflow_procgen::rooms`) path-traced by matflow's renderer,
 //! with its ground-truth maps, as the files of a reference bundle: the
 //! linear photograph and its sRGB PNG, camera-space depth, the sky mask,
 //! true albedo, roughness, metallic, normals and the lighting.
@@ -10,10 +10,10 @@ use glam::Vec3;
 use matflow_engine::node::Params;
 use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
 use matflow_geom::TriMesh;
+use matflow_procgen::envgen::procedural_envmap;
+use matflow_procgen::rooms::{ground_truth, room};
 use matflow_render::envmap::rotated;
-use matflow_render::rooms::{ground_truth, room};
 use matflow_render::{render, EnvMap, RenderOptions, RenderScene};
-use matflow_scene::envgen::procedural_envmap;
 use matflow_scene::{io, Camera, MaterialMaps};
 
 use crate::data::put_file;

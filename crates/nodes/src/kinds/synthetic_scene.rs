@@ -86,9 +86,9 @@ impl Node for SyntheticSceneNode {
         let p = ctx.params;
         let seed = p.i64("seed") as u64;
         let size = p.i64("size") as usize;
-        let s = matflow_scene::synthetic::generate(seed, size, size);
+        let s = matflow_procgen::synthetic::generate(seed, size, size);
         let pred = if p.bool("degrade") {
-            matflow_scene::synthetic::degrade(&s.maps, seed)
+            matflow_procgen::synthetic::degrade(&s.maps, seed)
         } else {
             s.maps.clone()
         };

@@ -23,20 +23,20 @@ use std::collections::BTreeMap;
 use glam::{Mat3, Vec2, Vec3};
 use matflow_engine::node::Params;
 use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
-use matflow_geom::refraction::object_labels;
-use matflow_geom::shapes::refraction_objects;
 use matflow_geom::TriMesh;
+use matflow_procgen::envgen::{procedural_envmap, EnvKind};
+use matflow_procgen::refraction::object_labels;
+use matflow_procgen::shapes::refraction_objects;
 use matflow_render::envmap::{rotate_and_expose, rotated};
 use matflow_render::scene::{SceneObject, Surface};
 use matflow_render::{render, EnvMap, Material, RenderOptions, RenderScene};
-use matflow_scene::envgen::{procedural_envmap, EnvKind};
 use matflow_scene::npy::{self, Dtype};
 use matflow_scene::{io, Camera, Image, MaterialMaps, RgbImage};
 
 use crate::{err, failed};
 
 /// The names of the built-in objects (`refraction_objects`), in order.
-pub use matflow_geom::shapes::REFRACTION_OBJECT_NAMES as OBJECT_NAMES;
+pub use matflow_procgen::shapes::REFRACTION_OBJECT_NAMES as OBJECT_NAMES;
 
 macro_rules! common_params {
     () => {

@@ -11,9 +11,8 @@
 
 use glam::{Vec2, Vec3};
 
-use crate::bundle::MaterialMaps;
-use crate::camera::Camera;
-use crate::image::{GrayImage, Image, RgbImage};
+pub use matflow_scene::rng::Rng;
+use matflow_scene::{Camera, GrayImage, Image, MaterialMaps, RgbImage};
 
 /// What a procedural scene provides: geometry as per-pixel camera depth
 /// (0 where a pixel sees only sky), true materials and normals, and the
@@ -55,33 +54,6 @@ struct Object {
     shape: Shape,
     mat: Mat,
     tiles: bool,
-}
-
-/// SplitMix64: the procedural generators' random stream (scene layout,
-/// envmaps, rooms, dataset draws).
-pub struct Rng(pub u64);
-impl Rng {
-    pub fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
-    }
-    /// Uniform in [0, 1), 24 bits.
-    pub fn f(&mut self) -> f32 {
-        (self.next_u64() >> 40) as f32 / (1u64 << 24) as f32
-    }
-    pub fn range(&mut self, a: f32, b: f32) -> f32 {
-        a + (b - a) * self.f()
-    }
-    pub fn chance(&mut self, p: f32) -> bool {
-        self.f() < p
-    }
-    /// Uniform in 0..n (n > 0), by multiply-shift.
-    pub fn below(&mut self, n: u64) -> u64 {
-        ((self.next_u64() as u128 * n as u128) >> 64) as u64
-    }
 }
 
 /// HSV (each in [0, 1], hue wrapping) to linear RGB.

@@ -5,21 +5,21 @@
 //! (tables, cabinets, shelves) and primitives (balls, cylinders, tori,
 //! jugs) on the floor and on tables, matte, glossy and metal materials, a
 //! camera at a varied height, turned and tilted, and a procedural sky or
-//! room environment map. Unlike [`matflow_scene::synthetic`] (a depth map
+//! room environment map. Unlike [`crate::synthetic`] (a depth map
 //! of the visible surfaces), the geometry is whole: it casts shadows
 //! from outside the view. Everything is a pure function of the seed.
 
 use std::sync::Arc;
 
+use crate::envgen::EnvKind;
+use crate::shapes::{cuboid, jug, revolve, sphere, torus, Shape};
+use crate::synthetic::{hsv, Rng};
 use glam::{Mat3, Vec2, Vec3};
-use matflow_geom::shapes::{cuboid, jug, revolve, sphere, torus, Shape};
 use matflow_geom::TriMesh;
-use matflow_scene::envgen::EnvKind;
-use matflow_scene::synthetic::{hsv, Rng};
 use matflow_scene::{Camera, GrayImage, Image, RgbImage};
 
-use crate::bsdf::Material;
-use crate::scene::{RenderScene, SceneObject, Surface};
+use matflow_render::bsdf::Material;
+use matflow_render::scene::{RenderScene, SceneObject, Surface};
 
 /// A generated room: objects in the camera's frame (the camera at the
 /// origin looking down −z), the environment map's kind and seed, how the
@@ -488,7 +488,7 @@ pub fn ground_truth(scene: &RenderScene, camera: &Camera) -> GroundTruth {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::envmap::EnvMap;
+    use matflow_render::EnvMap;
     use matflow_scene::MaterialMaps;
 
     fn scene_of(room: &Room, n: usize) -> (RenderScene, Camera) {

@@ -7,7 +7,7 @@ use std::f32::consts::PI;
 
 use glam::{Vec2, Vec3};
 
-use crate::mesh::{box_corner, TriMesh, BOX_QUADS};
+use matflow_geom::mesh::{box_corner, TriMesh, BOX_QUADS};
 
 /// A mesh with per-vertex shading normals.
 #[derive(Clone, Debug, Default, PartialEq)]

@@ -7,8 +7,8 @@
 
 use glam::Vec3;
 
-use crate::image::{Image, RgbImage};
 use crate::synthetic::{hsv, procedural_sky, sph, Rng};
+use matflow_scene::{Image, RgbImage};
 
 /// The kinds of procedural environment map.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

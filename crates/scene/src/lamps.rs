@@ -1,17 +1,77 @@
-//! `best_results/lamps.json`: the lamps `matflow invert` fitted (point
-//! lights in camera space, and the sun: a distant light,
-//! [`matflow_render::Lamp`]), which `matflow render` of those maps lights
-//! the scene with unless told otherwise; `ground_truth/lamps.json`, the
-//! same for the true maps (the lamps a generated scene was lit by).
+//! Lamps: lights without area besides the envmap (a lamp in the room, or
+//! the sun), and their file, `lamps.json`. `best_results/lamps.json` holds
+//! the lamps `matflow invert` fitted (which `matflow render` of those maps
+//! lights the scene with unless told otherwise); `ground_truth/lamps.json`
+//! the true ones a generated scene was lit by.
 
 use std::path::Path;
 
-use anyhow::{bail, Context, Result};
 use glam::Vec3;
-use matflow_render::{Lamp, LampAt};
+
+use crate::error::SceneError;
 
 /// Where a bundle keeps the lamps fitted with its `best_results/` maps.
 pub const LAMPS_FILE: &str = "best_results/lamps.json";
+
+/// Where a [`Lamp`] is.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum LampAt {
+    /// An isotropic point light inside the scene at this camera-space
+    /// position: a surface at distance r receives intensity·cos θ / r²
+    /// (radiant intensity, per channel, in the envmap's radiance units
+    /// times area).
+    Point(Vec3),
+    /// A distant light, the sun: in this camera-space direction (unit,
+    /// towards the light), seen under a vanishing angle; a surface that
+    /// sees it receives intensity·cos θ (the irradiance at normal
+    /// incidence, in the envmap's radiance units times solid angle).
+    Distant(Vec3),
+}
+
+/// A light without area besides the envmap: a lamp in the room or the
+/// sun ([`LampAt`]). The camera never sees one (it has no area), and a
+/// BSDF sample never meets one; next-event estimation alone brings its
+/// light, to every surface it reaches.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Lamp {
+    pub at: LampAt,
+    pub intensity: Vec3,
+}
+
+impl Lamp {
+    /// An isotropic point light.
+    pub fn point(position: Vec3, intensity: Vec3) -> Lamp {
+        Lamp {
+            at: LampAt::Point(position),
+            intensity,
+        }
+    }
+
+    /// A distant light in `direction` (normalised here; a zero or
+    /// non-finite one gives a lamp that is not [`Lamp::is_valid`]) giving
+    /// `irradiance` at normal incidence.
+    pub fn sun(direction: Vec3, irradiance: Vec3) -> Lamp {
+        Lamp {
+            at: LampAt::Distant(direction.try_normalize().unwrap_or(Vec3::NAN)),
+            intensity: irradiance,
+        }
+    }
+
+    /// Whether it is the sun.
+    pub fn is_distant(&self) -> bool {
+        matches!(self.at, LampAt::Distant(_))
+    }
+
+    /// Finite position (a unit direction for a distant lamp), finite
+    /// non-negative intensity.
+    pub fn is_valid(&self) -> bool {
+        let at = match self.at {
+            LampAt::Point(p) => p.is_finite(),
+            LampAt::Distant(d) => d.is_finite() && (d.length() - 1.0).abs() < 1e-3,
+        };
+        at && self.intensity.is_finite() && self.intensity.min_element() >= 0.0
+    }
+}
 
 #[derive(serde::Serialize, serde::Deserialize)]
 struct LampEntry {
@@ -35,7 +95,7 @@ struct LampsDoc {
 }
 
 /// Writes `lamps` to `path` (atomically).
-pub fn write_lamps(path: &Path, lamps: &[Lamp]) -> Result<()> {
+pub fn write_lamps(path: &Path, lamps: &[Lamp]) -> Result<(), SceneError> {
     let doc = LampsDoc {
         lamps: lamps
             .iter()
@@ -53,39 +113,48 @@ pub fn write_lamps(path: &Path, lamps: &[Lamp]) -> Result<()> {
             })
             .collect(),
     };
-    let text = serde_json::to_string_pretty(&doc)?;
-    matflow_scene::io::write_atomic(path, text.as_bytes())
-        .with_context(|| format!("writing {}", path.display()))?;
-    Ok(())
+    let text = serde_json::to_string_pretty(&doc).map_err(|e| SceneError::Encode {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    })?;
+    crate::io::write_atomic(path, text.as_bytes())
 }
 
 /// The lamps in `path`; an error names the file and what is wrong
 /// (unparsable, a lamp with both or neither of `position` and
 /// `direction`, or which lamp is not finite, has a direction that is not
 /// a unit vector or a negative intensity).
-pub fn read_lamps(path: &Path) -> Result<Vec<Lamp>> {
-    let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
-    let doc: LampsDoc = serde_json::from_slice(&bytes)
-        .with_context(|| format!("{}: not a lamps file", path.display()))?;
+pub fn read_lamps(path: &Path) -> Result<Vec<Lamp>, SceneError> {
+    let bytes = std::fs::read(path).map_err(|e| SceneError::io(path, e))?;
+    let doc: LampsDoc = serde_json::from_slice(&bytes).map_err(|e| SceneError::Decode {
+        path: path.to_path_buf(),
+        message: format!("not a lamps file: {e}"),
+    })?;
+    let invalid = |message: String| SceneError::Invalid {
+        path: path.to_path_buf(),
+        message,
+    };
     let mut lamps = Vec::with_capacity(doc.lamps.len());
     for (k, e) in doc.lamps.iter().enumerate() {
         let at = match (e.position, e.direction) {
             (Some(p), None) => LampAt::Point(Vec3::from(p)),
             (None, Some(d)) => LampAt::Distant(Vec3::from(d)),
-            _ => bail!(
-                "{}: lamps[{k}] needs exactly one of `position` (a point light) and `direction` (the sun)",
-                path.display()
-            ),
+            _ => {
+                return Err(invalid(format!(
+                    "lamps[{k}] needs exactly one of `position` (a point light) and \
+                     `direction` (the sun)"
+                )))
+            }
         };
         let lamp = Lamp {
             at,
             intensity: Vec3::from(e.intensity),
         };
         if !lamp.is_valid() {
-            bail!(
-                "{}: lamps[{k}] has a non-finite position, a direction that is not a unit vector, or a negative or non-finite intensity",
-                path.display()
-            );
+            return Err(invalid(format!(
+                "lamps[{k}] has a non-finite position, a direction that is not a unit vector, \
+                 or a negative or non-finite intensity"
+            )));
         }
         lamps.push(lamp);
     }
@@ -95,7 +164,7 @@ pub fn read_lamps(path: &Path) -> Result<Vec<Lamp>> {
 /// The lamps that light a bundle's maps in `folder` (`best_results`:
 /// those `matflow invert` fitted; `ground_truth`: the true ones, e.g. the
 /// validation set's), from `FOLDER/lamps.json`, if it has any.
-pub fn bundle_lamps(bundle: &Path, folder: &str) -> Result<Option<Vec<Lamp>>> {
+pub fn bundle_lamps(bundle: &Path, folder: &str) -> Result<Option<Vec<Lamp>>, SceneError> {
     let p = bundle.join(folder).join("lamps.json");
     if p.exists() {
         read_lamps(&p).map(Some)
@@ -124,24 +193,24 @@ mod tests {
             br#"{"lamps": [{"position": [0, 0, 0], "intensity": [1, -1, 0]}]}"#,
         )
         .unwrap();
-        let e = format!("{:#}", read_lamps(&p).unwrap_err());
+        let e = read_lamps(&p).unwrap_err().to_string();
         assert!(e.contains("lamps[0]") && e.contains("lamps.json"), "{e}");
         std::fs::write(
             &p,
             br#"{"lamps": [{"position": [0, 0, 0], "direction": [0, 1, 0], "intensity": [1, 1, 1]}]}"#,
         )
         .unwrap();
-        let e = format!("{:#}", read_lamps(&p).unwrap_err());
+        let e = read_lamps(&p).unwrap_err().to_string();
         assert!(e.contains("lamps[0]") && e.contains("exactly one"), "{e}");
         std::fs::write(
             &p,
             br#"{"lamps": [{"direction": [0, 2, 0], "intensity": [1, 1, 1]}]}"#,
         )
         .unwrap();
-        let e = format!("{:#}", read_lamps(&p).unwrap_err());
+        let e = read_lamps(&p).unwrap_err().to_string();
         assert!(e.contains("lamps[0]") && e.contains("unit vector"), "{e}");
         std::fs::write(&p, b"{\"lamps\": 3}").unwrap();
-        let e = format!("{:#}", read_lamps(&p).unwrap_err());
+        let e = read_lamps(&p).unwrap_err().to_string();
         assert!(e.contains("not a lamps file"), "{e}");
         std::fs::remove_dir_all(&dir).unwrap();
     }

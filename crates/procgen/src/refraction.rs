@@ -22,8 +22,7 @@
 
 use glam::Vec3;
 
-use crate::bvh::Bvh;
-use crate::mesh::TriMesh;
+use matflow_geom::{Bvh, TriMesh};
 
 /// Every intersection of a ray with `bvh` beyond `tmin`, nearest first:
 /// (distance, triangle). Hits closer together than `eps` (a ray through an
