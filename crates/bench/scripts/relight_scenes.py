@@ -950,7 +950,7 @@ def make_bundle(mi, dr, k, a, out_dir):
 
 def write_lamps(P, w2c, folder):
     """ground_truth/lamps.json: the capture's lamps as matflow reads them
-    (crates/cli/src/lamps.rs): camera-space points whose intensity is a
+    (crates/scene/src/lamps.rs): camera-space points whose intensity is a
     sphere's (pi r^2 times its radiance), with the capture's exposure."""
     lamps = []
     for l in P["lamps"]:
