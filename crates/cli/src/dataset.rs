@@ -220,29 +220,7 @@ pub fn generate(file: &Path, a: &GenerateArgs) -> Result<()> {
     let t0 = Instant::now();
     let overrides = crate::run::parse_overrides(&a.set)?;
     let (ds_over, stage_over) = matflow_dataset::spec::split_overrides(&overrides);
-    let text = std::fs::read_to_string(file)
-        .with_context(|| format!("{}: cannot read the dataset spec", file.display()))?;
-    let (root, root_loc) = matflow_engine::value::parse_yaml(&text).map_err(|e| {
-        anyhow::anyhow!(
-            "{}:{}:{}: {}",
-            file.display(),
-            e.loc.line,
-            e.loc.col,
-            e.message
-        )
-    })?;
-    let section = match &root {
-        Value::Map(m) => m.iter().find(|e| e.0 == "dataset").cloned(),
-        _ => None,
-    };
-    let Some((_, _, sv, sl)) = section else {
-        bail!(
-            "{}: no `dataset:` section (a dataset spec is a mapping with `dataset:`)",
-            file.display()
-        );
-    };
-    let spec =
-        matflow_dataset::parse_section(&sv, sl, file, &ds_over).map_err(anyhow::Error::msg)?;
+    let (root, root_loc, spec) = read_spec(file, &ds_over)?;
     let out = match (&a.out, &spec.out) {
         (Some(o), _) => o.clone(),
         (None, Some(o)) => o.clone(),
@@ -289,18 +267,7 @@ pub fn generate(file: &Path, a: &GenerateArgs) -> Result<()> {
         reg.clone(),
         a.parallel,
     )?;
-    let bar = (!a.quiet).then(|| {
-        let b = ProgressBar::new(samples);
-        b.set_style(
-            ProgressStyle::with_template(
-                "{prefix} [{bar:30}] {pos}/{len} samples  {per_sec}  ETA {eta}",
-            )
-            .expect("a valid template")
-            .progress_chars("=> "),
-        );
-        b.set_prefix(job.spec.name.clone());
-        b
-    });
+    let bar = (!a.quiet).then(|| progress(samples, &job.spec.name));
     let fetch = |hex: &str| -> std::result::Result<Vec<u8>, String> {
         let d = Digest::from_hex(hex).ok_or_else(|| format!("bad digest {hex}"))?;
         match store.get(&d) {
@@ -328,29 +295,7 @@ pub fn generate(file: &Path, a: &GenerateArgs) -> Result<()> {
         b.finish_and_clear();
     }
     let st = obs.state.into_inner().unwrap();
-    if !st.errors.is_empty() {
-        bail!(
-            "{}: writing shards: {}",
-            out.display(),
-            st.errors.join("; ")
-        );
-    }
-    if let Some(f) = report.failure() {
-        bail!(
-            "{}: {f} ({} of {} shards written; a re-run recomputes nothing finished)",
-            file.display(),
-            st.written,
-            shards.len()
-        );
-    }
-    if st.written != shards.len() {
-        bail!(
-            "{}: {} of {} shards written, yet every stage finished",
-            out.display(),
-            st.written,
-            shards.len()
-        );
-    }
+    check_written(&st, &report, file, &out, shards.len())?;
     let bytes = st.bytes;
     let executed = report
         .stages
@@ -399,6 +344,87 @@ pub fn generate(file: &Path, a: &GenerateArgs) -> Result<()> {
         });
         matflow_scene::io::write_atomic(path, &serde_json::to_vec_pretty(&json)?)
             .with_context(|| format!("writing the report {}", path.display()))?;
+    }
+    Ok(())
+}
+
+/// The spec file's YAML root (where it starts) and its `dataset:`
+/// section read with the dataset's overrides.
+fn read_spec(
+    file: &Path,
+    ds_over: &[spec::Override],
+) -> Result<(Value, matflow_engine::Loc, matflow_dataset::DatasetSpec)> {
+    let text = std::fs::read_to_string(file)
+        .with_context(|| format!("{}: cannot read the dataset spec", file.display()))?;
+    let (root, root_loc) = matflow_engine::value::parse_yaml(&text).map_err(|e| {
+        anyhow::anyhow!(
+            "{}:{}:{}: {}",
+            file.display(),
+            e.loc.line,
+            e.loc.col,
+            e.message
+        )
+    })?;
+    let section = match &root {
+        Value::Map(m) => m.iter().find(|e| e.0 == "dataset").cloned(),
+        _ => None,
+    };
+    let Some((_, _, sv, sl)) = section else {
+        bail!(
+            "{}: no `dataset:` section (a dataset spec is a mapping with `dataset:`)",
+            file.display()
+        );
+    };
+    let spec =
+        matflow_dataset::parse_section(&sv, sl, file, ds_over).map_err(anyhow::Error::msg)?;
+    Ok((root, root_loc, spec))
+}
+
+/// The samples/s and ETA bar of a job of `samples` samples.
+fn progress(samples: u64, name: &str) -> ProgressBar {
+    let b = ProgressBar::new(samples);
+    b.set_style(
+        ProgressStyle::with_template(
+            "{prefix} [{bar:30}] {pos}/{len} samples  {per_sec}  ETA {eta}",
+        )
+        .expect("a valid template")
+        .progress_chars("=> "),
+    );
+    b.set_prefix(name.to_string());
+    b
+}
+
+/// After the run: every shard this process owns was written, and no
+/// stage failed; otherwise an error saying how far it got.
+fn check_written(
+    st: &WriterState,
+    report: &matflow_engine::Report,
+    file: &Path,
+    out: &Path,
+    shards: usize,
+) -> Result<()> {
+    if !st.errors.is_empty() {
+        bail!(
+            "{}: writing shards: {}",
+            out.display(),
+            st.errors.join("; ")
+        );
+    }
+    if let Some(f) = report.failure() {
+        bail!(
+            "{}: {f} ({} of {} shards written; a re-run recomputes nothing finished)",
+            file.display(),
+            st.written,
+            shards
+        );
+    }
+    if st.written != shards {
+        bail!(
+            "{}: {} of {} shards written, yet every stage finished",
+            out.display(),
+            st.written,
+            shards
+        );
     }
     Ok(())
 }

@@ -411,156 +411,175 @@ fn fail_on(errors: &[String], what: &str, summary: String) -> Result<()> {
 
 pub fn cache(c: CacheCmd) -> Result<()> {
     match c {
-        CacheCmd::Ls(d) => {
-            let store = Store::open(cache_dir(d.cache.as_deref()))?;
-            let sizes: BTreeMap<_, _> = store.blobs().into_iter().collect();
-            outln!(
-                "{:<14} {:<16} {:<18} {:<12} {:>10}  last used",
-                "key",
-                "kind",
-                "stage",
-                "pipeline",
-                "bytes"
-            );
-            for (k, a, t) in store.actions() {
-                let age = t.elapsed().map(|d| d.as_secs()).unwrap_or(0);
-                match a {
-                    Some(a) => {
-                        let bytes: u64 = a
-                            .digests()
-                            .unwrap_or_default()
-                            .values()
-                            .map(|d| sizes.get(d).copied().unwrap_or(0))
-                            .sum();
-                        outln!(
-                            "{:<14} {:<16} {:<18} {:<12} {:>10}  {} s ago",
-                            &k.hex()[..12],
-                            a.kind,
-                            a.stage,
-                            a.pipeline,
-                            bytes,
-                            age
-                        );
-                    }
-                    None => outln!("{:<14} (unreadable entry)", &k.hex()[..12]),
-                }
-            }
-        }
-        CacheCmd::Stats(d) => {
-            let store = Store::open(cache_dir(d.cache.as_deref()))?;
-            let s = store.stats();
-            outln!(
-                "{}: {} blobs, {} bytes ({:.1} MB), {} actions, {} temporary files",
-                store.root().display(),
-                s.blobs,
-                s.blob_bytes,
-                s.blob_bytes as f64 / 1e6,
-                s.actions,
-                s.temp_files
-            );
-        }
-        CacheCmd::Verify(d) => {
-            let store = Store::open(cache_dir(d.cache.as_deref()))?;
-            let reg = matflow_nodes::registry();
-            // Each output must decode as the type its node declares.
-            let r = store.verify_with(|a, name, bytes| {
-                let node = reg
-                    .get(&a.kind)
-                    .ok_or_else(|| format!("unknown node kind `{}`", a.kind))?;
-                let spec = node
-                    .outputs()
-                    .iter()
-                    .find(|o| o.name == name)
-                    .ok_or_else(|| format!("a {} stage has no output `{name}`", a.kind))?;
-                if reg.artifact_is(bytes, &[spec.ty]) {
-                    Ok(())
-                } else {
-                    Err(format!("not a {} artifact", spec.ty))
-                }
-            });
-            let bad = r.blobs_corrupt.len()
-                + r.actions_unreadable.len()
-                + r.actions_incomplete.len()
-                + r.actions_wrong_type.len();
-            outln!(
-                "{} blobs intact, {} corrupt; {} actions complete, {} unreadable, {} incomplete, {} of the wrong type; removed {} blobs and {} actions",
-                r.blobs_ok,
-                r.blobs_corrupt.len(),
-                r.actions_ok,
-                r.actions_unreadable.len(),
-                r.actions_incomplete.len(),
-                r.actions_wrong_type.len(),
-                r.blobs_removed,
-                r.actions_removed
-            );
-            for b in &r.blobs_corrupt {
-                outln!("corrupt blob {b}");
-            }
-            for w in &r.actions_wrong_type {
-                outln!("wrong type {w}");
-            }
-            fail_on(
-                &r.errors,
-                "could not read or remove",
-                format!(
-                    "verify: {} files could not be read or removed ({bad} damaged entries found)",
-                    r.errors.len()
-                ),
-            )?;
-        }
-        CacheCmd::Gc(g) => {
-            if g.keep.is_empty() && g.older_than.is_none() && g.max_size.is_none() {
-                bail!("gc: say what to keep: --keep PIPELINE.yaml, --older-than DAYS and/or --max-size SIZE");
-            }
-            let store = Store::open(cache_dir(g.cache.as_deref()))?;
-            let mut keep_stages = std::collections::BTreeSet::new();
-            let keep = if g.keep.is_empty() {
-                None
-            } else {
-                let reg = matflow_nodes::registry();
-                let mut keys = std::collections::BTreeSet::new();
-                for f in &g.keep {
-                    let p = spec::load(f, &reg, &[]).map_err(anyhow::Error::msg)?;
-                    let c = cached_keys(&p, &reg, &store);
-                    keys.extend(c.keys);
-                    keep_stages.extend(c.unresolved);
-                }
-                Some(keys)
-            };
-            let older_than = match g.older_than {
-                Some(d) if d >= 0.0 && d.is_finite() => Some(Duration::from_secs_f64(d * 86400.0)),
-                Some(d) => bail!("--older-than {d}: give a number of days ≥ 0"),
-                None => None,
-            };
-            let max_bytes = g.max_size.as_deref().map(parse_size).transpose()?;
-            let r = store.gc(&GcPolicy {
-                keep,
-                older_than,
-                max_bytes,
-                keep_stages,
-            });
-            outln!(
-                "removed {} actions, {} blobs ({} bytes), {} stale temporary files",
-                r.actions_removed,
-                r.blobs_removed,
-                r.bytes_freed,
-                r.temp_removed
-            );
-            if r.actions_kept_unresolved > 0 {
+        CacheCmd::Ls(d) => cache_ls(&d),
+        CacheCmd::Stats(d) => cache_stats(&d),
+        CacheCmd::Verify(d) => cache_verify(&d),
+        CacheCmd::Gc(g) => cache_gc(&g),
+    }
+}
+
+/// `cache ls`: one line per action (key, kind, stage, pipeline, the bytes
+/// of its outputs, when last used).
+fn cache_ls(d: &CacheDir) -> Result<()> {
+    let store = Store::open(cache_dir(d.cache.as_deref()))?;
+    let sizes: BTreeMap<_, _> = store.blobs().into_iter().collect();
+    outln!(
+        "{:<14} {:<16} {:<18} {:<12} {:>10}  last used",
+        "key",
+        "kind",
+        "stage",
+        "pipeline",
+        "bytes"
+    );
+    for (k, a, t) in store.actions() {
+        let age = t.elapsed().map(|d| d.as_secs()).unwrap_or(0);
+        match a {
+            Some(a) => {
+                let bytes: u64 = a
+                    .digests()
+                    .unwrap_or_default()
+                    .values()
+                    .map(|d| sizes.get(d).copied().unwrap_or(0))
+                    .sum();
                 outln!(
-                    "kept {} entries of stages whose keys could not be worked out (an entry above them is missing or damaged; run the pipeline to repair it)",
-                    r.actions_kept_unresolved
+                    "{:<14} {:<16} {:<18} {:<12} {:>10}  {} s ago",
+                    &k.hex()[..12],
+                    a.kind,
+                    a.stage,
+                    a.pipeline,
+                    bytes,
+                    age
                 );
             }
-            fail_on(
-                &r.errors,
-                "could not remove",
-                format!(
-                    "gc: {} removals failed (nothing counted above was left behind)",
-                    r.errors.len()
-                ),
-            )?;
+            None => outln!("{:<14} (unreadable entry)", &k.hex()[..12]),
         }
     }
+    Ok(())
+}
+
+/// `cache stats`: counts and sizes.
+fn cache_stats(d: &CacheDir) -> Result<()> {
+    let store = Store::open(cache_dir(d.cache.as_deref()))?;
+    let s = store.stats();
+    outln!(
+        "{}: {} blobs, {} bytes ({:.1} MB), {} actions, {} temporary files",
+        store.root().display(),
+        s.blobs,
+        s.blob_bytes,
+        s.blob_bytes as f64 / 1e6,
+        s.actions,
+        s.temp_files
+    );
+    Ok(())
+}
+
+/// `cache verify`: every blob against its digest, every action's outputs
+/// against the types their nodes declare; damage is removed and counted.
+fn cache_verify(d: &CacheDir) -> Result<()> {
+    let store = Store::open(cache_dir(d.cache.as_deref()))?;
+    let reg = matflow_nodes::registry();
+    // Each output must decode as the type its node declares.
+    let r = store.verify_with(|a, name, bytes| {
+        let node = reg
+            .get(&a.kind)
+            .ok_or_else(|| format!("unknown node kind `{}`", a.kind))?;
+        let spec = node
+            .outputs()
+            .iter()
+            .find(|o| o.name == name)
+            .ok_or_else(|| format!("a {} stage has no output `{name}`", a.kind))?;
+        if reg.artifact_is(bytes, &[spec.ty]) {
+            Ok(())
+        } else {
+            Err(format!("not a {} artifact", spec.ty))
+        }
+    });
+    let bad = r.blobs_corrupt.len()
+        + r.actions_unreadable.len()
+        + r.actions_incomplete.len()
+        + r.actions_wrong_type.len();
+    outln!(
+            "{} blobs intact, {} corrupt; {} actions complete, {} unreadable, {} incomplete, {} of the wrong type; removed {} blobs and {} actions",
+            r.blobs_ok,
+            r.blobs_corrupt.len(),
+            r.actions_ok,
+            r.actions_unreadable.len(),
+            r.actions_incomplete.len(),
+            r.actions_wrong_type.len(),
+            r.blobs_removed,
+            r.actions_removed
+        );
+    for b in &r.blobs_corrupt {
+        outln!("corrupt blob {b}");
+    }
+    for w in &r.actions_wrong_type {
+        outln!("wrong type {w}");
+    }
+    fail_on(
+        &r.errors,
+        "could not read or remove",
+        format!(
+            "verify: {} files could not be read or removed ({bad} damaged entries found)",
+            r.errors.len()
+        ),
+    )?;
+    Ok(())
+}
+
+/// `cache gc`: removes what the policy does not keep.
+fn cache_gc(g: &GcArgs) -> Result<()> {
+    if g.keep.is_empty() && g.older_than.is_none() && g.max_size.is_none() {
+        bail!(
+            "gc: say what to keep: --keep PIPELINE.yaml, --older-than DAYS and/or --max-size SIZE"
+        );
+    }
+    let store = Store::open(cache_dir(g.cache.as_deref()))?;
+    let mut keep_stages = std::collections::BTreeSet::new();
+    let keep = if g.keep.is_empty() {
+        None
+    } else {
+        let reg = matflow_nodes::registry();
+        let mut keys = std::collections::BTreeSet::new();
+        for f in &g.keep {
+            let p = spec::load(f, &reg, &[]).map_err(anyhow::Error::msg)?;
+            let c = cached_keys(&p, &reg, &store);
+            keys.extend(c.keys);
+            keep_stages.extend(c.unresolved);
+        }
+        Some(keys)
+    };
+    let older_than = match g.older_than {
+        Some(d) if d >= 0.0 && d.is_finite() => Some(Duration::from_secs_f64(d * 86400.0)),
+        Some(d) => bail!("--older-than {d}: give a number of days ≥ 0"),
+        None => None,
+    };
+    let max_bytes = g.max_size.as_deref().map(parse_size).transpose()?;
+    let r = store.gc(&GcPolicy {
+        keep,
+        older_than,
+        max_bytes,
+        keep_stages,
+    });
+    outln!(
+        "removed {} actions, {} blobs ({} bytes), {} stale temporary files",
+        r.actions_removed,
+        r.blobs_removed,
+        r.bytes_freed,
+        r.temp_removed
+    );
+    if r.actions_kept_unresolved > 0 {
+        outln!(
+                "kept {} entries of stages whose keys could not be worked out (an entry above them is missing or damaged; run the pipeline to repair it)",
+                r.actions_kept_unresolved
+            );
+    }
+    fail_on(
+        &r.errors,
+        "could not remove",
+        format!(
+            "gc: {} removals failed (nothing counted above was left behind)",
+            r.errors.len()
+        ),
+    )?;
     Ok(())
 }

@@ -90,14 +90,62 @@ pub fn bench_render(a: BenchRenderArgs) -> Result<()> {
         threads,
         runs
     );
-
-    // Meshing and BVH build.
     let depth = matflow_scene::Bundle::open(&a.bundle)?.load_depth()?;
+    let build_t = build_times(scene, &depth, runs);
+    let (primary, incoherent) = ray_sets(scene);
+    let export = |dir: &std::path::Path| -> Result<()> {
+        crate::suites::compare::export_scene(scene, dir)?;
+        crate::suites::compare::write_rays(&dir.join("primary.rays"), &primary)?;
+        crate::suites::compare::write_rays(&dir.join("incoherent.rays"), &incoherent)
+    };
+    if let Some(dir) = &a.export {
+        export(dir)?;
+        outln!("wrote {}", dir.display());
+        return Ok(());
+    }
+    let ours = throughput(scene, &primary, &incoherent, runs);
+    outln!(
+        "  primary closest-hit   {:8.2} Mrays/s ({} rays)",
+        ours[0],
+        primary.len()
+    );
+    let spp = a.spp.max(1) as usize;
+    let packet_t = packet_seconds(scene, spp, runs);
+    outln!(
+        "  camera packets        {:8.2} Mrays/s ({} per pixel, as the renderer traces them)",
+        (cam.width * cam.height * spp) as f64 / packet_t / 1e6,
+        spp
+    );
+    for (name, v) in [
+        ("incoherent closest-hit", ours[1]),
+        ("incoherent occlusion", ours[2]),
+        ("  as streams", ours[3]),
+        ("  occlusion as streams", ours[4]),
+    ] {
+        outln!("  {name:<22}{v:8.2} Mrays/s ({} rays)", incoherent.len());
+    }
+    let (render_s, image) = full_renders(&a, scene, runs);
+    stored_psnr(&a, &image)?;
+    if a.no_compare {
+        return Ok(());
+    }
+    compare(&a, scene, &export, build_t, ours, render_s, threads, runs)
+}
+
+/// Meshing the depth and building the BVH, medians of `runs` (printed);
+/// returns the BVH build's seconds.
+fn build_times(
+    scene: &matflow_render::RenderScene,
+    depth: &matflow_scene::GrayImage,
+    runs: usize,
+) -> f64 {
+    let cam = scene.camera;
+    // Meshing and BVH build.
     let mesh_t = median(
         (0..runs)
             .map(|_| {
                 let t = Instant::now();
-                let _ = matflow_geom::mesh_from_depth(&depth, &cam, &Default::default());
+                let _ = matflow_geom::mesh_from_depth(depth, &cam, &Default::default());
                 t.elapsed().as_secs_f64()
             })
             .collect(),
@@ -115,8 +163,14 @@ pub fn bench_render(a: BenchRenderArgs) -> Result<()> {
     outln!("  mesh from depth       {:8.1} ms", mesh_t * 1e3);
     outln!("  BVH build             {:8.1} ms", build_t * 1e3);
 
-    // Ray sets: primary (one per pixel, jittered), incoherent (cosine
-    // directions from the primary hits), occlusion (the same incoherent rays).
+    build_t
+}
+
+/// The ray sets: primary (one per pixel, jittered) and incoherent (cosine
+/// directions from the primary hits; also the occlusion set).
+#[allow(clippy::type_complexity)]
+fn ray_sets(scene: &matflow_render::RenderScene) -> (Vec<(Vec3, Vec3)>, Vec<(Vec3, Vec3)>) {
+    let cam = scene.camera;
     let (w, h) = (cam.width, cam.height);
     let primary: Vec<(Vec3, Vec3)> = (0..w * h)
         .map(|k| {
@@ -146,16 +200,18 @@ pub fn bench_render(a: BenchRenderArgs) -> Result<()> {
             Some((p + n * 1e-5 * (1.0 + p.abs().max_element()), l))
         })
         .collect();
-    let export = |dir: &std::path::Path| -> Result<()> {
-        crate::suites::compare::export_scene(scene, dir)?;
-        crate::suites::compare::write_rays(&dir.join("primary.rays"), &primary)?;
-        crate::suites::compare::write_rays(&dir.join("incoherent.rays"), &incoherent)
-    };
-    if let Some(dir) = &a.export {
-        export(dir)?;
-        outln!("wrote {}", dir.display());
-        return Ok(());
-    }
+    (primary, incoherent)
+}
+
+/// Median Mrays/s, one ray at a time (primary and incoherent closest hit,
+/// incoherent occlusion) and as the renderer traces its shadow and
+/// continuation rays: streams (of 1024, as chunked).
+fn throughput(
+    scene: &matflow_render::RenderScene,
+    primary: &[(Vec3, Vec3)],
+    incoherent: &[(Vec3, Vec3)],
+    runs: usize,
+) -> [f64; 5] {
     // Median Mrays/s of `count`, which answers a chunk of 1024 rays and
     // counts its hits, over the chunks in parallel.
     type Rays<'a> = &'a [(Vec3, Vec3)];
@@ -193,24 +249,20 @@ pub fn bench_render(a: BenchRenderArgs) -> Result<()> {
         bvh.occluded_stream(ch, 0.0, inf, &mut out);
         out.iter().filter(|&&b| b).count()
     };
-    // One ray at a time, then as the renderer traces its shadow and
-    // continuation rays: streams (here of 1024, as chunked).
-    let ours = [
-        time(&primary, &hits),
-        time(&incoherent, &hits),
-        time(&incoherent, &blocked),
-        time(&incoherent, &stream_hits),
-        time(&incoherent, &stream_blocked),
-    ];
-    outln!(
-        "  primary closest-hit   {:8.2} Mrays/s ({} rays)",
-        ours[0],
-        primary.len()
-    );
-    // The renderer's own route for camera rays: each pixel's samples as
-    // one packet (a.spp jittered rays per pixel).
-    let spp = a.spp.max(1) as usize;
-    let packet_t = median(
+    [
+        time(primary, &hits),
+        time(incoherent, &hits),
+        time(incoherent, &blocked),
+        time(incoherent, &stream_hits),
+        time(incoherent, &stream_blocked),
+    ]
+}
+
+/// The renderer's own route for camera rays: each pixel's `spp` samples
+/// as one packet; median seconds over `runs`.
+fn packet_seconds(scene: &matflow_render::RenderScene, spp: usize, runs: usize) -> f64 {
+    let (w, h) = (scene.camera.width, scene.camera.height);
+    median(
         (0..runs)
             .map(|_| {
                 let t = Instant::now();
@@ -237,21 +289,16 @@ pub fn bench_render(a: BenchRenderArgs) -> Result<()> {
                 t.elapsed().as_secs_f64()
             })
             .collect(),
-    );
-    outln!(
-        "  camera packets        {:8.2} Mrays/s ({} per pixel, as the renderer traces them)",
-        (w * h * spp) as f64 / packet_t / 1e6,
-        spp
-    );
-    for (name, v) in [
-        ("incoherent closest-hit", ours[1]),
-        ("incoherent occlusion", ours[2]),
-        ("  as streams", ours[3]),
-        ("  occlusion as streams", ours[4]),
-    ] {
-        outln!("  {name:<22}{v:8.2} Mrays/s ({} rays)", incoherent.len());
-    }
+    )
+}
 
+/// Full renders at the bench's spp and depth, one per seed: the median
+/// wall time (printed with the rays) and the last image.
+fn full_renders(
+    a: &BenchRenderArgs,
+    scene: &matflow_render::RenderScene,
+    runs: usize,
+) -> (f64, matflow_scene::RgbImage) {
     // Full renders.
     let opts = RenderOptions {
         spp: a.spp,
@@ -284,14 +331,20 @@ pub fn bench_render(a: BenchRenderArgs) -> Result<()> {
         median(mrays),
         out.stats.total_rays() as f64 / 1e6
     );
+    (render_s, out.image)
+}
+
+/// PSNR against the bundle's stored render, when it has a linear one of
+/// the same size.
+fn stored_psnr(a: &BenchRenderArgs, image: &matflow_scene::RgbImage) -> Result<()> {
     let stored = a.bundle.join("best_results/rendered_img.exr");
     if stored.is_file() && !matflow_scene::Bundle::open(&a.bundle)?.rendered_img_is_gamma_encoded()
     {
         let reference = io::read_exr_rgb(&stored)?;
-        if reference.same_size(&out.image) {
+        if reference.same_size(image) {
             outln!(
                 "  PSNR vs stored rendered_img.exr (sRGB, gamma 2.2): {:.2} dB{}",
-                psnr_gamma(&out.image, &reference),
+                psnr_gamma(image, &reference),
                 if a.reference_compat {
                     " (reference-compatible frame)"
                 } else {
@@ -300,10 +353,7 @@ pub fn bench_render(a: BenchRenderArgs) -> Result<()> {
             );
         }
     }
-    if a.no_compare {
-        return Ok(());
-    }
-    compare(&a, scene, &export, build_t, ours, render_s, threads, runs)
+    Ok(())
 }
 
 /// Embree's ray throughput and Mitsuba 3's render time on the same scene,
