@@ -758,6 +758,45 @@ fn final_render(run: &mut Run, guide: &Guide, final_spp: u32) -> (RgbImage, Opti
     out
 }
 
+/// The sun stage: searches the photo's light and shadow for a sun the
+/// scout's envmap `env` shows and, where one is taken, moves its power
+/// from the texels into a distant lamp (the entry after the sites'). Its
+/// report, and the shadow rays per path it adds (to re-plan with).
+fn sun_stage(
+    run: &mut Run,
+    mats: &[Material],
+    guide: &Guide,
+    env: &mut Vec<Vec3>,
+    scout: &PathCache,
+) -> (Option<SunReport>, Option<f64>) {
+    let opts = run.opts;
+    let (ew, eh, sites) = (opts.env_width, opts.env_height, opts.lamp_sites.len());
+    run.begin("sun", 1);
+    let found = run.find_sun(mats, guide);
+    let report = found.as_ref().map(|(fit, taken)| SunReport {
+        found: *taken,
+        direction: fit.direction.to_array(),
+        explained: fit.explained,
+        start_irradiance: fit.irradiance.to_array(),
+        irradiance: [0.0; 3],
+    });
+    let mut extra_rays = None;
+    if let Some((fit, true)) = found {
+        // The scout had spread the sun into the brightest texels.
+        let mut lit = sun::baseline(env, ew, eh, opts.sun_params.quantile);
+        lit.extend_from_slice(&env[ew * eh..ew * eh + sites]);
+        lit.push(fit.irradiance / sun_scale(ew, eh));
+        lit.resize(light_len(ew, eh, sites + 1), Vec3::ZERO);
+        *env = lit;
+        run.sun = Some(fit.direction);
+        // One more shadow ray per vertex.
+        let n = (scout.width * scout.height * scout.spp.max(1) as usize).max(1) as f64;
+        extra_rays = Some(scout.stats.vertices as f64 / n);
+    }
+    run.end(StageReport::plain("sun", run.sun.is_some() as usize));
+    (report, extra_rays)
+}
+
 /// Recovers envmap and materials. `scene` carries camera and geometry (its
 /// materials and envmap are replaced); `target` is the linear input image;
 /// `pred` the predicted materials.
@@ -864,34 +903,18 @@ pub fn invert(
         }
     };
     // The sun, where the scout's envmap shows one: a distant lamp in the
-    // entry after the sites', its power taken out of the texels.
+    // entry after the sites', its power taken out of the texels; found,
+    // it costs one more shadow ray per vertex.
     let mut sun_report = None;
     if opts.sun {
-        run.begin("sun", 1);
-        let found = run.find_sun(&mats, &guide);
-        sun_report = found.as_ref().map(|(fit, taken)| SunReport {
-            found: *taken,
-            direction: fit.direction.to_array(),
-            explained: fit.explained,
-            start_irradiance: fit.irradiance.to_array(),
-            irradiance: [0.0; 3],
-        });
-        if let Some((fit, true)) = found {
-            // The scout had spread the sun into the brightest texels.
-            let mut lit = sun::baseline(&env, ew, eh, opts.sun_params.quantile);
-            lit.extend_from_slice(&env[ew * eh..ew * eh + sites]);
-            lit.push(fit.irradiance / sun_scale(ew, eh));
-            lit.resize(light_len(ew, eh, sites + 1), Vec3::ZERO);
-            env = lit;
-            run.sun = Some(fit.direction);
-            // One more shadow ray per vertex.
-            let n = (scout.width * scout.height * scout.spp.max(1) as usize).max(1) as f64;
+        let (report, extra_rays) = sun_stage(&mut run, &mats, &guide, &mut env, &scout);
+        sun_report = report;
+        if let Some(x) = extra_rays {
             plan = Plan {
                 scout_spp: first.scout_spp,
-                ..plan_for(scout_cost.with_extra_rays(scout.stats.vertices as f64 / n))
+                ..plan_for(scout_cost.with_extra_rays(x))
             };
         }
-        run.end(StageReport::plain("sun", run.sun.is_some() as usize));
     }
     drop(scout);
 

@@ -26,7 +26,8 @@ pub fn value_to_pb(v: &Value) -> pb::Value {
 }
 
 /// A value from the wire; lists one level deep at most, bounded sizes.
-pub fn value_from_pb(v: &pb::Value, depth: usize) -> Result<Value, String> {
+pub fn value_from_pb(v: &pb::Value, depth: usize) -> Result<Value, crate::RpcError> {
+    use crate::RpcError::Contract;
     use pb::value::Kind;
     Ok(match &v.kind {
         None | Some(Kind::NullValue(_)) => Value::Null,
@@ -34,28 +35,28 @@ pub fn value_from_pb(v: &pb::Value, depth: usize) -> Result<Value, String> {
         Some(Kind::IntValue(i)) => Value::Int(*i),
         Some(Kind::FloatValue(f)) => {
             if !f.is_finite() {
-                return Err(format!("{f} is not a finite number"));
+                return Err(Contract(format!("{f} is not a finite number")));
             }
             Value::Float(*f)
         }
         Some(Kind::StringValue(s)) => {
             if s.len() > MAX_STRING {
-                return Err(format!(
+                return Err(Contract(format!(
                     "a string of {} bytes (at most {MAX_STRING})",
                     s.len()
-                ));
+                )));
             }
             Value::Str(s.clone())
         }
         Some(Kind::ListValue(l)) => {
             if depth > 0 {
-                return Err("lists inside lists".into());
+                return Err(Contract("lists inside lists".into()));
             }
             if l.items.len() > MAX_LIST {
-                return Err(format!(
+                return Err(Contract(format!(
                     "a list of {} items (at most {MAX_LIST})",
                     l.items.len()
-                ));
+                )));
             }
             Value::List(
                 l.items

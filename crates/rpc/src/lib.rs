@@ -19,10 +19,13 @@ pub mod pb {
 
 pub mod auth;
 pub mod convert;
+pub mod error;
 pub mod net;
 pub mod reapi;
 pub mod remote;
 pub mod worker;
+
+pub use error::RpcError;
 
 /// The largest request a worker accepts, and the
 /// largest blob sent in one batch message.

@@ -8,6 +8,8 @@ use std::time::Duration;
 
 use tonic::transport::{Certificate, Channel, ClientTlsConfig, Identity, ServerTlsConfig};
 
+use crate::RpcError;
+
 /// TLS files: a CA bundle to check servers with (clients), a certificate
 /// and key to present (servers).
 #[derive(Clone, Debug, Default)]
@@ -17,25 +19,39 @@ pub struct TlsFiles {
     pub key: Option<PathBuf>,
 }
 
-fn read(p: &Path, what: &str) -> Result<Vec<u8>, String> {
-    std::fs::read(p).map_err(|e| format!("{what} {}: {e}", p.display()))
+fn read(p: &Path, what: &'static str) -> Result<Vec<u8>, RpcError> {
+    std::fs::read(p).map_err(|source| RpcError::TlsFile {
+        what,
+        path: p.to_path_buf(),
+        source,
+    })
+}
+
+fn endpoint_error(endpoint: &str, reason: impl Into<String>) -> RpcError {
+    RpcError::Endpoint {
+        endpoint: endpoint.to_string(),
+        reason: reason.into(),
+    }
 }
 
 /// `grpc://h:p` → (`http://h:p`, false); `grpcs://h:p` → (`https://h:p`, true).
-pub fn parse_endpoint(s: &str) -> Result<(String, bool), String> {
+pub fn parse_endpoint(s: &str) -> Result<(String, bool), RpcError> {
     let (rest, tls) = if let Some(r) = s.strip_prefix("grpcs://") {
         (r, true)
     } else if let Some(r) = s.strip_prefix("grpc://") {
         (r, false)
     } else if s.contains("://") {
-        return Err(format!("{s}: use grpc://HOST:PORT or grpcs://HOST:PORT"));
+        return Err(endpoint_error(
+            s,
+            "use grpc://HOST:PORT or grpcs://HOST:PORT",
+        ));
     } else {
         (s, false)
     };
     let rest = rest.trim_end_matches('/');
     match rest.rsplit_once(':') {
         Some((h, p)) if !h.is_empty() && p.parse::<u16>().is_ok() => {}
-        _ => return Err(format!("{s}: expected HOST:PORT")),
+        _ => return Err(endpoint_error(s, "expected HOST:PORT")),
     }
     Ok((
         format!("{}://{rest}", if tls { "https" } else { "http" }),
@@ -44,20 +60,19 @@ pub fn parse_endpoint(s: &str) -> Result<(String, bool), String> {
 }
 
 /// A channel to `endpoint` (connected on first use).
-pub fn channel(endpoint: &str, tls: &TlsFiles) -> Result<Channel, String> {
+pub fn channel(endpoint: &str, tls: &TlsFiles) -> Result<Channel, RpcError> {
     let (uri, secure) = parse_endpoint(endpoint)?;
     let mut ep = Channel::from_shared(uri)
-        .map_err(|e| format!("{endpoint}: {e}"))?
+        .map_err(|e| endpoint_error(endpoint, e.to_string()))?
         .connect_timeout(Duration::from_secs(5))
         .tcp_nodelay(true)
         .http2_keep_alive_interval(Duration::from_secs(10))
         .keep_alive_timeout(Duration::from_secs(10))
         .keep_alive_while_idle(true);
     if secure {
-        let ca = tls
-            .ca
-            .as_deref()
-            .ok_or_else(|| format!("{endpoint}: a grpcs:// endpoint needs a CA file (--tls-ca)"))?;
+        let ca = tls.ca.as_deref().ok_or_else(|| {
+            endpoint_error(endpoint, "a grpcs:// endpoint needs a CA file (--tls-ca)")
+        })?;
         let mut cfg =
             ClientTlsConfig::new().ca_certificate(Certificate::from_pem(read(ca, "CA file")?));
         if let (Some(c), Some(k)) = (&tls.cert, &tls.key) {
@@ -65,13 +80,13 @@ pub fn channel(endpoint: &str, tls: &TlsFiles) -> Result<Channel, String> {
         }
         ep = ep
             .tls_config(cfg)
-            .map_err(|e| format!("{endpoint}: TLS: {e}"))?;
+            .map_err(|e| endpoint_error(endpoint, format!("TLS: {e}")))?;
     }
     Ok(ep.connect_lazy())
 }
 
 /// The server side of TLS, when a certificate and key are given.
-pub fn server_tls(tls: &TlsFiles) -> Result<Option<ServerTlsConfig>, String> {
+pub fn server_tls(tls: &TlsFiles) -> Result<Option<ServerTlsConfig>, RpcError> {
     match (&tls.cert, &tls.key) {
         (Some(c), Some(k)) => {
             let mut cfg = ServerTlsConfig::new()
@@ -82,7 +97,9 @@ pub fn server_tls(tls: &TlsFiles) -> Result<Option<ServerTlsConfig>, String> {
             Ok(Some(cfg))
         }
         (None, None) => Ok(None),
-        _ => Err("TLS needs both --tls-cert and --tls-key".into()),
+        _ => Err(RpcError::TlsSetup(
+            "TLS needs both --tls-cert and --tls-key".into(),
+        )),
     }
 }
 

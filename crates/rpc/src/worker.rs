@@ -79,7 +79,8 @@ impl NodeSvc {
             &self.opts.instance,
             &self.opts.store_tls,
             self.opts.store_token.clone(),
-        )?;
+        )
+        .map_err(|e| e.to_string())?;
         let local = Store::open(&self.opts.cache_dir).map_err(|e| e.to_string())?;
         let t = Arc::new(Tiered::new(local, Some(Arc::new(remote))));
         self.stores.lock().unwrap().insert(ep, t.clone());
