@@ -278,6 +278,51 @@ pub struct MergeReport {
 /// the spec present once) and, when all is well, writes `manifest.jsonl`
 /// and `index.json`.
 pub fn merge(dir: &Path) -> Result<MergeReport, ShardError> {
+    let d = description(dir)?;
+    let mut report = MergeReport {
+        shards: d.shards,
+        ..Default::default()
+    };
+    let mut manifest = String::new();
+    let mut index = Vec::new();
+    for k in 0..d.shards {
+        match check_shard(dir, &d, k) {
+            Ok(shard) => {
+                report.samples += shard.count;
+                report.bytes += shard.bytes;
+                manifest.push_str(&shard.manifest);
+                index.push(shard.entry);
+            }
+            Err(problems) => report.problems.extend(problems),
+        }
+    }
+    if report.problems.is_empty() {
+        let idx = json!({
+            "name": d.name,
+            "samples": report.samples,
+            "bytes": report.bytes,
+            "shards": index,
+        });
+        let p = dir.join("manifest.jsonl");
+        matflow_scene::io::write_if_changed(&p, manifest.as_bytes()).map_err(|e| io_err(&p, e))?;
+        let p = dir.join("index.json");
+        let b = serde_json::to_vec_pretty(&idx).expect("JSON values serialise");
+        matflow_scene::io::write_if_changed(&p, &b).map_err(|e| io_err(&p, e))?;
+    }
+    Ok(report)
+}
+
+/// What `dataset.json` says of a dataset's shards.
+struct Description {
+    name: String,
+    samples: u64,
+    shard_size: u64,
+    shards: u64,
+    /// Each sample's members, in order.
+    members: Vec<String>,
+}
+
+fn description(dir: &Path) -> Result<Description, ShardError> {
     let desc_path = dir.join("dataset.json");
     let text = std::fs::read_to_string(&desc_path).map_err(|e| io_err(&desc_path, e))?;
     let desc: serde_json::Value = serde_json::from_str(&text).map_err(|e| io_err(&desc_path, e))?;
@@ -302,131 +347,125 @@ pub fn merge(dir: &Path) -> Result<MergeReport, ShardError> {
                 .collect()
         })
         .unwrap_or_default();
-    let mut report = MergeReport {
+    Ok(Description {
+        name: name.to_string(),
+        samples,
+        shard_size,
         shards,
-        ..Default::default()
-    };
+        members,
+    })
+}
+
+/// A shard that checks out: its manifest lines, samples, size and index
+/// entry.
+struct CheckedShard {
+    manifest: String,
+    count: u64,
+    bytes: u64,
+    entry: serde_json::Value,
+}
+
+/// Shard `k` against its manifest: every sample in order, every member in
+/// place with the BLAKE3 the manifest claims, nothing more; or what is
+/// wrong with it.
+fn check_shard(dir: &Path, d: &Description, k: u64) -> Result<CheckedShard, Vec<String>> {
     let mut manifest = String::new();
-    let mut index = Vec::new();
-    for k in 0..shards {
-        let tar_name = format!("{name}-{k:06}.tar");
-        let tar_path = dir.join(&tar_name);
-        let jl_path = dir.join(format!("{name}-{k:06}.jsonl"));
-        let (bytes, lines) = match (std::fs::read(&tar_path), std::fs::read_to_string(&jl_path)) {
-            (Ok(b), Ok(l)) => (b, l),
-            (Err(e), _) => {
-                report.problems.push(format!("{}: {e}", tar_path.display()));
-                continue;
-            }
-            (_, Err(e)) => {
-                report.problems.push(format!("{}: {e}", jl_path.display()));
-                continue;
-            }
-        };
-        let entries = match tar::read(&bytes) {
-            Ok(e) => e,
+    let tar_name = format!("{}-{k:06}.tar", d.name);
+    let tar_path = dir.join(&tar_name);
+    let jl_path = dir.join(format!("{}-{k:06}.jsonl", d.name));
+    let (bytes, lines) = match (std::fs::read(&tar_path), std::fs::read_to_string(&jl_path)) {
+        (Ok(b), Ok(l)) => (b, l),
+        (Err(e), _) => return Err(vec![format!("{}: {e}", tar_path.display())]),
+        (_, Err(e)) => return Err(vec![format!("{}: {e}", jl_path.display())]),
+    };
+    let entries = match tar::read(&bytes) {
+        Ok(e) => e,
+        Err(e) => return Err(vec![format!("{}: {e}", tar_path.display())]),
+    };
+    let expect: Vec<u64> = (k * d.shard_size..((k + 1) * d.shard_size).min(d.samples)).collect();
+    let mut at = 0usize;
+    let mut problems = Vec::new();
+    let mut count = 0u64;
+    for (n, line) in lines.lines().enumerate() {
+        let v: serde_json::Value = match serde_json::from_str(line) {
+            Ok(v) => v,
             Err(e) => {
-                report.problems.push(format!("{}: {e}", tar_path.display()));
-                continue;
+                problems.push(format!("{}:{}: {e}", jl_path.display(), n + 1));
+                break;
             }
         };
-        let expect: Vec<u64> = (k * shard_size..((k + 1) * shard_size).min(samples)).collect();
-        let mut at = 0usize;
-        let mut problems = Vec::new();
-        let mut count = 0u64;
-        for (n, line) in lines.lines().enumerate() {
-            let v: serde_json::Value = match serde_json::from_str(line) {
-                Ok(v) => v,
-                Err(e) => {
-                    problems.push(format!("{}:{}: {e}", jl_path.display(), n + 1));
-                    break;
-                }
-            };
-            let index = v.get("index").and_then(|x| x.as_u64());
-            if index != expect.get(n).copied() {
+        let index = v.get("index").and_then(|x| x.as_u64());
+        if index != expect.get(n).copied() {
+            problems.push(format!(
+                "{}:{}: sample {:?}, expected {:?}",
+                jl_path.display(),
+                n + 1,
+                index,
+                expect.get(n)
+            ));
+            break;
+        }
+        let key = key(index.unwrap_or(0));
+        let listed = v.get("members").and_then(|m| m.as_object());
+        for m in &d.members {
+            let want = format!("{key}.{m}");
+            let Some(e) = entries.get(at).filter(|e| e.name == want) else {
                 problems.push(format!(
-                    "{}:{}: sample {:?}, expected {:?}",
-                    jl_path.display(),
-                    n + 1,
-                    index,
-                    expect.get(n)
+                    "{tar_name}: expected member {want} at position {at}, found {}",
+                    entries.get(at).map_or("the end".into(), |e| e.name.clone())
                 ));
                 break;
+            };
+            let digest = blake3::hash(&bytes[e.offset..e.offset + e.size])
+                .to_hex()
+                .to_string();
+            let claimed = listed
+                .and_then(|l| l.get(m))
+                .and_then(|x| x.get("blake3"))
+                .and_then(|x| x.as_str());
+            if claimed != Some(digest.as_str()) {
+                problems.push(format!(
+                    "{tar_name}: {want} has BLAKE3 {digest}, the manifest says {}",
+                    claimed.unwrap_or("nothing")
+                ));
             }
-            let key = key(index.unwrap_or(0));
-            let listed = v.get("members").and_then(|m| m.as_object());
-            for m in &members {
-                let want = format!("{key}.{m}");
-                let Some(e) = entries.get(at).filter(|e| e.name == want) else {
-                    problems.push(format!(
-                        "{tar_name}: expected member {want} at position {at}, found {}",
-                        entries.get(at).map_or("the end".into(), |e| e.name.clone())
-                    ));
-                    break;
-                };
-                let digest = blake3::hash(&bytes[e.offset..e.offset + e.size])
-                    .to_hex()
-                    .to_string();
-                let claimed = listed
-                    .and_then(|l| l.get(m))
-                    .and_then(|x| x.get("blake3"))
-                    .and_then(|x| x.as_str());
-                if claimed != Some(digest.as_str()) {
-                    problems.push(format!(
-                        "{tar_name}: {want} has BLAKE3 {digest}, the manifest says {}",
-                        claimed.unwrap_or("nothing")
-                    ));
-                }
-                at += 1;
-            }
-            if !problems.is_empty() {
-                break;
-            }
-            manifest.push_str(line);
-            manifest.push('\n');
-            count += 1;
-        }
-        if problems.is_empty() && count != expect.len() as u64 {
-            problems.push(format!(
-                "{}: {count} samples, the spec puts {} in this shard",
-                jl_path.display(),
-                expect.len()
-            ));
-        }
-        if problems.is_empty() && at != entries.len() {
-            problems.push(format!(
-                "{tar_name}: {} members beyond the manifest's",
-                entries.len() - at
-            ));
+            at += 1;
         }
         if !problems.is_empty() {
-            report.problems.extend(problems);
-            continue;
+            break;
         }
-        report.samples += count;
-        report.bytes += bytes.len() as u64;
-        index.push(json!({
+        manifest.push_str(line);
+        manifest.push('\n');
+        count += 1;
+    }
+    if problems.is_empty() && count != expect.len() as u64 {
+        problems.push(format!(
+            "{}: {count} samples, the spec puts {} in this shard",
+            jl_path.display(),
+            expect.len()
+        ));
+    }
+    if problems.is_empty() && at != entries.len() {
+        problems.push(format!(
+            "{tar_name}: {} members beyond the manifest's",
+            entries.len() - at
+        ));
+    }
+    if !problems.is_empty() {
+        return Err(problems);
+    }
+    Ok(CheckedShard {
+        manifest,
+        count,
+        bytes: bytes.len() as u64,
+        entry: json!({
             "file": tar_name,
             "samples": count,
             "first": expect.first(),
             "bytes": bytes.len(),
             "blake3": blake3::hash(&bytes).to_hex().to_string(),
-        }));
-    }
-    if report.problems.is_empty() {
-        let idx = json!({
-            "name": name,
-            "samples": report.samples,
-            "bytes": report.bytes,
-            "shards": index,
-        });
-        let p = dir.join("manifest.jsonl");
-        matflow_scene::io::write_if_changed(&p, manifest.as_bytes()).map_err(|e| io_err(&p, e))?;
-        let p = dir.join("index.json");
-        let b = serde_json::to_vec_pretty(&idx).expect("JSON values serialise");
-        matflow_scene::io::write_if_changed(&p, &b).map_err(|e| io_err(&p, e))?;
-    }
-    Ok(report)
+        }),
+    })
 }
 
 /// Writes sample `key`'s members from the dataset in `dir` into the folder

@@ -646,48 +646,59 @@ impl Checker<'_> {
                 let Value::Str(s) = &v else {
                     return Err(bad(&v));
                 };
-                let (up, out) = match s.split_once('.') {
-                    Some((a, b)) => (a.to_string(), Some(b.to_string())),
-                    None => (s.clone(), None),
-                };
-                if !stage_names.contains(&up) {
-                    return Err(where_(format!("there is no stage `{}`", clip(&up))));
-                }
-                if up == r.name {
-                    return Err(where_(format!(
-                        "stage `{up}` refers to itself (cycle: {up} -> {up})"
-                    )));
-                }
-                let up_kind = kind_of[up.as_str()];
-                let up_node = self.reg.get(up_kind).expect("kind checked");
-                let chosen = match &out {
-                    Some(o) => up_node.outputs().iter().find(|x| x.name == o),
-                    None => up_node.outputs().iter().find(|x| accepts.contains(&x.ty)),
-                };
-                match chosen {
-                    Some(o) if accepts.contains(&o.ty) => {
-                        st.refs
-                            .insert(p.name.to_string(), (up.clone(), o.name.to_string()));
-                    }
-                    _ => {
-                        return Err(where_(format!(
-                            "stage `{up}` ({up_kind}) has no output of type {} \
-                             (its outputs: {})",
-                            accepts.join(" or "),
-                            names(
-                                up_node
-                                    .outputs()
-                                    .iter()
-                                    .map(|o| format!("{} ({})", o.name, o.ty))
-                            )
-                        )))
-                    }
-                }
+                let (up, out) = self
+                    .resolve_ref(r, s, accepts, stage_names, kind_of)
+                    .map_err(&where_)?;
+                st.refs.insert(p.name.to_string(), (up, out));
                 v
             }
         };
         st.params.0.insert(p.name.to_string(), norm);
         Ok(())
+    }
+
+    /// A reference `s` (`stage` or `stage.output`) from stage `r` to an
+    /// upstream output of one of the `accepts` types: (stage, output), or
+    /// what is wrong with it.
+    fn resolve_ref(
+        &self,
+        r: &Raw,
+        s: &str,
+        accepts: &[&str],
+        stage_names: &BTreeSet<String>,
+        kind_of: &std::collections::HashMap<&str, &str>,
+    ) -> Result<(String, String), String> {
+        let (up, out) = match s.split_once('.') {
+            Some((a, b)) => (a.to_string(), Some(b.to_string())),
+            None => (s.to_string(), None),
+        };
+        if !stage_names.contains(&up) {
+            return Err(format!("there is no stage `{}`", clip(&up)));
+        }
+        if up == r.name {
+            return Err(format!(
+                "stage `{up}` refers to itself (cycle: {up} -> {up})"
+            ));
+        }
+        let up_kind = kind_of[up.as_str()];
+        let up_node = self.reg.get(up_kind).expect("kind checked");
+        let chosen = match &out {
+            Some(o) => up_node.outputs().iter().find(|x| x.name == o),
+            None => up_node.outputs().iter().find(|x| accepts.contains(&x.ty)),
+        };
+        match chosen {
+            Some(o) if accepts.contains(&o.ty) => Ok((up, o.name.to_string())),
+            _ => Err(format!(
+                "stage `{up}` ({up_kind}) has no output of type {} (its outputs: {})",
+                accepts.join(" or "),
+                names(
+                    up_node
+                        .outputs()
+                        .iter()
+                        .map(|o| format!("{} ({})", o.name, o.ty))
+                )
+            )),
+        }
     }
 
     /// `outputs:`: a stage name or a list of them, not empty when there

@@ -107,14 +107,9 @@ pub mod limits {
     pub const MAX_NODES: usize = 4_000_000;
 }
 
-/// Checks a document's event stream against [`limits`] and finds a key
-/// given twice in one mapping (YAML forbids it; the loader would keep the
-/// last silently, hiding a stage or a parameter). Aliases are refused
-/// where they appear, before the loader could expand them ("billion
-/// laughs"): pipelines do not use them. Syntax errors are left to the
-/// loader, which reports them with its own message.
-fn check_events(text: &str) -> Result<(), ParseError> {
-    use saphyr_parser::Event;
+/// The document is within [`limits::MAX_BYTES`]; the error says where
+/// the limit falls, as a line and column.
+fn check_size(text: &str) -> Result<(), ParseError> {
     if text.len() > limits::MAX_BYTES {
         // Where the limit falls, as a line and column.
         let mut cut = limits::MAX_BYTES;
@@ -133,6 +128,11 @@ fn check_events(text: &str) -> Result<(), ParseError> {
             ),
         });
     }
+    Ok(())
+}
+
+/// No line starts with `%`.
+fn check_no_directives(text: &str) -> Result<(), ParseError> {
     // Directives (`%YAML`, `%TAG`) are refused before the scanner sees
     // them: pipelines need none, and saphyr-parser 0.0.12 loops without
     // bound, allocating, on a directive name that runs to the end of the
@@ -157,6 +157,19 @@ fn check_events(text: &str) -> Result<(), ParseError> {
             });
         }
     }
+    Ok(())
+}
+
+/// Checks a document's event stream against [`limits`] and finds a key
+/// given twice in one mapping (YAML forbids it; the loader would keep the
+/// last silently, hiding a stage or a parameter). Aliases are refused
+/// where they appear, before the loader could expand them ("billion
+/// laughs"): pipelines do not use them. Syntax errors are left to the
+/// loader, which reports them with its own message.
+fn check_events(text: &str) -> Result<(), ParseError> {
+    use saphyr_parser::Event;
+    check_size(text)?;
+    check_no_directives(text)?;
     // Per open container: its item count, and for mappings the keys seen
     // and whether the next node is a key.
     struct Open {

@@ -351,6 +351,92 @@ pub fn surface_at(camera: &Camera, mesh: &TriMesh, bvh: &Bvh, film: Vec2) -> Opt
     (n != Vec3::ZERO).then_some((dir * hit.t, n))
 }
 
+/// Where entry `i` goes: its origin (given, or the surface under its
+/// anchor, the object's up along that surface's normal) and its linear
+/// map (alignment, rotation, scale).
+fn placement(
+    i: usize,
+    s: &ObjectSpec,
+    camera: &Camera,
+    depth_mesh: &TriMesh,
+    bvh: Option<&Bvh>,
+) -> Result<(Vec3, Mat3), NodeError> {
+    let rot = Mat3::from_rotation_z(s.rotate_deg.z.to_radians())
+        * Mat3::from_rotation_y(s.rotate_deg.y.to_radians())
+        * Mat3::from_rotation_x(s.rotate_deg.x.to_radians());
+    let (origin, align) = match (s.translate, s.anchor) {
+        (Some(t), _) => (t, Mat3::IDENTITY),
+        (None, Some(a)) => {
+            let film = a + Vec2::splat(0.5);
+            let (p, n) = bvh
+                .and_then(|b| surface_at(camera, depth_mesh, b, film))
+                .ok_or_else(|| {
+                    err(format!(
+                        "objects[{i}] ({}): anchor [{}, {}] sees no surface (sky)",
+                        s.mesh.display(),
+                        a.x,
+                        a.y
+                    ))
+                })?;
+            (p, Mat3::from_quat(Quat::from_rotation_arc(Vec3::Y, n)))
+        }
+        (None, None) => unreachable!("checked"),
+    };
+    Ok((origin, align * rot * Mat3::from_diagonal(s.scale)))
+}
+
+/// An MTL's diffuse texture as linear RGB, read once per file.
+fn texture_of(
+    path: &std::path::Path,
+    textures: &mut std::collections::HashMap<std::path::PathBuf, Arc<RgbImage>>,
+) -> Result<Arc<RgbImage>, matflow_scene::SceneError> {
+    if let Some(t) = textures.get(path) {
+        return Ok(t.clone());
+    }
+    let raw = matflow_scene::io::read_ldr_raw(path)?;
+    let lin = Arc::new(raw.map(|c| {
+        Vec3::new(
+            srgb_to_linear(c.x),
+            srgb_to_linear(c.y),
+            srgb_to_linear(c.z),
+        )
+    }));
+    textures.insert(path.to_path_buf(), lin.clone());
+    Ok(lin)
+}
+
+/// A placed object has triangles of some area, finite vertices within
+/// bounds `lo`..`hi`, something in front of the camera and a size that
+/// fits a scene `scene_depth` deep.
+fn check_placed(
+    has_triangles: bool,
+    (lo, hi): (Vec3, Vec3),
+    in_front: bool,
+    scene_depth: f32,
+) -> Result<(), String> {
+    if !has_triangles {
+        return Err("every triangle is degenerate (zero area) after scaling".into());
+    }
+    if !lo.is_finite() || !hi.is_finite() {
+        return Err("non-finite placed vertices".into());
+    }
+    if !in_front {
+        return Err(
+            "the object is entirely behind the camera (every vertex has z ≥ 0; the \
+                    camera looks down −z)"
+                .into(),
+        );
+    }
+    let size = (hi - lo).length();
+    if !(size >= 1e-4 * scene_depth && size <= 1e3 * scene_depth) {
+        return Err(format!(
+            "placed size {size:.3e} is absurd for a scene {scene_depth:.3} deep (check `scale` \
+             and the file's units)"
+        ));
+    }
+    Ok(())
+}
+
 /// The placed objects of `specs` (one per part of each file), in the
 /// camera frame of `camera`, anchors found on `depth_mesh`. Errors name
 /// the entry and its file: an empty or degenerate mesh, one entirely
@@ -378,27 +464,7 @@ pub fn place(
     for (i, s) in specs.iter().enumerate() {
         let name = s.mesh.display();
         let parts = read_entry(i, s).map_err(err)?;
-        let rot = Mat3::from_rotation_z(s.rotate_deg.z.to_radians())
-            * Mat3::from_rotation_y(s.rotate_deg.y.to_radians())
-            * Mat3::from_rotation_x(s.rotate_deg.x.to_radians());
-        let (origin, align) = match (s.translate, s.anchor) {
-            (Some(t), _) => (t, Mat3::IDENTITY),
-            (None, Some(a)) => {
-                let film = a + Vec2::splat(0.5);
-                let (p, n) = bvh
-                    .as_ref()
-                    .and_then(|b| surface_at(camera, depth_mesh, b, film))
-                    .ok_or_else(|| {
-                        err(format!(
-                            "objects[{i}] ({name}): anchor [{}, {}] sees no surface (sky)",
-                            a.x, a.y
-                        ))
-                    })?;
-                (p, Mat3::from_quat(Quat::from_rotation_arc(Vec3::Y, n)))
-            }
-            (None, None) => unreachable!("checked"),
-        };
-        let linear = align * rot * Mat3::from_diagonal(s.scale);
+        let (origin, linear) = placement(i, s, camera, depth_mesh, bvh.as_ref())?;
         let normal_m = linear.inverse().transpose();
         let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
         let mut in_front = false;
@@ -450,24 +516,9 @@ pub fn place(
                     .and_then(|m| m.diffuse_texture.clone()),
             ) {
                 (None, Some(path)) if part.uvs.len() == part.positions.len() => {
-                    let t = match textures.get(&path) {
-                        Some(t) => t.clone(),
-                        None => {
-                            let raw = matflow_scene::io::read_ldr_raw(&path).map_err(|e| {
-                                err(format!("objects[{i}] ({name}): its MTL's map_Kd: {e}"))
-                            })?;
-                            let lin = Arc::new(raw.map(|c| {
-                                Vec3::new(
-                                    srgb_to_linear(c.x),
-                                    srgb_to_linear(c.y),
-                                    srgb_to_linear(c.z),
-                                )
-                            }));
-                            textures.insert(path, lin.clone());
-                            lin
-                        }
-                    };
-                    Some(t)
+                    Some(texture_of(&path, &mut textures).map_err(|e| {
+                        err(format!("objects[{i}] ({name}): its MTL's map_Kd: {e}"))
+                    })?)
                 }
                 _ => None,
             };
@@ -490,27 +541,8 @@ pub fn place(
                 texture,
             });
         }
-        if out.len() == first {
-            return Err(err(format!(
-                "objects[{i}] ({name}): every triangle is degenerate (zero area) after scaling"
-            )));
-        }
-        if !lo.is_finite() || !hi.is_finite() {
-            return Err(err(format!(
-                "objects[{i}] ({name}): non-finite placed vertices"
-            )));
-        }
-        if !in_front {
-            return Err(err(format!(
-                "objects[{i}] ({name}): the object is entirely behind the camera (every vertex has z ≥ 0; the camera looks down −z)"
-            )));
-        }
-        let size = (hi - lo).length();
-        if !(size >= 1e-4 * scene_depth && size <= 1e3 * scene_depth) {
-            return Err(err(format!(
-                "objects[{i}] ({name}): placed size {size:.3e} is absurd for a scene {scene_depth:.3} deep (check `scale` and the file's units)"
-            )));
-        }
+        check_placed(out.len() > first, (lo, hi), in_front, scene_depth)
+            .map_err(|m| err(format!("objects[{i}] ({name}): {m}")))?;
     }
     Ok(out)
 }

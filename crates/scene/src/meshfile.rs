@@ -334,10 +334,53 @@ impl Body<'_> {
 
 fn read_ply(path: &Path) -> Result<MeshPart> {
     let data = std::fs::read(path).map_err(|e| SceneError::io(path, e))?;
-    let bad = |m: String| SceneError::Decode {
-        path: path.to_path_buf(),
-        message: m,
+    let bad = |m: String| decode_error(path, m);
+    let (format, elements, body_start) = ply_header(path, &data)?;
+    let mut body = Body {
+        data: &data[body_start..],
+        pos: 0,
+        format,
     };
+    let mut part = MeshPart::default();
+    let short = || bad("the file ends before its elements do".into());
+    for el in &elements {
+        match el.name.as_str() {
+            "vertex" => ply_vertices(path, el, &mut body, &mut part)?,
+            "face" => ply_faces(path, el, &mut body, &mut part)?,
+            _ => {
+                // Other elements are skipped, value by value.
+                for _ in 0..el.count {
+                    for p in &el.props {
+                        match p {
+                            Prop::One(_, t) => {
+                                body.next(*t).ok_or_else(short)?;
+                            }
+                            Prop::List(_, c, t) => {
+                                let n = body.next(*c).ok_or_else(short)? as usize;
+                                for _ in 0..n {
+                                    body.next(*t).ok_or_else(short)?;
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
+    Ok(part)
+}
+
+fn decode_error(path: &Path, message: String) -> SceneError {
+    SceneError::Decode {
+        path: path.to_path_buf(),
+        message,
+    }
+}
+
+/// A PLY header: the body's format, its elements with their properties,
+/// and where the body starts.
+fn ply_header(path: &Path, data: &[u8]) -> Result<(Format, Vec<Element>, usize)> {
+    let bad = |m: String| decode_error(path, m);
     let end = data
         .windows(10)
         .position(|w| w == b"end_header")
@@ -412,120 +455,110 @@ fn read_ply(path: &Path) -> Result<MeshPart> {
         }
     }
     let format = format.ok_or_else(|| bad("no `format` line".into()))?;
-    let mut body = Body {
-        data: &data[body_start..],
-        pos: 0,
-        format,
-    };
-    let mut part = MeshPart::default();
+    Ok((format, elements, body_start))
+}
+
+/// The `vertex` element: positions, and normals and texture coordinates
+/// where it has them.
+fn ply_vertices(path: &Path, el: &Element, body: &mut Body, part: &mut MeshPart) -> Result<()> {
+    let bad = |m: String| decode_error(path, m);
     let short = || bad("the file ends before its elements do".into());
-    for el in &elements {
-        if el.name == "vertex" {
-            let find = |n: &str| {
-                el.props
-                    .iter()
-                    .position(|p| matches!(p, Prop::One(name, _) if name == n))
-            };
-            let (x, y, z) = match (find("x"), find("y"), find("z")) {
-                (Some(x), Some(y), Some(z)) => (x, y, z),
-                _ => return Err(bad("vertices have no x, y, z".into())),
-            };
-            let normals = match (find("nx"), find("ny"), find("nz")) {
-                (Some(a), Some(b), Some(c)) => Some((a, b, c)),
-                _ => None,
-            };
-            let uv = match (find("u").or(find("s")), find("v").or(find("t"))) {
-                (Some(a), Some(b)) => Some((a, b)),
-                _ => None,
-            };
-            // Values of bounded-size binary input cannot outnumber its bytes.
-            if format != Format::Ascii && el.count > body.data.len() {
-                return Err(short());
-            }
-            part.positions.reserve(el.count.min(body.data.len()));
-            let mut vals = vec![0f64; el.props.len()];
-            for _ in 0..el.count {
-                for (k, p) in el.props.iter().enumerate() {
-                    match p {
-                        Prop::One(_, t) => vals[k] = body.next(*t).ok_or_else(short)?,
-                        Prop::List(_, c, t) => {
-                            let n = body.next(*c).ok_or_else(short)? as usize;
-                            for _ in 0..n {
-                                body.next(*t).ok_or_else(short)?;
-                            }
-                        }
+    let format = body.format;
+    let find = |n: &str| {
+        el.props
+            .iter()
+            .position(|p| matches!(p, Prop::One(name, _) if name == n))
+    };
+    let (x, y, z) = match (find("x"), find("y"), find("z")) {
+        (Some(x), Some(y), Some(z)) => (x, y, z),
+        _ => return Err(bad("vertices have no x, y, z".into())),
+    };
+    let normals = match (find("nx"), find("ny"), find("nz")) {
+        (Some(a), Some(b), Some(c)) => Some((a, b, c)),
+        _ => None,
+    };
+    let uv = match (find("u").or(find("s")), find("v").or(find("t"))) {
+        (Some(a), Some(b)) => Some((a, b)),
+        _ => None,
+    };
+    // Values of bounded-size binary input cannot outnumber its bytes.
+    if format != Format::Ascii && el.count > body.data.len() {
+        return Err(short());
+    }
+    part.positions.reserve(el.count.min(body.data.len()));
+    let mut vals = vec![0f64; el.props.len()];
+    for _ in 0..el.count {
+        for (k, p) in el.props.iter().enumerate() {
+            match p {
+                Prop::One(_, t) => vals[k] = body.next(*t).ok_or_else(short)?,
+                Prop::List(_, c, t) => {
+                    let n = body.next(*c).ok_or_else(short)? as usize;
+                    for _ in 0..n {
+                        body.next(*t).ok_or_else(short)?;
                     }
                 }
-                let v = |i: usize| vals[i] as f32;
-                part.positions.push(Vec3::new(v(x), v(y), v(z)));
-                if let Some((a, b, c)) = normals {
-                    part.normals.push(Vec3::new(v(a), v(b), v(c)));
-                }
-                if let Some((a, b)) = uv {
-                    part.uvs.push(Vec2::new(v(a), v(b)));
-                }
             }
-        } else if el.name == "face" {
-            let list = el
-                .props
-                .iter()
-                .position(|p| matches!(p, Prop::List(n, ..) if n == "vertex_indices" || n == "vertex_index"))
-                .ok_or_else(|| bad("faces have no vertex_indices list".into()))?;
-            if format != Format::Ascii && el.count > body.data.len() {
-                return Err(short());
-            }
-            for _ in 0..el.count {
-                let mut poly: Vec<u32> = Vec::new();
-                for (k, p) in el.props.iter().enumerate() {
-                    match p {
-                        Prop::One(_, t) => {
-                            body.next(*t).ok_or_else(short)?;
-                        }
-                        Prop::List(_, c, t) => {
-                            let n = body.next(*c).ok_or_else(short)?;
-                            if !(0.0..=1024.0).contains(&n) {
-                                return Err(bad(format!("a face with {n} vertices")));
-                            }
-                            for _ in 0..n as usize {
-                                let i = body.next(*t).ok_or_else(short)?;
-                                if k == list {
-                                    if !(0.0..=u32::MAX as f64).contains(&i) {
-                                        return Err(bad(format!("vertex index {i}")));
-                                    }
-                                    poly.push(i as u32);
-                                }
-                            }
-                        }
+        }
+        let v = |i: usize| vals[i] as f32;
+        part.positions.push(Vec3::new(v(x), v(y), v(z)));
+        if let Some((a, b, c)) = normals {
+            part.normals.push(Vec3::new(v(a), v(b), v(c)));
+        }
+        if let Some((a, b)) = uv {
+            part.uvs.push(Vec2::new(v(a), v(b)));
+        }
+    }
+    Ok(())
+}
+
+/// The `face` element: each polygon as a fan of triangles.
+fn ply_faces(path: &Path, el: &Element, body: &mut Body, part: &mut MeshPart) -> Result<()> {
+    let bad = |m: String| decode_error(path, m);
+    let short = || bad("the file ends before its elements do".into());
+    let format = body.format;
+    let list = el
+        .props
+        .iter()
+        .position(
+            |p| matches!(p, Prop::List(n, ..) if n == "vertex_indices" || n == "vertex_index"),
+        )
+        .ok_or_else(|| bad("faces have no vertex_indices list".into()))?;
+    if format != Format::Ascii && el.count > body.data.len() {
+        return Err(short());
+    }
+    for _ in 0..el.count {
+        let mut poly: Vec<u32> = Vec::new();
+        for (k, p) in el.props.iter().enumerate() {
+            match p {
+                Prop::One(_, t) => {
+                    body.next(*t).ok_or_else(short)?;
+                }
+                Prop::List(_, c, t) => {
+                    let n = body.next(*c).ok_or_else(short)?;
+                    if !(0.0..=1024.0).contains(&n) {
+                        return Err(bad(format!("a face with {n} vertices")));
                     }
-                }
-                // A fan over the polygon.
-                for j in 1..poly.len().saturating_sub(1) {
-                    part.indices.push([poly[0], poly[j], poly[j + 1]]);
-                }
-                if part.indices.len() > MAX_MESH_ELEMENTS {
-                    return Err(bad(format!("more than {MAX_MESH_ELEMENTS} triangles")));
-                }
-            }
-        } else {
-            // Other elements are skipped, value by value.
-            for _ in 0..el.count {
-                for p in &el.props {
-                    match p {
-                        Prop::One(_, t) => {
-                            body.next(*t).ok_or_else(short)?;
-                        }
-                        Prop::List(_, c, t) => {
-                            let n = body.next(*c).ok_or_else(short)? as usize;
-                            for _ in 0..n {
-                                body.next(*t).ok_or_else(short)?;
+                    for _ in 0..n as usize {
+                        let i = body.next(*t).ok_or_else(short)?;
+                        if k == list {
+                            if !(0.0..=u32::MAX as f64).contains(&i) {
+                                return Err(bad(format!("vertex index {i}")));
                             }
+                            poly.push(i as u32);
                         }
                     }
                 }
             }
         }
+        // A fan over the polygon.
+        for j in 1..poly.len().saturating_sub(1) {
+            part.indices.push([poly[0], poly[j], poly[j + 1]]);
+        }
+        if part.indices.len() > MAX_MESH_ELEMENTS {
+            return Err(bad(format!("more than {MAX_MESH_ELEMENTS} triangles")));
+        }
     }
-    Ok(part)
+    Ok(())
 }
 
 /// Writes `part` as Wavefront OBJ text (positions, normals and faces),
