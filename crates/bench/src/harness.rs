@@ -69,17 +69,36 @@ pub fn run_child(
     for s in sets.iter().chain(extra) {
         c.arg("--set").arg(s);
     }
+    let (secs, text) = timed(c, &format!("matflow run {}", file.display()))?;
+    Ok((secs, text.lines().last().unwrap_or("").to_string()))
+}
+
+/// Runs `c` as a timed child: its wall seconds and stdout, or an error
+/// naming `what` with the child's stderr.
+pub fn timed(mut c: Command, what: &str) -> Result<(f64, String)> {
     let t = Instant::now();
-    let out = c.output()?;
+    let out = c.output().with_context(|| format!("starting {what}"))?;
     let secs = t.elapsed().as_secs_f64();
     if !out.status.success() {
-        bail!(
-            "matflow run failed:\n{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
+        bail!("{what} failed:\n{}", String::from_utf8_lossy(&out.stderr));
     }
-    let text = String::from_utf8_lossy(&out.stdout).into_owned();
-    Ok((secs, text.lines().last().unwrap_or("").to_string()))
+    Ok((secs, String::from_utf8_lossy(&out.stdout).into_owned()))
+}
+
+/// Runs the pipeline `text` as a file named `name` beside `original` (so
+/// its relative paths resolve as the original's), through `run`; the
+/// file is removed whatever the run's outcome.
+pub fn run_beside<T>(
+    original: &Path,
+    name: &str,
+    text: &str,
+    run: impl FnOnce(&Path) -> Result<T>,
+) -> Result<T> {
+    let file = original.parent().unwrap_or(Path::new(".")).join(name);
+    std::fs::write(&file, text).with_context(|| format!("writing {}", file.display()))?;
+    let r = run(&file);
+    let _ = std::fs::remove_file(&file);
+    r
 }
 
 /// The text of the pipeline `file` with its `outputs:` line replaced by

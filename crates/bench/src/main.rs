@@ -72,13 +72,7 @@ fn run(s: Suite) -> Result<()> {
 }
 
 fn main() {
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_env("MATFLOW_LOG")
-                .unwrap_or_else(|_| "warn".into()),
-        )
-        .with_writer(std::io::stderr)
-        .init();
+    matflow_cli::init_logging();
     if let Err(e) = run(Cli::parse().suite) {
         eprintln!("error: {e:#}");
         std::process::exit(1);

@@ -40,6 +40,18 @@ pub fn write_out(args: std::fmt::Arguments, newline: bool) {
     }
 }
 
+/// Logs to stderr, filtered by `$MATFLOW_LOG` (default: warnings), for
+/// `matflow` and `matflow-bench` alike.
+pub fn init_logging() {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_env("MATFLOW_LOG")
+                .unwrap_or_else(|_| "warn".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+}
+
 pub mod cluster;
 pub mod commands;
 pub mod dataset;

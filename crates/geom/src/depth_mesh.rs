@@ -706,9 +706,13 @@ struct Verts {
 }
 
 impl Verts {
-    /// A copy of pixel `pix`'s vertex moved to `p`.
+    /// A vertex at `p` made from pixel `pix`'s film position (a copy or a
+    /// back of that pixel's own vertex); returns its index.
     fn copy(&mut self, p: DVec3, pix: usize) -> u32 {
-        push_vertex(&mut self.pos64, &mut self.positions, &mut self.film, p, pix)
+        self.pos64.push(p);
+        self.positions.push(p.as_vec3());
+        self.film.push(self.film[pix]);
+        (self.pos64.len() - 1) as u32
     }
 }
 
@@ -1109,21 +1113,6 @@ impl Backs<'_> {
             }
         }
     }
-}
-
-/// Appends a vertex at `p` made from pixel `pix`'s film position (a copy
-/// or a back of that pixel's own vertex); returns its index.
-fn push_vertex(
-    pos64: &mut Vec<DVec3>,
-    positions: &mut Vec<Vec3>,
-    film: &mut Vec<Vec2>,
-    p: DVec3,
-    pix: usize,
-) -> u32 {
-    pos64.push(p);
-    positions.push(p.as_vec3());
-    film.push(film[pix]);
-    (pos64.len() - 1) as u32
 }
 
 /// Angle-weighted vertex normals (as Mitsuba recomputes them for meshes

@@ -113,16 +113,7 @@ fn run(exe: &Path, file: &Path, cache: &Path, extra: &[String]) -> Result<(f64, 
         .arg("--report")
         .arg(&report)
         .args(extra);
-    let t = Instant::now();
-    let out = c.output()?;
-    let secs = t.elapsed().as_secs_f64();
-    if !out.status.success() {
-        bail!(
-            "matflow run {} failed:\n{}",
-            file.display(),
-            String::from_utf8_lossy(&out.stderr)
-        );
-    }
+    let (secs, _) = crate::harness::timed(c, &format!("matflow run {}", file.display()))?;
     let r: Value = serde_json::from_slice(&std::fs::read(&report)?)?;
     Ok((secs, r))
 }

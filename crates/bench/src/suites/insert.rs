@@ -173,15 +173,9 @@ pub fn bench_insert(a: BenchInsertArgs) -> Result<()> {
                 work.join(format!("{name}.exr")).display()
             ));
         }
-        let file = a
-            .pipeline
-            .parent()
-            .unwrap_or(Path::new("."))
-            .join(".bench-insert-check.yaml");
-        std::fs::write(&file, t)?;
-        let r = run_file(&file, &[]);
-        let _ = std::fs::remove_file(&file);
-        r?;
+        crate::harness::run_beside(&a.pipeline, ".bench-insert-check.yaml", &t, |f| {
+            run_file(f, &[])
+        })?;
         let load = |n: &str| matflow_scene::io::read_exr_rgb(&a.work.join(format!("{n}.exr")));
         let (k, f, r) = (load("kept")?, load("fresh")?, load("reference")?);
         outln!(

@@ -200,15 +200,9 @@ pub fn bench_pipeline(a: BenchPipelineArgs) -> Result<()> {
                     .display()
             ));
         }
-        let file = a
-            .pipeline
-            .parent()
-            .unwrap_or(std::path::Path::new("."))
-            .join(".bench-pipeline-check.yaml");
-        std::fs::write(&file, t)?;
-        let r = run_file(&file, &[]);
-        let _ = std::fs::remove_file(&file);
-        r?;
+        crate::harness::run_beside(&a.pipeline, ".bench-pipeline-check.yaml", &t, |f| {
+            run_file(f, &[])
+        })?;
         let load = |n: &str| matflow_scene::io::read_exr_rgb(&a.work.join(format!("{n}.exr")));
         let (e, f, r) = (load("edited")?, load("full")?, load("reference")?);
         use matflow_scene::metrics::psnr_gamma;
