@@ -191,8 +191,12 @@ pub fn node_key(
     Ok(e.finish())
 }
 
-/// The stage's random seed: from its kind and parameters (paths by name),
-/// not its inputs, so an upstream edit keeps the noise pattern.
+/// The stage's random seed: from its kind and parameters, not its inputs,
+/// so an upstream edit keeps the noise pattern. An input file enters by
+/// whether it is given, not by its path or its contents: its contents are
+/// an input like any other (a new version keeps the noise), and its path
+/// is how the pipeline spells it, which the key does not see (two
+/// spellings of one file are one action and must compute one result).
 pub fn node_seed(node: &dyn Node, params: &Params) -> u64 {
     let mut e = Enc::new(b"matflow-seed/1");
     e.bytes(node.kind().as_bytes());
@@ -201,10 +205,37 @@ pub fn node_seed(node: &dyn Node, params: &Params) -> u64 {
             continue;
         }
         e.bytes(p.name.as_bytes());
-        e.value(params.get(p.name));
+        seed_value(&mut e, &p.ty, params.get(p.name));
     }
     let d = e.finish();
     u64::from_le_bytes(d.0[..8].try_into().unwrap())
+}
+
+/// A parameter's value in the seed: as in the key, but an input file (here
+/// or in records' fields) only as given.
+fn seed_value(e: &mut Enc, ty: &ParamType, v: &Value) {
+    match (ty, v) {
+        (ParamType::InPath, Value::Str(_)) => e.tag(7),
+        (ParamType::Records { fields, .. }, Value::List(items)) => {
+            e.tag(5);
+            e.0.update(&(items.len() as u64).to_le_bytes());
+            for item in items {
+                seed_value(e, &ParamType::Record(fields), item);
+            }
+        }
+        (ParamType::Record(fields), Value::Map(m)) => {
+            e.tag(6);
+            e.0.update(&(m.len() as u64).to_le_bytes());
+            for (k, _, fv, _) in m {
+                e.bytes(k.as_bytes());
+                match fields.iter().find(|f| f.name == k) {
+                    Some(f) => seed_value(e, &f.ty, fv),
+                    None => e.value(fv),
+                }
+            }
+        }
+        _ => e.value(v),
+    }
 }
 
 #[cfg(test)]

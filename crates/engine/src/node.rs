@@ -191,7 +191,7 @@ impl NodeError {
 }
 
 /// Validated, default-filled parameters of one stage.
-#[derive(Clone, Debug, Default)]
+#[derive(Clone, Debug, Default, PartialEq)]
 pub struct Params(pub BTreeMap<String, Value>);
 
 impl Params {

@@ -1277,4 +1277,46 @@ mod record_tests {
         assert!(e.contains("`objects`") && e.contains("mesh"), "{e}");
         let _ = std::fs::remove_dir_all(&dir);
     }
+
+    /// Two spellings of one file are one action: the same key (contents)
+    /// and the same seed (the file only as given), so they compute the
+    /// same bytes, whichever is served from the cache to the other.
+    #[cfg(unix)]
+    #[test]
+    fn an_input_file_keys_and_seeds_by_contents_not_spelling() {
+        use crate::key::{node_key, node_seed};
+        let (dir, reg) = setup("spelling");
+        std::fs::write(dir.join("m/b.obj"), "v 1 1 1\n").unwrap();
+        let stage = |mesh: &str| {
+            let p =
+                load_text(&dir, &reg, &format!("    objects:\n      - mesh: {mesh}\n")).unwrap();
+            p.stages[0].params.clone()
+        };
+        let node = reg.get("placer").unwrap();
+        let none = BTreeMap::new();
+        let key = |p: &Params| node_key(node, p, &none).unwrap();
+        // The same file through a link (as a pipeline named by a relative
+        // and by an absolute path resolves its files).
+        std::os::unix::fs::symlink(dir.join("m"), dir.join("link")).unwrap();
+        let (a, also_a) = (stage("m/a.obj"), stage("link/a.obj"));
+        assert_ne!(a, also_a, "the paths are spelled differently");
+        assert_eq!(key(&a), key(&also_a));
+        assert_eq!(node_seed(node, &a), node_seed(node, &also_a));
+        // Another file: another key, the same noise.
+        let b = stage(&dir.join("m/b.obj").display().to_string());
+        assert_ne!(key(&a), key(&b));
+        assert_eq!(node_seed(node, &a), node_seed(node, &b));
+        // What is not a file still seeds.
+        let scaled = load_text(
+            &dir,
+            &reg,
+            "    objects:\n      - {mesh: m/a.obj, scale: 2}\n",
+        )
+        .unwrap();
+        assert_ne!(
+            node_seed(node, &a),
+            node_seed(node, &scaled.stages[0].params)
+        );
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }

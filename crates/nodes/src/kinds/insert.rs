@@ -34,7 +34,7 @@ pub struct InsertNode;
 
 const INSERT_INFO: NodeInfo = NodeInfo {
     kind: "insert",
-    version: 2,
+    version: 3,
     doc: "Inserts objects (OBJ/PLY meshes; diffuse, principled or glass) into the scene and \
          renders them with full geometry (shadows, inter-reflection, refraction of the \
          envmap); composites into the photo differentially (photo + with − without, the \

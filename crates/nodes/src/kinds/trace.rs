@@ -30,7 +30,7 @@ const TRACE_INFO: NodeInfo = NodeInfo {
     kind: "trace",
     // 2: the kept paths are stored packed (same paths, other bytes).
     // 3: objects (4: with textures).
-    version: 5,
+    version: 6,
     doc: "A full render of the unedited scene (box pixel filter) that also keeps a set of its \
          light paths: a `render` given these `paths` re-traces only the pixels whose own \
          material changed or whose kept paths meet a changed material, with the base \

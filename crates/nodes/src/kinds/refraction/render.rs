@@ -6,7 +6,7 @@ pub struct RefractionRenderNode;
 
 pub(crate) const RENDER_INFO: NodeInfo = NodeInfo {
     kind: "refraction_render",
-    version: 1,
+    version: 2,
     doc: "One sample's photographs for the refraction-length network: the object (opaque, its \
          material given) on an optional ground under an environment map, and the same view \
          without the object, path-traced and exposed alike (`matflow dataset` makes these).",
