@@ -7,20 +7,22 @@ mod support;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::time::{Duration, Instant};
-use support::scratch;
+use support::{s, scratch};
 
 /// `matflow args…` under the shell resource limits `limits` (e.g.
 /// `ulimit -v N`), and how long it took.
 fn matflow_limited(limits: &str, args: &[&str]) -> (Output, Duration) {
     let t = Instant::now();
+    let cache = support::fresh_cache();
     let out = Command::new("sh")
         .arg("-c")
         .arg(format!("{limits}; exec \"$0\" \"$@\""))
         .arg(env!("CARGO_BIN_EXE_matflow"))
         .args(args)
-        .env_remove("MATFLOW_CACHE")
+        .env("MATFLOW_CACHE", &cache)
         .output()
         .expect("run matflow");
+    let _ = std::fs::remove_dir_all(&cache);
     (out, t.elapsed())
 }
 
@@ -418,9 +420,12 @@ fn runs_estimated_above_an_hour_are_refused_with_the_estimate() {
         let out = run(&file, &dir.join("cache"), extra);
         assert!(out.status.success(), "{}", stderr(&out));
     }
-    // `matflow render` checks the same way.
-    let b = synth_bundle(&dir, "bundle");
-    let out = render_bundle(&b, "100000000", &[], &dir.join("r.exr"));
+    // `matflow render` checks the same way (at the render kind's most
+    // samples and depth, on a 128² bundle: about two hours).
+    let b = dir.join("bundle");
+    let made = matflow(&["synth", "--out", s(&b), "--size", "128", "--spp", "1"]);
+    assert!(made.status.success(), "{}", stderr(&made));
+    let out = render_bundle(&b, "65536", &["--depth", "64"], &dir.join("r.exr"));
     assert_eq!(out.status.code(), Some(1), "{}", stderr(&out));
     assert!(
         stderr(&out).contains("--allow-expensive"),

@@ -198,21 +198,35 @@ pub fn s(p: &Path) -> &str {
     p.to_str().unwrap()
 }
 
-/// `matflow ARGS` to completion, without the user's cache
-/// (`MATFLOW_CACHE` unset), on `threads` rayon threads when given (the
-/// tests of the package that builds the binary).
+/// `matflow ARGS` to completion, in an empty cache of its own (removed
+/// after; `--cache` among the args overrides it), so that every call
+/// computes afresh and none touches the user's cache; on `threads` rayon
+/// threads when given (the tests of the package that builds the binary).
 pub fn matflow(args: &[&str], threads: Option<usize>) -> Output {
     // Set only when compiling the tests of the binary's own package
     // (the rpc crate shares this module and has no binary).
     let Some(bin) = option_env!("CARGO_BIN_EXE_matflow") else {
         panic!("support::matflow: not a test of the matflow binary's package");
     };
+    let cache = fresh_cache();
     let mut c = Command::new(bin);
-    c.args(args).env_remove("MATFLOW_CACHE");
+    c.args(args).env("MATFLOW_CACHE", &cache);
     if let Some(t) = threads {
         c.env("RAYON_NUM_THREADS", t.to_string());
     }
-    c.output().expect("run matflow")
+    let out = c.output().expect("run matflow");
+    let _ = std::fs::remove_dir_all(&cache);
+    out
+}
+
+/// A cache folder no other call has used (`matflow-cache-{pid}-{n}` in
+/// the temp directory, not created).
+pub fn fresh_cache() -> PathBuf {
+    static N: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+    let n = N.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let d = std::env::temp_dir().join(format!("matflow-cache-{}-{n}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    d
 }
 
 /// An empty scratch folder `matflow-{prefix}-{pid}-{name}` in the temp

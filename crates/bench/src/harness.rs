@@ -45,7 +45,7 @@ pub fn median(mut v: Vec<f64>) -> f64 {
 
 /// This process's peak resident memory in MiB (Linux), NaN elsewhere.
 pub fn peak_rss_mib() -> f64 {
-    matflow_cli::invert::peak_memory_bytes()
+    matflow_engine::exec::peak_memory_bytes()
         .map(|b| b as f64 / (1024.0 * 1024.0))
         .unwrap_or(f64::NAN)
 }
@@ -135,6 +135,47 @@ pub fn child(exe: &Path, args: &[impl AsRef<str>], show_stdout: bool) -> Result<
         anyhow::bail!("`matflow {}` failed ({status})", args.join(" "));
     }
     Ok(())
+}
+
+/// What a stage command's child run measured, from its run report.
+#[derive(Clone, Copy, Debug)]
+pub struct StageTiming {
+    /// The stage's seconds.
+    pub seconds: f64,
+    /// The child process's peak resident memory, in bytes (NaN where
+    /// unknown).
+    pub peak_bytes: f64,
+}
+
+/// Runs a stage command (`matflow invert`, `render`, `mesh`: a one-stage
+/// pipeline) as a child that computes afresh, in an empty cache of its
+/// own (removed after), so that a repeated benchmark never times a cache
+/// hit; its stdout shown or discarded. Returns the stage's seconds and
+/// the child's peak memory, from its run report.
+pub fn stage_child(exe: &Path, args: &[impl AsRef<str>], show_stdout: bool) -> Result<StageTiming> {
+    static RUNS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+    let n = RUNS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let dir = std::env::temp_dir().join(format!("matflow-bench-{}-{n}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let report = dir.join("report.json");
+    let mut all: Vec<String> = args.iter().map(|a| a.as_ref().to_string()).collect();
+    all.extend([
+        "--cache".to_string(),
+        path_arg(&dir.join("cache")),
+        "--report".to_string(),
+        path_arg(&report),
+    ]);
+    let ran = child(exe, &all, show_stdout).and_then(|_| {
+        let text =
+            std::fs::read(&report).with_context(|| format!("reading {}", report.display()))?;
+        let r: serde_json::Value = serde_json::from_slice(&text)?;
+        Ok(StageTiming {
+            seconds: r["stages"][0]["seconds"].as_f64().unwrap_or(f64::NAN),
+            peak_bytes: r["peak_memory_bytes"].as_f64().unwrap_or(f64::NAN),
+        })
+    });
+    let _ = std::fs::remove_dir_all(&dir);
+    ran
 }
 
 /// A path as a child's argument.

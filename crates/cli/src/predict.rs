@@ -79,4 +79,5 @@ pub fn predict(a: PredictArgs) -> Result<()> {
             label: &a.photo.display().to_string(),
         },
     )
+    .map(|_| ())
 }

@@ -215,8 +215,8 @@ fn print_table(r: &Report) {
         for r in &s.retries {
             outln!("{:<18} retried: {r}", "");
         }
-        for n in &s.notes {
-            outln!("{:<18} {n}", "");
+        for line in s.notes.iter().flat_map(|n| n.lines()) {
+            outln!("{:<18} {line}", "");
         }
         for f in &s.files {
             outln!("{:<18} wrote {f}", "");
@@ -337,6 +337,7 @@ pub fn run(a: RunArgs) -> Result<()> {
             label: &a.pipeline.display().to_string(),
         },
     )
+    .map(|_| ())
 }
 
 /// How [`execute`] runs a pipeline.
@@ -352,7 +353,7 @@ pub struct Execution<'a> {
 
 /// Runs a loaded pipeline: the store and executor, progress bars, the
 /// report (printed, and written when asked), an error when a stage failed.
-pub fn execute(p: &spec::Pipeline, reg: matflow_engine::Registry, e: &Execution) -> Result<()> {
+pub fn execute(p: &spec::Pipeline, reg: matflow_engine::Registry, e: &Execution) -> Result<Report> {
     let dir = cache_dir(e.cache);
     let reg = Arc::new(reg);
     let (store, exec) = crate::cluster::executor(
@@ -377,7 +378,7 @@ pub fn execute(p: &spec::Pipeline, reg: matflow_engine::Registry, e: &Execution)
     if let Some(f) = report.failure() {
         bail!("{}: {f}", e.label);
     }
-    Ok(())
+    Ok(report)
 }
 
 fn parse_size(s: &str) -> Result<u64> {

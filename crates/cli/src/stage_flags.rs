@@ -51,11 +51,20 @@ fn help(p: &ParamSpec) -> String {
 
 /// Adds one flag per named parameter of `kind` to `cmd`. A boolean whose
 /// default is false is a switch (`--trust-rm`); a choice offers its
-/// words; a number is checked against the kind's range when parsed.
+/// words; a number is checked against the kind's range when parsed; a
+/// parameter without a default is required; the file a stage writes
+/// (`output`) is `--out`.
 pub fn augment(mut cmd: Command, kind: &str, names: &[&str]) -> Command {
     for name in names {
         let p = spec(kind, name);
-        let mut a = Arg::new(p.name).long(leak(flag(p.name))).help(help(p));
+        let mut a = Arg::new(p.name).help(help(p));
+        a = match (&p.ty, p.name) {
+            (ParamType::OutPath, "output") => a.long("out").alias("output"),
+            _ => a.long(leak(flag(p.name))),
+        };
+        if p.default.is_none() {
+            a = a.required(true);
+        }
         a = match (&p.ty, p.default) {
             (ParamType::Bool, Some("false")) => a.action(ArgAction::SetTrue),
             (ParamType::Choice(words), _) => a
@@ -104,6 +113,145 @@ pub fn params(m: &ArgMatches, kind: &str, names: &[&str]) -> Result<Params, clap
         out.0.insert(p.name.to_string(), v);
     }
     Ok(out)
+}
+
+/// A command that runs one node kind on its own: its flags are the
+/// kind's parameters ([`augment`]), and it runs as a one-stage pipeline
+/// ([`run_stage`]), so the command and a pipeline stage with the same
+/// parameters are one action: the same key, cached alike.
+pub trait StageKind {
+    /// The node kind.
+    const KIND: &'static str;
+    /// Parameters the command does not take as flags (it sets them
+    /// itself, e.g. from a file).
+    const SKIP: &'static [&'static str] = &[];
+    /// Command-line touches on the generated flags (a flag given alone
+    /// meaning one of its words).
+    fn adjust(cmd: Command) -> Command {
+        cmd
+    }
+    /// Checks across the flags, worded as flags (the kind checks them
+    /// again, worded as parameters).
+    fn validate(_params: &Params) -> Result<(), clap::Error> {
+        Ok(())
+    }
+}
+
+/// The flags of a [`StageKind`]: every parameter of its kind, as the
+/// stage's validated parameters.
+pub struct StageFlags<K: StageKind>(pub Params, std::marker::PhantomData<K>);
+
+impl<K: StageKind> Clone for StageFlags<K> {
+    fn clone(&self) -> Self {
+        StageFlags(self.0.clone(), std::marker::PhantomData)
+    }
+}
+
+impl<K: StageKind> clap::FromArgMatches for StageFlags<K> {
+    fn from_arg_matches(m: &ArgMatches) -> Result<Self, clap::Error> {
+        let p = params(m, K::KIND, &flags_of::<K>())?;
+        K::validate(&p)?;
+        Ok(StageFlags(p, std::marker::PhantomData))
+    }
+    fn update_from_arg_matches(&mut self, m: &ArgMatches) -> Result<(), clap::Error> {
+        *self = Self::from_arg_matches(m)?;
+        Ok(())
+    }
+}
+
+impl<K: StageKind> clap::Args for StageFlags<K> {
+    fn augment_args(cmd: Command) -> Command {
+        K::adjust(augment(cmd, K::KIND, &flags_of::<K>()))
+    }
+    fn augment_args_for_update(cmd: Command) -> Command {
+        Self::augment_args(cmd)
+    }
+}
+
+/// The parameters a [`StageKind`]'s command takes as flags.
+fn flags_of<K: StageKind>() -> Vec<&'static str> {
+    names(K::KIND)
+        .into_iter()
+        .filter(|n| !K::SKIP.contains(n))
+        .collect()
+}
+
+/// The parameter names of node kind `kind`, in its order.
+pub fn names(kind: &str) -> Vec<&'static str> {
+    REGISTRY
+        .get_or_init(matflow_nodes::registry)
+        .get(kind)
+        .unwrap_or_else(|| panic!("no node kind {kind}"))
+        .params()
+        .iter()
+        .map(|p| p.name)
+        .collect()
+}
+
+/// Runs node kind `kind` with `params` as a one-stage pipeline (stage
+/// `kind`), through the engine and its cache as `matflow run` runs a
+/// stage: relative paths resolve against the current folder. Returns the
+/// run's report, printed; a failed stage is an error.
+pub fn run_stage(
+    kind: &str,
+    params: &Params,
+    how: &StageRun,
+) -> anyhow::Result<matflow_engine::Report> {
+    use matflow_engine::spec::{self, Override};
+    let reg = matflow_nodes::registry();
+    let overrides: Vec<Override> = params
+        .0
+        .iter()
+        .filter(|(_, v)| !matches!(v, Value::Null))
+        .map(|(name, v)| Override {
+            stage: kind.into(),
+            param: name.clone(),
+            value: v.clone(),
+            text: format!("--{}", flag(name)),
+        })
+        .collect();
+    let text =
+        format!("pipeline: {kind}\noutputs: [{kind}]\nstages:\n  {kind}:\n    kind: {kind}\n");
+    let here = std::path::PathBuf::from(format!("(matflow {kind})"));
+    let p = spec::parse(&text, &here, &reg, &overrides)
+        .map_err(|e| anyhow::anyhow!("{}", e.message))?;
+    if !how.allow_expensive {
+        crate::run::refuse_if_expensive(&here, &spec::estimate_seconds(&p, &reg))?;
+    }
+    let label = match params.get("bundle") {
+        Value::Str(b) => b.clone(),
+        _ => kind.to_string(),
+    };
+    crate::run::execute(
+        &p,
+        reg,
+        &crate::run::Execution {
+            cache: how.cache.as_deref(),
+            remote: &crate::cluster::RemoteArgs::default(),
+            parallel: 1,
+            quiet: how.quiet,
+            report: how.report.as_deref(),
+            label: &label,
+        },
+    )
+}
+
+/// How a [`StageKind`]'s command runs: the cache, the report, the bars.
+#[derive(clap::Args, Clone, Debug, Default)]
+pub struct StageRun {
+    /// Cache folder (as for `run`).
+    #[arg(long)]
+    pub cache: Option<std::path::PathBuf>,
+    /// Write the run's JSON report here.
+    #[arg(long)]
+    pub report: Option<std::path::PathBuf>,
+    /// No progress bars.
+    #[arg(long)]
+    pub quiet: bool,
+    /// Run even when estimated to take more than an hour (on the
+    /// reference 2-core machine).
+    #[arg(long)]
+    pub allow_expensive: bool,
 }
 
 #[cfg(test)]

@@ -91,6 +91,8 @@ pub struct Report {
     pub bytes_uploaded: u64,
     pub bytes_downloaded: u64,
     pub stages: Vec<StageReport>,
+    /// This process's peak resident memory at the end of the run (Linux).
+    pub peak_memory_bytes: Option<u64>,
 }
 
 impl StageReport {
@@ -529,7 +531,16 @@ pub fn run_pipeline(
         bytes_uploaded: up,
         bytes_downloaded: down,
         stages: s.stage_reports(),
+        peak_memory_bytes: peak_memory_bytes(),
     }
+}
+
+/// Peak resident memory of this process (Linux: `VmHWM`), in bytes.
+pub fn peak_memory_bytes() -> Option<u64> {
+    let s = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = s.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb * 1024)
 }
 
 /// The state of one run: each needed stage's slot, who waits for whom,

@@ -24,6 +24,8 @@ pub use kinds::refraction_length::{
     BUNDLED_MODEL as BUNDLED_REFRACTION_MODEL,
     BUNDLED_MODEL_BLAKE3 as BUNDLED_REFRACTION_MODEL_BLAKE3,
 };
+pub mod bundle_scene;
+pub mod completion;
 mod kinds;
 pub mod objects;
 pub mod recovery;
@@ -38,6 +40,9 @@ pub fn registry() -> Registry {
     let nodes: Vec<Box<dyn Node>> = vec![
         Box::new(kinds::image::ImageNode),
         Box::new(kinds::bundle::BundleNode),
+        Box::new(kinds::bundle_invert::BundleInvertNode),
+        Box::new(kinds::bundle_mesh::BundleMeshNode),
+        Box::new(kinds::bundle_render::BundleRenderNode),
         Box::new(kinds::synthetic_scene::SyntheticSceneNode),
         Box::new(kinds::mesh::MeshNode),
         Box::new(kinds::envmap_opt::EnvmapOptNode),
@@ -77,6 +82,33 @@ pub(crate) fn failed(e: impl std::error::Error) -> NodeError {
         src = s.source();
     }
     NodeError::new(msg)
+}
+
+/// `?` on a typed error inside a node: the error, its causes joined
+/// ([`failed`]), after what was being done.
+pub(crate) trait Context<T> {
+    /// The error after `what` ("reading x.json: not found").
+    fn context(self, what: impl FnOnce() -> String) -> Result<T, NodeError>;
+    /// The error as it is.
+    fn node_err(self) -> Result<T, NodeError>;
+}
+
+impl<T, E: std::error::Error> Context<T> for Result<T, E> {
+    fn context(self, what: impl FnOnce() -> String) -> Result<T, NodeError> {
+        self.map_err(|e| NodeError::new(format!("{}: {}", what(), failed(e).0)))
+    }
+    fn node_err(self) -> Result<T, NodeError> {
+        self.map_err(failed)
+    }
+}
+
+impl<T> Context<T> for Option<T> {
+    fn context(self, what: impl FnOnce() -> String) -> Result<T, NodeError> {
+        self.ok_or_else(|| NodeError::new(what()))
+    }
+    fn node_err(self) -> Result<T, NodeError> {
+        self.ok_or_else(|| NodeError::new("missing"))
+    }
 }
 
 /// Markdown reference of every node kind: parameters with type, default,

@@ -725,6 +725,16 @@ pub fn same_geometry(a: &[SceneObject], b: &[SceneObject]) -> bool {
 /// entries, each as the `objects` parameter takes them, mesh paths
 /// relative to the file. Errors give the file, line and column.
 pub fn read_objects_file(path: &Path) -> Result<Vec<ObjectSpec>, String> {
+    let norm = read_objects_value(path)?;
+    let specs = specs(&norm).map_err(|e| format!("{}: {e}", path.display()))?;
+    check_specs(&specs).map_err(|e| format!("{}: {e}", path.display()))?;
+    Ok(specs)
+}
+
+/// An objects file as the `objects` parameter's value: normalised, its
+/// mesh paths resolved against the file's folder. Errors give the file,
+/// line and column.
+pub fn read_objects_value(path: &Path) -> Result<Value, String> {
     let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
     let (v, loc) = matflow_engine::value::parse_yaml(&text)
         .map_err(|e| format!("{}:{}: {}", path.display(), e.loc, e.message))?;
@@ -742,9 +752,7 @@ pub fn read_objects_file(path: &Path) -> Result<Vec<ObjectSpec>, String> {
         Some(l) => format!("{}:{l}: objects{m}", path.display()),
         None => format!("{}: objects{m}", path.display()),
     })?;
-    let specs = specs(&norm).map_err(|e| format!("{}: {e}", path.display()))?;
-    check_specs(&specs).map_err(|e| format!("{}: {e}", path.display()))?;
-    Ok(specs)
+    Ok(norm)
 }
 
 #[cfg(test)]

@@ -6,7 +6,7 @@ use std::sync::OnceLock;
 
 use matflow_engine::node::Params;
 use matflow_engine::{NodeError, OutputSpec, ParamSpec, ParamType, RunContext};
-use matflow_inverse::invert::{Event, InvertOptions, InvertReport};
+use matflow_inverse::invert::{Event, InvertOptions, InvertReport, MAX_LEVEL_BAND};
 use matflow_inverse::routes::{
     self, all_options, Chosen, EnvRoute, MatRoute, OptionKind, Side, ENV_ROUTE_NAMES,
     MAT_ROUTE_NAMES,
@@ -55,6 +55,44 @@ pub(crate) const MAT_ROUTE: ParamSpec = ParamSpec {
     default: Some(MAT_ROUTE_NAMES[0]),
     unit: "",
     doc: "how material stages fit (each route's options: mat_ROUTE_OPTION)",
+};
+
+pub(crate) const DELTA: ParamSpec = ParamSpec {
+    name: "delta",
+    ty: ParamType::Float {
+        min: 0.0,
+        max: 100.0,
+    },
+    default: Some("0.1"),
+    unit: "",
+    doc: "consistency weight δ (pull towards the predictions)",
+};
+pub(crate) const LOOPS: ParamSpec = ParamSpec {
+    name: "loops",
+    ty: ParamType::Int { min: 1, max: 64 },
+    default: Some("~"),
+    unit: "",
+    doc: "envmap/material alternations (default: from the budget)",
+};
+pub(crate) const ALBEDO_LEVEL: ParamSpec = ParamSpec {
+    name: "albedo_level",
+    ty: ParamType::Choice(&["pred", "free"]),
+    default: Some("pred"),
+    unit: "",
+    doc: "who sets the albedo's mean level and colour: the prediction (within \
+          albedo_level_band; the light takes the gain, since one image cannot tell a \
+          brighter light from a brighter albedo) or the fit",
+};
+pub(crate) const ALBEDO_LEVEL_BAND: ParamSpec = ParamSpec {
+    name: "albedo_level_band",
+    ty: ParamType::Float {
+        min: 0.0,
+        max: MAX_LEVEL_BAND,
+    },
+    default: Some("0.25"),
+    unit: "share",
+    doc: "with albedo_level pred: how far the albedo's mean per channel may move from the \
+          prediction's before it is held (0: held exactly)",
 };
 
 fn leak(s: String) -> &'static str {

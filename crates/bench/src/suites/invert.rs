@@ -6,9 +6,8 @@
 //! the child's `summary.json`.
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result};
 use clap::Args;
 use matflow_inverse::routes::Side;
 use matflow_scene::metrics::psnr_gamma;
@@ -112,27 +111,25 @@ fn run_one(
     budget: f64,
     route: &str,
     extra: &[String],
-) -> Result<serde_json::Value> {
-    let status = Command::new(exe)
-        .arg("invert")
-        .arg("--bundle")
-        .arg(bundle)
-        .arg("--out")
-        .arg(out)
-        .arg("--budget-seconds")
-        .arg(budget.to_string())
-        .arg("--mat-route")
-        .arg(route)
-        .arg("--quiet")
-        .args(extra)
-        .status()
-        .with_context(|| format!("running {}", exe.display()))?;
-    if !status.success() {
-        bail!("matflow invert failed on {} ({status})", bundle.display());
-    }
+) -> Result<(serde_json::Value, crate::harness::StageTiming)> {
+    let mut args: Vec<String> = vec![
+        "invert".into(),
+        "--bundle".into(),
+        crate::harness::path_arg(bundle),
+        "--out".into(),
+        crate::harness::path_arg(out),
+        "--budget-seconds".into(),
+        budget.to_string(),
+        "--mat-route".into(),
+        route.into(),
+        "--quiet".into(),
+    ];
+    args.extend(extra.iter().cloned());
+    let timing = crate::harness::stage_child(exe, &args, false)
+        .with_context(|| format!("matflow invert on {}", bundle.display()))?;
     let p = out.join("summary.json");
     let text = std::fs::read(&p).with_context(|| format!("reading {}", p.display()))?;
-    Ok(serde_json::from_slice(&text)?)
+    Ok((serde_json::from_slice(&text)?, timing))
 }
 
 /// PSNR of the reference's stored re-render against the input. The stored
@@ -197,18 +194,18 @@ pub fn bench_invert(a: BenchInvertArgs) -> Result<()> {
                 c.route,
                 c.variant.replace([' ', '(', ')'], "_")
             ));
-            let s = run_one(exe, bundle, &out, c.budget, &c.route, &c.flags)?;
+            let (s, timing) = run_one(exe, bundle, &out, c.budget, &c.route, &c.flags)?;
             let f = |k: &str, m: &str| s[k][m].as_f64().unwrap_or(f64::NAN);
             let row = Row {
                 scene: scene.clone(),
                 budget: c.budget,
                 route: c.route,
                 variant: c.variant,
-                seconds: s["seconds"].as_f64().unwrap_or(f64::NAN),
+                seconds: timing.seconds,
                 psnr: f("rerender", "psnr"),
                 ssim: f("rerender", "ssim"),
                 fit_psnr: f("fit", "psnr"),
-                peak_mb: s["peak_memory_bytes"].as_f64().unwrap_or(f64::NAN) / 1e6,
+                peak_mb: timing.peak_bytes / 1e6,
             };
             outln!(
                 "  {:<8} budget {:>5.0} s  {:<6} {:<28} {:>6.1} s  rerender {:>6.2} dB  SSIM {:.3}  fit {:>6.2} dB  peak {:>5.0} MB",

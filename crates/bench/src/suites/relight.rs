@@ -32,7 +32,7 @@ use matflow_scene::metrics::psnr_gamma;
 use matflow_scene::{io, Bundle, MaterialSource, RgbImage};
 
 use crate::harness::median;
-use crate::harness::{child, path_arg as s};
+use crate::harness::path_arg as s;
 use matflow_cli::commands::CompleteArg;
 
 /// The validation set's index (`validation.json`).
@@ -189,7 +189,7 @@ fn render(
         // scene's (the fitted lamps light only the rerender); the capture
         // is lit by its true lamps too (ground_truth/lamps.json).
         args.extend(["--lamps".into(), if lamps { "on" } else { "off" }.into()]);
-        child(r.exe, &args, false)?;
+        crate::harness::stage_child(r.exe, &args, false)?;
     }
     Ok(io::read_exr_rgb(out)?)
 }
@@ -302,7 +302,7 @@ fn measure(
         complete.name().into(),
     ];
     args.extend(variant.1.iter().cloned());
-    child(r.exe, &args, false)?;
+    let timing = crate::harness::stage_child(r.exe, &args, false)?;
     let sp = out.join("summary.json");
     let sum: serde_json::Value = serde_json::from_slice(
         &std::fs::read(&sp).with_context(|| format!("reading {}", s(&sp)))?,
@@ -317,7 +317,7 @@ fn measure(
             variant.0.clone()
         },
         kind: kind.into(),
-        seconds: sum["seconds"].as_f64().unwrap_or(f64::NAN),
+        seconds: timing.seconds,
         rerender: sum["rerender"]["psnr"].as_f64().unwrap_or(f64::NAN),
         noise_floor: noise_floor(&meta),
         ..Default::default()
@@ -337,7 +337,9 @@ fn measure(
             &out,
             "best_results",
             &env,
-            &out.join(format!("relit{j}{c}.exr")),
+            // Beside the bundle: a stage may not write into a folder it
+            // reads.
+            &out.with_extension(format!("relit{j}{c}.exr")),
             RenderHow {
                 reuse: false,
                 lamps: false,
@@ -395,13 +397,22 @@ fn geometry_part(
         .as_str()
         .unwrap_or("?")
         .to_string();
-    // The photo's test of the completions, the window search included.
-    row.choice_seconds = report["completion"]["evidence"]["seconds"]
-        .as_f64()
-        .unwrap_or(0.0)
-        + report["completion"]["windows"]["seconds"]
-            .as_f64()
-            .unwrap_or(0.0);
+    // The photo's test of the completions, the window search included:
+    // `matflow mesh --complete auto` on the scene runs it under the
+    // scene's own light and maps (with the mesh's build, a small part).
+    if complete == CompleteArg::Auto {
+        let ply = shared.join("auto.ply");
+        let args = [
+            "mesh".to_string(),
+            "--bundle".into(),
+            s(scene),
+            "--complete".into(),
+            "auto".into(),
+            "--out".into(),
+            s(&ply),
+        ];
+        row.choice_seconds = crate::harness::stage_child(r.exe, &args, false)?.seconds;
+    }
     let mut out = Vec::new();
     for j in 0..2 {
         let (env, img) = relight_names(j);

@@ -143,7 +143,7 @@ fn measure(
         "--quiet".into(),
     ];
     args.extend(flags.iter().map(|f| f.to_string()));
-    child(exe, &args, true)?;
+    let timing = crate::harness::stage_child(exe, &args, true)?;
     let p = out.join("summary.json");
     let sum: serde_json::Value =
         serde_json::from_slice(&std::fs::read(&p).with_context(|| format!("reading {}", s(&p)))?)?;
@@ -154,9 +154,10 @@ fn measure(
     let env_g = io::read_hdr(&got.path("best_results/envmap.hdr"))?;
     let mt = truth.load_materials(MaterialSource::GroundTruth)?;
     let mg = got.load_materials(MaterialSource::BestResults)?;
-    // Relight: the recovered scene under the new sky.
-    let relit = out.join("relit.exr");
-    child(
+    // Relight: the recovered scene under the new sky (written beside the
+    // bundle: a stage may not write into a folder it reads).
+    let relit = out.with_extension("relit.exr");
+    crate::harness::stage_child(
         exe,
         &[
             "render",
@@ -177,8 +178,8 @@ fn measure(
     let relit = io::read_exr_rgb(&relit)?;
     Ok(Row {
         budget,
-        seconds: sum["seconds"].as_f64().unwrap_or(f64::NAN),
-        peak_mb: sum["peak_memory_bytes"].as_f64().unwrap_or(f64::NAN) / 1e6,
+        seconds: timing.seconds,
+        peak_mb: timing.peak_bytes / 1e6,
         rerender: f("rerender", "psnr"),
         rerender_ssim: f("rerender", "ssim"),
         relight: psnr_gamma(&relit, &relit_gt),

@@ -6,7 +6,7 @@ use std::sync::OnceLock;
 
 use matflow_engine::node::Params;
 use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
-use matflow_inverse::invert::{invert, materials_to_maps, InvertOptions, MAX_LEVEL_BAND};
+use matflow_inverse::invert::{invert, materials_to_maps, InvertOptions};
 use matflow_inverse::routes::Side;
 
 use crate::data::{encode_image, encode_materials, envmap_from, MESH, SCENE};
@@ -15,7 +15,9 @@ use crate::recovery::{
     base_options, env_route, mat_route, material_options, on_event, prepare, summary,
     with_route_params,
 };
-use crate::recovery::{BUDGET, ENV_ROUTE, MAT_ROUTE, REPORT, TRUST};
+use crate::recovery::{
+    ALBEDO_LEVEL, ALBEDO_LEVEL_BAND, BUDGET, DELTA, ENV_ROUTE, LOOPS, MAT_ROUTE, REPORT, TRUST,
+};
 
 pub struct MaterialOptNode;
 
@@ -33,43 +35,10 @@ const PARAMS: &[ParamSpec] = &[
     ENV_ROUTE,
     MAT_ROUTE,
     TRUST,
-    ParamSpec {
-        name: "delta",
-        ty: ParamType::Float {
-            min: 0.0,
-            max: 100.0,
-        },
-        default: Some("0.1"),
-        unit: "",
-        doc: "consistency weight δ (pull towards the predictions)",
-    },
-    ParamSpec {
-        name: "loops",
-        ty: ParamType::Int { min: 1, max: 64 },
-        default: Some("~"),
-        unit: "",
-        doc: "envmap/material alternations (default: from the budget)",
-    },
-    ParamSpec {
-        name: "albedo_level",
-        ty: ParamType::Choice(&["pred", "free"]),
-        default: Some("pred"),
-        unit: "",
-        doc: "who sets the albedo's mean level and colour: the prediction (within \
-              albedo_level_band; the light takes the gain, since one image cannot tell a \
-              brighter light from a brighter albedo) or the fit",
-    },
-    ParamSpec {
-        name: "albedo_level_band",
-        ty: ParamType::Float {
-            min: 0.0,
-            max: MAX_LEVEL_BAND,
-        },
-        default: Some("0.25"),
-        unit: "share",
-        doc: "with albedo_level pred: how far the albedo's mean per channel may move from the \
-              prediction's before it is held (0: held exactly)",
-    },
+    DELTA,
+    LOOPS,
+    ALBEDO_LEVEL,
+    ALBEDO_LEVEL_BAND,
 ];
 
 const OUTPUTS: &[OutputSpec] = &[

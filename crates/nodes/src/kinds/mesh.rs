@@ -36,6 +36,31 @@ fn auto_mode(s: &SceneData, mesh: MeshParams) -> Result<&'static str, NodeError>
     })
 }
 
+/// The boundary angle, as `mesh` and the commands on a bundle take it.
+pub(crate) const ANGLE: ParamSpec = ParamSpec {
+    name: "angle",
+    ty: ParamType::Float {
+        min: 0.0,
+        max: 90.0,
+    },
+    default: Some("6"),
+    unit: "degrees",
+    doc: "boundary threshold: triangles seen more obliquely than this are cut",
+};
+
+/// The silhouettes' side, as `mesh` and the commands on a bundle take it.
+pub(crate) const SILHOUETTES: ParamSpec = ParamSpec {
+    name: "silhouettes",
+    ty: ParamType::Choice(&Silhouettes::NAMES),
+    default: Some("kept"),
+    unit: "",
+    doc: "the near side of a depth discontinuity: kept (an object's edge keeps its depth \
+          and reaches the pixel border; only pixels between two depths move back; a solid's \
+          unseen back is its front mirrored about its silhouettes) or \
+          reference (every boundary pixel takes the background's depth, as the reference \
+          implementation: objects lose a pixel and a half)",
+};
+
 const MESH_INFO: NodeInfo = NodeInfo {
     kind: "mesh",
     version: 10,
@@ -50,27 +75,8 @@ const MESH_INFO: NodeInfo = NodeInfo {
             unit: "",
             doc: "the scene whose depth is meshed",
         },
-        ParamSpec {
-            name: "angle",
-            ty: ParamType::Float {
-                min: 0.0,
-                max: 90.0,
-            },
-            default: Some("6"),
-            unit: "degrees",
-            doc: "boundary threshold: triangles seen more obliquely than this are cut",
-        },
-        ParamSpec {
-            name: "silhouettes",
-            ty: ParamType::Choice(&Silhouettes::NAMES),
-            default: Some("kept"),
-            unit: "",
-            doc: "the near side of a depth discontinuity: kept (an object's edge keeps its depth \
-                  and reaches the pixel border; only pixels between two depths move back; a solid's \
-                  unseen back is its front mirrored about its silhouettes) or \
-                  reference (every boundary pixel takes the background's depth, as the reference \
-                  implementation: objects lose a pixel and a half)",
-        },
+        ANGLE,
+        SILHOUETTES,
         ParamSpec {
             name: "complete",
             ty: ParamType::Choice(&COMPLETE_CHOICES),

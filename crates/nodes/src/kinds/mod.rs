@@ -1,6 +1,9 @@
 //! One file per node kind.
 
 pub mod bundle;
+pub mod bundle_invert;
+pub mod bundle_mesh;
+pub mod bundle_render;
 pub mod edit;
 pub mod envmap_opt;
 pub mod image;

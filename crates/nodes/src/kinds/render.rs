@@ -25,12 +25,42 @@ pub(crate) fn pair(path: &Path) -> [PathBuf; 2] {
 /// each through a temporary file renamed into place; a file that already
 /// holds the same bytes is not rewritten (a cached run changes nothing on
 /// disk).
-fn write_pair(path: &Path, img: &matflow_scene::RgbImage) -> Result<Vec<PathBuf>, NodeError> {
+pub(crate) fn write_pair(
+    path: &Path,
+    img: &matflow_scene::RgbImage,
+) -> Result<Vec<PathBuf>, NodeError> {
     let [exr, png] = pair(path);
     io::write_if_changed(&exr, &io::encode_exr_rgb(&exr, img).map_err(err)?).map_err(err)?;
     io::write_if_changed(&png, &io::encode_png_gamma(&png, img).map_err(err)?).map_err(err)?;
     Ok(vec![exr, png])
 }
+
+/// Samples per pixel, as the renders take them.
+pub(crate) const SPP: ParamSpec = ParamSpec {
+    name: "spp",
+    ty: ParamType::Int { min: 1, max: 65536 },
+    default: Some("64"),
+    unit: "samples/px",
+    doc: "samples per pixel",
+};
+
+/// The longest path, as the renders take it.
+pub(crate) const DEPTH: ParamSpec = ParamSpec {
+    name: "depth",
+    ty: ParamType::Int { min: 1, max: 64 },
+    default: Some("4"),
+    unit: "segments",
+    doc: "maximum path length (Mitsuba's max_depth)",
+};
+
+/// The pixel filter, as the renders take it.
+pub(crate) const FILTER: ParamSpec = ParamSpec {
+    name: "filter",
+    ty: ParamType::Choice(&["gaussian", "box"]),
+    default: Some("gaussian"),
+    unit: "",
+    doc: "pixel filter: Mitsuba's Gaussian (σ 0.5 px, radius 2) or box",
+};
 
 const RENDER_INFO: NodeInfo = NodeInfo {
     kind: "render",
@@ -64,27 +94,9 @@ const RENDER_INFO: NodeInfo = NodeInfo {
             unit: "",
             doc: "lighting (with `mesh`)",
         },
-        ParamSpec {
-            name: "spp",
-            ty: ParamType::Int { min: 1, max: 65536 },
-            default: Some("64"),
-            unit: "samples/px",
-            doc: "samples per pixel",
-        },
-        ParamSpec {
-            name: "depth",
-            ty: ParamType::Int { min: 1, max: 64 },
-            default: Some("4"),
-            unit: "segments",
-            doc: "maximum path length (Mitsuba's max_depth)",
-        },
-        ParamSpec {
-            name: "filter",
-            ty: ParamType::Choice(&["gaussian", "box"]),
-            default: Some("gaussian"),
-            unit: "",
-            doc: "pixel filter: Mitsuba's Gaussian (σ 0.5 px, radius 2) or box",
-        },
+        SPP,
+        DEPTH,
+        FILTER,
         ParamSpec {
             name: "seed",
             ty: ParamType::Int {
