@@ -192,6 +192,15 @@ pub enum Failure {
 }
 
 impl Failure {
+    /// A node's failure: the node's own, or the machine's (an
+    /// [`Failure::Infra`], retried where a retry can help).
+    pub fn of(e: NodeError) -> Failure {
+        match e.kind() {
+            crate::node::NodeErrorKind::Stage => Failure::Node(e.0),
+            crate::node::NodeErrorKind::Machine => Failure::Infra(e.0),
+        }
+    }
+
     pub fn message(&self) -> String {
         match self {
             Failure::Node(m) | Failure::Infra(m) => m.clone(),
@@ -312,7 +321,7 @@ pub fn execute_job(
         progress,
     };
     let ts = Instant::now();
-    let outs = run_node(node, &ctx).map_err(|e| Failure::Node(e.0))?;
+    let outs = run_node(node, &ctx).map_err(Failure::of)?;
     let seconds = ts.elapsed().as_secs_f64();
     let mut ds = BTreeMap::new();
     let mut bytes_out = 0;
@@ -940,7 +949,7 @@ fn materialize(
     }
     node.materialize(&stage.params, &bytes)
         .map(|v| v.iter().map(|p| p.display().to_string()).collect())
-        .map_err(|e| Failure::Node(e.0))
+        .map_err(Failure::of)
 }
 
 /// The action keys a pipeline's needed stages currently resolve to, for
@@ -1069,5 +1078,40 @@ mod tests {
         }
         assert!(store.lookup(&job.key).unwrap().is_none(), "no action entry");
         let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// An error wrapping an I/O error, as the libraries' typed errors do.
+    #[derive(Debug, thiserror::Error)]
+    #[error("reading the bundle")]
+    struct Wrapped(#[source] std::io::Error);
+
+    #[test]
+    fn a_full_disk_is_the_machines_failure_and_a_missing_file_the_stages() {
+        use crate::node::NodeErrorKind::{Machine, Stage};
+        use std::io::{Error, ErrorKind};
+        let kind = |k: ErrorKind| NodeError::kind_of(&Wrapped(Error::from(k)));
+        for k in [
+            ErrorKind::StorageFull,
+            ErrorKind::OutOfMemory,
+            ErrorKind::Interrupted,
+        ] {
+            assert_eq!(kind(k), Machine, "{k:?}");
+        }
+        for k in [
+            ErrorKind::NotFound,
+            ErrorKind::PermissionDenied,
+            ErrorKind::InvalidData,
+        ] {
+            assert_eq!(kind(k), Stage, "{k:?}");
+        }
+        // The executor retries the machine's failures, not the stage's.
+        assert!(matches!(
+            Failure::of(NodeError::machine("disk full")),
+            Failure::Infra(_)
+        ));
+        assert!(matches!(
+            Failure::of(NodeError::new("no depth")),
+            Failure::Node(_)
+        ));
     }
 }

@@ -30,7 +30,10 @@ pub use exec::{
     execute_job, run_pipeline, Done, Event, Executor, Failure, Job, LocalExecutor, Observer,
     Report, Sink, StageReport, Status,
 };
-pub use node::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, Registry, RunContext};
+pub use node::{
+    Node, NodeError, NodeErrorKind, NodeInfo, OutputSpec, ParamSpec, ParamType, Registry,
+    RunContext,
+};
 pub use spec::{Pipeline, SpecError};
 pub use store::{Digest, Store, StoreError};
 pub use tier::{ActionCache, Cas, CasRef, StoreTier, Tiered};

@@ -179,14 +179,74 @@ pub struct OutputSpec {
 }
 
 /// A node failed. The message names what was wrong (a file, a pixel
-/// count, a parameter).
+/// count, a parameter); the kind says whether running it again could help.
 #[derive(Debug, thiserror::Error)]
 #[error("{0}")]
-pub struct NodeError(pub String);
+pub struct NodeError(pub String, pub NodeErrorKind);
+
+/// Why a node failed, as far as running it again is concerned.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum NodeErrorKind {
+    /// The stage's inputs or parameters fail it (a file that does not
+    /// decode, a mask outside the image, numerics that refuse): the same
+    /// job fails again, anywhere. The run reports it.
+    Stage,
+    /// The machine failed it (its disk full, its memory, an interrupted
+    /// write): another attempt may succeed, so a remote stage is retried
+    /// on another worker as a lost one is.
+    Machine,
+}
 
 impl NodeError {
+    /// A failure of the stage itself ([`NodeErrorKind::Stage`]).
     pub fn new(msg: impl Into<String>) -> NodeError {
-        NodeError(msg.into())
+        NodeError(msg.into(), NodeErrorKind::Stage)
+    }
+    /// A failure of the machine ([`NodeErrorKind::Machine`]).
+    pub fn machine(msg: impl Into<String>) -> NodeError {
+        NodeError(msg.into(), NodeErrorKind::Machine)
+    }
+    pub fn kind(&self) -> NodeErrorKind {
+        self.1
+    }
+    /// The kind of failure an I/O error of this kind is: the machine's
+    /// where a resource ran out or the operation was cut short (a full
+    /// disk or quota, memory, a write that wrote nothing, a timeout, an
+    /// interruption); the stage's otherwise (a file not found, not
+    /// permitted, not decodable fails again anywhere).
+    pub fn io_kind(k: std::io::ErrorKind) -> NodeErrorKind {
+        use std::io::ErrorKind as K;
+        match k {
+            K::StorageFull
+            | K::QuotaExceeded
+            | K::FileTooLarge
+            | K::OutOfMemory
+            | K::WriteZero
+            | K::TimedOut
+            | K::Interrupted
+            | K::ResourceBusy => NodeErrorKind::Machine,
+            _ => NodeErrorKind::Stage,
+        }
+    }
+    /// The kind of failure `e` is: [`NodeErrorKind::Machine`] when an I/O
+    /// error in its chain of causes is the machine's
+    /// ([`NodeError::io_kind`]).
+    pub fn kind_of(e: &(dyn std::error::Error + 'static)) -> NodeErrorKind {
+        let mut cur = Some(e);
+        while let Some(c) = cur {
+            if let Some(io) = c.downcast_ref::<std::io::Error>() {
+                if Self::io_kind(io.kind()) == NodeErrorKind::Machine {
+                    return NodeErrorKind::Machine;
+                }
+            }
+            if let Some(n) = c.downcast_ref::<NodeError>() {
+                if n.kind() == NodeErrorKind::Machine {
+                    return NodeErrorKind::Machine;
+                }
+            }
+            cur = c.source();
+        }
+        NodeErrorKind::Stage
     }
 }
 

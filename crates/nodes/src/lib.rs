@@ -72,8 +72,10 @@ pub(crate) fn err(e: impl std::fmt::Display) -> NodeError {
 }
 
 /// A node error from a typed error, its causes joined ("building the
-/// scene: meshing the depth map: depth has 3 NaN values").
-pub(crate) fn failed(e: impl std::error::Error) -> NodeError {
+/// scene: meshing the depth map: depth has 3 NaN values"), of the
+/// machine's kind when an I/O error among them is the machine's (a full
+/// disk: another attempt may succeed; [`NodeError::kind_of`]).
+pub(crate) fn failed(e: impl std::error::Error + 'static) -> NodeError {
     let mut msg = e.to_string();
     let mut src = e.source();
     while let Some(s) = src {
@@ -81,7 +83,7 @@ pub(crate) fn failed(e: impl std::error::Error) -> NodeError {
         msg.push_str(&s.to_string());
         src = s.source();
     }
-    NodeError::new(msg)
+    NodeError(msg, NodeError::kind_of(&e))
 }
 
 /// `?` on a typed error inside a node: the error, its causes joined
@@ -93,9 +95,12 @@ pub(crate) trait Context<T> {
     fn node_err(self) -> Result<T, NodeError>;
 }
 
-impl<T, E: std::error::Error> Context<T> for Result<T, E> {
+impl<T, E: std::error::Error + 'static> Context<T> for Result<T, E> {
     fn context(self, what: impl FnOnce() -> String) -> Result<T, NodeError> {
-        self.map_err(|e| NodeError::new(format!("{}: {}", what(), failed(e).0)))
+        self.map_err(|e| {
+            let f = failed(e);
+            NodeError(format!("{}: {}", what(), f.0), f.1)
+        })
     }
     fn node_err(self) -> Result<T, NodeError> {
         self.map_err(failed)

@@ -145,3 +145,94 @@ fn many_simulated_workers_compute_what_a_local_run_computes() {
     let again = run_pipeline(&p, &reg, &store, &ex, &Silent);
     assert!(again.stages.iter().all(|s| s.status == Status::Cached));
 }
+
+/// Fails its first `fails` runs, with a machine's failure (`machine`) or
+/// the stage's own; then gives one byte.
+struct Flaky {
+    runs: Arc<Mutex<u32>>,
+    fails: u32,
+    machine: bool,
+}
+
+static FLAKY: NodeInfo = NodeInfo {
+    kind: "flaky",
+    version: 1,
+    doc: "test node",
+    params: &[],
+    outputs: &[OutputSpec {
+        name: "out",
+        ty: "t",
+        doc: "",
+    }],
+};
+
+impl matflow_engine::Node for Flaky {
+    fn info(&self) -> &'static NodeInfo {
+        &FLAKY
+    }
+    fn run(&self, _ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
+        let mut n = self.runs.lock().unwrap();
+        *n += 1;
+        if *n <= self.fails {
+            let io = std::io::Error::from(if self.machine {
+                std::io::ErrorKind::StorageFull
+            } else {
+                std::io::ErrorKind::NotFound
+            });
+            return Err(NodeError(
+                format!("writing scratch: {io}"),
+                NodeError::kind_of(&io),
+            ));
+        }
+        Ok(BTreeMap::from([("out".to_string(), vec![1])]))
+    }
+}
+
+/// A node that fails for want of disk is the machine's failure: the stage
+/// is tried again on a worker and completes. One that fails on its own
+/// inputs fails once, and is not tried again.
+#[test]
+fn a_machine_failure_is_retried_and_a_stage_failure_is_final() {
+    for machine in [true, false] {
+        let t = tempfile::tempdir().unwrap();
+        let runs = Arc::new(Mutex::new(0));
+        let mut reg = Registry::new();
+        reg.add(Box::new(Flaky {
+            runs: runs.clone(),
+            fails: 1,
+            machine,
+        }));
+        let f = t.path().join("p.yaml");
+        std::fs::write(
+            &f,
+            "pipeline: f\noutputs: [s]\nstages:\n  s: {kind: flaky}\n",
+        )
+        .unwrap();
+        let p = matflow_engine::spec::load(&f, &reg, &[]).unwrap();
+        let reg = Arc::new(reg);
+        let shared: Arc<dyn StoreTier> = Arc::new(Store::open(t.path().join("shared")).unwrap());
+        let store = Arc::new(Tiered::new(
+            Store::open(t.path().join("submitter")).unwrap(),
+            Some(shared.clone()),
+        ));
+        let wstore = Arc::new(Tiered::new(
+            Store::open(t.path().join("workers")).unwrap(),
+            Some(shared),
+        ));
+        let ex = RemoteExecutor::simulated(2, 1, reg.clone(), store.clone(), wstore);
+        let r = run_pipeline(&p, &reg, &store, &ex, &Silent);
+        let s = &r.stages[0];
+        if machine {
+            assert!(r.failure().is_none(), "{:?}", r.failure());
+            assert_eq!(s.status, Status::Executed);
+            assert_eq!(s.retries.len(), 1, "{:?}", s.retries);
+            assert!(s.retries[0].contains("writing scratch"), "{:?}", s.retries);
+            assert_eq!(*runs.lock().unwrap(), 2);
+        } else {
+            let f = r.failure().expect("the stage fails");
+            assert!(f.contains("writing scratch"), "{f}");
+            assert!(s.retries.is_empty(), "{:?}", s.retries);
+            assert_eq!(*runs.lock().unwrap(), 1, "not tried again");
+        }
+    }
+}

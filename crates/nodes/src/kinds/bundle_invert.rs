@@ -619,10 +619,11 @@ fn bundle_files(
     target: &RgbImage,
     summary: &serde_json::Value,
 ) -> Result<Vec<u8>, NodeError> {
+    // Failing to make one is the machine's failure, whatever the cause.
     let scratch = tempfile::Builder::new()
         .prefix("matflow-invert-")
         .tempdir()
-        .context(|| "making a scratch folder".to_string())?;
+        .map_err(|e| NodeError::machine(format!("making a scratch folder: {e}")))?;
     let out = scratch.path().join("bundle");
     let b = Bundle::create(&out).node_err()?;
     b.write_depth(depth).node_err()?;
