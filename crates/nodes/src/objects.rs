@@ -724,20 +724,22 @@ pub fn same_geometry(a: &[SceneObject], b: &[SceneObject]) -> bool {
 /// Reads an objects file (`matflow render --insert`): a YAML list of
 /// entries, each as the `objects` parameter takes them, mesh paths
 /// relative to the file. Errors give the file, line and column.
-pub fn read_objects_file(path: &Path) -> Result<Vec<ObjectSpec>, String> {
+pub fn read_objects_file(path: &Path) -> Result<Vec<ObjectSpec>, NodeError> {
     let norm = read_objects_value(path)?;
-    let specs = specs(&norm).map_err(|e| format!("{}: {e}", path.display()))?;
-    check_specs(&specs).map_err(|e| format!("{}: {e}", path.display()))?;
+    let at = |e: &dyn std::fmt::Display| err(format!("{}: {e}", path.display()));
+    let specs = specs(&norm).map_err(|e| at(&e))?;
+    check_specs(&specs).map_err(|e| at(&e))?;
     Ok(specs)
 }
 
 /// An objects file as the `objects` parameter's value: normalised, its
 /// mesh paths resolved against the file's folder. Errors give the file,
 /// line and column.
-pub fn read_objects_value(path: &Path) -> Result<Value, String> {
-    let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+pub fn read_objects_value(path: &Path) -> Result<Value, NodeError> {
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| NodeError(format!("{}: {e}", path.display()), NodeError::kind_of(&e)))?;
     let (v, loc) = matflow_engine::value::parse_yaml(&text)
-        .map_err(|e| format!("{}:{}: {}", path.display(), e.loc, e.message))?;
+        .map_err(|e| err(format!("{}:{}: {}", path.display(), e.loc, e.message)))?;
     let base = path.parent().unwrap_or(Path::new("."));
     let mut reads = Vec::new();
     let norm = matflow_engine::spec::normalize_fields(
@@ -749,8 +751,8 @@ pub fn read_objects_value(path: &Path) -> Result<Value, String> {
         &mut reads,
     )
     .map_err(|(at, m)| match at {
-        Some(l) => format!("{}:{l}: objects{m}", path.display()),
-        None => format!("{}: objects{m}", path.display()),
+        Some(l) => err(format!("{}:{l}: objects{m}", path.display())),
+        None => err(format!("{}: objects{m}", path.display())),
     })?;
     Ok(norm)
 }

@@ -152,15 +152,15 @@ pub struct Loaded {
 /// before loading it: its digest, size and metadata (a corrupt or
 /// truncated file fails here), and that the machine has the memory to run
 /// it. Also names it for messages.
-fn model_info(model: Option<&Path>) -> Result<(ModelInfo, String), String> {
+fn model_info(model: Option<&Path>) -> Result<(ModelInfo, String), NodeError> {
     let (info, what) = match model {
         Some(path) => (
             info_of_file(path)
-                .map_err(|e| format!("{}: not an ONNX model: {e}", path.display()))?,
+                .map_err(|e| err(format!("{}: not an ONNX model: {e}", path.display())))?,
             path.display().to_string(),
         ),
         None => (
-            info_of_bytes(BUNDLED_MODEL).map_err(|e| e.to_string())?,
+            info_of_bytes(BUNDLED_MODEL).map_err(err)?,
             "the bundled MatNet-contract model (models/matnet_rooms.onnx)".to_string(),
         ),
     };
@@ -170,20 +170,21 @@ fn model_info(model: Option<&Path>) -> Result<(ModelInfo, String), String> {
         &what,
         memory_needed(info.bytes, 3 * 518 * 518),
         memory_available(),
-    )?;
+    )
+    .map_err(err)?;
     Ok((info, what))
 }
 
 /// Loads the stage's model and checks its contract.
-pub fn load_model(model: Option<&Path>, backend: Backend) -> Result<Loaded, String> {
+pub fn load_model(model: Option<&Path>, backend: Backend) -> Result<Loaded, NodeError> {
     let (info, what) = model_info(model)?;
     let graph = match model {
         Some(path) => Graph::load(Source::File(path), &what, backend),
         None => Graph::load(Source::Bytes(BUNDLED_MODEL), &what, backend),
     }
-    .map_err(|e| e.to_string())?;
+    .map_err(failed)?;
     let contract = Contract::of(&graph.inputs, &graph.outputs, &info.metadata)
-        .map_err(|e| format!("{what}: not a MatNet-contract model: {e}"))?;
+        .map_err(|e| err(format!("{what}: not a MatNet-contract model: {e}")))?;
     Ok(Loaded {
         graph,
         contract,
@@ -226,9 +227,9 @@ fn check_photo_size(path: &Path, w: usize, h: usize) -> Result<(), String> {
 }
 
 /// Reads a photo, refusing what cannot be predicted from.
-pub fn read_photo(path: &Path) -> Result<io::Photo, String> {
-    let photo = io::read_photo(path).map_err(|e| e.to_string())?;
-    check_photo_size(path, photo.width, photo.height)?;
+pub fn read_photo(path: &Path) -> Result<io::Photo, NodeError> {
+    let photo = io::read_photo(path).map_err(failed)?;
+    check_photo_size(path, photo.width, photo.height).map_err(err)?;
     Ok(photo)
 }
 
@@ -251,22 +252,23 @@ pub fn linear_square(photo: &io::Photo) -> Planar {
 
 /// Runs the contract on one photo: square, network input, inference,
 /// maps at 512².
-pub fn predict(photo: &io::Photo, m: &Loaded) -> Result<Prediction, String> {
+pub fn predict(photo: &io::Photo, m: &Loaded) -> Result<Prediction, NodeError> {
     let lin = linear_square(photo);
     let x = network_input(&lin, m.contract.input);
     let n = m.contract.input;
-    let outs = m
-        .graph
-        .run(&[1, 3, n, n], x.data)
-        .map_err(|e| e.to_string())?;
-    let maps = Maps::from_outputs(&outs, &m.contract).map_err(|e| format!("{}: {e}", m.what))?;
+    let outs = m.graph.run(&[1, 3, n, n], x.data).map_err(failed)?;
+    let maps =
+        Maps::from_outputs(&outs, &m.contract).map_err(|e| err(format!("{}: {e}", m.what)))?;
     let raw = gray(&maps.depth);
     let z = match m.contract.depth {
         DepthKind::Z => raw,
         DepthKind::Disparity => disparity_to_depth(&raw),
     };
-    check_depth_range(Path::new(&m.what), &z)
-        .map_err(|e| format!("{e} (the model's depth output is unusable for this photo)"))?;
+    check_depth_range(Path::new(&m.what), &z).map_err(|e| {
+        err(format!(
+            "{e} (the model's depth output is unusable for this photo)"
+        ))
+    })?;
     Ok(Prediction {
         photo: rgb(&lin),
         maps,
@@ -304,7 +306,7 @@ impl Node for MatnetNode {
             check_photo_size(&photo, w, h)?;
         }
         if p.is_set("model") {
-            model_info(p.path("model").as_deref())?;
+            model_info(p.path("model").as_deref()).map_err(|e| e.0)?;
         }
         if backend_of(p) == Backend::OnnxRuntime {
             matflow_onnx::runtime::find_onnxruntime().map_err(|e| e.to_string())?;
@@ -320,10 +322,10 @@ impl Node for MatnetNode {
     fn run(&self, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
         let p = ctx.params;
         let photo_path = p.path("photo").unwrap_or_default();
-        let photo = read_photo(&photo_path).map_err(err)?;
+        let photo = read_photo(&photo_path)?;
         let backend = backend_of(p);
-        let m = load_model(p.path("model").as_deref(), backend).map_err(err)?;
-        let pred = predict(&photo, &m).map_err(err)?;
+        let m = load_model(p.path("model").as_deref(), backend)?;
+        let pred = predict(&photo, &m)?;
         let mut out = BTreeMap::new();
         let scene = SceneData {
             depth: pred.z.clone(),
