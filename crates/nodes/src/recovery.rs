@@ -164,6 +164,15 @@ pub(crate) fn mat_route(p: &Params) -> Result<Chosen<dyn MatRoute>, NodeError> {
     routes::mat_route_given(p.str("mat_route"), &|q| p.opt_f64(q)).map_err(err)
 }
 
+/// A stage's route options checked against its routes (an option of a
+/// route not chosen, a value out of the route's range): before anything
+/// runs.
+pub(crate) fn check_routes(p: &Params) -> Result<(), String> {
+    env_route(p).map_err(|e| e.0)?;
+    mat_route(p).map_err(|e| e.0)?;
+    Ok(())
+}
+
 /// The options both kinds set.
 pub(crate) fn base_options(p: &Params, seed: u64) -> Result<InvertOptions, NodeError> {
     Ok(InvertOptions {

@@ -76,6 +76,21 @@ fn pipeline_file(dir: &std::path::Path, layers: usize, width: usize) -> std::pat
     f
 }
 
+/// The submitter's store and the simulated workers' in `dir`, sharing
+/// one remote tier.
+fn stores(dir: &std::path::Path) -> (Arc<Tiered>, Arc<Tiered>) {
+    let shared: Arc<dyn StoreTier> = Arc::new(Store::open(dir.join("shared")).unwrap());
+    let store = Arc::new(Tiered::new(
+        Store::open(dir.join("submitter")).unwrap(),
+        Some(shared.clone()),
+    ));
+    let wstore = Arc::new(Tiered::new(
+        Store::open(dir.join("workers")).unwrap(),
+        Some(shared),
+    ));
+    (store, wstore)
+}
+
 fn digests(r: &matflow_engine::Report) -> BTreeMap<String, BTreeMap<String, String>> {
     r.stages
         .iter()
@@ -103,15 +118,7 @@ fn many_simulated_workers_compute_what_a_local_run_computes() {
     assert!(want.failure().is_none());
     ran.lock().unwrap().clear();
 
-    let shared: Arc<dyn StoreTier> = Arc::new(Store::open(t.path().join("shared")).unwrap());
-    let store = Arc::new(Tiered::new(
-        Store::open(t.path().join("submitter")).unwrap(),
-        Some(shared.clone()),
-    ));
-    let wstore = Arc::new(Tiered::new(
-        Store::open(t.path().join("workers")).unwrap(),
-        Some(shared),
-    ));
+    let (store, wstore) = stores(t.path());
     let ex = RemoteExecutor::simulated(64, 1, reg.clone(), store.clone(), wstore);
     let got = run_pipeline(&p, &reg, &store, &ex, &Silent);
     assert!(got.failure().is_none(), "{:?}", got.failure());
@@ -210,15 +217,7 @@ fn a_machine_failure_is_retried_and_a_stage_failure_is_final() {
         .unwrap();
         let p = matflow_engine::spec::load(&f, &reg, &[]).unwrap();
         let reg = Arc::new(reg);
-        let shared: Arc<dyn StoreTier> = Arc::new(Store::open(t.path().join("shared")).unwrap());
-        let store = Arc::new(Tiered::new(
-            Store::open(t.path().join("submitter")).unwrap(),
-            Some(shared.clone()),
-        ));
-        let wstore = Arc::new(Tiered::new(
-            Store::open(t.path().join("workers")).unwrap(),
-            Some(shared),
-        ));
+        let (store, wstore) = stores(t.path());
         let ex = RemoteExecutor::simulated(2, 1, reg.clone(), store.clone(), wstore);
         let r = run_pipeline(&p, &reg, &store, &ex, &Silent);
         let s = &r.stages[0];

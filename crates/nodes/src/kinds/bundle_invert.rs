@@ -103,16 +103,7 @@ const OWN: &[ParamSpec] = &[
         "maximum steps per optimisation stage (default: from the budget)",
     ),
     crate::kinds::render::DEPTH,
-    ParamSpec {
-        name: "seed",
-        ty: ParamType::Int {
-            min: 0,
-            max: i64::MAX,
-        },
-        default: Some("0"),
-        unit: "",
-        doc: "random seed",
-    },
+    crate::kinds::bundle_mesh::SEED,
     ParamSpec {
         name: "mesh_angle",
         ..crate::kinds::mesh::ANGLE
@@ -282,18 +273,15 @@ impl Node for BundleInvertNode {
 
     /// A bad route option fails validation, before anything runs.
     fn check(&self, p: &Params) -> Result<(), String> {
-        env_route(p).map_err(|e| e.0)?;
-        mat_route(p).map_err(|e| e.0)?;
-        Ok(())
+        crate::recovery::check_routes(p)
     }
 
     fn preflight(&self, p: &Params) -> Result<(), String> {
-        let dir = p.path("bundle").unwrap_or_default();
-        Bundle::open(&dir).map(|_| ()).map_err(|e| e.to_string())
+        crate::kinds::bundle_mesh::bundle_preflight(p)
     }
 
     fn film_size(&self, p: &Params) -> Option<(usize, usize)> {
-        Bundle::open(p.path("bundle")?).ok()?.depth_size().ok()
+        crate::kinds::bundle_mesh::bundle_film_size(p)
     }
 
     fn output_files(&self, p: &Params) -> Vec<PathBuf> {

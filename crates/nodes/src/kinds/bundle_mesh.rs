@@ -27,6 +27,18 @@ pub(crate) const BUNDLE: ParamSpec = ParamSpec {
     doc: "the bundle folder (reference layout: depth, gt_image, predictions and/or results)",
 };
 
+/// The random seed of the commands' renders, as given (`--seed`).
+pub(crate) const SEED: ParamSpec = ParamSpec {
+    name: "seed",
+    ty: ParamType::Int {
+        min: 0,
+        max: i64::MAX,
+    },
+    default: Some("0"),
+    unit: "",
+    doc: "random seed",
+};
+
 const COMPLETE: ParamSpec = ParamSpec {
     name: "complete",
     ty: ParamType::Choice(&CompleteArg::NAMES),
@@ -83,8 +95,7 @@ impl Node for BundleMeshNode {
     }
 
     fn preflight(&self, p: &Params) -> Result<(), String> {
-        let dir = p.path("bundle").unwrap_or_default();
-        Bundle::open(&dir).map(|_| ()).map_err(|e| e.to_string())
+        bundle_preflight(p)
     }
 
     fn run(&self, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
@@ -173,6 +184,18 @@ impl Node for BundleMeshNode {
         write_file(&path, outputs.get("mesh.ply"))?;
         Ok(vec![path])
     }
+}
+
+/// The `bundle` folder opens (its depth is there): what the commands'
+/// kinds check before anything runs.
+pub(crate) fn bundle_preflight(p: &Params) -> Result<(), String> {
+    let dir = p.path("bundle").unwrap_or_default();
+    Bundle::open(&dir).map(|_| ()).map_err(|e| e.to_string())
+}
+
+/// The `bundle` folder's image size, from its depth map's header.
+pub(crate) fn bundle_film_size(p: &Params) -> Option<(usize, usize)> {
+    Bundle::open(p.path("bundle")?).ok()?.depth_size().ok()
 }
 
 /// `silhouettes` as the mesher takes it.

@@ -55,16 +55,7 @@ const INFO: NodeInfo = NodeInfo {
         },
         SPP,
         DEPTH,
-        ParamSpec {
-            name: "seed",
-            ty: ParamType::Int {
-                min: 0,
-                max: i64::MAX,
-            },
-            default: Some("0"),
-            unit: "",
-            doc: "random seed",
-        },
+        crate::kinds::bundle_mesh::SEED,
         ParamSpec {
             default: Some("~"),
             doc: "pixel filter: gaussian (Mitsuba's default) or box. Default: for best_results \
@@ -219,12 +210,11 @@ impl Node for BundleRenderNode {
     }
 
     fn preflight(&self, p: &Params) -> Result<(), String> {
-        let dir = p.path("bundle").unwrap_or_default();
-        Bundle::open(&dir).map(|_| ()).map_err(|e| e.to_string())
+        crate::kinds::bundle_mesh::bundle_preflight(p)
     }
 
     fn film_size(&self, p: &Params) -> Option<(usize, usize)> {
-        Bundle::open(p.path("bundle")?).ok()?.depth_size().ok()
+        crate::kinds::bundle_mesh::bundle_film_size(p)
     }
 
     fn estimate_seconds(&self, p: &Params, film: Option<(usize, usize)>) -> f64 {

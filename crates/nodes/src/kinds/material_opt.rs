@@ -12,8 +12,7 @@ use matflow_inverse::routes::Side;
 use crate::data::{encode_image, encode_materials, envmap_from, MESH, SCENE};
 use crate::err;
 use crate::recovery::{
-    base_options, env_route, mat_route, material_options, on_event, prepare, summary,
-    with_route_params,
+    base_options, mat_route, material_options, on_event, prepare, summary, with_route_params,
 };
 use crate::recovery::{
     ALBEDO_LEVEL, ALBEDO_LEVEL_BAND, BUDGET, DELTA, ENV_ROUTE, LOOPS, MAT_ROUTE, REPORT, TRUST,
@@ -80,9 +79,7 @@ impl Node for MaterialOptNode {
     }
     /// A bad route option fails validation, before anything runs.
     fn check(&self, p: &Params) -> Result<(), String> {
-        env_route(p).map_err(|e| e.0)?;
-        mat_route(p).map_err(|e| e.0)?;
-        Ok(())
+        crate::recovery::check_routes(p)
     }
     fn run(&self, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
         let pr = prepare(ctx, None)?;
