@@ -695,7 +695,7 @@ fn registered_routes_reach_cli_and_schema() {
     );
 }
 
-/// `matflow mesh`, `render` and `invert` each run one node kind as a
+/// `matflow predict`, `mesh`, `render` and `invert` each run one node kind as a
 /// one-stage pipeline: a pipeline stage of that kind given the same
 /// parameters is the same action (the same key), served from the cache
 /// the command filled, with the same bytes; the command run again is a
@@ -714,7 +714,15 @@ fn a_command_and_its_pipeline_stage_are_one_action() {
     };
     // (command flags, the stage as a pipeline writes it, its output, and
     // what it writes; `{}` stands for the run's output stem)
-    let cases: [(&[&str], &str, &str, &[&str]); 3] = [
+    let photo = support::repo().join("tests/data/matnet_photo.png");
+    let photo_line = format!("kind: matnet\n    photo: {}", s(&photo));
+    let cases: [(&[&str], &str, &str, &[&str]); 4] = [
+        (
+            &["predict", s(&photo)],
+            &photo_line,
+            "{}",
+            &["{}/albedoPred.exr", "{}/depth.exr", "{}/prediction.json"],
+        ),
         (
             &["mesh", "--bundle", s(&b), "--angle", "8"],
             "kind: bundle_mesh\n    bundle: alias\n    angle: 8",

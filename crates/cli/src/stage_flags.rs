@@ -54,11 +54,20 @@ fn help(p: &ParamSpec) -> String {
 /// words; a number is checked against the kind's range when parsed; a
 /// parameter without a default is required; the file a stage writes
 /// (`output`) is `--out`.
-pub fn augment(mut cmd: Command, kind: &str, names: &[&str]) -> Command {
+pub fn augment(cmd: Command, kind: &str, names: &[&str]) -> Command {
+    augment_with(cmd, kind, names, &[])
+}
+
+/// [`augment`], the parameters in `positional` taken in that order as
+/// positional arguments instead of flags.
+pub fn augment_with(mut cmd: Command, kind: &str, names: &[&str], positional: &[&str]) -> Command {
     for name in names {
         let p = spec(kind, name);
         let mut a = Arg::new(p.name).help(help(p));
         a = match (&p.ty, p.name) {
+            _ if positional.contains(name) => a
+                .index(positional.iter().position(|n| n == name).unwrap_or(0) + 1)
+                .value_name(leak(p.name.to_uppercase())),
             (ParamType::OutPath, "output") => a.long("out").alias("output"),
             _ => a.long(leak(flag(p.name))),
         };
@@ -125,6 +134,8 @@ pub trait StageKind {
     /// Parameters the command does not take as flags (it sets them
     /// itself, e.g. from a file).
     const SKIP: &'static [&'static str] = &[];
+    /// Parameters taken as positional arguments, in this order.
+    const POSITIONAL: &'static [&'static str] = &[];
     /// Command-line touches on the generated flags (a flag given alone
     /// meaning one of its words).
     fn adjust(cmd: Command) -> Command {
@@ -161,7 +172,7 @@ impl<K: StageKind> clap::FromArgMatches for StageFlags<K> {
 
 impl<K: StageKind> clap::Args for StageFlags<K> {
     fn augment_args(cmd: Command) -> Command {
-        K::adjust(augment(cmd, K::KIND, &flags_of::<K>()))
+        K::adjust(augment_with(cmd, K::KIND, &flags_of::<K>(), K::POSITIONAL))
     }
     fn augment_args_for_update(cmd: Command) -> Command {
         Self::augment_args(cmd)

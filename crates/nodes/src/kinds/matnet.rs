@@ -75,7 +75,8 @@ const INFO: NodeInfo = NodeInfo {
             ty: ParamType::InPath,
             default: None,
             unit: "",
-            doc: "the photograph",
+            doc: "the photograph: PNG or JPEG (8 or 16 bits, grey or colour) or a linear EXR, \
+                  any size and aspect (centre-cropped to a square)",
         },
         ParamSpec {
             name: "model",
