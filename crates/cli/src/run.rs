@@ -179,6 +179,32 @@ impl Observer for Bars {
     }
 }
 
+/// The files a stage wrote, in words: each, or past six (a bundle
+/// folder's), their count and the folder they share.
+fn written_lines(files: &[String]) -> Vec<String> {
+    if files.len() <= 6 {
+        return files.iter().map(|f| format!("wrote {f}")).collect();
+    }
+    let parents: Vec<&std::path::Path> = files
+        .iter()
+        .filter_map(|f| std::path::Path::new(f).parent())
+        .collect();
+    let mut common = parents.first().copied().unwrap_or(std::path::Path::new(""));
+    while !parents.iter().all(|p| p.starts_with(common)) {
+        common = common.parent().unwrap_or(std::path::Path::new(""));
+    }
+    vec![format!(
+        "wrote {} files under {} ({}, …)",
+        files.len(),
+        if common.as_os_str().is_empty() {
+            ".".to_string()
+        } else {
+            common.display().to_string()
+        },
+        files[0]
+    )]
+}
+
 fn print_table(r: &Report) {
     outln!(
         "{:<18} {:<16} {:<9} {:>8}  outputs",
@@ -218,8 +244,8 @@ fn print_table(r: &Report) {
         for line in s.notes.iter().flat_map(|n| n.lines()) {
             outln!("{:<18} {line}", "");
         }
-        for f in &s.files {
-            outln!("{:<18} wrote {f}", "");
+        for line in written_lines(&s.files) {
+            outln!("{:<18} {line}", "");
         }
     }
     let n = |st: Status| r.stages.iter().filter(|s| s.status == st).count();
