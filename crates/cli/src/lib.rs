@@ -61,6 +61,7 @@ pub mod reference;
 pub mod routes;
 pub mod run;
 pub mod stage_flags;
+pub mod studio;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};
@@ -110,6 +111,10 @@ pub enum Cmd {
     Cache(run::CacheCmd),
     /// Serve every node kind over gRPC for `matflow run --workers`.
     Worker(cluster::WorkerArgs),
+    /// Open a photo, a bundle or a pipeline in the browser: the session's
+    /// pipeline run on the engine, its photo and maps shown, the pipeline
+    /// exported.
+    Studio(studio::StudioArgs),
 }
 
 /// Carries out one parsed command line.
@@ -132,5 +137,6 @@ pub fn run_cli(cli: Cli) -> Result<()> {
             let dir = run::cache_dir(w.cache.as_deref());
             cluster::worker(w, dir)
         }
+        Cmd::Studio(a) => studio::studio(a),
     }
 }

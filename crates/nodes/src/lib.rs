@@ -12,7 +12,7 @@
 
 pub mod artifact;
 mod data;
-pub use data::render_seconds;
+pub use data::{render_seconds, SceneData};
 pub use kinds::insert::composite_differential;
 pub use kinds::matnet::{
     linear_square as matnet_linear_square, load_model as load_matnet_model,

@@ -61,8 +61,9 @@ impl Token {
         m
     }
 
-    /// Constant-time comparison with a presented header value.
-    fn accepts(&self, presented: &[u8]) -> bool {
+    /// Constant-time comparison with a presented header value
+    /// (`Bearer TOKEN`).
+    pub fn accepts(&self, presented: &[u8]) -> bool {
         let Some(t) = presented.strip_prefix(b"Bearer ") else {
             return false;
         };

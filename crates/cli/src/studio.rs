@@ -1,0 +1,64 @@
+//! `matflow studio [PHOTO | BUNDLE | PIPELINE.yaml]`: the session in the
+//! browser (see `matflow_studio`).
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+
+use anyhow::{Context, Result};
+use clap::Args;
+
+#[derive(Args)]
+pub struct StudioArgs {
+    /// What to open: a photo (PNG/JPEG/EXR: predicted), a bundle folder
+    /// (its predictions), or a pipeline file (its `scene` stage).
+    pub input: PathBuf,
+    /// The address to listen on. Loopback unless a token is given.
+    #[arg(long, default_value = "127.0.0.1:8080")]
+    pub listen: SocketAddr,
+    /// Cache folder (as for `run`: the studio and `run` share it).
+    #[arg(long)]
+    pub cache: Option<PathBuf>,
+    /// The session's folder, where its pipeline (`session.yaml`) is kept
+    /// (default: `studio/` in the cache folder).
+    #[arg(long)]
+    pub session: Option<PathBuf>,
+    /// A token every request must present (else $MATFLOW_TOKEN); needed
+    /// to listen on anything but loopback.
+    #[arg(long)]
+    pub token_file: Option<PathBuf>,
+    /// Write the address the studio listens on here (for scripts and
+    /// tests: with `--listen 127.0.0.1:0` the port is the system's pick).
+    #[arg(long)]
+    pub address_file: Option<PathBuf>,
+}
+
+pub fn studio(a: StudioArgs) -> Result<()> {
+    let cache = crate::run::cache_dir(a.cache.as_deref());
+    let token =
+        matflow_rpc::auth::Token::load(a.token_file.as_deref()).map_err(anyhow::Error::msg)?;
+    let session = a.session.clone().unwrap_or_else(|| cache.join("studio"));
+    let rt = tokio::runtime::Runtime::new().context("starting the studio's runtime")?;
+    rt.block_on(async move {
+        let listener = tokio::net::TcpListener::bind(a.listen)
+            .await
+            .with_context(|| format!("listening on {}", a.listen))?;
+        let bound = listener.local_addr()?;
+        let router = matflow_studio::start(
+            matflow_studio::StudioOptions {
+                input: a.input.clone(),
+                session,
+                cache,
+                token,
+            },
+            bound,
+        )?;
+        if let Some(f) = &a.address_file {
+            matflow_scene::io::write_atomic(f, bound.to_string().as_bytes())
+                .with_context(|| format!("writing {}", f.display()))?;
+        }
+        outln!("matflow studio at http://{bound}/ ({})", a.input.display());
+        matflow_studio::serve(listener, router)
+            .await
+            .context("serving the studio")
+    })
+}
