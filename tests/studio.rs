@@ -240,3 +240,66 @@ fn off_loopback_a_token_is_required_and_then_asked_of_every_request() {
     drop(st);
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// The page in headless Chromium (Debian's `chromium`), as a user opens
+/// it: its script polls the session until the pipeline has run and shows
+/// every map; the page after its script ran has them all, and its
+/// screenshot is kept under the target folder for a person to look at.
+#[test]
+fn chromium_shows_the_sessions_maps() {
+    let chromium = ["chromium", "chromium-browser"]
+        .into_iter()
+        .find(|c| {
+            Command::new(c)
+                .arg("--version")
+                .output()
+                .is_ok_and(|o| o.status.success())
+        })
+        .expect("no chromium: install Debian's chromium (`.ci/run` does)");
+    let dir = scratch("studio", "chromium");
+    synth_bundle(&dir);
+    let st = start(&dir, Path::new("room"), &[], &[]);
+    assert_eq!(session_json(&st.addr, &[])["state"], "ready");
+    let shots = Path::new(env!("CARGO_TARGET_TMPDIR")).join("studio");
+    std::fs::create_dir_all(&shots).unwrap();
+    let shot = shots.join("bundle.png");
+    let _ = std::fs::remove_file(&shot);
+    let browse = |what: &str| {
+        let o = Command::new(chromium)
+            .args([
+                "--headless",
+                "--no-sandbox",
+                "--disable-gpu",
+                "--disable-quic",
+                "--no-first-run",
+                "--disable-background-networking",
+                "--disable-component-update",
+                "--disable-sync",
+                "--window-size=1400,500",
+                "--virtual-time-budget=10000",
+            ])
+            .arg(format!(
+                "--user-data-dir={}",
+                s(&dir.join(format!("profile-{}", what.len())))
+            ))
+            .arg(what)
+            .arg(format!("http://{}/", st.addr))
+            .output()
+            .expect("run chromium");
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        String::from_utf8_lossy(&o.stdout).into_owned()
+    };
+    let dom = browse("--dump-dom");
+    assert!(dom.contains("status ready"), "{dom}");
+    for name in ["photo", "albedo", "roughness", "metallic", "depth"] {
+        assert!(
+            dom.contains(&format!("src=\"api/maps/{name}.png\"")),
+            "{name} missing from the page:\n{dom}"
+        );
+    }
+    browse(&format!("--screenshot={}", s(&shot)));
+    let img = image::open(&shot).expect("a screenshot");
+    assert_eq!((img.width(), img.height()), (1400, 500));
+    drop(st);
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -17,8 +17,8 @@ function showMaps(s) {
     const img = document.createElement("img");
     img.src = withToken(`api/maps/${name}.png`);
     img.alt = name;
-    img.width = s.width;
-    img.height = s.height;
+    // Shown at a readable size whatever the image's own (pixels kept sharp).
+    img.style.aspectRatio = `${s.width} / ${s.height}`;
     const cap = document.createElement("figcaption");
     cap.textContent = name;
     fig.append(img, cap);
