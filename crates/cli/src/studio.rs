@@ -19,7 +19,8 @@ pub struct StudioArgs {
     #[arg(long)]
     pub cache: Option<PathBuf>,
     /// The session's folder, where its pipeline (`session.yaml`) is kept
-    /// (default: `studio/` in the cache folder).
+    /// (default: `studio/NAME-HASH/` in the cache folder, one per input,
+    /// so studios on different inputs keep apart).
     #[arg(long)]
     pub session: Option<PathBuf>,
     /// A token every request must present (else $MATFLOW_TOKEN); needed
@@ -32,11 +33,36 @@ pub struct StudioArgs {
     pub address_file: Option<PathBuf>,
 }
 
+/// The default session folder's name for `input`: its file name and a
+/// short digest of its absolute path.
+fn session_name(input: &std::path::Path) -> Result<String> {
+    let abs = std::path::absolute(input).with_context(|| format!("{}", input.display()))?;
+    let digest = matflow_engine::store::Digest::of(abs.to_string_lossy().as_bytes()).hex();
+    let stem: String = abs
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default()
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' || c == '_' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .take(40)
+        .collect();
+    Ok(format!("{stem}-{}", &digest[..12]))
+}
+
 pub fn studio(a: StudioArgs) -> Result<()> {
     let cache = crate::run::cache_dir(a.cache.as_deref());
     let token =
         matflow_rpc::auth::Token::load(a.token_file.as_deref()).map_err(anyhow::Error::msg)?;
-    let session = a.session.clone().unwrap_or_else(|| cache.join("studio"));
+    let session = match &a.session {
+        Some(s) => s.clone(),
+        None => cache.join("studio").join(session_name(&a.input)?),
+    };
     let rt = tokio::runtime::Runtime::new().context("starting the studio's runtime")?;
     rt.block_on(async move {
         let listener = tokio::net::TcpListener::bind(a.listen)
