@@ -1,4 +1,4 @@
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
@@ -7,9 +7,11 @@ use clap::Args;
 use crate::stage_flags::StageKind;
 use indicatif::{ProgressBar, ProgressStyle};
 use matflow_geom::MeshParams;
+use matflow_nodes::bundle_scene::load_scene;
+use matflow_nodes::completion::GEOMETRY_FILE;
 use matflow_render::{render as render_scene, RenderOptions, RenderOutput, RenderScene};
 use matflow_scene::metrics::psnr_gamma;
-use matflow_scene::{io, Bundle, MaterialSource, RgbImage};
+use matflow_scene::{io, Bundle, MaterialSource};
 
 /// `matflow render`: the `bundle_render` kind on its own.
 pub struct RenderCmd;
@@ -39,19 +41,6 @@ pub struct RenderArgs {
     pub compare: Option<PathBuf>,
     #[command(flatten)]
     pub run: crate::stage_flags::StageRun,
-}
-
-/// A switch given as `on` or `off`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
-pub enum OnOff {
-    On,
-    Off,
-}
-
-impl OnOff {
-    pub fn on(self) -> bool {
-        self == OnOff::On
-    }
 }
 
 #[derive(Args)]
@@ -165,51 +154,9 @@ pub fn render_with_progress(
     (out, t0.elapsed().as_secs_f64())
 }
 
-/// Writes `out` (EXR) and a PNG with the same stem.
-pub fn write_outputs(out: &Path, img: &RgbImage) -> Result<PathBuf> {
-    io::write_exr_rgb(out, img)?;
-    let png = out.with_extension("png");
-    io::write_png_gamma(&png, img)?;
-    Ok(png)
-}
-
-/// Says how well `psnr` on the photo explains it, warning (on stderr)
-/// under [`matflow_nodes::bundle_scene::EXPLAINS_PHOTO_DB`].
-pub fn report_photo_psnr(what: &str, psnr: f64) {
-    for line in matflow_nodes::bundle_scene::photo_psnr_lines(what, psnr) {
-        if line.starts_with("warning:") {
-            eprintln!("{line}");
-        } else {
-            outln!("{line}");
-        }
-    }
-}
-
-pub use matflow_nodes::bundle_scene::{load_scene, LoadedScene};
-pub use matflow_nodes::completion::{
-    declared_completion, hypotheses, CompleteArg, CompleteMode, CompletionDecision, Evidence,
-    GEOMETRY_FILE, HYPOTHESES,
-};
-
-/// `--complete`'s words as a [`CompleteArg`].
-pub fn complete_parser() -> impl clap::builder::TypedValueParser<Value = CompleteArg> {
-    use clap::builder::TypedValueParser;
-    clap::builder::PossibleValuesParser::new(CompleteArg::NAMES)
-        .map(|s| s.parse::<CompleteArg>().expect("one of CompleteArg::NAMES"))
-}
-
-/// Prints a completion decision.
-pub fn print_decision(d: &CompletionDecision) {
-    for line in d.lines() {
-        outln!("{line}");
-    }
-}
-
 pub fn render(a: RenderArgs) -> Result<()> {
     let mut params = a.stage.0.clone();
     if let Some(file) = &a.insert {
-        // Checked whole first, so that a mistake names the file.
-        matflow_nodes::objects::read_objects_file(file).map_err(anyhow::Error::msg)?;
         let objects =
             matflow_nodes::objects::read_objects_value(file).map_err(anyhow::Error::msg)?;
         params.0.insert("objects".into(), objects);

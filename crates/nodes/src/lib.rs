@@ -26,6 +26,7 @@ pub use kinds::refraction_length::{
 };
 pub mod bundle_scene;
 pub mod completion;
+mod files;
 mod kinds;
 pub mod objects;
 pub mod recovery;

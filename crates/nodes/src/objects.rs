@@ -721,20 +721,11 @@ pub fn same_geometry(a: &[SceneObject], b: &[SceneObject]) -> bool {
             .all(|(x, y)| x.mesh == y.mesh && x.normals == y.normals)
 }
 
-/// Reads an objects file (`matflow render --insert`): a YAML list of
-/// entries, each as the `objects` parameter takes them, mesh paths
-/// relative to the file. Errors give the file, line and column.
-pub fn read_objects_file(path: &Path) -> Result<Vec<ObjectSpec>, NodeError> {
-    let norm = read_objects_value(path)?;
-    let at = |e: &dyn std::fmt::Display| err(format!("{}: {e}", path.display()));
-    let specs = specs(&norm).map_err(|e| at(&e))?;
-    check_specs(&specs).map_err(|e| at(&e))?;
-    Ok(specs)
-}
-
-/// An objects file as the `objects` parameter's value: normalised, its
-/// mesh paths resolved against the file's folder. Errors give the file,
-/// line and column.
+/// An objects file (`matflow render --insert`: a YAML list of entries,
+/// each as the `objects` parameter takes them, mesh paths relative to the
+/// file) as the `objects` parameter's value: normalised, its
+/// mesh paths resolved against the file's folder, its entries checked
+/// across their fields. Errors give the file, line and column.
 pub fn read_objects_value(path: &Path) -> Result<Value, NodeError> {
     let text = std::fs::read_to_string(path)
         .map_err(|e| NodeError(format!("{}: {e}", path.display()), NodeError::kind_of(&e)))?;
@@ -754,6 +745,8 @@ pub fn read_objects_value(path: &Path) -> Result<Value, NodeError> {
         Some(l) => err(format!("{}:{l}: objects{m}", path.display())),
         None => err(format!("{}: objects{m}", path.display())),
     })?;
+    let at = |e: &dyn std::fmt::Display| err(format!("{}: {e}", path.display()));
+    check_specs(&specs(&norm).map_err(|e| at(&e))?).map_err(|e| at(&e))?;
     Ok(norm)
 }
 

@@ -68,7 +68,7 @@ pub struct BenchInvertArgs {
     /// every render (`--complete`: auto, none, planes, room, closed);
     /// several run in turn.
     #[arg(long, num_args = 1.., default_values = ["auto"])]
-    pub complete: Vec<matflow_cli::commands::CompleteArg>,
+    pub complete: Vec<matflow_nodes::completion::CompleteArg>,
     /// With --validation: only the geometry part (the true maps and light
     /// rendered on each completion against the truths), no inversion.
     #[arg(long)]

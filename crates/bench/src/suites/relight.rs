@@ -33,7 +33,7 @@ use matflow_scene::{io, Bundle, MaterialSource, RgbImage};
 
 use crate::harness::median;
 use crate::harness::path_arg as s;
-use matflow_cli::commands::CompleteArg;
+use matflow_nodes::completion::CompleteArg;
 
 /// The validation set's index (`validation.json`).
 pub struct Validation {

@@ -16,7 +16,7 @@ use matflow_scene::{io, MaterialSource};
 use rayon::prelude::*;
 
 use crate::harness::median;
-use matflow_cli::commands::load_scene;
+use matflow_nodes::bundle_scene::load_scene;
 
 #[derive(Args)]
 pub struct BenchRenderArgs {

@@ -87,7 +87,7 @@ fn scene(exe: &Path, a: &BenchSyntheticArgs, seed: u64) -> Result<PathBuf> {
     // the depth mesh alone) would be completed as a room: make it again.
     let made = [
         "ground_truth/relit_image.exr",
-        matflow_cli::commands::GEOMETRY_FILE,
+        matflow_nodes::completion::GEOMETRY_FILE,
     ]
     .iter()
     .all(|f| dir.join(f).exists());

@@ -13,7 +13,7 @@ use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType
 use matflow_geom::MeshParams;
 use matflow_inverse::invert::{invert, materials_to_maps, InvertOptions, InvertResult};
 use matflow_inverse::routes::Side;
-use matflow_render::{scene_from_depth, EnvMap, RenderScene};
+use matflow_render::{scene_from_depth, EnvMap};
 use matflow_scene::metrics::{mse_gamma, psnr_gamma, ssim_gamma};
 use matflow_scene::{Bundle, GrayImage, Image, MaterialMaps, MaterialSource, RgbImage};
 
@@ -21,7 +21,7 @@ use crate::completion::{
     declared_completion, hypotheses, CompleteArg, CompleteMode, CompletionDecision, Evidence,
     GEOMETRY_FILE, HYPOTHESES,
 };
-use crate::kinds::bundle_mesh::{complete_arg, silhouettes, BUNDLE};
+use crate::kinds::bundle_mesh::{complete_arg, on_off, silhouettes, BUNDLE};
 use crate::recovery::{
     budget_options, env_route, mat_route, material_options, on_event, with_route_params,
     ALBEDO_LEVEL, ALBEDO_LEVEL_BAND, BUDGET, DELTA, ENV_ROUTE, LOOPS, MAT_ROUTE, TRUST,
@@ -29,19 +29,6 @@ use crate::recovery::{
 use crate::{err, Context};
 
 pub struct BundleInvertNode;
-
-const ON_OFF: [&str; 2] = ["on", "off"];
-
-/// A switch given as `on` or `off` (as the commands take them).
-const fn on_off(name: &'static str, default: &'static str, doc: &'static str) -> ParamSpec {
-    ParamSpec {
-        name,
-        ty: ParamType::Choice(&ON_OFF),
-        default: Some(default),
-        unit: "",
-        doc,
-    }
-}
 
 /// An optional count (default: from the budget).
 const fn count(name: &'static str, max: i64, doc: &'static str) -> ParamSpec {
@@ -285,10 +272,7 @@ impl Node for BundleInvertNode {
     }
 
     fn output_files(&self, p: &Params) -> Vec<PathBuf> {
-        match p.path("output") {
-            Some(dir) => FILES.iter().map(|f| dir.join(f)).collect(),
-            None => vec![],
-        }
+        crate::files::in_output(p, FILES)
     }
 
     fn run(&self, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
@@ -299,15 +283,19 @@ impl Node for BundleInvertNode {
             min_angle_deg: p.f64("mesh_angle"),
             silhouettes: silhouettes(p)?,
         };
-        let decision = invert_completion(&dir, p, materials, mesh)?;
-        let mut lines = decision.lines();
         let InvertInput {
             depth,
             maps,
             target,
-            scene,
-            completion,
-        } = load_input(&dir, materials, mesh, decision.mode.params().as_ref())?;
+        } = load_input(&dir, materials)?;
+        let decision = invert_completion(&dir, p, (&depth, &maps, &target), materials, mesh)?;
+        let mut lines = decision.lines();
+        // The scene under a flat placeholder envmap, completed as decided.
+        let flat = Image::new(32, 16, Vec3::ONE);
+        let env = EnvMap::new(&flat).node_err()?;
+        let complete = decision.mode.params();
+        let (scene, _, completion) = scene_from_depth(&depth, &maps, env, mesh, complete.as_ref())
+            .context(|| format!("{}: building the scene", dir.display()))?;
         let mut opts = options(p)?;
         if p.str("lamps") == "on" && !completion.lamp_sites.is_empty() {
             opts.lamp_sites = completion.lamp_sites.clone();
@@ -413,27 +401,7 @@ impl Node for BundleInvertNode {
             .get("bundle")
             .ok_or_else(|| err("the stage made no bundle"))?;
         let files = unpack(b)?;
-        let mut written = vec![];
-        for name in FILES {
-            let path = dir.join(name);
-            match files.get(*name) {
-                Some(bytes) => {
-                    if let Some(parent) = path.parent() {
-                        std::fs::create_dir_all(parent)
-                            .context(|| format!("creating {}", parent.display()))?;
-                    }
-                    matflow_scene::io::write_if_changed(&path, bytes).node_err()?;
-                    written.push(path);
-                }
-                None => match std::fs::remove_file(&path) {
-                    Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
-                        return Err(err(format!("removing {}: {e}", path.display())))
-                    }
-                    _ => {}
-                },
-            }
-        }
-        Ok(written)
+        crate::files::write_folder(&dir, FILES, |name| files.get(name).copied())
     }
 }
 
@@ -453,24 +421,16 @@ pub fn image_metrics(a: &RgbImage, b: &RgbImage) -> ImageMetrics {
     }
 }
 
-/// Everything `invert` reads from a bundle.
+/// What `invert` reads from a bundle: its photo, depth and starting maps.
 pub struct InvertInput {
     pub depth: GrayImage,
     pub maps: MaterialMaps,
     pub target: RgbImage,
-    pub scene: RenderScene,
-    /// What the completion did (lamp sites, the room's height).
-    pub completion: matflow_geom::Completion,
 }
 
-/// The photo, depth and starting maps of bundle `dir`, and its scene with
-/// `mesh` completed by `complete` (under a flat placeholder envmap).
-pub fn load_input(
-    dir: &Path,
-    source: MaterialSource,
-    mesh: MeshParams,
-    complete: Option<&matflow_geom::CompleteParams>,
-) -> Result<InvertInput, NodeError> {
+/// The photo, depth and starting maps of bundle `dir`, which must agree
+/// in size.
+pub fn load_input(dir: &Path, source: MaterialSource) -> Result<InvertInput, NodeError> {
     let bundle = Bundle::open(dir).node_err()?;
     let target = bundle.load_gt_image().node_err()?;
     let depth = bundle.load_depth().node_err()?;
@@ -487,16 +447,10 @@ pub fn load_input(
             maps.height()
         )));
     }
-    let flat = Image::new(32, 16, Vec3::ONE);
-    let env = EnvMap::new(&flat).node_err()?;
-    let (scene, _, completion) = scene_from_depth(&depth, &maps, env, mesh, complete)
-        .context(|| format!("{}: building the scene", dir.display()))?;
     Ok(InvertInput {
         depth,
         maps,
         target,
-        scene,
-        completion,
     })
 }
 
@@ -547,6 +501,7 @@ pub const NO_SKY: &str = "auto: the photo shows no unclipped open sky (none, or 
 fn invert_completion(
     dir: &Path,
     p: &Params,
+    (depth, maps, photo): (&GrayImage, &MaterialMaps, &RgbImage),
     materials: MaterialSource,
     mesh: MeshParams,
 ) -> Result<CompletionDecision, NodeError> {
@@ -562,20 +517,16 @@ fn invert_completion(
             ));
         }
     }
-    let bundle = Bundle::open(dir).node_err()?;
-    let photo = bundle.load_gt_image().node_err()?;
-    let depth = bundle.load_depth().node_err()?;
-    let maps = bundle.load_materials(materials).node_err()?;
     let opts = matflow_render::evidence::EvidenceOptions {
         filter: matflow_inverse::invert::FIT_FILTER,
         max_depth: p.i64("depth") as u32,
         ..Default::default()
     };
     let tested = matflow_render::evidence::choose_under_seen_sky(
-        &depth,
-        &maps,
+        depth,
+        maps,
         mesh,
-        &photo,
+        photo,
         &hypotheses(),
         &opts,
     )

@@ -3,13 +3,13 @@
 //! supports under the bundle's own light), written as a PLY.
 
 use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use matflow_engine::node::{Bytes, Params};
 use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
 use matflow_geom::{mesh_for_view, MeshParams, Silhouettes};
 use matflow_render::PixelFilter;
-use matflow_scene::{io, Bundle};
+use matflow_scene::Bundle;
 
 use crate::completion::{completion_or_default, CompleteArg, EvidenceRender};
 use crate::data::encode_mesh;
@@ -181,7 +181,7 @@ impl Node for BundleMeshNode {
         let Some(path) = params.path("output") else {
             return Ok(vec![]);
         };
-        write_file(&path, outputs.get("mesh.ply"))?;
+        crate::files::write_file(&path, outputs.get("mesh.ply"))?;
         Ok(vec![path])
     }
 }
@@ -212,8 +212,17 @@ pub(crate) fn complete_arg(p: &Params) -> Result<Option<CompleteArg>, NodeError>
     }
 }
 
-/// Writes a file output the stage made to `path`.
-pub(crate) fn write_file(path: &Path, bytes: Option<&Bytes>) -> Result<(), NodeError> {
-    let b = bytes.ok_or_else(|| err(format!("{}: the stage made no such file", path.display())))?;
-    io::write_if_changed(path, b).node_err().map(|_| ())
+/// A switch given as `on` or `off` (as the commands take them).
+pub(crate) const fn on_off(
+    name: &'static str,
+    default: &'static str,
+    doc: &'static str,
+) -> ParamSpec {
+    ParamSpec {
+        name,
+        ty: ParamType::Choice(&["on", "off"]),
+        default: Some(default),
+        unit: "",
+        doc,
+    }
 }

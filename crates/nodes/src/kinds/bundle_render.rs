@@ -13,19 +13,16 @@ use matflow_render::{PixelFilter, RenderOptions, RenderOutput, RenderScene};
 use matflow_scene::metrics::psnr_gamma;
 use matflow_scene::{Bundle, MaterialSource, RgbImage};
 
-use crate::artifact::Artifact;
 use crate::bundle_scene::{load_scene, photo_psnr_lines, LoadedScene};
 use crate::completion::{
     from_invert, render_completion, render_filter, CompleteArg, CompletionDecision, EvidenceRender,
 };
 use crate::data::encode_image;
-use crate::kinds::bundle_mesh::{complete_arg, BUNDLE};
-use crate::kinds::render::{pair, write_pair, DEPTH, FILTER, SPP};
+use crate::kinds::bundle_mesh::{complete_arg, on_off, BUNDLE};
+use crate::kinds::render::{pair, write_output_image, DEPTH, FILTER, SPP};
 use crate::{err, Context};
 
 pub struct BundleRenderNode;
-
-const ON_OFF: [&str; 2] = ["on", "off"];
 
 const INFO: NodeInfo = NodeInfo {
     kind: "bundle_render",
@@ -128,41 +125,29 @@ const INFO: NodeInfo = NodeInfo {
             doc: "with objects: differential (the bundle's input image plus the change the \
                   objects make) or full (the render with the objects)",
         },
-        ParamSpec {
-            name: "glass_depth",
-            ty: ParamType::Int { min: 0, max: 256 },
-            default: Some("16"),
-            unit: "events",
-            doc: "glass surfaces a path may pass or reflect off beyond `depth`",
-        },
-        ParamSpec {
-            name: "light_guide",
-            ty: ParamType::Choice(&ON_OFF),
-            default: Some("on"),
-            unit: "",
-            doc: "guide light samples by what each region of the scene sees of the sky (on), \
+        crate::kinds::insert::GLASS_DEPTH,
+        on_off(
+            "light_guide",
+            "on",
+            "guide light samples by what each region of the scene sees of the sky (on), \
                   or sample the envmap by radiance alone (off). Either converges to the same \
                   image; on is less noisy where walls block most of the sky",
-        },
-        ParamSpec {
-            name: "portals",
-            ty: ParamType::Choice(&ON_OFF),
-            default: Some("on"),
-            unit: "",
-            doc: "aim light samples at the windows of a closed room's assumed walls too \
+        ),
+        on_off(
+            "portals",
+            "on",
+            "aim light samples at the windows of a closed room's assumed walls too \
                   (portals; on), or follow the envmap's density alone (off). Either converges \
                   to the same image; on is less noisy in a closed room",
-        },
-        ParamSpec {
-            name: "lamps",
-            ty: ParamType::Choice(&ON_OFF),
-            default: Some("on"),
-            unit: "",
-            doc: "light the scene with the lamps of the maps: those `matflow invert` fitted \
+        ),
+        on_off(
+            "lamps",
+            "on",
+            "light the scene with the lamps of the maps: those `matflow invert` fitted \
                   (best_results/lamps.json) or the true ones (ground_truth/lamps.json): on, or \
                   off (e.g. to relight a room by a new envmap alone). A sun among them lights \
                   the scene only under the envmap it came with: `envmap` is a new sky",
-        },
+        ),
         ParamSpec {
             name: "output",
             ty: ParamType::OutPath,
@@ -319,17 +304,12 @@ impl Node for BundleRenderNode {
         params: &Params,
         outputs: &BTreeMap<String, Bytes>,
     ) -> Result<Vec<PathBuf>, NodeError> {
-        let Some(out) = params.path("output") else {
-            return Ok(vec![]);
-        };
-        let b = outputs
-            .get("image")
-            .ok_or_else(|| err("the stage made no image"))?;
-        let img = Artifact::decode(&b[..], "image")?.rgb("image")?;
-        let mut written = write_pair(&out, &img)?;
-        let json = out.with_extension("json");
-        crate::kinds::bundle_mesh::write_file(&json, outputs.get("report"))?;
-        written.push(json);
+        let mut written = write_output_image(params, outputs)?;
+        if let Some(out) = params.path("output") {
+            let json = out.with_extension("json");
+            crate::files::write_file(&json, outputs.get("report"))?;
+            written.push(json);
+        }
         Ok(written)
     }
 }

@@ -32,6 +32,15 @@ use crate::objects;
 
 pub struct InsertNode;
 
+/// Glass events beyond the path length, as the renders with glass take them.
+pub(crate) const GLASS_DEPTH: ParamSpec = ParamSpec {
+    name: "glass_depth",
+    ty: ParamType::Int { min: 0, max: 256 },
+    default: Some("16"),
+    unit: "events",
+    doc: "glass surfaces a path may pass or reflect off beyond `depth`",
+};
+
 const INSERT_INFO: NodeInfo = NodeInfo {
     kind: "insert",
     version: 3,
@@ -103,13 +112,7 @@ const INSERT_INFO: NodeInfo = NodeInfo {
             unit: "segments",
             doc: "maximum path length, not counting segments leaving glass",
         },
-        ParamSpec {
-            name: "glass_depth",
-            ty: ParamType::Int { min: 0, max: 256 },
-            default: Some("16"),
-            unit: "events",
-            doc: "glass surfaces a path may pass or reflect off beyond `depth`",
-        },
+        GLASS_DEPTH,
         ParamSpec {
             name: "filter",
             ty: ParamType::Choice(&["gaussian", "box"]),

@@ -315,10 +315,7 @@ impl Node for MatnetNode {
         Ok(())
     }
     fn output_files(&self, p: &Params) -> Vec<PathBuf> {
-        match p.path("output") {
-            Some(dir) => FILES.iter().map(|f| dir.join(f)).collect(),
-            None => vec![],
-        }
+        crate::files::in_output(p, FILES)
     }
     fn run(&self, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
         let p = ctx.params;
@@ -400,26 +397,9 @@ impl Node for MatnetNode {
         let Some(dir) = params.path("output") else {
             return Ok(vec![]);
         };
-        std::fs::create_dir_all(&dir).map_err(|e| err(format!("{}: {e}", dir.display())))?;
-        let mut written = vec![];
-        for f in FILES {
-            let path = dir.join(f);
-            match outputs.get(*f) {
-                Some(b) => {
-                    io::write_if_changed(&path, b).map_err(failed)?;
-                    written.push(path);
-                }
-                // The other depth file of an earlier prediction would win
-                // over (or contradict) this one.
-                None => {
-                    if path.exists() {
-                        std::fs::remove_file(&path)
-                            .map_err(|e| err(format!("{}: {e}", path.display())))?;
-                    }
-                }
-            }
-        }
-        Ok(written)
+        // The other depth file of an earlier prediction would win over (or
+        // contradict) this one: what this run does not write is removed.
+        crate::files::write_folder(&dir, FILES, |f| outputs.get(f).map(|b| &b[..]))
     }
 }
 
