@@ -140,6 +140,13 @@ pub trait Observer: Sync {
     /// worker died or hung, an input had to be recomputed); it runs again.
     fn retried(&self, _stage: &str, _reason: &str) {}
     fn finished(&self, _report: &StageReport) {}
+    /// Whether the run is no longer wanted: asked between stages, it then
+    /// submits nothing more (stages already out finish; the rest are
+    /// reported skipped). A front end whose newer request supersedes a run
+    /// says so here.
+    fn cancelled(&self) -> bool {
+        false
+    }
 }
 
 /// An observer that shows nothing.
@@ -518,7 +525,9 @@ pub fn run_pipeline(
     });
     let mut s = Scheduler::new(p, reg, store, exec, obs, sink);
     loop {
-        s.submit_ready();
+        if !obs.cancelled() {
+            s.submit_ready();
+        }
         if s.in_flight == 0 {
             break;
         }
@@ -1113,5 +1122,95 @@ mod tests {
             Failure::of(NodeError::new("no depth")),
             Failure::Node(_)
         ));
+    }
+
+    /// One number out, after an optional stage of its kind.
+    struct Step;
+    static STEP: NodeInfo = NodeInfo {
+        kind: "step",
+        version: 1,
+        doc: "a link of a chain",
+        params: &[crate::node::ParamSpec {
+            name: "after",
+            ty: crate::node::ParamType::Ref(&["n"]),
+            default: Some("~"),
+            unit: "",
+            doc: "the stage before",
+        }],
+        outputs: &[OutputSpec {
+            name: "n",
+            ty: "n",
+            doc: "a number",
+        }],
+    };
+    impl Node for Step {
+        fn info(&self) -> &'static NodeInfo {
+            &STEP
+        }
+        fn run(&self, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
+            let n = ctx.opt_input("after").map_or(0, |b| b[0]) + 1;
+            Ok(BTreeMap::from([("n".to_string(), vec![n])]))
+        }
+    }
+
+    /// Cancels the run once `stop_after` has finished.
+    struct CancelAfter {
+        stop_after: &'static str,
+        seen: Mutex<Vec<String>>,
+    }
+    impl Observer for CancelAfter {
+        fn finished(&self, r: &StageReport) {
+            self.seen.lock().unwrap().push(r.name.clone());
+        }
+        fn cancelled(&self) -> bool {
+            self.seen
+                .lock()
+                .unwrap()
+                .iter()
+                .any(|s| s == self.stop_after)
+        }
+    }
+
+    /// A run its observer cancels submits nothing more: the stage out
+    /// finishes, the rest are skipped, nothing fails.
+    #[test]
+    fn a_cancelled_run_submits_nothing_more() {
+        let dir = std::env::temp_dir().join(format!("matflow-cancel-test-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let store = Arc::new(Tiered::new(crate::store::Store::open(&dir).unwrap(), None));
+        let mut reg = Registry::default();
+        reg.add(Box::new(Step));
+        let yaml = "pipeline: chain\noutputs: [c]\nstages:\n  a:\n    kind: step\n  \
+                    b:\n    kind: step\n    after: a\n  c:\n    kind: step\n    after: b\n";
+        let p = crate::spec::parse(yaml, &dir.join("chain.yaml"), &reg, &[]).unwrap();
+        let reg = Arc::new(reg);
+        let exec = crate::LocalExecutor::new(reg.clone(), store.clone(), 1);
+        let obs = CancelAfter {
+            stop_after: "a",
+            seen: Mutex::new(vec![]),
+        };
+        let r = run_pipeline(&p, &reg, &store, &exec, &obs);
+        assert_eq!(r.failure(), None);
+        let status: Vec<(&str, Status)> = r
+            .stages
+            .iter()
+            .map(|s| (s.name.as_str(), s.status))
+            .collect();
+        assert_eq!(
+            status,
+            [
+                ("a", Status::Executed),
+                ("b", Status::Skipped),
+                ("c", Status::Skipped)
+            ]
+        );
+        // Not cancelled, the same pipeline runs to its end.
+        let r = run_pipeline(&p, &reg, &store, &exec, &Silent);
+        assert!(
+            r.stages.iter().all(|s| s.status != Status::Skipped),
+            "{:?}",
+            r.stages
+        );
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -406,8 +406,23 @@ pub fn read_ldr_raw(path: &Path) -> Result<RgbImage> {
 /// Reads a mask PNG: a pixel is set where its largest colour value is above
 /// one half and, for images with alpha, its alpha is above one half too.
 pub fn read_mask(path: &Path) -> Result<Image<bool>> {
-    let bytes = read_bytes(path)?;
-    let img = image::load_from_memory(&bytes).map_err(|e| SceneError::Decode {
+    decode_mask(path, &read_bytes(path)?)
+}
+
+/// [`read_mask`] of bytes already read; `path` names them in errors.
+pub fn decode_mask(path: &Path, bytes: &[u8]) -> Result<Image<bool>> {
+    // The size from the header first: a few bytes can claim a huge image.
+    let decode_err = |e: &dyn std::fmt::Display| SceneError::Decode {
+        path: path.into(),
+        message: e.to_string(),
+    };
+    let (w, h) = image::ImageReader::new(std::io::Cursor::new(bytes))
+        .with_guessed_format()
+        .map_err(|e| decode_err(&e))?
+        .into_dimensions()
+        .map_err(|e| decode_err(&e))?;
+    check_size(path, w as usize, h as usize)?;
+    let img = image::load_from_memory(bytes).map_err(|e| SceneError::Decode {
         path: path.into(),
         message: e.to_string(),
     })?;

@@ -19,6 +19,7 @@ pub mod meshfile;
 pub mod metrics;
 pub mod npy;
 pub mod rng;
+pub mod select;
 pub mod transparency;
 
 pub use bundle::{BestResults, Bundle, MaterialMaps, MaterialSource};
