@@ -1,17 +1,22 @@
-//! `matflow studio` over HTTP: the page and its script come from the
-//! binary; the session's pipeline runs on the engine and its maps are
-//! served by fixed names; nothing else on disk is reachable; a token is
-//! required off loopback and, when set, of every request.
+//! `matflow studio` over HTTP and in a real browser: the page and its
+//! script come from the binary; the session is a pipeline run on the
+//! engine; a click selects an object, a change re-renders it (a preview,
+//! then the result), undo and redo move along the history; the exported
+//! session is a pipeline that `matflow run` turns into the studio's image
+//! byte for byte. Nothing outside the studio's own names is reachable, a
+//! token is required off loopback, a change must come from the page's own
+//! origin, and bad requests get a 4xx with a message.
 
 mod support;
+mod webdriver;
 
-use std::io::{Read, Write};
-use std::net::TcpStream;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
+use serde_json::{json, Value};
 use support::{s, scratch};
+use webdriver::{http, http_raw, Browser};
 
 /// A studio process, killed when dropped.
 struct Studio {
@@ -26,8 +31,29 @@ impl Drop for Studio {
     }
 }
 
-fn start(dir: &Path, input: &Path, extra: &[&str], env: &[(&str, &str)]) -> Studio {
-    let addr_file = dir.join("address");
+/// The room matflow generates (64², the red box at about (51, 46)), with
+/// a recovery of a few seconds: the studio's input in these tests.
+fn room_pipeline(dir: &Path) -> PathBuf {
+    let f = dir.join("room.yaml");
+    std::fs::write(
+        &f,
+        "pipeline: room\noutputs: [recovered]\nstages:\n  scene:\n    kind: synthetic_scene\n    \
+         seed: 1\n    size: 64\n    spp: 16\n  mesh:\n    kind: mesh\n    scene: scene\n    \
+         complete: none\n  lighting:\n    kind: envmap_opt\n    scene: scene\n    mesh: mesh\n    \
+         budget_seconds: 1\n    trust_rm: true\n  recovered:\n    kind: material_opt\n    \
+         scene: scene\n    mesh: mesh\n    envmap: lighting\n    budget_seconds: 2\n    \
+         trust_rm: true\n  base:\n    kind: trace\n    mesh: mesh\n    materials: recovered\n    \
+         envmap: recovered.envmap\n    spp: 16\n    path_spp: 4\n",
+    )
+    .unwrap();
+    f
+}
+
+/// A pixel on the room's red box.
+const BOX: (f64, f64) = (51.0, 46.0);
+
+fn start(dir: &Path, input: &Path, session: &str, env: &[(&str, &str)]) -> Studio {
+    let addr_file = dir.join(format!("address-{session}"));
     let _ = std::fs::remove_file(&addr_file);
     let mut c = Command::new(env!("CARGO_BIN_EXE_matflow"));
     c.args(["studio", s(input), "--listen", "127.0.0.1:0"])
@@ -35,10 +61,9 @@ fn start(dir: &Path, input: &Path, extra: &[&str], env: &[(&str, &str)]) -> Stud
             "--cache",
             s(&dir.join("cache")),
             "--session",
-            s(&dir.join("session")),
+            s(&dir.join(session)),
         ])
         .args(["--address-file", s(&addr_file)])
-        .args(extra)
         .env_remove("MATFLOW_TOKEN")
         .stdout(Stdio::null());
     for (k, v) in env {
@@ -60,152 +85,438 @@ fn start(dir: &Path, input: &Path, extra: &[&str], env: &[(&str, &str)]) -> Stud
     Studio { child, addr }
 }
 
-/// `GET path` (with `headers`): the status code and the body.
-fn get(addr: &str, path: &str, headers: &[&str]) -> (u16, Vec<u8>) {
-    let mut t = TcpStream::connect(addr).unwrap();
-    let mut req = format!("GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n");
-    for h in headers {
-        req += &format!("{h}\r\n");
-    }
-    req += "\r\n";
-    t.write_all(req.as_bytes()).unwrap();
-    let mut buf = Vec::new();
-    t.read_to_end(&mut buf).unwrap();
-    let split = buf
-        .windows(4)
-        .position(|w| w == b"\r\n\r\n")
-        .expect("an HTTP answer");
-    let head = String::from_utf8_lossy(&buf[..split]).to_string();
-    let code: u16 = head.split_whitespace().nth(1).unwrap().parse().unwrap();
-    let mut body = buf[split + 4..].to_vec();
-    if head.to_lowercase().contains("transfer-encoding: chunked") {
-        body = unchunk(&body);
-    }
-    (code, body)
+fn get(addr: &str, path: &str) -> (u16, Vec<u8>) {
+    http_raw(addr, "GET", path, &[], b"")
 }
 
-fn unchunk(mut b: &[u8]) -> Vec<u8> {
-    let mut out = Vec::new();
-    loop {
-        let Some(eol) = b.windows(2).position(|w| w == b"\r\n") else {
-            return out;
-        };
-        let n = usize::from_str_radix(String::from_utf8_lossy(&b[..eol]).trim(), 16).unwrap_or(0);
-        if n == 0 {
-            return out;
-        }
-        out.extend_from_slice(&b[eol + 2..eol + 2 + n]);
-        b = &b[eol + 2 + n + 2..];
-    }
+fn post(addr: &str, path: &str, body: Value) -> (u16, String) {
+    let (code, b) = http(addr, "POST", path, Some(&body));
+    (code, String::from_utf8_lossy(&b).into_owned())
 }
 
-fn session_json(addr: &str, headers: &[&str]) -> serde_json::Value {
+fn status(addr: &str) -> Value {
+    let (code, body) = get(addr, "/api/session");
+    assert_eq!(code, 200, "{}", String::from_utf8_lossy(&body));
+    serde_json::from_slice(&body).unwrap()
+}
+
+/// Waits until the session's result of generation `generation` is shown.
+fn result_of(addr: &str, generation: u64) -> Value {
     let t0 = Instant::now();
     loop {
-        let (code, body) = get(addr, "/api/session", headers);
-        assert_eq!(code, 200, "{}", String::from_utf8_lossy(&body));
-        let v: serde_json::Value = serde_json::from_slice(&body).unwrap();
-        if v["state"] != "running" {
+        let v = status(addr);
+        assert_ne!(v["state"], "failed", "{v}");
+        if v["shown"] == generation && v["image"] == "result" && v["state"] == "ready" {
             return v;
         }
-        assert!(t0.elapsed() < Duration::from_secs(60), "still running: {v}");
-        std::thread::sleep(Duration::from_millis(100));
+        assert!(
+            t0.elapsed() < Duration::from_secs(120),
+            "no result of generation {generation}: {v}"
+        );
+        std::thread::sleep(Duration::from_millis(50));
     }
 }
 
-fn synth_bundle(dir: &Path) -> std::path::PathBuf {
-    let b = dir.join("room");
-    let o = support::matflow(
-        &[
-            "synth",
-            "--seed",
-            "4",
-            "--size",
-            "32",
-            "--spp",
-            "2",
-            "--out",
-            s(&b),
-        ],
-        None,
-    );
+fn rgb(png: &[u8]) -> image::RgbImage {
+    image::load_from_memory(png).unwrap().to_rgb8()
+}
+
+/// The selection's overlay as a mask.
+fn selection(addr: &str) -> Vec<bool> {
+    let (code, png) = get(addr, "/api/images/selection.png");
+    assert_eq!(code, 200);
+    let img = image::load_from_memory(&png).unwrap().to_rgba8();
+    img.pixels().map(|p| p[3] > 0).collect()
+}
+
+/// Mean absolute change (0..255) of two images inside and outside `mask`.
+fn change_in_and_out(a: &image::RgbImage, b: &image::RgbImage, mask: &[bool]) -> (f64, f64) {
+    let (mut sum, mut n) = ([0.0f64; 2], [0usize; 2]);
+    for ((p, q), &m) in a.pixels().zip(b.pixels()).zip(mask) {
+        let d: f64 = (0..3)
+            .map(|c| (p[c] as f64 - q[c] as f64).abs())
+            .sum::<f64>()
+            / 3.0;
+        sum[m as usize] += d;
+        n[m as usize] += 1;
+    }
+    (sum[1] / n[1].max(1) as f64, sum[0] / n[0].max(1) as f64)
+}
+
+/// Unpacks an exported session into `dir`.
+fn unpack(tar: &[u8], dir: &Path) {
+    std::fs::create_dir_all(dir).unwrap();
+    let f = dir.join("session.tar");
+    std::fs::write(&f, tar).unwrap();
+    let o = Command::new("tar")
+        .args(["-xf", s(&f), "-C", s(dir)])
+        .output()
+        .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+}
+
+/// The whole edit loop over the API: select, change, preview then
+/// result, undo and redo; the export runs as `matflow run` to the
+/// studio's image byte for byte; opened again, it is the same session.
+#[test]
+fn a_session_is_edited_undone_redone_and_exported_as_its_pipeline() {
+    let dir = scratch("studio", "edit");
+    let input = room_pipeline(&dir);
+    let st = start(&dir, Path::new("room.yaml"), "session", &[]);
+    let v = result_of(&st.addr, 0);
+    assert_eq!(
+        (v["width"].as_u64(), v["height"].as_u64()),
+        (Some(64), Some(64))
+    );
+    for want in ["photo", "albedo", "roughness", "metallic", "depth"] {
+        assert!(v["maps"].as_array().unwrap().contains(&json!(want)), "{v}");
+        let (code, png) = get(&st.addr, &format!("/api/maps/{want}.png"));
+        assert_eq!(code, 200, "{want}");
+        assert_eq!(rgb(&png).dimensions(), (64, 64), "{want}");
+    }
+    let (_, before) = get(&st.addr, "/api/images/result.png");
+    // One click takes the box.
+    let (code, body) = post(&st.addr, "/api/select", json!({"x": BOX.0, "y": BOX.1}));
+    assert_eq!(code, 200, "{body}");
+    let mask = selection(&st.addr);
+    let count = mask.iter().filter(|&&m| m).count();
+    assert!((100..400).contains(&count), "the box is ~170 px: {count}");
+    // Its colour changed: a preview comes first, then the result.
+    let (code, body) = post(
+        &st.addr,
+        "/api/edit",
+        json!({"albedo": [0.1, 0.3, 0.9], "roughness": 0.3}),
+    );
+    assert_eq!(code, 204, "{body}");
+    let v = result_of(&st.addr, 1);
+    assert!(v["preview_seconds"].as_f64().unwrap() <= v["result_seconds"].as_f64().unwrap());
+    assert_eq!(v["history"].as_array().unwrap().len(), 1, "{v}");
+    let (_, after) = get(&st.addr, "/api/images/result.png");
+    let (inside, outside) = change_in_and_out(&rgb(&before), &rgb(&after), &mask);
+    assert!(
+        inside > 20.0 && outside < inside / 20.0,
+        "changed {inside:.1} inside the box and {outside:.2} outside"
+    );
+    let (_, exr) = get(&st.addr, "/api/images/result.exr");
+    // Undo: the unedited result again (from the cache, the same bytes);
+    // redo: the edit again.
+    assert_eq!(post(&st.addr, "/api/undo", json!({})).0, 204);
+    let v = result_of(&st.addr, 2);
+    assert_eq!(v["redo"], 1);
+    assert_eq!(get(&st.addr, "/api/images/result.png").1, before);
+    assert_eq!(post(&st.addr, "/api/redo", json!({})).0, 204);
+    result_of(&st.addr, 3);
+    assert_eq!(get(&st.addr, "/api/images/result.exr").1, exr);
+    // Exported and unpacked elsewhere, `matflow run` (its own, empty
+    // cache) writes the studio's EXR byte for byte.
+    let (code, tar) = get(&st.addr, "/api/export.tar");
+    assert_eq!(code, 200);
+    let out = dir.join("exported");
+    unpack(&tar, &out);
+    let o = support::matflow(&["run", s(&out.join("session.yaml")), "--quiet"], None);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(
+        std::fs::read(out.join("result.exr")).unwrap() == exr,
+        "`matflow run` of the export differs from the studio's result.exr"
+    );
+    drop(st);
+    // The export, opened in the studio, is the same session.
+    let again = start(&dir, &out.join("session.yaml"), "reopened", &[]);
+    let v = result_of(&again.addr, 0);
+    assert_eq!(v["history"].as_array().unwrap().len(), 1, "{v}");
+    assert_eq!(get(&again.addr, "/api/images/result.exr").1, exr);
+    drop(again);
+    let _ = std::fs::remove_file(input);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A request and what it must get: method, path, headers, body, status,
+/// a word of the message.
+type Case = (
+    &'static str,
+    &'static str,
+    Vec<&'static str>,
+    Vec<u8>,
+    u16,
+    &'static str,
+);
+
+/// Every endpoint with bad input answers 4xx with a message, and the
+/// studio goes on serving; nothing outside its own names is reachable.
+#[test]
+fn bad_requests_get_a_4xx_with_a_message_and_nothing_else_is_reachable() {
+    let dir = scratch("studio", "bad");
+    room_pipeline(&dir);
+    let st = start(&dir, Path::new("room.yaml"), "session", &[]);
+    result_of(&st.addr, 0);
+    let json = "Content-Type: application/json";
+    let cases: Vec<Case> = vec![
+        (
+            "POST",
+            "/api/select",
+            vec![json],
+            br#"{"x": 64, "y": 1}"#.to_vec(),
+            422,
+            "outside",
+        ),
+        (
+            "POST",
+            "/api/select",
+            vec![json],
+            br#"{"x": -1, "y": 1}"#.to_vec(),
+            422,
+            "outside",
+        ),
+        (
+            "POST",
+            "/api/select",
+            vec![json],
+            br#"{"x": 1, "y": 1, "tolerance": 9}"#.to_vec(),
+            422,
+            "tolerance",
+        ),
+        (
+            "POST",
+            "/api/select",
+            vec![json],
+            br#"{"x": 1, "y": 1, "mode": "xor"}"#.to_vec(),
+            422,
+            "mode",
+        ),
+        (
+            "POST",
+            "/api/select",
+            vec![json],
+            br#"{"x": 1, "y": 1, "extra": 1}"#.to_vec(),
+            422,
+            "extra",
+        ),
+        (
+            "POST",
+            "/api/select",
+            vec![json],
+            br#"{"x": 1,"#.to_vec(),
+            400,
+            "JSON",
+        ),
+        (
+            "POST",
+            "/api/select",
+            vec!["Content-Type: text/plain"],
+            br#"{"x": 1, "y": 1}"#.to_vec(),
+            415,
+            "Content-Type",
+        ),
+        (
+            "POST",
+            "/api/select/rect",
+            vec![json],
+            br#"{"x0": 1, "y0": 1, "x1": 2}"#.to_vec(),
+            422,
+            "y1",
+        ),
+        (
+            "POST",
+            "/api/select/brush",
+            vec![json],
+            br#"{"points": [[1, 1]], "radius": 0}"#.to_vec(),
+            422,
+            "radius",
+        ),
+        (
+            "POST",
+            "/api/select/brush",
+            vec![json],
+            br#"{"points": [], "radius": 3}"#.to_vec(),
+            422,
+            "points",
+        ),
+        (
+            "POST",
+            "/api/select/mask",
+            vec!["Content-Type: image/png"],
+            b"not a png".to_vec(),
+            422,
+            "decode",
+        ),
+        (
+            "POST",
+            "/api/select/mask",
+            vec!["Content-Type: image/png"],
+            png(8, 8),
+            422,
+            "64x64",
+        ),
+        // A header claiming a 100000² image: refused before decoding.
+        (
+            "POST",
+            "/api/select/mask",
+            vec!["Content-Type: image/png"],
+            huge_png_header(),
+            422,
+            "size",
+        ),
+        (
+            "POST",
+            "/api/edit",
+            vec![json],
+            br#"{"roughness": 0.5}"#.to_vec(),
+            422,
+            "select",
+        ),
+        (
+            "POST",
+            "/api/edit",
+            vec![json],
+            br#"{"colour": 1}"#.to_vec(),
+            422,
+            "colour",
+        ),
+        (
+            "POST",
+            "/api/undo",
+            vec![json],
+            b"{}".to_vec(),
+            409,
+            "nothing to undo",
+        ),
+        (
+            "POST",
+            "/api/redo",
+            vec![json],
+            b"{}".to_vec(),
+            409,
+            "nothing to redo",
+        ),
+        // A change from another page is refused.
+        (
+            "POST",
+            "/api/select/clear",
+            vec!["Origin: http://evil.example"],
+            vec![],
+            403,
+            "origin",
+        ),
+        ("GET", "/api/maps/secret.png", vec![], vec![], 404, "no map"),
+        (
+            "GET",
+            "/api/images/session.yaml",
+            vec![],
+            vec![],
+            404,
+            "images are",
+        ),
+        ("GET", "/api/maps/../../etc/passwd", vec![], vec![], 404, ""),
+        (
+            "GET",
+            "/api/maps/..%2f..%2fetc%2fpasswd",
+            vec![],
+            vec![],
+            404,
+            "",
+        ),
+        ("GET", "/session/session.yaml", vec![], vec![], 404, ""),
+        ("GET", "/etc/passwd", vec![], vec![], 404, ""),
+    ];
+    for (method, path, headers, body, want, says) in &cases {
+        let (code, answer) = http_raw(&st.addr, method, path, headers, body);
+        let answer = String::from_utf8_lossy(&answer);
+        assert_eq!(code, *want, "{method} {path}: {answer}");
+        assert!(
+            answer.to_lowercase().contains(&says.to_lowercase()),
+            "{method} {path}: {answer:?} should say {says:?}"
+        );
+        assert!(!answer.contains("root:"), "{path}");
+    }
+    // Selected, an out-of-range change is the engine's message.
+    assert_eq!(
+        post(&st.addr, "/api/select", json!({"x": 5, "y": 5})).0,
+        200
+    );
+    let (code, body) = post(&st.addr, "/api/edit", json!({"metallic": 3}));
+    assert_eq!(code, 422, "{body}");
+    assert!(body.contains("metallic"), "{body}");
+    // A brush, a rectangle and a mask of the right size select.
+    let (code, body) = post(
+        &st.addr,
+        "/api/select/brush",
+        json!({"points": [[10, 10], [12, 10]], "radius": 2, "mode": "set"}),
+    );
+    assert_eq!((code, body.trim()), (200, r#"{"selected":20}"#));
+    let (code, body) = post(
+        &st.addr,
+        "/api/select/rect",
+        json!({"x0": 0, "y0": 0, "x1": 4, "y1": 2, "mode": "add"}),
+    );
+    assert_eq!((code, body.trim()), (200, r#"{"selected":28}"#));
+    let (code, body) = http_raw(
+        &st.addr,
+        "POST",
+        "/api/select/mask?mode=remove",
+        &["Content-Type: image/png"],
+        &png(64, 64),
+    );
+    assert_eq!(code, 200, "{}", String::from_utf8_lossy(&body));
+    // Still serving, and nothing changed the session.
+    let v = status(&st.addr);
+    assert_eq!(
+        (v["state"].as_str(), v["generation"].as_u64()),
+        (Some("ready"), Some(0))
+    );
+    drop(st);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A white `w`×`h` PNG.
+fn png(w: u32, h: u32) -> Vec<u8> {
+    let img = image::GrayImage::from_pixel(w, h, image::Luma([255]));
+    let mut buf = std::io::Cursor::new(Vec::new());
+    img.write_to(&mut buf, image::ImageFormat::Png).unwrap();
+    buf.into_inner()
+}
+
+/// A PNG signature and an IHDR claiming 100000×100000, nothing more
+/// (and an empty IDAT and IEND: a valid header, no pixels).
+fn huge_png_header() -> Vec<u8> {
+    let mut b = b"\x89PNG\r\n\x1a\n".to_vec();
+    let mut chunk = |name: &[u8], data: &[u8]| {
+        let mut c = name.to_vec();
+        c.extend_from_slice(data);
+        b.extend_from_slice(&(data.len() as u32).to_be_bytes());
+        b.extend_from_slice(&c);
+        b.extend_from_slice(&crc32(&c).to_be_bytes());
+    };
+    let mut ihdr = 100_000u32.to_be_bytes().to_vec();
+    ihdr.extend_from_slice(&100_000u32.to_be_bytes());
+    ihdr.extend_from_slice(&[8, 0, 0, 0, 0]);
+    chunk(b"IHDR", &ihdr);
+    chunk(b"IDAT", &[]);
+    chunk(b"IEND", &[]);
     b
 }
 
-#[test]
-fn the_studio_serves_its_page_and_the_sessions_maps_and_nothing_else() {
-    let dir = scratch("studio", "serve");
-    synth_bundle(&dir);
-    let st = start(&dir, Path::new("room"), &[], &[]);
-    let (code, page) = get(&st.addr, "/", &[]);
-    assert_eq!(code, 200);
-    let page = String::from_utf8_lossy(&page);
-    assert!(page.contains("<title>matflow studio</title>"), "{page}");
-    assert_eq!(get(&st.addr, "/studio.js", &[]).0, 200);
-    // The session's pipeline runs on the engine; its maps are PNGs of the
-    // bundle's size.
-    let v = session_json(&st.addr, &[]);
-    assert_eq!(v["state"], "ready", "{v}");
-    assert_eq!(
-        (v["width"].as_u64(), v["height"].as_u64()),
-        (Some(32), Some(32))
-    );
-    let names: Vec<&str> = v["maps"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .filter_map(|m| m.as_str())
-        .collect();
-    for want in ["photo", "albedo", "roughness", "metallic", "depth"] {
-        assert!(names.contains(&want), "{names:?}");
-        let (code, png) = get(&st.addr, &format!("/api/maps/{want}.png"), &[]);
-        assert_eq!(code, 200, "{want}");
-        let img = image::load_from_memory(&png).unwrap();
-        assert_eq!((img.width(), img.height()), (32, 32), "{want}");
+fn crc32(data: &[u8]) -> u32 {
+    let mut c = 0xffff_ffffu32;
+    for &byte in data {
+        c ^= byte as u32;
+        for _ in 0..8 {
+            c = if c & 1 != 0 {
+                0xedb8_8320 ^ (c >> 1)
+            } else {
+                c >> 1
+            };
+        }
     }
-    // The session is a pipeline: exported, it runs as `matflow run`, from
-    // the cache the studio filled.
-    let (code, yaml) = get(&st.addr, "/api/pipeline.yaml", &[]);
-    assert_eq!(code, 200);
-    let exported = dir.join("exported.yaml");
-    std::fs::write(&exported, &yaml).unwrap();
-    let o = support::matflow(
-        &[
-            "run",
-            s(&exported),
-            "--quiet",
-            "--cache",
-            s(&dir.join("cache")),
-        ],
-        None,
-    );
-    let out = String::from_utf8_lossy(&o.stdout);
-    assert!(o.status.success() && out.contains("1 cached"), "{out}");
-    // Nothing outside its own names: not by path, not by escape.
-    for bad in [
-        "/api/maps/../../etc/passwd",
-        "/api/maps/..%2f..%2fetc%2fpasswd",
-        "/api/maps/albedo.exr",
-        "/api/maps/secret.png",
-        "/session/session.yaml",
-        "/etc/passwd",
-    ] {
-        let (code, body) = get(&st.addr, bad, &[]);
-        assert_eq!(code, 404, "{bad}: {}", String::from_utf8_lossy(&body));
-        assert!(!String::from_utf8_lossy(&body).contains("root:"), "{bad}");
-    }
-    drop(st);
-    let _ = std::fs::remove_dir_all(&dir);
+    !c
 }
 
 #[test]
 fn off_loopback_a_token_is_required_and_then_asked_of_every_request() {
     let dir = scratch("studio", "token");
-    let b = synth_bundle(&dir);
+    let input = room_pipeline(&dir);
     // Any address but loopback, without a token: refused at the start.
     let o = Command::new(env!("CARGO_BIN_EXE_matflow"))
-        .args(["studio", s(&b), "--listen", "0.0.0.0:0"])
+        .args(["studio", s(&input), "--listen", "0.0.0.0:0"])
         .args([
             "--cache",
             s(&dir.join("cache")),
@@ -223,83 +534,121 @@ fn off_loopback_a_token_is_required_and_then_asked_of_every_request() {
     );
     // With a token, every request presents it.
     let secret = "0123456789abcdef-studio";
-    let st = start(&dir, &b, &[], &[("MATFLOW_TOKEN", secret)]);
-    assert_eq!(get(&st.addr, "/", &[]).0, 401);
+    let st = start(&dir, &input, "session", &[("MATFLOW_TOKEN", secret)]);
+    assert_eq!(get(&st.addr, "/").0, 401);
+    let wrong = ["Authorization: Bearer wrong-token-000000"];
     assert_eq!(
-        get(
-            &st.addr,
-            "/api/session",
-            &["Authorization: Bearer wrong-token-000000"]
-        )
-        .0,
+        http_raw(&st.addr, "GET", "/api/session", &wrong, b"").0,
         401
     );
     let bearer = format!("Authorization: Bearer {secret}");
-    assert_eq!(get(&st.addr, "/api/session", &[&bearer]).0, 200);
-    assert_eq!(get(&st.addr, &format!("/?token={secret}"), &[]).0, 200);
+    assert_eq!(
+        http_raw(&st.addr, "GET", "/api/session", &[&bearer], b"").0,
+        200
+    );
+    assert_eq!(get(&st.addr, &format!("/?token={secret}")).0, 200);
+    let (code, _) = http_raw(
+        &st.addr,
+        "POST",
+        "/api/select/clear",
+        &["Content-Type: application/json"],
+        b"{}",
+    );
+    assert_eq!(code, 401);
     drop(st);
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// The page in headless Chromium (Debian's `chromium`), as a user opens
-/// it: its script polls the session until the pipeline has run and shows
-/// every map; the page after its script ran has them all, and its
-/// screenshot is kept under the target folder for a person to look at.
+/// The page in headless Chromium over WebDriver, as a user works: it
+/// opens, waits for the recovery, clicks the box, picks a colour and
+/// applies it; the canvas read back has changed inside the box and not
+/// outside; undo brings the old image back. Screenshots of each step are
+/// kept under the target folder (`target/tmp/studio/`) for a person to
+/// look at.
 #[test]
-fn chromium_shows_the_sessions_maps() {
-    let chromium = ["chromium", "chromium-browser"]
-        .into_iter()
-        .find(|c| {
-            Command::new(c)
-                .arg("--version")
-                .output()
-                .is_ok_and(|o| o.status.success())
-        })
-        .expect("no chromium: install Debian's chromium (`.ci/run` does)");
+fn in_chromium_a_click_and_a_colour_change_the_object_and_nothing_else() {
     let dir = scratch("studio", "chromium");
-    synth_bundle(&dir);
-    let st = start(&dir, Path::new("room"), &[], &[]);
-    assert_eq!(session_json(&st.addr, &[])["state"], "ready");
+    room_pipeline(&dir);
+    let st = start(&dir, Path::new("room.yaml"), "session", &[]);
     let shots = Path::new(env!("CARGO_TARGET_TMPDIR")).join("studio");
     std::fs::create_dir_all(&shots).unwrap();
-    let shot = shots.join("bundle.png");
-    let _ = std::fs::remove_file(&shot);
-    let browse = |what: &str| {
-        let o = Command::new(chromium)
-            .args([
-                "--headless",
-                "--no-sandbox",
-                "--disable-gpu",
-                "--disable-quic",
-                "--no-first-run",
-                "--disable-background-networking",
-                "--disable-component-update",
-                "--disable-sync",
-                "--window-size=1400,500",
-                "--virtual-time-budget=10000",
-            ])
-            .arg(format!(
-                "--user-data-dir={}",
-                s(&dir.join(format!("profile-{}", what.len())))
-            ))
-            .arg(what)
-            .arg(format!("http://{}/", st.addr))
-            .output()
-            .expect("run chromium");
-        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-        String::from_utf8_lossy(&o.stdout).into_owned()
+    let b = Browser::start(&dir.join("profile"), 1280, 900);
+    b.open(&format!("http://{}/", st.addr));
+    let long = Duration::from_secs(120);
+    b.wait_for(
+        "the first result",
+        "return document.body.dataset.shown === '0/result' && document.body.dataset.state === 'ready';",
+        long,
+    );
+    b.screenshot(&shots.join("1-opened.png"));
+    let pixels = "const c = document.getElementById('view'); \
+                  return Array.from(c.getContext('2d').getImageData(0, 0, c.width, c.height).data);";
+    let before = b.eval(pixels, json!([]));
+    // A click on the box, in the canvas's CSS pixels.
+    let size = b.eval(
+        "const r = document.getElementById('overlay').getBoundingClientRect(); return [r.width, r.height];",
+        json!([]),
+    );
+    let (w, h) = (size[0].as_f64().unwrap(), size[1].as_f64().unwrap());
+    b.click_at(
+        "#overlay",
+        (BOX.0 + 0.5) * w / 64.0,
+        (BOX.1 + 0.5) * h / 64.0,
+        None,
+    );
+    b.wait_for(
+        "the selection",
+        "return /px selected/.test(document.getElementById('selected').textContent);",
+        long,
+    );
+    b.screenshot(&shots.join("2-selected.png"));
+    let mask = selection(&st.addr);
+    assert!(mask.iter().filter(|&&m| m).count() > 100);
+    // A colour from the picker (set as a user's pick sets it), applied.
+    b.eval(
+        "const c = document.getElementById('albedo'); c.value = '#1a4de6'; \
+         c.dispatchEvent(new Event('input', {bubbles: true}));",
+        json!([]),
+    );
+    b.click("#apply");
+    b.wait_for(
+        "the edited result",
+        "return document.body.dataset.shown === '1/result';",
+        long,
+    );
+    b.screenshot(&shots.join("3-edited.png"));
+    let after = b.eval(pixels, json!([]));
+    let to_img = |v: &Value| {
+        let d: Vec<u8> = v
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_u64().unwrap() as u8)
+            .collect();
+        image::RgbImage::from_fn(64, 64, |x, y| {
+            let i = 4 * (y as usize * 64 + x as usize);
+            image::Rgb([d[i], d[i + 1], d[i + 2]])
+        })
     };
-    let dom = browse("--dump-dom");
-    assert!(dom.contains("status ready"), "{dom}");
-    for name in ["photo", "albedo", "roughness", "metallic", "depth"] {
-        assert!(
-            dom.contains(&format!("src=\"api/maps/{name}.png\"")),
-            "{name} missing from the page:\n{dom}"
-        );
-    }
-    browse(&format!("--screenshot={}", s(&shot)));
-    let img = image::open(&shot).expect("a screenshot");
-    assert_eq!((img.width(), img.height()), (1400, 500));
+    let (inside, outside) = change_in_and_out(&to_img(&before), &to_img(&after), &mask);
+    assert!(
+        inside > 20.0 && outside < inside / 20.0,
+        "the canvas changed {inside:.1} inside the box and {outside:.2} outside"
+    );
+    // The canvas shows what `/api/images/result.png` serves.
+    assert_eq!(
+        to_img(&after),
+        rgb(&get(&st.addr, "/api/images/result.png").1)
+    );
+    b.click("#undo");
+    b.wait_for(
+        "the undone result",
+        "return document.body.dataset.shown === '2/result';",
+        long,
+    );
+    assert_eq!(b.eval(pixels, json!([])), before);
+    b.screenshot(&shots.join("4-undone.png"));
+    drop(b);
     drop(st);
     let _ = std::fs::remove_dir_all(&dir);
 }

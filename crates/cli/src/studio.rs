@@ -10,7 +10,8 @@ use clap::Args;
 #[derive(Args)]
 pub struct StudioArgs {
     /// What to open: a photo (PNG/JPEG/EXR: predicted), a bundle folder
-    /// (its predictions), or a pipeline file (its `scene` stage).
+    /// (its predictions), or a pipeline file (its stages, one of them
+    /// named `scene`; an exported session opens with its edits).
     pub input: PathBuf,
     /// The address to listen on. Loopback unless a token is given.
     #[arg(long, default_value = "127.0.0.1:8080")]

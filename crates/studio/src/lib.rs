@@ -10,19 +10,29 @@
 //! Bearer TOKEN`, or `?token=` for what a browser loads). It serves only
 //! its own fixed names: nothing on disk is reachable by a path in a URL.
 
+pub mod live;
 pub mod session;
+pub mod view;
 
+use std::convert::Infallible;
 use std::net::SocketAddr;
 use std::path::PathBuf;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 
+use axum::body::Bytes;
 use axum::extract::{Path as UrlPath, Query, Request, State};
-use axum::http::{header, HeaderMap, StatusCode};
+use axum::http::{header, HeaderMap, Method, StatusCode};
 use axum::middleware::{self, Next};
+use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
-use axum::routing::get;
+use axum::routing::{get, post};
 use axum::{Json, Router};
 use matflow_rpc::auth::Token;
+use matflow_scene::select::{grow_object, Grow};
+use matflow_scene::Image;
+
+use live::{request_error, Shared};
+use session::{Change, Session};
 
 const INDEX_HTML: &str = include_str!("../web/index.html");
 const STUDIO_JS: &str = include_str!("../web/studio.js");
@@ -57,83 +67,36 @@ pub enum StudioError {
     },
 }
 
-/// Where the session stands, as `/api/session` says it.
-#[derive(Clone, serde::Serialize)]
-struct Status {
-    /// `running`, `ready` or `failed`.
-    state: &'static str,
-    input: String,
-    message: String,
-    width: usize,
-    height: usize,
-    /// The images `/api/maps/NAME.png` serves.
-    maps: Vec<&'static str>,
-}
-
-struct Shared {
-    status: Mutex<Status>,
-    maps: Mutex<Vec<(&'static str, Vec<u8>)>>,
-    pipeline: Mutex<String>,
+struct App {
+    shared: Arc<Shared>,
     token: Option<Token>,
 }
 
-/// Checks the address against the token rule, writes the session's
-/// pipeline, and returns the router with its session started (running in
-/// the background; `/api/session` says when it is ready).
+/// Checks the address against the token rule, opens the session (its
+/// pipeline written to its folder), starts its runner and returns the
+/// router.
 pub fn start(opts: StudioOptions, listen: SocketAddr) -> Result<Router, StudioError> {
     if !listen.ip().is_loopback() && opts.token.is_none() {
         return Err(StudioError::NeedsToken(listen));
     }
-    // The session's pipeline lives in its own folder: a relative input
-    // is taken from where the studio was started.
+    // A relative input is taken from where the studio was started.
     let input = std::path::absolute(&opts.input).map_err(|source| StudioError::Io {
         path: opts.input.clone(),
         source,
     })?;
-    let yaml = session::starting_pipeline(&input)?;
-    std::fs::create_dir_all(&opts.session).map_err(|source| StudioError::Io {
-        path: opts.session.clone(),
-        source,
-    })?;
-    let file = opts.session.join("session.yaml");
-    std::fs::write(&file, &yaml).map_err(|source| StudioError::Io { path: file, source })?;
-    let shared = Arc::new(Shared {
-        status: Mutex::new(Status {
-            state: "running",
-            input: opts.input.display().to_string(),
-            message: "running the session's pipeline".into(),
-            width: 0,
-            height: 0,
-            maps: vec![],
-        }),
-        maps: Mutex::new(vec![]),
-        pipeline: Mutex::new(yaml),
-        token: opts.token.clone(),
-    });
+    let reg = matflow_nodes::registry();
+    let session = Session::open(&input, &opts.session, &reg)?;
+    let shared = Shared::new(session, opts.input.display().to_string());
     let bg = shared.clone();
-    let (dir, cache) = (opts.session.clone(), opts.cache.clone());
-    std::thread::spawn(move || {
-        let result = session::run(&dir, &cache);
-        let mut st = bg.status.lock().unwrap_or_else(|e| e.into_inner());
-        match result {
-            Ok((maps, summary)) => {
-                st.state = "ready";
-                st.message = summary;
-                st.width = maps.width;
-                st.height = maps.height;
-                st.maps = maps.images.iter().map(|(n, _)| *n).collect();
-                *bg.maps.lock().unwrap_or_else(|e| e.into_inner()) = maps.images;
-            }
-            Err(e) => {
-                st.state = "failed";
-                st.message = e.to_string();
-            }
-        }
-    });
-    Ok(router(shared))
+    let cache = opts.cache.clone();
+    std::thread::spawn(move || live::runner(bg, &cache));
+    Ok(router(Arc::new(App {
+        shared,
+        token: opts.token,
+    })))
 }
 
-fn router(shared: Arc<Shared>) -> Router {
+fn router(app: Arc<App>) -> Router {
     Router::new()
         .route(
             "/",
@@ -148,11 +111,22 @@ fn router(shared: Arc<Shared>) -> Router {
             get(|| async { page(STUDIO_CSS, "text/css; charset=utf-8") }),
         )
         .route("/api/session", get(session_status))
+        .route("/api/events", get(events))
         .route("/api/pipeline.yaml", get(pipeline))
+        .route("/api/export.tar", get(export))
         .route("/api/maps/{file}", get(map))
+        .route("/api/images/{file}", get(image_file))
+        .route("/api/select", post(select_point))
+        .route("/api/select/rect", post(select_rect))
+        .route("/api/select/brush", post(select_brush))
+        .route("/api/select/mask", post(select_mask))
+        .route("/api/select/clear", post(select_clear))
+        .route("/api/edit", post(edit))
+        .route("/api/undo", post(undo))
+        .route("/api/redo", post(redo))
         .fallback(|| async { (StatusCode::NOT_FOUND, "no such page\n") })
-        .layer(middleware::from_fn_with_state(shared.clone(), authorize))
-        .with_state(shared)
+        .layer(middleware::from_fn_with_state(app.clone(), guard))
+        .with_state(app)
 }
 
 fn page(body: &'static str, ty: &'static str) -> Response {
@@ -164,15 +138,17 @@ struct TokenQuery {
     token: Option<String>,
 }
 
-/// Every request presents the token, when the studio has one.
-async fn authorize(
-    State(s): State<Arc<Shared>>,
+/// Every request presents the token, when the studio has one; a request
+/// that changes the session comes from the studio's own page (a browser
+/// names the page's origin, which must be this server's).
+async fn guard(
+    State(app): State<Arc<App>>,
     Query(q): Query<TokenQuery>,
     headers: HeaderMap,
     req: Request,
     next: Next,
 ) -> Response {
-    if let Some(t) = &s.token {
+    if let Some(t) = &app.token {
         let from_header = headers
             .get(header::AUTHORIZATION)
             .is_some_and(|v| t.accepts(v.as_bytes()));
@@ -183,15 +159,45 @@ async fn authorize(
             return (StatusCode::UNAUTHORIZED, "a token is required\n").into_response();
         }
     }
+    if req.method() != Method::GET && req.method() != Method::HEAD {
+        if let Some(origin) = headers.get(header::ORIGIN) {
+            let host = headers.get(header::HOST).and_then(|h| h.to_str().ok());
+            let same = origin
+                .to_str()
+                .ok()
+                .and_then(|o| o.strip_prefix("http://"))
+                .is_some_and(|o| Some(o) == host);
+            if !same {
+                return (
+                    StatusCode::FORBIDDEN,
+                    "a change must come from the studio's own page (Origin differs from Host)\n",
+                )
+                    .into_response();
+            }
+        }
+    }
     next.run(req).await
 }
 
-async fn session_status(State(s): State<Arc<Shared>>) -> Json<Status> {
-    Json(s.status.lock().unwrap_or_else(|e| e.into_inner()).clone())
+async fn session_status(State(app): State<Arc<App>>) -> Response {
+    let l = app.shared.lock();
+    Json(l.status.clone()).into_response()
 }
 
-async fn pipeline(State(s): State<Arc<Shared>>) -> Response {
-    let yaml = s.pipeline.lock().unwrap_or_else(|e| e.into_inner()).clone();
+/// Server-sent events: the session's status as JSON, at once and on
+/// every change (coalesced: a slow reader gets the newest).
+async fn events(State(app): State<Arc<App>>) -> Response {
+    use tokio_stream::StreamExt;
+    let rx = app.shared.events.subscribe();
+    let stream = tokio_stream::wrappers::WatchStream::new(rx)
+        .map(|json| Ok::<_, Infallible>(Event::default().data(json)));
+    Sse::new(stream)
+        .keep_alive(KeepAlive::default())
+        .into_response()
+}
+
+async fn pipeline(State(app): State<Arc<App>>) -> Response {
+    let yaml = app.shared.lock().session.yaml();
     (
         [
             (header::CONTENT_TYPE, "text/yaml; charset=utf-8"),
@@ -205,30 +211,309 @@ async fn pipeline(State(s): State<Arc<Shared>>) -> Response {
         .into_response()
 }
 
-/// `/api/maps/NAME.png`: one of the session's images, by its fixed name.
-async fn map(State(s): State<Arc<Shared>>, UrlPath(file): UrlPath<String>) -> Response {
+/// The session as a tar: its pipeline and the masks beside it.
+async fn export(State(app): State<Arc<App>>) -> Response {
+    let tar = app.shared.lock().session.export();
+    match tar {
+        Ok(b) => (
+            [
+                (header::CONTENT_TYPE, "application/x-tar"),
+                (
+                    header::CONTENT_DISPOSITION,
+                    "attachment; filename=\"session.tar\"",
+                ),
+            ],
+            b,
+        )
+            .into_response(),
+        Err(e) => request_error(e).into_response(),
+    }
+}
+
+/// `/api/maps/NAME.png`: one of the session's maps, by its fixed name.
+async fn map(State(app): State<Arc<App>>, UrlPath(file): UrlPath<String>) -> Response {
     let Some(name) = file.strip_suffix(".png") else {
         return (StatusCode::NOT_FOUND, "maps are NAME.png\n").into_response();
     };
-    if !session::MAP_NAMES.contains(&name) {
+    if !view::MAP_NAMES.contains(&name) {
         return (
             StatusCode::NOT_FOUND,
-            format!(
-                "no map {name:?}: one of {}\n",
-                session::MAP_NAMES.join(", ")
-            ),
+            format!("no map {name:?}: one of {}\n", view::MAP_NAMES.join(", ")),
         )
             .into_response();
     }
-    let maps = s.maps.lock().unwrap_or_else(|e| e.into_inner());
-    match maps.iter().find(|(n, _)| *n == name) {
-        Some((_, png)) => ([(header::CONTENT_TYPE, "image/png")], png.clone()).into_response(),
+    served(&app, name, "image/png")
+}
+
+fn served(app: &App, name: &str, ty: &'static str) -> Response {
+    let l = app.shared.lock();
+    match l.images.get(name) {
+        Some(b) => (
+            [
+                (header::CONTENT_TYPE, ty),
+                (header::CACHE_CONTROL, "no-store"),
+            ],
+            b.clone(),
+        )
+            .into_response(),
         None => (
             StatusCode::NOT_FOUND,
             format!("the session has no {name} (yet)\n"),
         )
             .into_response(),
     }
+}
+
+/// `/api/images/NAME`: the renders (`preview.png`, `result.png`,
+/// `result.exr`) and the selection's overlay (`selection.png`).
+async fn image_file(State(app): State<Arc<App>>, UrlPath(file): UrlPath<String>) -> Response {
+    match file.as_str() {
+        "preview.png" => served(&app, "preview", "image/png"),
+        "result.png" => served(&app, "result", "image/png"),
+        "result.exr" => served(&app, "result.exr", "image/x-exr"),
+        "selection.png" => {
+            let png = view::overlay(&app.shared.lock().selection);
+            (
+                [
+                    (header::CONTENT_TYPE, "image/png"),
+                    (header::CACHE_CONTROL, "no-store"),
+                ],
+                png,
+            )
+                .into_response()
+        }
+        _ => (
+            StatusCode::NOT_FOUND,
+            "images are preview.png, result.png, result.exr and selection.png\n",
+        )
+            .into_response(),
+    }
+}
+
+/// How a selection step meets the selection so far.
+#[derive(Clone, Copy, Debug, Default, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+enum Mode {
+    #[default]
+    Set,
+    Add,
+    Remove,
+}
+
+#[derive(serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Point {
+    x: f64,
+    y: f64,
+    #[serde(default)]
+    mode: Mode,
+    /// The colour tolerance (γ-encoded albedo, per channel).
+    tolerance: Option<f32>,
+}
+
+#[derive(serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Rect {
+    x0: f64,
+    y0: f64,
+    x1: f64,
+    y1: f64,
+    #[serde(default)]
+    mode: Mode,
+}
+
+#[derive(serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Brush {
+    /// Centres of the brush's dabs, pixels.
+    points: Vec<[f64; 2]>,
+    radius: f64,
+    #[serde(default)]
+    mode: Mode,
+}
+
+type Answer = Result<Response, (StatusCode, String)>;
+
+fn bad(m: impl Into<String>) -> (StatusCode, String) {
+    (StatusCode::UNPROCESSABLE_ENTITY, m.into() + "\n")
+}
+
+/// Applies `step` (a mask of the image's size) to the selection by `mode`
+/// and answers how many pixels are selected.
+fn select_with(
+    app: &App,
+    mode: Mode,
+    step: impl FnOnce(&live::Surfaces) -> Result<Image<bool>, (StatusCode, String)>,
+) -> Answer {
+    let mut l = app.shared.lock();
+    let Some(surf) = l.surfaces.as_ref() else {
+        return Err((
+            StatusCode::CONFLICT,
+            "the scene is not ready yet: select once its maps are shown\n".into(),
+        ));
+    };
+    let m = step(surf)?;
+    let sel = &mut l.selection;
+    for (s, &n) in sel.data.iter_mut().zip(&m.data) {
+        *s = match mode {
+            Mode::Set => n,
+            Mode::Add => *s || n,
+            Mode::Remove => *s && !n,
+        };
+    }
+    let count = sel.data.iter().filter(|&&b| b).count();
+    l.status.selected = count;
+    app.shared.publish(&l);
+    Ok(Json(serde_json::json!({ "selected": count })).into_response())
+}
+
+/// A pixel of the image: within it and finite, else a message.
+fn pixel(x: f64, y: f64, w: usize, h: usize) -> Result<(usize, usize), (StatusCode, String)> {
+    if !(x.is_finite() && y.is_finite() && x >= 0.0 && y >= 0.0 && x < w as f64 && y < h as f64) {
+        return Err(bad(format!("({x}, {y}) is outside the {w}x{h} image")));
+    }
+    Ok((x as usize, y as usize))
+}
+
+/// `POST /api/select {x, y, mode, tolerance}`: the object under a pixel.
+async fn select_point(State(app): State<Arc<App>>, Json(p): Json<Point>) -> Answer {
+    let tol = p.tolerance.unwrap_or(Grow::default().albedo_tol);
+    if !(0.0..=1.0).contains(&tol) {
+        return Err(bad(format!("tolerance {tol} is outside 0..1")));
+    }
+    select_with(&app, p.mode, |s| {
+        let seed = pixel(p.x, p.y, s.albedo.width, s.albedo.height)?;
+        let g = Grow {
+            albedo_tol: tol,
+            ..Grow::default()
+        };
+        Ok(grow_object(
+            &s.albedo,
+            &s.depth,
+            s.normals.as_ref(),
+            &s.camera,
+            seed,
+            &g,
+        ))
+    })
+}
+
+/// `POST /api/select/rect {x0, y0, x1, y1, mode}`: a rectangle (x1, y1
+/// exclusive; clipped to the image).
+async fn select_rect(State(app): State<Arc<App>>, Json(r): Json<Rect>) -> Answer {
+    if ![r.x0, r.y0, r.x1, r.y1].iter().all(|v| v.is_finite()) {
+        return Err(bad("the rectangle's corners must be numbers"));
+    }
+    select_with(&app, r.mode, |s| {
+        let (x0, x1) = (r.x0.min(r.x1), r.x0.max(r.x1));
+        let (y0, y1) = (r.y0.min(r.y1), r.y0.max(r.y1));
+        Ok(Image::from_fn(s.albedo.width, s.albedo.height, |x, y| {
+            let (px, py) = (x as f64 + 0.5, y as f64 + 0.5);
+            px >= x0 && px < x1 && py >= y0 && py < y1
+        }))
+    })
+}
+
+/// `POST /api/select/brush {points, radius, mode}`: round dabs.
+async fn select_brush(State(app): State<Arc<App>>, Json(b): Json<Brush>) -> Answer {
+    if !(b.radius.is_finite() && b.radius > 0.0 && b.radius <= 4096.0) {
+        return Err(bad(format!("radius {} is outside (0, 4096]", b.radius)));
+    }
+    if b.points.is_empty() || b.points.len() > 10_000 {
+        return Err(bad("give 1 to 10000 points"));
+    }
+    if b.points.iter().flatten().any(|v| !v.is_finite()) {
+        return Err(bad("the points must be numbers"));
+    }
+    select_with(&app, b.mode, |s| {
+        let (w, h) = (s.albedo.width, s.albedo.height);
+        let mut m = Image::new(w, h, false);
+        let r2 = b.radius * b.radius;
+        for [cx, cy] in &b.points {
+            let (xa, xb) = (
+                (cx - b.radius).max(0.0) as usize,
+                ((cx + b.radius).ceil().max(0.0) as usize).min(w),
+            );
+            let (ya, yb) = (
+                (cy - b.radius).max(0.0) as usize,
+                ((cy + b.radius).ceil().max(0.0) as usize).min(h),
+            );
+            for y in ya..yb {
+                for x in xa..xb {
+                    let (dx, dy) = (x as f64 + 0.5 - cx, y as f64 + 0.5 - cy);
+                    if dx * dx + dy * dy <= r2 {
+                        m.set(x, y, true);
+                    }
+                }
+            }
+        }
+        Ok(m)
+    })
+}
+
+#[derive(serde::Deserialize)]
+struct MaskQuery {
+    #[serde(default)]
+    mode: Mode,
+}
+
+/// `POST /api/select/mask?mode=` with a PNG body of the image's size
+/// (white, opaque pixels selected).
+async fn select_mask(
+    State(app): State<Arc<App>>,
+    Query(q): Query<MaskQuery>,
+    body: Bytes,
+) -> Answer {
+    let m = matflow_scene::io::decode_mask(std::path::Path::new("the uploaded mask"), &body)
+        .map_err(|e| bad(e.to_string()))?;
+    select_with(&app, q.mode, |s| {
+        if m.width != s.albedo.width || m.height != s.albedo.height {
+            return Err(bad(format!(
+                "the mask is {}x{}; the image is {}x{}",
+                m.width, m.height, s.albedo.width, s.albedo.height
+            )));
+        }
+        Ok(m)
+    })
+}
+
+async fn select_clear(State(app): State<Arc<App>>) -> Answer {
+    select_with(&app, Mode::Set, |s| {
+        Ok(Image::new(s.albedo.width, s.albedo.height, false))
+    })
+}
+
+/// `POST /api/edit {albedo, hue_shift, …}`: the selection changed, as a
+/// new edit stage; the renders follow.
+async fn edit(State(app): State<Arc<App>>, Json(c): Json<Change>) -> Answer {
+    let mut l = app.shared.lock();
+    if l.surfaces.is_none() {
+        return Err((StatusCode::CONFLICT, "the scene is not ready yet\n".into()));
+    }
+    let mask = l.selection.clone();
+    l.session
+        .edit(&mask, &c, &app.shared.registry)
+        .map_err(request_error)?;
+    app.shared.changed(l);
+    Ok(StatusCode::NO_CONTENT.into_response())
+}
+
+async fn undo(State(app): State<Arc<App>>) -> Answer {
+    let mut l = app.shared.lock();
+    if !l.session.undo().map_err(request_error)? {
+        return Err((StatusCode::CONFLICT, "nothing to undo\n".into()));
+    }
+    app.shared.changed(l);
+    Ok(StatusCode::NO_CONTENT.into_response())
+}
+
+async fn redo(State(app): State<Arc<App>>) -> Answer {
+    let mut l = app.shared.lock();
+    if !l.session.redo().map_err(request_error)? {
+        return Err((StatusCode::CONFLICT, "nothing to redo\n".into()));
+    }
+    app.shared.changed(l);
+    Ok(StatusCode::NO_CONTENT.into_response())
 }
 
 /// Serves `router` on `listener` until the process ends.

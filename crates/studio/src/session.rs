@@ -1,16 +1,31 @@
-//! A studio session: a pipeline in a folder of its own (`session.yaml`),
-//! run by the same engine and cache as `matflow run`, and what its scene
-//! stage made, as images a page can show.
+//! A studio session: a pipeline in a folder of its own (`session.yaml`,
+//! with the masks its edits use beside it), whose stages are the session.
+//!
+//! ```text
+//! scene      the input: a photo predicted (`matnet`), a bundle, or a
+//!            pipeline file's own stages
+//! mesh       the geometry (and what is chosen past the frame)
+//! lighting   envmap recovery;  recovered: envmap + materials
+//! base       the re-render, keeping its light paths for edits
+//! edit1..N   the edit history, each on the one before
+//! result     the last edit rendered from the kept paths into the photo
+//! quick,     the same at a few samples per pixel: the first look at an
+//! preview    edit (not among the outputs: `matflow run` skips them)
+//! ```
+//!
+//! Undo and redo move the last edit stage between the pipeline and a redo
+//! list. The file is the whole session: `matflow run session.yaml`
+//! computes the studio's result byte for byte, and the studio opening it
+//! takes its edits back.
 
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 
-use matflow_engine::exec::Silent;
-use matflow_engine::{run_pipeline, LocalExecutor, Store, Tiered};
-use matflow_nodes::SceneData;
-use matflow_scene::{GrayImage, RgbImage};
+use matflow_engine::spec::Pipeline;
+use matflow_engine::value::{parse_yaml, Value};
+use matflow_engine::{ParamType, Registry};
+use matflow_scene::Image;
 
-/// What went wrong opening or running a session.
+/// What went wrong opening, changing or running a session.
 #[derive(Debug, thiserror::Error)]
 pub enum SessionError {
     #[error("{0}: not a photo (.png, .jpg, .jpeg, .exr), a bundle folder or a pipeline (.yaml)")]
@@ -22,206 +37,608 @@ pub enum SessionError {
     },
     #[error("{0}")]
     Pipeline(String),
+    /// A request the session cannot take (a 4xx).
+    #[error("{0}")]
+    Request(String),
 }
 
-/// The pipeline a session starts from: a photo is predicted (`matnet`), a
-/// bundle read as it is (`bundle`, its predictions), a pipeline file taken
-/// whole. Its scene stage is named `scene`.
-pub fn starting_pipeline(input: &Path) -> Result<String, SessionError> {
-    let quoted = serde_json::to_string(&input.display().to_string()).unwrap_or_default();
-    let ext = input
-        .extension()
-        .map(|e| e.to_string_lossy().to_lowercase())
-        .unwrap_or_default();
-    if input.is_dir() {
-        return Ok(format!(
-            "pipeline: studio\noutputs: [scene]\nstages:\n  scene:\n    kind: bundle\n    path: {quoted}\n    materials: pred\n"
+fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> SessionError + '_ {
+    move |source| SessionError::Io {
+        path: path.to_path_buf(),
+        source,
+    }
+}
+
+/// One stage as the file spells it: its name and its fields, each value
+/// YAML flow text (`kind` first).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Stage {
+    pub name: String,
+    pub fields: Vec<(String, String)>,
+}
+
+impl Stage {
+    fn new(name: &str, fields: &[(&str, String)]) -> Stage {
+        Stage {
+            name: name.into(),
+            fields: fields
+                .iter()
+                .map(|(k, v)| (k.to_string(), v.clone()))
+                .collect(),
+        }
+    }
+    pub fn get(&self, key: &str) -> Option<&str> {
+        self.fields
+            .iter()
+            .find(|(k, _)| k == key)
+            .map(|(_, v)| v.as_str())
+    }
+    fn set(&mut self, key: &str, value: String) {
+        match self.fields.iter_mut().find(|(k, _)| k == key) {
+            Some(f) => f.1 = value,
+            None => self.fields.push((key.into(), value)),
+        }
+    }
+    /// What the edit does, for the history list: its kind and fields.
+    pub fn describe(&self) -> String {
+        let fields: Vec<String> = self
+            .fields
+            .iter()
+            .filter(|(k, _)| k != "kind" && k != "materials")
+            .map(|(k, v)| format!("{k} {v}"))
+            .collect();
+        format!("{}: {}", self.name, fields.join(", "))
+    }
+}
+
+/// A string as YAML: bare where YAML reads it back as this string (a
+/// name, a file name), else double-quoted (JSON's quoting is YAML's).
+fn quoted(s: &str) -> String {
+    let plain = s.chars().next().is_some_and(|c| c.is_ascii_alphabetic())
+        && s.chars()
+            .all(|c| c.is_ascii_alphanumeric() || matches!(c, '_' | '-' | '.'))
+        && !matches!(
+            s.to_ascii_lowercase().as_str(),
+            "true" | "false" | "null" | "yes" | "no" | "on" | "off" | "y" | "n" | "inf" | "nan"
+        );
+    if plain {
+        s.into()
+    } else {
+        serde_json::to_string(s).unwrap_or_default()
+    }
+}
+
+/// [`quoted`]'s text back as the string.
+fn unquoted(v: &str) -> String {
+    serde_json::from_str(v).unwrap_or_else(|_| v.to_string())
+}
+
+/// A number as YAML that reads back as the same f64 (and as a number
+/// where an integer is asked, when it is whole).
+fn number(x: f64) -> String {
+    if x.fract() == 0.0 && x.abs() < 1e15 {
+        format!("{}", x as i64)
+    } else {
+        format!("{x:?}")
+    }
+}
+
+/// A parsed value back as YAML flow text.
+fn flow(v: &Value) -> String {
+    match v {
+        Value::Null => "~".into(),
+        Value::Bool(b) => b.to_string(),
+        Value::Int(i) => i.to_string(),
+        Value::Float(f) => format!("{f:?}"),
+        Value::Str(s) => quoted(s),
+        Value::List(l) => format!("[{}]", l.iter().map(flow).collect::<Vec<_>>().join(", ")),
+        Value::Map(m) => format!(
+            "{{{}}}",
+            m.iter()
+                .map(|(k, _, v, _)| format!("{}: {}", quoted(k), flow(v)))
+                .collect::<Vec<_>>()
+                .join(", ")
+        ),
+    }
+}
+
+/// The stage names the studio writes itself.
+const GENERATED: [&str; 3] = ["quick", "preview", "result"];
+
+/// Samples per pixel of the first look at an edit.
+pub const PREVIEW_SPP: i64 = 4;
+
+/// A material change, as the page sends it: each field optional, the
+/// albedo γ-encoded (as a colour picker shows it).
+#[derive(Clone, Debug, Default, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Change {
+    pub albedo: Option<[f64; 3]>,
+    pub hue_shift: Option<f64>,
+    pub saturation_scale: Option<f64>,
+    pub value_scale: Option<f64>,
+    pub roughness: Option<f64>,
+    pub metallic: Option<f64>,
+}
+
+/// A session: its folder and its stages.
+pub struct Session {
+    pub dir: PathBuf,
+    base: Vec<Stage>,
+    edits: Vec<Stage>,
+    undone: Vec<Stage>,
+}
+
+impl Session {
+    /// A session on `input` (a photo, a bundle folder or a pipeline file,
+    /// absolute) kept in `dir`: its `session.yaml` is written.
+    pub fn open(input: &Path, dir: &Path, reg: &Registry) -> Result<Session, SessionError> {
+        std::fs::create_dir_all(dir).map_err(io_err(dir))?;
+        let ext = input
+            .extension()
+            .map(|e| e.to_string_lossy().to_lowercase())
+            .unwrap_or_default();
+        let path = quoted(&input.display().to_string());
+        let (mut base, edits) = if input.is_dir() {
+            let scene = Stage::new(
+                "scene",
+                &[
+                    ("kind", "bundle".into()),
+                    ("path", path),
+                    ("materials", "pred".into()),
+                ],
+            );
+            (vec![scene], vec![])
+        } else {
+            match ext.as_str() {
+                "png" | "jpg" | "jpeg" | "exr" => (
+                    vec![Stage::new(
+                        "scene",
+                        &[("kind", "matnet".into()), ("photo", path)],
+                    )],
+                    vec![],
+                ),
+                "yaml" | "yml" => stages_of_file(input, dir, reg)?,
+                _ => return Err(SessionError::Input(input.to_path_buf())),
+            }
+        };
+        complete_base(&mut base)?;
+        let s = Session {
+            dir: dir.to_path_buf(),
+            base,
+            edits,
+            undone: vec![],
+        };
+        s.pipeline(reg)?;
+        s.save()?;
+        Ok(s)
+    }
+
+    /// The stage the renders take their materials from.
+    fn last(&self) -> &str {
+        self.edits.last().map_or("recovered", |e| e.name.as_str())
+    }
+
+    /// The session as pipeline text.
+    pub fn yaml(&self) -> String {
+        let base = self
+            .stage("base")
+            .cloned()
+            .unwrap_or_else(|| Stage::new("base", &[]));
+        let mut quick = base.clone();
+        quick.name = "quick".into();
+        quick.set("spp", PREVIEW_SPP.to_string());
+        quick.set("path_spp", "1".into());
+        let render = |name: &str, paths: &str| {
+            Stage::new(
+                name,
+                &[
+                    ("kind", "render".into()),
+                    ("mesh", "mesh".into()),
+                    ("paths", paths.into()),
+                    ("materials", self.last().into()),
+                    ("photo", "scene".into()),
+                ],
+            )
+        };
+        let preview = render("preview", "quick");
+        let mut result = render("result", "base");
+        result.set("output", quoted("result.exr"));
+        let mut out = String::from(
+            "# A matflow studio session: `matflow run session.yaml` renders its\n\
+             # result (result.exr); `matflow studio session.yaml` opens it again.\n\
+             pipeline: studio\noutputs: [result]\nstages:\n",
+        );
+        let all = self.base.iter().chain(&self.edits);
+        for st in all.chain([&quick, &preview, &result]) {
+            out += &format!("  {}:\n", st.name);
+            for (k, v) in &st.fields {
+                out += &format!("    {k}: {v}\n");
+            }
+        }
+        out
+    }
+
+    fn stage(&self, name: &str) -> Option<&Stage> {
+        self.base.iter().chain(&self.edits).find(|s| s.name == name)
+    }
+
+    /// The session's pipeline, validated.
+    pub fn pipeline(&self, reg: &Registry) -> Result<Pipeline, SessionError> {
+        matflow_engine::spec::parse(&self.yaml(), &self.dir.join("session.yaml"), reg, &[])
+            .map_err(|e| SessionError::Pipeline(e.to_string()))
+    }
+
+    /// Writes `session.yaml` (when it changed).
+    pub fn save(&self) -> Result<(), SessionError> {
+        let f = self.dir.join("session.yaml");
+        matflow_scene::io::write_if_changed(&f, self.yaml().as_bytes())
+            .map_err(|e| SessionError::Pipeline(e.to_string()))?;
+        Ok(())
+    }
+
+    /// Adds an edit of `mask` by `change` (its mask written beside the
+    /// pipeline, named by its contents); the redo list is dropped. Checked
+    /// as the engine checks any pipeline before it is taken.
+    pub fn edit(
+        &mut self,
+        mask: &Image<bool>,
+        change: &Change,
+        reg: &Registry,
+    ) -> Result<(), SessionError> {
+        if !mask.data.iter().any(|&b| b) {
+            return Err(SessionError::Request("select something first".into()));
+        }
+        let png = matflow_scene::io::png_mask_bytes(mask)
+            .map_err(|e| SessionError::Pipeline(e.to_string()))?;
+        let hex = matflow_engine::store::Digest::of(&png).hex();
+        let name = format!("mask-{}.png", &hex[..16]);
+        let file = self.dir.join(&name);
+        matflow_scene::io::write_if_changed(&file, &png)
+            .map_err(|e| SessionError::Pipeline(e.to_string()))?;
+        let mut st = Stage::new(
+            &format!("edit{}", self.edits.len() + 1),
+            &[
+                ("kind", "edit".into()),
+                ("materials", self.last().into()),
+                ("mask_png", quoted(&name)),
+            ],
+        );
+        if let Some(a) = change.albedo {
+            st.set("albedo", format!("[{}]", a.map(number).join(", ")));
+        }
+        for (k, v) in [
+            ("hue_shift", change.hue_shift),
+            ("saturation_scale", change.saturation_scale),
+            ("value_scale", change.value_scale),
+            ("roughness", change.roughness),
+            ("metallic", change.metallic),
+        ] {
+            if let Some(v) = v {
+                st.set(k, number(v));
+            }
+        }
+        if st.fields.len() == 3 {
+            return Err(SessionError::Request(
+                "the change changes nothing: give albedo, hue_shift, saturation_scale, \
+                 value_scale, roughness or metallic"
+                    .into(),
+            ));
+        }
+        self.edits.push(st);
+        if let Err(e) = self.pipeline(reg) {
+            self.edits.pop();
+            return Err(SessionError::Request(e.to_string()));
+        }
+        self.undone.clear();
+        self.save()
+    }
+
+    /// Takes the last edit back (kept for redo); false when there is none.
+    pub fn undo(&mut self) -> Result<bool, SessionError> {
+        let Some(e) = self.edits.pop() else {
+            return Ok(false);
+        };
+        self.undone.push(e);
+        self.save()?;
+        Ok(true)
+    }
+
+    /// Puts the last edit taken back in again; false when there is none.
+    pub fn redo(&mut self) -> Result<bool, SessionError> {
+        let Some(e) = self.undone.pop() else {
+            return Ok(false);
+        };
+        self.edits.push(e);
+        self.save()?;
+        Ok(true)
+    }
+
+    /// The edit history (oldest first) and how many edits redo can bring
+    /// back.
+    pub fn history(&self) -> (Vec<String>, usize) {
+        (
+            self.edits.iter().map(Stage::describe).collect(),
+            self.undone.len(),
+        )
+    }
+
+    /// The session as a tar archive: `session.yaml` and the masks its
+    /// edits name, flat beside it; unpacked anywhere, `matflow run
+    /// session.yaml` renders the result.
+    pub fn export(&self) -> Result<Vec<u8>, SessionError> {
+        let mut tar = matflow_dataset::tar::Writer::new();
+        let bad = |e: matflow_dataset::tar::TarError| SessionError::Pipeline(e.to_string());
+        tar.add("session.yaml", self.yaml().as_bytes())
+            .map_err(bad)?;
+        let mut masks: Vec<String> = self
+            .edits
+            .iter()
+            .filter_map(|e| e.get("mask_png"))
+            .map(unquoted)
+            .collect();
+        masks.sort();
+        masks.dedup();
+        for m in masks {
+            let f = self.dir.join(&m);
+            let bytes = std::fs::read(&f).map_err(io_err(&f))?;
+            tar.add(&m, &bytes).map_err(bad)?;
+        }
+        Ok(tar.finish())
+    }
+}
+
+/// The studio's stages after the scene, where the input does not have
+/// them: the mesh, the recovery and the kept-path render.
+fn complete_base(base: &mut Vec<Stage>) -> Result<(), SessionError> {
+    if !base.iter().any(|s| s.name == "scene") {
+        return Err(SessionError::Request(
+            "the pipeline has no `scene` stage (a matnet, bundle or synthetic_scene stage \
+             named `scene`)"
+                .into(),
         ));
     }
-    match ext.as_str() {
-        "png" | "jpg" | "jpeg" | "exr" => Ok(format!(
-            "pipeline: studio\noutputs: [scene]\nstages:\n  scene:\n    kind: matnet\n    photo: {quoted}\n"
-        )),
-        "yaml" | "yml" => std::fs::read_to_string(input).map_err(|source| SessionError::Io {
-            path: input.to_path_buf(),
-            source,
-        }),
-        _ => Err(SessionError::Input(input.to_path_buf())),
-    }
-}
-
-/// A session's images: the photo and the scene's maps, each as a PNG.
-#[derive(Default)]
-pub struct Maps {
-    pub images: Vec<(&'static str, Vec<u8>)>,
-    pub width: usize,
-    pub height: usize,
-}
-
-/// The names of the images a session shows, in the page's order.
-pub const MAP_NAMES: [&str; 6] = [
-    "photo",
-    "albedo",
-    "roughness",
-    "metallic",
-    "normal",
-    "depth",
-];
-
-/// Runs the session's pipeline (`session.yaml` in `dir`) with `cache`
-/// and returns its scene's images and the run's one-line summary.
-pub fn run(dir: &Path, cache: &Path) -> Result<(Maps, String), SessionError> {
-    let file = dir.join("session.yaml");
-    let reg = matflow_nodes::registry();
-    let p = matflow_engine::spec::load(&file, &reg, &[])
-        .map_err(|e| SessionError::Pipeline(e.to_string()))?;
-    let store = Arc::new(Tiered::new(
-        Store::open(cache).map_err(|e| SessionError::Pipeline(e.to_string()))?,
-        None,
-    ));
-    let reg = Arc::new(reg);
-    let exec = LocalExecutor::new(reg.clone(), store.clone(), 1);
-    let report = run_pipeline(&p, &reg, &store, &exec, &Silent);
-    if let Some(f) = report.failure() {
-        return Err(SessionError::Pipeline(f));
-    }
-    let scene = report
-        .stages
-        .iter()
-        .find(|s| s.name == "scene")
-        .and_then(|s| s.outputs.get("scene"))
-        .ok_or_else(|| SessionError::Pipeline("the pipeline has no `scene` stage".into()))?;
-    let digest = matflow_engine::store::Digest::from_hex(scene)
-        .ok_or_else(|| SessionError::Pipeline(format!("bad digest {scene}")))?;
-    let bytes = store
-        .get(&digest)
-        .map_err(|e| SessionError::Pipeline(e.to_string()))?
-        .ok_or_else(|| SessionError::Pipeline("the scene is not in the cache".into()))?;
-    let s = SceneData::decode(&bytes).map_err(|e| SessionError::Pipeline(e.0))?;
-    let summary = format!(
-        "{}: {} executed, {} cached in {:.2} s",
-        report.pipeline,
-        report
-            .stages
-            .iter()
-            .filter(|s| s.status == matflow_engine::Status::Executed)
-            .count(),
-        report
-            .stages
-            .iter()
-            .filter(|s| s.status == matflow_engine::Status::Cached)
-            .count(),
-        report.seconds
-    );
-    Ok((maps(&s), summary))
-}
-
-/// The scene's images for display: the photo and albedo γ-encoded,
-/// roughness and metallic as their values, normals as (n + 1) / 2, depth
-/// as nearness (the nearest surface white, the sky black).
-fn maps(s: &SceneData) -> Maps {
-    let (w, h) = (s.depth.width, s.depth.height);
-    let gamma = |img: &RgbImage| {
-        matflow_scene::io::encode_png_gamma(Path::new("image"), img).unwrap_or_default()
-    };
-    let mut images = Vec::new();
-    if let Some(photo) = &s.target {
-        images.push(("photo", gamma(photo)));
-    }
-    images.push(("albedo", gamma(&s.pred.albedo)));
-    images.push(("roughness", values(&s.pred.roughness.to_rgb())));
-    images.push(("metallic", values(&s.pred.metallic.to_rgb())));
-    if let Some(n) = &s.pred.normal {
-        let shown = RgbImage::from_vec(
-            n.width,
-            n.height,
-            n.data.iter().map(|v| (*v + 1.0) * 0.5).collect(),
-        );
-        images.push(("normal", values(&shown)));
-    }
-    images.push(("depth", values(&nearness(&s.depth).to_rgb())));
-    Maps {
-        images,
-        width: w,
-        height: h,
-    }
-}
-
-/// Depth as nearness in [0, 1]: the nearest surface 1, the farthest a
-/// tenth, the sky (z ≤ 0 or not finite) 0.
-fn nearness(depth: &GrayImage) -> GrayImage {
-    let seen = |z: f32| z.is_finite() && z > 0.0;
-    let (lo, hi) = depth
-        .data
-        .iter()
-        .copied()
-        .filter(|&z| seen(z))
-        .fold((f32::INFINITY, 0.0f32), |(lo, hi), z| {
-            (lo.min(z), hi.max(z))
-        });
-    let data = depth
-        .data
-        .iter()
-        .map(|&z| {
-            if !seen(z) || hi <= 0.0 {
-                0.0
-            } else if hi - lo <= f32::EPSILON {
-                1.0
-            } else {
-                1.0 - 0.9 * (z - lo) / (hi - lo)
-            }
-        })
-        .collect();
-    GrayImage::from_vec(depth.width, depth.height, data)
-}
-
-/// Values in [0, 1] (clipped; NaN as 0) as an 8-bit PNG, no curve.
-fn values(img: &RgbImage) -> Vec<u8> {
-    let to8 = |c: f32| {
-        if c.is_finite() {
-            (c.clamp(0.0, 1.0) * 255.0).round() as u8
-        } else {
-            0
+    let defaults = [
+        Stage::new(
+            "mesh",
+            &[("kind", "mesh".into()), ("scene", "scene".into())],
+        ),
+        Stage::new(
+            "lighting",
+            &[
+                ("kind", "envmap_opt".into()),
+                ("scene", "scene".into()),
+                ("mesh", "mesh".into()),
+                ("budget_seconds", "10".into()),
+            ],
+        ),
+        Stage::new(
+            "recovered",
+            &[
+                ("kind", "material_opt".into()),
+                ("scene", "scene".into()),
+                ("mesh", "mesh".into()),
+                ("envmap", "lighting".into()),
+                ("budget_seconds", "30".into()),
+            ],
+        ),
+        Stage::new(
+            "base",
+            &[
+                ("kind", "trace".into()),
+                ("mesh", "mesh".into()),
+                ("materials", "recovered".into()),
+                ("envmap", "recovered.envmap".into()),
+                ("spp", "64".into()),
+                ("path_spp", "8".into()),
+            ],
+        ),
+    ];
+    for d in defaults {
+        if !base.iter().any(|s| s.name == d.name) {
+            base.push(d);
         }
-    };
-    let mut out = image::RgbImage::new(img.width as u32, img.height as u32);
-    for (o, v) in out.pixels_mut().zip(img.data.iter()) {
-        *o = image::Rgb([to8(v.x), to8(v.y), to8(v.z)]);
     }
-    let mut buf = std::io::Cursor::new(Vec::new());
-    let _ = out.write_to(&mut buf, image::ImageFormat::Png);
-    buf.into_inner()
+    Ok(())
+}
+
+/// A pipeline file's stages: the edits (`editN`, in order) and the rest;
+/// the stages the studio writes itself are dropped. Its relative input
+/// paths are made absolute, except the edits' masks, which are copied
+/// into the session's folder (they travel with it).
+fn stages_of_file(
+    file: &Path,
+    dir: &Path,
+    reg: &Registry,
+) -> Result<(Vec<Stage>, Vec<Stage>), SessionError> {
+    let text = std::fs::read_to_string(file).map_err(io_err(file))?;
+    let bad = |m: String| SessionError::Pipeline(format!("{}: {m}", file.display()));
+    let (root, _) = parse_yaml(&text).map_err(|e| bad(format!("{}: {}", e.loc, e.message)))?;
+    let Value::Map(top) = root else {
+        return Err(bad("not a pipeline (a mapping with `stages:`)".into()));
+    };
+    let Some((_, _, Value::Map(stages), _)) = top.iter().find(|(k, ..)| k == "stages") else {
+        return Err(bad("no `stages:` mapping".into()));
+    };
+    let folder = file.parent().unwrap_or(Path::new("."));
+    let (mut base, mut edits) = (vec![], vec![]);
+    for (name, _, v, loc) in stages {
+        let Value::Map(fields) = v else {
+            return Err(bad(format!("{loc}: stage `{name}` is not a mapping")));
+        };
+        if GENERATED.contains(&name.as_str()) {
+            continue;
+        }
+        let kind = fields
+            .iter()
+            .find(|(k, ..)| k == "kind")
+            .and_then(|(_, _, v, _)| match v {
+                Value::Str(s) => Some(s.as_str()),
+                _ => None,
+            })
+            .unwrap_or_default();
+        let is_edit = kind == "edit" && name == &format!("edit{}", edits.len() + 1);
+        let specs = reg.get(kind).map(|n| n.params()).unwrap_or(&[]);
+        let mut st = Stage {
+            name: name.clone(),
+            fields: vec![],
+        };
+        for (k, _, v, _) in fields {
+            let in_path = specs
+                .iter()
+                .any(|p| p.name == k && matches!(p.ty, ParamType::InPath));
+            let text = match v {
+                Value::Str(s) if in_path && Path::new(s).is_relative() => {
+                    let from = folder.join(s);
+                    if is_edit {
+                        let to = dir.join(Path::new(s).file_name().unwrap_or_default());
+                        if from != to {
+                            std::fs::copy(&from, &to).map_err(io_err(&from))?;
+                        }
+                        quoted(&to.file_name().unwrap_or_default().to_string_lossy())
+                    } else {
+                        quoted(
+                            &std::path::absolute(&from)
+                                .unwrap_or(from)
+                                .display()
+                                .to_string(),
+                        )
+                    }
+                }
+                _ => flow(v),
+            };
+            st.fields.push((k.clone(), text));
+        }
+        if is_edit {
+            edits.push(st);
+        } else {
+            base.push(st);
+        }
+    }
+    Ok((base, edits))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
-    #[test]
-    fn depth_shows_near_as_bright_and_sky_as_black() {
-        let d = GrayImage::from_vec(4, 1, vec![1.0, 3.0, 0.0, f32::NAN]);
-        let n = nearness(&d);
-        assert_eq!(n.data[0], 1.0);
-        assert!((n.data[1] - 0.1).abs() < 1e-6);
-        assert_eq!(n.data[2], 0.0);
-        assert_eq!(n.data[3], 0.0);
+    fn scratch(what: &str) -> PathBuf {
+        let d = std::env::temp_dir().join(format!("matflow-studio-{what}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        std::fs::create_dir_all(&d).unwrap();
+        d
     }
 
     #[test]
     fn inputs_become_pipelines_by_what_they_are() {
-        let d = std::env::temp_dir().join(format!("matflow-studio-in-{}", std::process::id()));
-        std::fs::create_dir_all(&d).unwrap();
-        let bundle = starting_pipeline(&d).unwrap();
-        assert!(bundle.contains("kind: bundle"), "{bundle}");
-        let photo = starting_pipeline(&d.join("x.JPG")).unwrap();
-        assert!(photo.contains("kind: matnet"), "{photo}");
+        let reg = matflow_nodes::registry();
+        let d = scratch("in");
+        let photo = d.join("x \"odd\": name.PNG");
+        image::RgbImage::new(32, 32)
+            .save_with_format(&photo, image::ImageFormat::Png)
+            .unwrap();
+        let s = Session::open(&photo, &d.join("s1"), &reg).unwrap();
+        let y = s.yaml();
+        assert!(y.contains("kind: matnet"), "{y}");
         // A path with quotes or a colon stays one YAML string.
-        let odd = starting_pipeline(Path::new("a \"b\": c.png")).unwrap();
-        assert!(odd.contains(r#"photo: "a \"b\": c.png""#), "{odd}");
+        assert!(y.contains(r#"x \"odd\": name.PNG""#), "{y}");
+        for stage in [
+            "mesh:",
+            "lighting:",
+            "recovered:",
+            "base:",
+            "quick:",
+            "preview:",
+        ] {
+            assert!(y.contains(stage), "{stage} in {y}");
+        }
         assert!(matches!(
-            starting_pipeline(&d.join("notes.txt")),
+            Session::open(&d.join("notes.txt"), &d.join("s2"), &reg),
             Err(SessionError::Input(_))
         ));
+        let _ = std::fs::remove_dir_all(&d);
+    }
+
+    /// Edits are stages; undo and redo move the last; the file, opened
+    /// elsewhere, is the same session (its masks copied with it).
+    #[test]
+    fn edits_undo_redo_and_a_session_reopened_from_its_file() {
+        let reg = matflow_nodes::registry();
+        let d = scratch("edits");
+        // A pipeline of its own scene and a cheaper recovery.
+        let input = d.join("in.yaml");
+        std::fs::write(
+            &input,
+            "pipeline: mine\noutputs: [lighting]\nstages:\n  scene:\n    kind: synthetic_scene\n    \
+             size: 16\n  lighting:\n    kind: envmap_opt\n    scene: scene\n    mesh: mesh\n    \
+             budget_seconds: 1\n  mesh:\n    kind: mesh\n    scene: scene\n    complete: none\n",
+        )
+        .unwrap();
+        let mut s = Session::open(&input, &d.join("a"), &reg).unwrap();
+        let y = s.yaml();
+        assert!(
+            y.contains("budget_seconds: 1\n") && y.contains("complete: none"),
+            "{y}"
+        );
+        let mask = Image::from_fn(16, 16, |x, _| x < 4);
+        let none = Image::new(16, 16, false);
+        let red = Change {
+            albedo: Some([0.9, 0.1, 0.1]),
+            ..Default::default()
+        };
+        assert!(matches!(
+            s.edit(&none, &red, &reg),
+            Err(SessionError::Request(_))
+        ));
+        assert!(matches!(
+            s.edit(&mask, &Change::default(), &reg),
+            Err(SessionError::Request(_))
+        ));
+        // Out of the edit kind's range: refused with the engine's words.
+        let e = s
+            .edit(
+                &mask,
+                &Change {
+                    roughness: Some(7.0),
+                    ..Default::default()
+                },
+                &reg,
+            )
+            .unwrap_err();
+        assert!(e.to_string().contains("roughness"), "{e}");
+        s.edit(&mask, &red, &reg).unwrap();
+        let shiny = Change {
+            roughness: Some(0.1),
+            metallic: Some(1.0),
+            ..Default::default()
+        };
+        s.edit(&mask, &shiny, &reg).unwrap();
+        let y = s.yaml();
+        assert!(
+            y.contains("edit2:\n    kind: edit\n    materials: edit1\n"),
+            "{y}"
+        );
+        assert!(
+            y.contains("materials: edit2\n    photo: scene\n    output: result.exr"),
+            "{y}"
+        );
+        assert!(s.undo().unwrap());
+        assert!(s
+            .yaml()
+            .contains("materials: edit1\n    photo: scene\n    output"));
+        assert_eq!(s.history().1, 1);
+        assert!(s.redo().unwrap());
+        assert!(!s.redo().unwrap());
+        assert_eq!(s.yaml(), y);
+        // Opened from its own file in another folder: the same stages.
+        let t = Session::open(&d.join("a/session.yaml"), &d.join("b"), &reg).unwrap();
+        assert_eq!(t.yaml(), y);
+        let mask_file = unquoted(t.edits[0].get("mask_png").unwrap());
+        assert!(d.join("b").join(mask_file).is_file());
+        // A new edit after an undo drops what redo would have brought.
+        s.undo().unwrap();
+        s.edit(&mask, &shiny, &reg).unwrap();
+        assert_eq!(s.history().1, 0);
         let _ = std::fs::remove_dir_all(&d);
     }
 }

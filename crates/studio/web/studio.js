@@ -1,51 +1,289 @@
-// matflow studio: polls the session until its pipeline has run, then shows
-// the photo and its maps. Every request carries the page's token, if the
-// page was opened with one (?token=...).
+// matflow studio: the session's status arrives as server-sent events
+// (api/events); the page shows the newest render, the selection over it
+// and the scene's maps, and sends selections and changes as small JSON
+// requests. Every request carries the page's token, if it was opened with
+// one (?token=...).
 
 const token = new URLSearchParams(location.search).get("token");
-const withToken = (url) => (token ? `${url}?token=${encodeURIComponent(token)}` : url);
+const withToken = (url) => {
+  if (!token) return url;
+  return `${url}${url.includes("?") ? "&" : "?"}token=${encodeURIComponent(token)}`;
+};
+const $ = (id) => document.getElementById(id);
 
-const statusEl = document.getElementById("status");
-const mapsEl = document.getElementById("maps");
-const inputEl = document.getElementById("input");
-document.getElementById("export").href = withToken("api/pipeline.yaml");
+const state = { status: null, image: null, photo: null, dims: [1, 1] };
+
+// ---- requests -------------------------------------------------------------
+
+async function post(path, body, type = "application/json") {
+  const headers = { "content-type": type };
+  if (token) headers.authorization = `Bearer ${token}`;
+  const r = await fetch(path, {
+    method: "POST",
+    headers,
+    body: type === "application/json" ? JSON.stringify(body ?? {}) : body,
+  });
+  if (!r.ok) throw new Error((await r.text()).trim() || `${r.status}`);
+  return r.status === 204 ? null : r.json();
+}
+
+function showError(e) {
+  $("error").textContent = e ? e.message ?? String(e) : "";
+}
+
+function loadImage(url) {
+  return new Promise((resolve, reject) => {
+    const img = new Image();
+    img.onload = () => resolve(img);
+    img.onerror = () => reject(new Error(`cannot load ${url}`));
+    img.src = withToken(url);
+  });
+}
+
+// ---- drawing --------------------------------------------------------------
+
+function sizeCanvases(w, h) {
+  if (state.dims[0] === w && state.dims[1] === h) return;
+  state.dims = [w, h];
+  for (const id of ["before", "view", "overlay"]) {
+    $(id).width = w;
+    $(id).height = h;
+  }
+  $("frame").style.aspectRatio = `${w} / ${h}`;
+}
+
+// The view: the "after" image, with the photo ("before") left of the split.
+function draw() {
+  const [w, h] = state.dims;
+  const before = $("before").getContext("2d");
+  const view = $("view").getContext("2d");
+  before.clearRect(0, 0, w, h);
+  view.clearRect(0, 0, w, h);
+  if (state.photo) before.drawImage(state.photo, 0, 0, w, h);
+  const after = state.image ?? state.photo;
+  if (after) view.drawImage(after, 0, 0, w, h);
+  // The split is a clip on the view canvas, so the before image shows
+  // through its left part.
+  const split = Number($("split").value);
+  $("view").style.clipPath = split > 0 ? `inset(0 0 0 ${split * 100}%)` : "none";
+}
+
+async function refreshOverlay() {
+  try {
+    const img = await loadImage(`api/images/selection.png?n=${Date.now()}`);
+    const ctx = $("overlay").getContext("2d");
+    ctx.clearRect(0, 0, ...state.dims);
+    ctx.drawImage(img, 0, 0, ...state.dims);
+  } catch (e) {
+    showError(e);
+  }
+}
+
+// ---- the session's status -------------------------------------------------
+
+let shownKey = "";
+let mapsShown = false;
+
+async function onStatus(s) {
+  state.status = s;
+  $("input").textContent = s.input;
+  const where = s.stage ? ` — ${s.stage}${s.total ? ` ${s.done}/${s.total}` : s.done ? ` step ${s.done}` : ""}` : "";
+  $("status").textContent = `${s.state}: ${s.message}${where}`;
+  $("status").className = `status ${s.state}`;
+  const p = $("progress");
+  if (s.state === "running" && s.total > 0) {
+    p.max = s.total;
+    p.value = s.done;
+  } else if (s.state === "running") {
+    p.removeAttribute("value");
+  } else {
+    p.max = 1;
+    p.value = 1;
+  }
+  $("selected").textContent = s.selected ? `${s.selected} px selected` : "nothing selected";
+  $("undo").disabled = s.history.length === 0;
+  $("redo").disabled = s.redo === 0;
+  const list = $("history");
+  list.replaceChildren(
+    ...s.history.map((h) => {
+      const li = document.createElement("li");
+      li.textContent = h;
+      return li;
+    }),
+  );
+  if (s.width && s.height) sizeCanvases(s.width, s.height);
+  if (!mapsShown && s.maps.length) {
+    mapsShown = true;
+    showMaps(s);
+    if (s.maps.includes("photo")) {
+      state.photo = await loadImage("api/maps/photo.png");
+      draw();
+    }
+    refreshOverlay();
+  }
+  const key = `${s.shown}/${s.image}`;
+  if (s.image && key !== shownKey) {
+    shownKey = key;
+    const img = await loadImage(`api/images/${s.image}.png?g=${s.shown}`);
+    // A newer status may have come while this one loaded.
+    if (shownKey === key) {
+      state.image = img;
+      draw();
+      document.body.dataset.shown = key;
+    }
+  }
+  document.body.dataset.state = s.state;
+}
 
 function showMaps(s) {
-  mapsEl.replaceChildren();
+  const maps = $("maps");
+  maps.replaceChildren();
   for (const name of s.maps) {
     const fig = document.createElement("figure");
     const img = document.createElement("img");
     img.src = withToken(`api/maps/${name}.png`);
     img.alt = name;
-    // Shown at a readable size whatever the image's own (pixels kept sharp).
     img.style.aspectRatio = `${s.width} / ${s.height}`;
     const cap = document.createElement("figcaption");
     cap.textContent = name;
     fig.append(img, cap);
-    mapsEl.append(fig);
+    maps.append(fig);
   }
 }
 
-async function poll() {
-  let s;
+function listen() {
+  const es = new EventSource(withToken("api/events"));
+  es.onmessage = (m) => {
+    if (m.data) onStatus(JSON.parse(m.data)).catch(showError);
+  };
+  es.onerror = () => {
+    $("status").textContent = "no answer from the studio; retrying…";
+    $("status").className = "status failed";
+  };
+}
+
+// ---- selection ------------------------------------------------------------
+
+const tool = () => document.querySelector("input[name=tool]:checked").value;
+
+function toImage(e) {
+  const r = $("overlay").getBoundingClientRect();
+  const [w, h] = state.dims;
+  return [((e.clientX - r.left) * w) / r.width, ((e.clientY - r.top) * h) / r.height];
+}
+
+const modeOf = (e) => (e.altKey ? "remove" : e.shiftKey ? "add" : "set");
+
+async function select(path, body) {
   try {
-    const r = await fetch(withToken("api/session"));
-    if (!r.ok) throw new Error(`${r.status} ${await r.text()}`);
-    s = await r.json();
+    showError(null);
+    await post(path, body);
+    await refreshOverlay();
   } catch (e) {
-    statusEl.textContent = `no answer: ${e.message}`;
-    statusEl.className = "status failed";
-    setTimeout(poll, 2000);
-    return;
-  }
-  inputEl.textContent = s.input;
-  statusEl.textContent = `${s.state}: ${s.message}`;
-  statusEl.className = `status ${s.state}`;
-  if (s.state === "ready") {
-    showMaps(s);
-  } else if (s.state === "running") {
-    setTimeout(poll, 500);
+    showError(e);
   }
 }
 
-poll();
+let drag = null;
+
+$("overlay").addEventListener("pointerdown", (e) => {
+  const [x, y] = toImage(e);
+  const mode = modeOf(e);
+  if (tool() === "object") {
+    select("api/select", { x, y, mode, tolerance: Number($("tolerance").value) });
+  } else if (tool() === "rect") {
+    drag = { x0: x, y0: y, mode };
+  } else {
+    // A brush adds (alt: erases) dabs along the stroke.
+    drag = { points: [[x, y]], mode: e.altKey ? "remove" : "add" };
+  }
+  $("overlay").setPointerCapture(e.pointerId);
+});
+
+$("overlay").addEventListener("pointermove", (e) => {
+  if (!drag) return;
+  const [x, y] = toImage(e);
+  if (drag.points) {
+    drag.points.push([x, y]);
+    const ctx = $("overlay").getContext("2d");
+    ctx.fillStyle = drag.mode === "remove" ? "rgba(0,0,0,0.4)" : "rgba(40,160,255,0.43)";
+    ctx.beginPath();
+    ctx.arc(x, y, Number($("radius").value), 0, 2 * Math.PI);
+    ctx.fill();
+  } else {
+    drag.x1 = x;
+    drag.y1 = y;
+  }
+});
+
+$("overlay").addEventListener("pointerup", (e) => {
+  if (!drag) return;
+  const d = drag;
+  drag = null;
+  const [x, y] = toImage(e);
+  if (d.points) {
+    select("api/select/brush", { points: d.points, radius: Number($("radius").value), mode: d.mode });
+  } else {
+    select("api/select/rect", { x0: d.x0, y0: d.y0, x1: x, y1: y, mode: d.mode });
+  }
+});
+
+$("clear").addEventListener("click", () => select("api/select/clear"));
+
+$("mask").addEventListener("change", async () => {
+  const f = $("mask").files[0];
+  if (!f) return;
+  try {
+    showError(null);
+    await post("api/select/mask?mode=set", await f.arrayBuffer(), "image/png");
+    await refreshOverlay();
+  } catch (e) {
+    showError(e);
+  }
+});
+
+// ---- changes --------------------------------------------------------------
+
+for (const [id, digits] of [["tolerance", 2], ["radius", 0], ["hue", 0], ["sat", 2], ["val", 2], ["rough", 2], ["metal", 2]]) {
+  const show = () => ($(`${id}-v`).textContent = Number($(id).value).toFixed(digits));
+  $(id).addEventListener("input", show);
+  show();
+}
+$("rough").addEventListener("input", () => ($("set-rough").checked = true));
+$("metal").addEventListener("input", () => ($("set-metal").checked = true));
+$("albedo").addEventListener("input", () => ($("set-albedo").checked = true));
+$("split").addEventListener("input", draw);
+
+// The change the controls describe: only what is set or moved.
+function change() {
+  const c = {};
+  if ($("set-albedo").checked) {
+    const hex = $("albedo").value;
+    c.albedo = [1, 3, 5].map((i) => Math.round((parseInt(hex.slice(i, i + 2), 16) / 255) * 1000) / 1000);
+  }
+  if (Number($("hue").value) !== 0) c.hue_shift = Number($("hue").value);
+  if (Number($("sat").value) !== 1) c.saturation_scale = Number($("sat").value);
+  if (Number($("val").value) !== 1) c.value_scale = Number($("val").value);
+  if ($("set-rough").checked) c.roughness = Number($("rough").value);
+  if ($("set-metal").checked) c.metallic = Number($("metal").value);
+  return c;
+}
+
+async function act(path, body) {
+  try {
+    showError(null);
+    await post(path, body);
+  } catch (e) {
+    showError(e);
+  }
+}
+
+$("apply").addEventListener("click", () => act("api/edit", change()));
+$("undo").addEventListener("click", () => act("api/undo"));
+$("redo").addEventListener("click", () => act("api/redo"));
+
+$("dl-png").href = withToken("api/images/result.png");
+$("dl-exr").href = withToken("api/images/result.exr");
+$("export").href = withToken("api/export.tar");
+
+listen();

@@ -1,0 +1,335 @@
+//! The live session: its state behind one lock, and the one thread that
+//! runs its pipeline on the engine. A change bumps the session's
+//! generation and wakes the runner; the runner works on the newest
+//! generation only: a run that a newer change supersedes submits nothing
+//! more (the engine asks [`Observer::cancelled`] between stages), and its
+//! renders are never shown. Every change of state is published as JSON
+//! for the page's event stream.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::time::Instant;
+
+use matflow_engine::exec::{Observer, StageReport};
+use matflow_engine::store::Digest;
+use matflow_engine::{run_pipeline, LocalExecutor, Registry, Status as StageStatus, Store, Tiered};
+use matflow_nodes::SceneData;
+use matflow_scene::{Camera, GrayImage, Image, RgbImage};
+
+use crate::session::{Session, SessionError};
+use crate::view;
+
+/// Where the session stands, as `/api/session` and the event stream say.
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct Status {
+    /// `running`, `ready` or `failed`.
+    pub state: &'static str,
+    pub input: String,
+    pub message: String,
+    pub width: usize,
+    pub height: usize,
+    /// The maps `/api/maps/NAME.png` serves.
+    pub maps: Vec<&'static str>,
+    /// The stage running now and its progress (`total` 0: steps of an
+    /// open-ended count).
+    pub stage: String,
+    pub done: u64,
+    pub total: u64,
+    /// How many changes the session has had; `shown` is the one the
+    /// image is of, `image` which image that is (`preview` at a few
+    /// samples per pixel, then `result`).
+    pub generation: u64,
+    pub shown: u64,
+    pub image: Option<&'static str>,
+    /// Seconds from the change to its preview and to its result.
+    pub preview_seconds: Option<f64>,
+    pub result_seconds: Option<f64>,
+    /// The edit history, oldest first, and how many redo can bring back.
+    pub history: Vec<String>,
+    pub redo: usize,
+    /// Pixels selected.
+    pub selected: usize,
+}
+
+/// What selection grows over.
+pub struct Surfaces {
+    pub albedo: RgbImage,
+    pub depth: GrayImage,
+    pub normals: Option<RgbImage>,
+    pub camera: Camera,
+}
+
+/// The session's state.
+pub struct Live {
+    pub session: Session,
+    pub status: Status,
+    pub surfaces: Option<Surfaces>,
+    pub selection: Image<bool>,
+    /// PNGs by name (the maps, `preview`, `result`) and `result.exr`.
+    pub images: BTreeMap<String, Vec<u8>>,
+    /// When the newest change was asked for.
+    changed_at: Instant,
+}
+
+/// The state, the runner's wake-up and the published status.
+pub struct Shared {
+    live: Mutex<Live>,
+    wake: Condvar,
+    pub events: tokio::sync::watch::Sender<String>,
+    pub registry: Registry,
+}
+
+impl Shared {
+    pub fn new(session: Session, input: String) -> Arc<Shared> {
+        let (events, _) = tokio::sync::watch::channel(String::new());
+        let mut status = Status {
+            state: "running",
+            input,
+            message: "running the session's pipeline".into(),
+            ..Default::default()
+        };
+        (status.history, status.redo) = session.history();
+        let s = Arc::new(Shared {
+            live: Mutex::new(Live {
+                session,
+                status,
+                surfaces: None,
+                selection: Image::new(0, 0, false),
+                images: BTreeMap::new(),
+                changed_at: Instant::now(),
+            }),
+            wake: Condvar::new(),
+            events,
+            registry: matflow_nodes::registry(),
+        });
+        s.publish(&s.lock());
+        s
+    }
+
+    pub fn lock(&self) -> MutexGuard<'_, Live> {
+        self.live.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Sends the status to the event stream.
+    pub fn publish(&self, live: &Live) {
+        let json = serde_json::to_string(&live.status).unwrap_or_default();
+        self.events.send_replace(json);
+    }
+
+    /// After a change of the session's stages: a new generation, the
+    /// runner woken, the status published.
+    pub fn changed(&self, mut live: MutexGuard<'_, Live>) {
+        live.status.generation += 1;
+        live.changed_at = Instant::now();
+        (live.status.history, live.status.redo) = live.session.history();
+        live.status.state = "running";
+        live.status.message = "rendering the change".into();
+        self.publish(&live);
+        drop(live);
+        self.wake.notify_all();
+    }
+}
+
+/// The engine's progress for one generation, into the status.
+struct Progress<'a> {
+    shared: &'a Shared,
+    generation: u64,
+}
+
+impl Observer for Progress<'_> {
+    fn started(&self, stage: &str, _kind: &str, _worker: &str) {
+        let mut l = self.shared.lock();
+        l.status.stage = stage.into();
+        (l.status.done, l.status.total) = (0, 0);
+        self.shared.publish(&l);
+    }
+    fn progress(&self, stage: &str, done: u64, total: u64) {
+        let mut l = self.shared.lock();
+        l.status.stage = stage.into();
+        (l.status.done, l.status.total) = (done, total);
+        self.shared.publish(&l);
+    }
+    fn finished(&self, _report: &StageReport) {}
+    fn cancelled(&self) -> bool {
+        self.shared.lock().status.generation != self.generation
+    }
+}
+
+/// The runner: forever, the newest generation's scene (once), preview
+/// and result. Runs on its own thread.
+pub fn runner(shared: Arc<Shared>, cache: &Path) {
+    let store = match Store::open(cache) {
+        Ok(s) => Arc::new(Tiered::new(s, None)),
+        Err(e) => return fail(&shared, &format!("{}: {e}", cache.display())),
+    };
+    let reg = Arc::new(matflow_nodes::registry());
+    let exec = LocalExecutor::new(reg.clone(), store.clone(), 1);
+    let mut ran: Option<u64> = None;
+    loop {
+        let (generation, pipeline, since) = {
+            let mut l = shared.lock();
+            while ran == Some(l.status.generation) {
+                l = shared.wake.wait(l).unwrap_or_else(|e| e.into_inner());
+            }
+            (l.status.generation, l.session.pipeline(&reg), l.changed_at)
+        };
+        ran = Some(generation);
+        let mut p = match pipeline {
+            Ok(p) => p,
+            Err(e) => {
+                fail(&shared, &e.to_string());
+                continue;
+            }
+        };
+        let obs = Progress {
+            shared: &shared,
+            generation,
+        };
+        let mut run = |outputs: &[&str]| -> Result<Option<matflow_engine::Report>, String> {
+            p.outputs = outputs.iter().map(|s| s.to_string()).collect();
+            let report = run_pipeline(&p, &reg, &store, &exec, &obs);
+            if let Some(f) = report.failure() {
+                return Err(f);
+            }
+            if obs.cancelled() {
+                return Ok(None);
+            }
+            Ok(Some(report))
+        };
+        let needs_maps = shared.lock().surfaces.is_none();
+        if needs_maps {
+            match run(&["scene"]).and_then(|r| match r {
+                Some(r) => load_scene(&shared, &r, &store),
+                None => Ok(()),
+            }) {
+                Ok(()) => {}
+                Err(e) => {
+                    fail(&shared, &e);
+                    continue;
+                }
+            }
+        }
+        for (stage, name) in [("preview", "preview"), ("result", "result")] {
+            let report = match run(&[stage]) {
+                Ok(Some(r)) => r,
+                Ok(None) => break,
+                Err(e) => {
+                    fail(&shared, &e);
+                    break;
+                }
+            };
+            let img = match output_image(&report, &store, stage) {
+                Ok(i) => i,
+                Err(e) => {
+                    fail(&shared, &e);
+                    break;
+                }
+            };
+            let (png, exr) = view::render_files(&img);
+            let mut l = shared.lock();
+            if l.status.generation != generation {
+                break;
+            }
+            let seconds = since.elapsed().as_secs_f64();
+            l.images.insert(name.into(), png);
+            l.status.shown = generation;
+            l.status.image = Some(name);
+            if name == "result" {
+                l.images.insert("result.exr".into(), exr);
+                l.status.result_seconds = Some(seconds);
+                l.status.state = "ready";
+                l.status.message = summary(&report);
+            } else {
+                l.status.preview_seconds = Some(seconds);
+                l.status.result_seconds = None;
+                l.status.message =
+                    format!("preview at {} spp; refining", crate::session::PREVIEW_SPP);
+            }
+            l.status.stage.clear();
+            shared.publish(&l);
+        }
+    }
+}
+
+fn fail(shared: &Shared, message: &str) {
+    let mut l = shared.lock();
+    l.status.state = "failed";
+    l.status.message = message.into();
+    l.status.stage.clear();
+    shared.publish(&l);
+}
+
+fn summary(r: &matflow_engine::Report) -> String {
+    let count = |s: StageStatus| r.stages.iter().filter(|x| x.status == s).count();
+    format!(
+        "{} executed, {} cached in {:.2} s",
+        count(StageStatus::Executed),
+        count(StageStatus::Cached),
+        r.seconds
+    )
+}
+
+fn output_bytes(
+    r: &matflow_engine::Report,
+    store: &Tiered,
+    stage: &str,
+    output: &str,
+) -> Result<Arc<Vec<u8>>, String> {
+    let hex = r
+        .stages
+        .iter()
+        .find(|s| s.name == stage)
+        .and_then(|s| s.outputs.get(output))
+        .ok_or_else(|| format!("the pipeline's `{stage}` stage made no `{output}`"))?;
+    let d = Digest::from_hex(hex).ok_or_else(|| format!("bad digest {hex}"))?;
+    store
+        .get(&d)
+        .map_err(|e| e.to_string())?
+        .ok_or_else(|| format!("`{stage}`'s {output} is not in the cache"))
+}
+
+fn output_image(
+    r: &matflow_engine::Report,
+    store: &Tiered,
+    stage: &str,
+) -> Result<RgbImage, String> {
+    let b = output_bytes(r, store, stage, "image")?;
+    matflow_nodes::artifact::Artifact::decode(&b, "image")
+        .and_then(|a| a.rgb("image"))
+        .map_err(|e| e.0)
+}
+
+/// The scene's maps for the page and its surfaces for selection.
+fn load_scene(shared: &Shared, r: &matflow_engine::Report, store: &Tiered) -> Result<(), String> {
+    let b = output_bytes(r, store, "scene", "scene")?;
+    let s = SceneData::decode(&b).map_err(|e| e.0)?;
+    let maps = view::maps(&s);
+    let (w, h) = (maps.width, maps.height);
+    let mut l = shared.lock();
+    l.status.width = w;
+    l.status.height = h;
+    l.status.maps = maps.images.iter().map(|(n, _)| *n).collect();
+    for (n, png) in maps.images {
+        l.images.insert(n.into(), png);
+    }
+    l.selection = Image::new(w, h, false);
+    l.surfaces = Some(Surfaces {
+        albedo: s.pred.albedo,
+        depth: s.depth,
+        normals: s.pred.normal,
+        camera: Camera::new(w, h),
+    });
+    l.status.message = "recovering the lighting and materials".into();
+    shared.publish(&l);
+    Ok(())
+}
+
+/// Errors of a request, as the handlers answer them.
+pub fn request_error(e: SessionError) -> (axum::http::StatusCode, String) {
+    use axum::http::StatusCode;
+    match e {
+        SessionError::Request(m) => (StatusCode::UNPROCESSABLE_ENTITY, format!("{m}\n")),
+        e => (StatusCode::INTERNAL_SERVER_ERROR, format!("{e}\n")),
+    }
+}
