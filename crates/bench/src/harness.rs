@@ -182,3 +182,19 @@ pub fn stage_child(exe: &Path, args: &[impl AsRef<str>], show_stdout: bool) -> R
 pub fn path_arg(p: &Path) -> String {
     p.display().to_string()
 }
+
+/// The machine, for a table's heading: CPU model and the threads this
+/// process may use (Linux; "unknown CPU" elsewhere).
+pub fn machine() -> String {
+    let cpu = std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("model name"))
+                .and_then(|l| l.split_once(':'))
+                .map(|(_, v)| v.trim().to_string())
+        })
+        .unwrap_or_else(|| "unknown CPU".into());
+    let threads = std::thread::available_parallelism().map_or(0, |n| n.get());
+    format!("{cpu}, {threads} threads")
+}

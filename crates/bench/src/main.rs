@@ -55,6 +55,9 @@ enum Suite {
     /// each backend, accuracy on held-out rooms and against the official
     /// MatNet's predictions, end-to-end re-render PSNR.
     Matnet(suites::matnet::BenchMatnetArgs),
+    /// The studio over its API: a material change's first preview and
+    /// converged result, memory, idle CPU, the export reproduced.
+    Studio(suites::studio::BenchStudioArgs),
 }
 
 fn run(s: Suite) -> Result<()> {
@@ -68,6 +71,7 @@ fn run(s: Suite) -> Result<()> {
         Suite::Dataset(a) => suites::dataset::bench_dataset(a),
         Suite::Refraction(a) => suites::dataset::bench_refraction(a),
         Suite::Matnet(a) => suites::matnet::bench_matnet(a),
+        Suite::Studio(a) => suites::studio::bench_studio(a),
     }
 }
 

@@ -120,6 +120,7 @@ struct Tri4 {
     prim: [u32; 4],
 }
 
+#[derive(Clone)]
 pub struct Bvh {
     nodes: Vec<Node>,
     tris: Vec<Tri4>,

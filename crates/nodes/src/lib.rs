@@ -28,6 +28,7 @@ pub mod bundle_scene;
 pub mod completion;
 mod files;
 mod kinds;
+pub mod memo;
 pub mod objects;
 pub mod recovery;
 #[cfg(test)]

@@ -176,6 +176,7 @@ pub struct GlassPixel {
 
 /// Transparent regions of the depth mesh (the paper's single-view
 /// transparency) and what shows through them.
+#[derive(Clone)]
 pub struct ScreenGlass {
     /// Per pixel, its glass inside a region.
     pub glass: Vec<Option<GlassPixel>>,
@@ -214,6 +215,7 @@ pub const NO_SURFACE: u32 = u32::MAX;
 
 pub use matflow_scene::lamps::{Lamp, LampAt};
 
+#[derive(Clone)]
 pub struct RenderScene {
     pub camera: Camera,
     /// The depth mesh's triangles first, then each object's.

@@ -270,7 +270,27 @@ async fn image_file(State(app): State<Arc<App>>, UrlPath(file): UrlPath<String>)
     match file.as_str() {
         "preview.png" => served(&app, "preview", "image/png"),
         "result.png" => served(&app, "result", "image/png"),
-        "result.exr" => served(&app, "result.exr", "image/x-exr"),
+        "result.exr" => {
+            let img = app.shared.lock().result.clone();
+            match img {
+                Some(img) => {
+                    let exr = tokio::task::spawn_blocking(move || view::exr(&img))
+                        .await
+                        .unwrap_or_default();
+                    (
+                        [
+                            (header::CONTENT_TYPE, "image/x-exr"),
+                            (header::CACHE_CONTROL, "no-store"),
+                        ],
+                        exr,
+                    )
+                        .into_response()
+                }
+                None => {
+                    (StatusCode::NOT_FOUND, "the session has no result (yet)\n").into_response()
+                }
+            }
+        }
         "selection.png" => {
             let png = view::overlay(&app.shared.lock().selection);
             (

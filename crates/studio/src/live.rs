@@ -66,8 +66,10 @@ pub struct Live {
     pub status: Status,
     pub surfaces: Option<Surfaces>,
     pub selection: Image<bool>,
-    /// PNGs by name (the maps, `preview`, `result`) and `result.exr`.
+    /// PNGs by name (the maps, `preview`, `result`).
     pub images: BTreeMap<String, Vec<u8>>,
+    /// The result shown, linear (its EXR is encoded when downloaded).
+    pub result: Option<Arc<RgbImage>>,
     /// When the newest change was asked for.
     changed_at: Instant,
 }
@@ -97,6 +99,7 @@ impl Shared {
                 surfaces: None,
                 selection: Image::new(0, 0, false),
                 images: BTreeMap::new(),
+                result: None,
                 changed_at: Instant::now(),
             }),
             wake: Condvar::new(),
@@ -122,6 +125,9 @@ impl Shared {
     pub fn changed(&self, mut live: MutexGuard<'_, Live>) {
         live.status.generation += 1;
         live.changed_at = Instant::now();
+        // The result of an older generation is not this one's.
+        live.result = None;
+        live.images.remove("result");
         (live.status.history, live.status.redo) = live.session.history();
         live.status.state = "running";
         live.status.message = "rendering the change".into();
@@ -182,6 +188,16 @@ pub fn runner(shared: Arc<Shared>, cache: &Path) {
                 continue;
             }
         };
+        // The studio keeps its images in memory (the EXR is encoded when
+        // asked for): no file written per change. A file path is no part
+        // of a stage's key, so the result's key is the export's.
+        for st in &mut p.stages {
+            if st.name == "result" {
+                st.params
+                    .0
+                    .insert("output".into(), matflow_engine::value::Value::Null);
+            }
+        }
         let obs = Progress {
             shared: &shared,
             generation,
@@ -226,7 +242,7 @@ pub fn runner(shared: Arc<Shared>, cache: &Path) {
                     break;
                 }
             };
-            let (png, exr) = view::render_files(&img);
+            let png = view::png(&img);
             let mut l = shared.lock();
             if l.status.generation != generation {
                 break;
@@ -236,7 +252,7 @@ pub fn runner(shared: Arc<Shared>, cache: &Path) {
             l.status.shown = generation;
             l.status.image = Some(name);
             if name == "result" {
-                l.images.insert("result.exr".into(), exr);
+                l.result = Some(Arc::new(img));
                 l.status.result_seconds = Some(seconds);
                 l.status.state = "ready";
                 l.status.message = summary(&report);

@@ -24,13 +24,16 @@ pub const MAP_NAMES: [&str; 6] = [
     "depth",
 ];
 
-/// A linear render as the page shows it and as `render`'s `output` writes
-/// it: a PNG (γ 2.2, 8 bits) and an EXR (linear f32), as `render` writes
-/// its `output`, so a download is the file `matflow run` writes.
-pub fn render_files(img: &RgbImage) -> (Vec<u8>, Vec<u8>) {
-    let png = matflow_scene::io::encode_png_gamma(Path::new("result.png"), img).unwrap_or_default();
-    let exr = matflow_scene::io::encode_exr_rgb(Path::new("result.exr"), img).unwrap_or_default();
-    (png, exr)
+/// A linear render as the page shows it: a PNG, γ 2.2, 8 bits, as
+/// `render` writes beside its `output`.
+pub fn png(img: &RgbImage) -> Vec<u8> {
+    matflow_scene::io::encode_png_gamma(Path::new("result.png"), img).unwrap_or_default()
+}
+
+/// A linear render as `render` writes its `output` EXR, so that a
+/// download is the file `matflow run` writes.
+pub fn exr(img: &RgbImage) -> Vec<u8> {
+    matflow_scene::io::encode_exr_rgb(Path::new("result.exr"), img).unwrap_or_default()
 }
 
 /// The selection as an RGBA PNG: a translucent tint where it is set,

@@ -10,4 +10,5 @@ pub mod matnet;
 pub mod pipeline;
 pub mod relight;
 pub mod render;
+pub mod studio;
 pub mod synthetic;

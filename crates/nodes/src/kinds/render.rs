@@ -235,8 +235,12 @@ pub(crate) fn edited_image(
     mesh: &[u8],
     edited: &MaterialMaps,
 ) -> Result<RgbImage, NodeError> {
-    let (cam, tri) = crate::data::decode_mesh(mesh)?;
-    let scene = crate::data::scene_of(cam, tri, edited, &k.envmap, &k.objects)?;
+    let scene = if k.objects.is_empty() {
+        crate::memo::scene(mesh, edited, &k.envmap)?
+    } else {
+        let (cam, tri) = crate::data::decode_mesh(mesh)?;
+        crate::data::scene_of(cam, tri, edited, &k.envmap, &k.objects)?
+    };
     rerender_kept(k, &scene, edited, &k.objects)
 }
 
@@ -306,7 +310,7 @@ impl Node for RenderNode {
         let p = ctx.params;
         let maps = materials_from(ctx.input("materials")?)?;
         if let Some(b) = ctx.opt_input("paths") {
-            let kept = Kept::decode(b)?;
+            let kept = crate::memo::kept(b)?;
             let mut img = edited_image(&kept, ctx.input("mesh")?, &maps)?;
             if let Some(photo) = ctx.opt_input("photo") {
                 let photo = crate::kinds::insert::photo_from(photo)?;
