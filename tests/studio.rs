@@ -198,6 +198,10 @@ fn a_session_is_edited_undone_redone_and_exported_as_its_pipeline() {
         "changed {inside:.1} inside the box and {outside:.2} outside"
     );
     let (_, exr) = get(&st.addr, "/api/images/result.exr");
+    assert!(
+        exr.starts_with(&[0x76, 0x2f, 0x31, 0x01]),
+        "an OpenEXR file"
+    );
     // Undo: the unedited result again (from the cache, the same bytes);
     // redo: the edit again.
     assert_eq!(post(&st.addr, "/api/undo", json!({})).0, 204);
@@ -207,6 +211,43 @@ fn a_session_is_edited_undone_redone_and_exported_as_its_pipeline() {
     assert_eq!(post(&st.addr, "/api/redo", json!({})).0, 204);
     result_of(&st.addr, 3);
     assert_eq!(get(&st.addr, "/api/images/result.exr").1, exr);
+    // New light: an uploaded envmap (a warm sky, HDR), turned and
+    // darker; the whole scene is rendered under it. Undone, the edit's
+    // result again.
+    let (code, body) = http_raw(
+        &st.addr,
+        "POST",
+        "/api/light/envmap",
+        &["Content-Type: application/octet-stream"],
+        &sky_hdr(),
+    );
+    assert_eq!(code, 200, "{}", String::from_utf8_lossy(&body));
+    let name = serde_json::from_slice::<Value>(&body).unwrap()["envmap"].clone();
+    assert!(status(&st.addr)["envmaps"]
+        .as_array()
+        .unwrap()
+        .contains(&name));
+    let (code, body) = post(
+        &st.addr,
+        "/api/light",
+        json!({"envmap": name, "rotation": 90, "exposure": -1}),
+    );
+    assert_eq!(code, 204, "{body}");
+    let v = result_of(&st.addr, 4);
+    assert!(v["history"][1].as_str().unwrap().contains("relight"), "{v}");
+    let relit = rgb(&get(&st.addr, "/api/images/result.png").1);
+    let everywhere = vec![false; 64 * 64];
+    let (_, changed) = change_in_and_out(&rgb(&after), &relit, &everywhere);
+    assert!(
+        changed > 5.0,
+        "the new light changed the image by {changed:.1}"
+    );
+    assert_eq!(post(&st.addr, "/api/undo", json!({})).0, 204);
+    result_of(&st.addr, 5);
+    assert_eq!(get(&st.addr, "/api/images/result.exr").1, exr);
+    assert_eq!(post(&st.addr, "/api/redo", json!({})).0, 204);
+    result_of(&st.addr, 6);
+    let (_, exr) = get(&st.addr, "/api/images/result.exr");
     // Exported and unpacked elsewhere, `matflow run` (its own, empty
     // cache) writes the studio's EXR byte for byte.
     let (code, tar) = get(&st.addr, "/api/export.tar");
@@ -223,7 +264,7 @@ fn a_session_is_edited_undone_redone_and_exported_as_its_pipeline() {
     // The export, opened in the studio, is the same session.
     let again = start(&dir, &out.join("session.yaml"), "reopened", &[]);
     let v = result_of(&again.addr, 0);
-    assert_eq!(v["history"].as_array().unwrap().len(), 1, "{v}");
+    assert_eq!(v["history"].as_array().unwrap().len(), 2, "{v}");
     assert_eq!(get(&again.addr, "/api/images/result.exr").1, exr);
     drop(again);
     let _ = std::fs::remove_file(input);
@@ -374,6 +415,38 @@ fn bad_requests_get_a_4xx_with_a_message_and_nothing_else_is_reachable() {
         ),
         (
             "POST",
+            "/api/light",
+            vec![json],
+            br#"{"envmap": "../../etc/passwd"}"#.to_vec(),
+            422,
+            "no envmap",
+        ),
+        (
+            "POST",
+            "/api/light",
+            vec![json],
+            br#"{"rotation": 720}"#.to_vec(),
+            422,
+            "rotation",
+        ),
+        (
+            "POST",
+            "/api/light/envmap",
+            vec!["Content-Type: application/octet-stream"],
+            b"P6 not a map".to_vec(),
+            422,
+            "not an environment map",
+        ),
+        (
+            "POST",
+            "/api/light/envmap",
+            vec!["Content-Type: application/octet-stream"],
+            b"#?RADIANCE\nbroken".to_vec(),
+            422,
+            "uploaded envmap",
+        ),
+        (
+            "POST",
             "/api/undo",
             vec![json],
             b"{}".to_vec(),
@@ -465,6 +538,18 @@ fn bad_requests_get_a_4xx_with_a_message_and_nothing_else_is_reachable() {
     );
     drop(st);
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A 32×16 Radiance HDR sky: warm above the horizon, dim below.
+fn sky_hdr() -> Vec<u8> {
+    let img = matflow_scene::Image::from_fn(32, 16, |_, y| {
+        if y < 8 {
+            glam::Vec3::new(2.0, 1.4, 0.8)
+        } else {
+            glam::Vec3::splat(0.2)
+        }
+    });
+    matflow_scene::io::encode_hdr(Path::new("sky.hdr"), &img).unwrap()
 }
 
 /// A white `w`×`h` PNG.
@@ -648,6 +733,22 @@ fn in_chromium_a_click_and_a_colour_change_the_object_and_nothing_else() {
     );
     assert_eq!(b.eval(pixels, json!([])), before);
     b.screenshot(&shots.join("4-undone.png"));
+    // The recovered light turned half round and a stop darker: the whole
+    // image changes.
+    b.eval(
+        "for (const [id, v] of [['rotation', 180], ['exposure', -1]]) {            const e = document.getElementById(id); e.value = v;            e.dispatchEvent(new Event('input', {bubbles: true})); }",
+        json!([]),
+    );
+    b.click("#relight");
+    b.wait_for(
+        "the relit result",
+        "return document.body.dataset.shown === '3/result';",
+        long,
+    );
+    b.screenshot(&shots.join("5-relit.png"));
+    let relit = to_img(&b.eval(pixels, json!([])));
+    let (_, all) = change_in_and_out(&to_img(&before), &relit, &[false; 64 * 64]);
+    assert!(all > 5.0, "the new light changed the canvas by {all:.1}");
     drop(b);
     drop(st);
     let _ = std::fs::remove_dir_all(&dir);

@@ -32,7 +32,11 @@ use matflow_scene::select::{grow_object, Grow};
 use matflow_scene::Image;
 
 use live::{request_error, Shared};
-use session::{Change, Session};
+use session::{Change, Light, Session};
+
+/// The largest environment map accepted by upload (a 4096×2048 float
+/// EXR, uncompressed, is 96 MiB; HDR's run-length encoding is smaller).
+const ENVMAP_BYTES: usize = 128 << 20;
 
 const INDEX_HTML: &str = include_str!("../web/index.html");
 const STUDIO_JS: &str = include_str!("../web/studio.js");
@@ -122,6 +126,11 @@ fn router(app: Arc<App>) -> Router {
         .route("/api/select/mask", post(select_mask))
         .route("/api/select/clear", post(select_clear))
         .route("/api/edit", post(edit))
+        .route("/api/light", post(light))
+        .route(
+            "/api/light/envmap",
+            post(upload_envmap).layer(axum::extract::DefaultBodyLimit::max(ENVMAP_BYTES)),
+        )
         .route("/api/undo", post(undo))
         .route("/api/redo", post(redo))
         .fallback(|| async { (StatusCode::NOT_FOUND, "no such page\n") })
@@ -516,6 +525,37 @@ async fn edit(State(app): State<Arc<App>>, Json(c): Json<Change>) -> Answer {
         .map_err(request_error)?;
     app.shared.changed(l);
     Ok(StatusCode::NO_CONTENT.into_response())
+}
+
+/// `POST /api/light {envmap, rotation, exposure}`: new lighting (the
+/// recovered envmap when `envmap` is absent), as a history stage.
+async fn light(State(app): State<Arc<App>>, Json(l): Json<Light>) -> Answer {
+    if !(l.rotation.is_finite() && l.exposure.is_finite()) {
+        return Err(bad("rotation and exposure must be numbers"));
+    }
+    let mut l_ = app.shared.lock();
+    l_.session
+        .light(&l, &app.shared.registry)
+        .map_err(request_error)?;
+    app.shared.changed(l_);
+    Ok(StatusCode::NO_CONTENT.into_response())
+}
+
+/// `POST /api/light/envmap` with a Radiance HDR or OpenEXR body: kept in
+/// the session (named by its contents) for `/api/light`.
+async fn upload_envmap(State(app): State<Arc<App>>, body: Bytes) -> Answer {
+    let shared = app.shared.clone();
+    let name = tokio::task::spawn_blocking(move || {
+        let mut l = shared.lock();
+        let name = l.session.add_envmap(&body)?;
+        l.status.envmaps = l.session.envmaps();
+        shared.publish(&l);
+        Ok::<_, session::SessionError>(name)
+    })
+    .await
+    .map_err(|e| (StatusCode::INTERNAL_SERVER_ERROR, format!("{e}\n")))?
+    .map_err(request_error)?;
+    Ok(Json(serde_json::json!({ "envmap": name })).into_response())
 }
 
 async fn undo(State(app): State<Arc<App>>) -> Answer {

@@ -50,6 +50,8 @@ pub struct Status {
     pub redo: usize,
     /// Pixels selected.
     pub selected: usize,
+    /// The environment maps uploaded to the session, by name.
+    pub envmaps: Vec<String>,
 }
 
 /// What selection grows over.
@@ -92,6 +94,7 @@ impl Shared {
             ..Default::default()
         };
         (status.history, status.redo) = session.history();
+        status.envmaps = session.envmaps();
         let s = Arc::new(Shared {
             live: Mutex::new(Live {
                 session,

@@ -7,8 +7,10 @@
 //! mesh       the geometry (and what is chosen past the frame)
 //! lighting   envmap recovery;  recovered: envmap + materials
 //! base       the re-render, keeping its light paths for edits
-//! edit1..N   the edit history, each on the one before
-//! result     the last edit rendered from the kept paths into the photo
+//! edit1..N   the history: material edits (`edit`, each on the one
+//!            before) and new lighting (`relight`)
+//! result     the last edit rendered from the kept paths into the photo;
+//!            under new lighting, the whole scene rendered under it
 //! quick,     the same at a few samples per pixel: the first look at an
 //! preview    edit (not among the outputs: `matflow run` skips them)
 //! ```
@@ -87,7 +89,12 @@ impl Stage {
             .filter(|(k, _)| k != "kind" && k != "materials")
             .map(|(k, v)| format!("{k} {v}"))
             .collect();
-        format!("{}: {}", self.name, fields.join(", "))
+        format!(
+            "{} ({}): {}",
+            self.name,
+            self.get("kind").unwrap_or_default(),
+            fields.join(", ")
+        )
     }
 }
 
@@ -161,6 +168,22 @@ pub struct Change {
     pub metallic: Option<f64>,
 }
 
+/// New lighting, as the page sends it: the recovered envmap or one the
+/// session holds (`envmap`, a file name from [`Session::envmaps`]),
+/// rotated about the vertical axis (degrees) and exposed (stops).
+#[derive(Clone, Debug, Default, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Light {
+    pub envmap: Option<String>,
+    #[serde(default)]
+    pub rotation: f64,
+    #[serde(default)]
+    pub exposure: f64,
+}
+
+/// The history's stage kinds: a material edit, new lighting.
+const HISTORY_KINDS: [&str; 2] = ["edit", "relight"];
+
 /// A session: its folder and its stages.
 pub struct Session {
     pub dir: PathBuf,
@@ -214,9 +237,22 @@ impl Session {
         Ok(s)
     }
 
-    /// The stage the renders take their materials from.
+    /// The stage the renders take their materials from: the last edit.
     fn last(&self) -> &str {
-        self.edits.last().map_or("recovered", |e| e.name.as_str())
+        self.edits
+            .iter()
+            .rev()
+            .find(|e| e.get("kind") == Some("edit"))
+            .map_or("recovered", |e| e.name.as_str())
+    }
+
+    /// The lighting stage in force: the last `relight` of the history.
+    fn light_stage(&self) -> Option<&str> {
+        self.edits
+            .iter()
+            .rev()
+            .find(|e| e.get("kind") == Some("relight"))
+            .map(|e| e.name.as_str())
     }
 
     /// The session as pipeline text.
@@ -241,8 +277,30 @@ impl Session {
                 ],
             )
         };
-        let preview = render("preview", "quick");
-        let mut result = render("result", "base");
+        let (preview, mut result) = match self.light_stage() {
+            // New light: the whole scene rendered under it (the kept paths
+            // and the photo belong to the old one).
+            Some(light) => {
+                let relit = |name: &str, spp: String| {
+                    Stage::new(
+                        name,
+                        &[
+                            ("kind", "render".into()),
+                            ("mesh", "mesh".into()),
+                            ("materials", self.last().into()),
+                            ("envmap", light.into()),
+                            ("spp", spp),
+                        ],
+                    )
+                };
+                let spp = base.get("spp").unwrap_or("64").to_string();
+                (
+                    relit("preview", PREVIEW_SPP.to_string()),
+                    relit("result", spp),
+                )
+            }
+            None => (render("preview", "quick"), render("result", "base")),
+        };
         result.set("output", quoted("result.exr"));
         let mut out = String::from(
             "# A matflow studio session: `matflow run session.yaml` renders its\n\
@@ -325,6 +383,79 @@ impl Session {
                     .into(),
             ));
         }
+        self.push(st, reg)
+    }
+
+    /// Adds new lighting (a `relight` stage of the recovered envmap or of
+    /// one of the session's files); the redo list is dropped.
+    pub fn light(&mut self, light: &Light, reg: &Registry) -> Result<(), SessionError> {
+        let mut st = Stage::new(
+            &format!("edit{}", self.edits.len() + 1),
+            &[("kind", "relight".into())],
+        );
+        match &light.envmap {
+            None => st.set("source", "recovered.envmap".into()),
+            Some(name) => {
+                if !self.envmaps().contains(name) {
+                    return Err(SessionError::Request(format!(
+                        "no envmap {name:?} in the session: upload it first"
+                    )));
+                }
+                st.set("path", quoted(name));
+            }
+        }
+        st.set("rotation", number(light.rotation));
+        st.set("exposure", number(light.exposure));
+        self.push(st, reg)
+    }
+
+    /// An uploaded environment map (Radiance HDR or OpenEXR, told by its
+    /// first bytes) kept in the session's folder, named by its contents;
+    /// checked as `relight` reads it. Returns its name.
+    pub fn add_envmap(&self, bytes: &[u8]) -> Result<String, SessionError> {
+        let ext = if bytes.starts_with(b"#?") {
+            "hdr"
+        } else if bytes.starts_with(&[0x76, 0x2f, 0x31, 0x01]) {
+            "exr"
+        } else {
+            return Err(SessionError::Request(
+                "not an environment map: give a Radiance .hdr or an OpenEXR .exr".into(),
+            ));
+        };
+        let hex = matflow_engine::store::Digest::of(bytes).hex();
+        let name = format!("env-{}.{ext}", &hex[..16]);
+        let file = self.dir.join(&name);
+        let tmp = self.dir.join(format!("upload-{}.{ext}", &hex[..16]));
+        std::fs::write(&tmp, bytes).map_err(io_err(&tmp))?;
+        let checked = matflow_scene::io::read_envmap(&tmp);
+        match checked {
+            Ok(_) => std::fs::rename(&tmp, &file).map_err(io_err(&file))?,
+            Err(e) => {
+                let _ = std::fs::remove_file(&tmp);
+                return Err(SessionError::Request(
+                    e.to_string()
+                        .replace(&tmp.display().to_string(), "the uploaded envmap"),
+                ));
+            }
+        }
+        Ok(name)
+    }
+
+    /// The environment maps the session holds (uploaded), by name.
+    pub fn envmaps(&self) -> Vec<String> {
+        let mut v: Vec<String> = std::fs::read_dir(&self.dir)
+            .into_iter()
+            .flatten()
+            .flatten()
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .filter(|n| n.starts_with("env-") && (n.ends_with(".hdr") || n.ends_with(".exr")))
+            .collect();
+        v.sort();
+        v
+    }
+
+    /// Appends a history stage, checked as the engine checks any pipeline.
+    fn push(&mut self, st: Stage, reg: &Registry) -> Result<(), SessionError> {
         self.edits.push(st);
         if let Err(e) = self.pipeline(reg) {
             self.edits.pop();
@@ -374,7 +505,8 @@ impl Session {
         let mut masks: Vec<String> = self
             .edits
             .iter()
-            .filter_map(|e| e.get("mask_png"))
+            .flat_map(|e| [e.get("mask_png"), e.get("path")])
+            .flatten()
             .map(unquoted)
             .collect();
         masks.sort();
@@ -442,10 +574,11 @@ fn complete_base(base: &mut Vec<Stage>) -> Result<(), SessionError> {
     Ok(())
 }
 
-/// A pipeline file's stages: the edits (`editN`, in order) and the rest;
-/// the stages the studio writes itself are dropped. Its relative input
-/// paths are made absolute, except the edits' masks, which are copied
-/// into the session's folder (they travel with it).
+/// A pipeline file's stages: the history (`editN`, in order: `edit` and
+/// `relight` stages) and the rest; the stages the studio writes itself
+/// are dropped. Its relative input paths are made absolute, except the
+/// history's files (masks, envmaps), which are copied into the session's
+/// folder (they travel with it).
 fn stages_of_file(
     file: &Path,
     dir: &Path,
@@ -477,7 +610,7 @@ fn stages_of_file(
                 _ => None,
             })
             .unwrap_or_default();
-        let is_edit = kind == "edit" && name == &format!("edit{}", edits.len() + 1);
+        let is_edit = HISTORY_KINDS.contains(&kind) && name == &format!("edit{}", edits.len() + 1);
         let specs = reg.get(kind).map(|n| n.params()).unwrap_or(&[]);
         let mut st = Stage {
             name: name.clone(),
@@ -635,6 +768,33 @@ mod tests {
         assert_eq!(t.yaml(), y);
         let mask_file = unquoted(t.edits[0].get("mask_png").unwrap());
         assert!(d.join("b").join(mask_file).is_file());
+        // New light: a relight of the recovered envmap; the renders are
+        // of the whole scene under it, the materials still the last edit's.
+        s.light(
+            &Light {
+                envmap: None,
+                rotation: 45.0,
+                exposure: -0.5,
+            },
+            &reg,
+        )
+        .unwrap();
+        let y = s.yaml();
+        assert!(y.contains("edit3:\n    kind: relight\n    source: recovered.envmap\n    rotation: 45\n    exposure: -0.5\n"), "{y}");
+        assert!(y.contains("  preview:\n    kind: render\n    mesh: mesh\n    materials: edit2\n    envmap: edit3\n    spp: 4\n"), "{y}");
+        let no_file = Light {
+            envmap: Some("env-none.hdr".into()),
+            ..Default::default()
+        };
+        assert!(matches!(
+            s.light(&no_file, &reg),
+            Err(SessionError::Request(_))
+        ));
+        assert!(matches!(
+            s.add_envmap(b"GIF89a"),
+            Err(SessionError::Request(_))
+        ));
+        s.undo().unwrap();
         // A new edit after an undo drops what redo would have brought.
         s.undo().unwrap();
         s.edit(&mask, &shiny, &reg).unwrap();

@@ -111,6 +111,15 @@ async function onStatus(s) {
       return li;
     }),
   );
+  const pick = $("envmap");
+  const have = [...pick.options].map((o) => o.value);
+  for (const name of s.envmaps) {
+    if (!have.includes(name)) pick.append(new Option(name, name));
+  }
+  if (state.pickEnvmap && s.envmaps.includes(state.pickEnvmap)) {
+    pick.value = state.pickEnvmap;
+    state.pickEnvmap = null;
+  }
   if (s.width && s.height) sizeCanvases(s.width, s.height);
   if (!mapsShown && s.maps.length) {
     mapsShown = true;
@@ -244,7 +253,7 @@ $("mask").addEventListener("change", async () => {
 
 // ---- changes --------------------------------------------------------------
 
-for (const [id, digits] of [["tolerance", 2], ["radius", 0], ["hue", 0], ["sat", 2], ["val", 2], ["rough", 2], ["metal", 2]]) {
+for (const [id, digits] of [["tolerance", 2], ["radius", 0], ["hue", 0], ["sat", 2], ["val", 2], ["rough", 2], ["metal", 2], ["rotation", 0], ["exposure", 1]]) {
   const show = () => ($(`${id}-v`).textContent = Number($(id).value).toFixed(digits));
   $(id).addEventListener("input", show);
   show();
@@ -279,6 +288,24 @@ async function act(path, body) {
 }
 
 $("apply").addEventListener("click", () => act("api/edit", change()));
+$("relight").addEventListener("click", () =>
+  act("api/light", {
+    envmap: $("envmap").value || undefined,
+    rotation: Number($("rotation").value),
+    exposure: Number($("exposure").value),
+  }),
+);
+$("envmap-file").addEventListener("change", async () => {
+  const f = $("envmap-file").files[0];
+  if (!f) return;
+  try {
+    showError(null);
+    const r = await post("api/light/envmap", await f.arrayBuffer(), "application/octet-stream");
+    state.pickEnvmap = r.envmap;
+  } catch (e) {
+    showError(e);
+  }
+});
 $("undo").addEventListener("click", () => act("api/undo"));
 $("redo").addEventListener("click", () => act("api/redo"));
 

@@ -10,7 +10,7 @@ use matflow_render::{render, RenderOptions};
 use matflow_scene::{io, MaterialMaps, RgbImage};
 
 use crate::artifact::Artifact;
-use crate::data::{encode_image, envmap_from, materials_from, render_scene, Kept, MESH};
+use crate::data::{encode_image, envmap_from, materials_from, Kept, MESH};
 use crate::err;
 
 pub struct RenderNode;
@@ -326,7 +326,7 @@ impl Node for RenderNode {
             return Ok([("image".to_string(), encode_image("image", "image", &img))].into());
         }
         let env = envmap_from(ctx.input("envmap")?)?;
-        let scene = render_scene(ctx.input("mesh")?, &maps, &env)?;
+        let scene = crate::memo::scene(ctx.input("mesh")?, &maps, &env)?;
         // Seeded from the stage's parameters, not its inputs: an edit
         // upstream keeps the noise pattern, so before/after differ only
         // where the edit acts.
