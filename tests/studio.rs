@@ -246,7 +246,52 @@ fn a_session_is_edited_undone_redone_and_exported_as_its_pipeline() {
     result_of(&st.addr, 5);
     assert_eq!(get(&st.addr, "/api/images/result.exr").1, exr);
     assert_eq!(post(&st.addr, "/api/redo", json!({})).0, 204);
-    result_of(&st.addr, 6);
+    let v = result_of(&st.addr, 6);
+    let relit = rgb(&get(&st.addr, "/api/images/result.png").1);
+    // An object: a shipped sphere on the floor, then an uploaded
+    // tetrahedron beside it; moved; undone to where it was.
+    let sphere = json!({"mesh": "sphere", "anchor": [20, 58], "scale": 0.5,
+                        "material": {"type": "principled", "albedo": [0.9, 0.2, 0.2],
+                                     "roughness": 0.3, "metallic": 0.0}});
+    let (code, body) = post(&st.addr, "/api/insert", json!({"objects": [sphere]}));
+    assert_eq!(code, 204, "{body}");
+    let v7 = result_of(&st.addr, v["generation"].as_u64().unwrap() + 1);
+    let with_sphere = rgb(&get(&st.addr, "/api/images/result.png").1);
+    let near = |cx: u32, cy: u32| -> Vec<bool> {
+        (0..64 * 64u32)
+            .map(|i| (i % 64).abs_diff(cx) <= 6 && (i / 64).abs_diff(cy) <= 8)
+            .collect()
+    };
+    let (inside, outside) = change_in_and_out(&relit, &with_sphere, &near(20, 54));
+    assert!(
+        inside > 10.0 && outside < inside / 4.0,
+        "the sphere: {inside:.1} near, {outside:.1} elsewhere"
+    );
+    let (code, body) = http_raw(
+        &st.addr,
+        "POST",
+        "/api/insert/mesh",
+        &["Content-Type: application/octet-stream"],
+        b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n",
+    );
+    assert_eq!(code, 200, "{}", String::from_utf8_lossy(&body));
+    let tetra = serde_json::from_slice::<Value>(&body).unwrap()["mesh"].clone();
+    assert_eq!(status(&st.addr)["meshes"], json!([tetra]));
+    let objects = |x: f64| {
+        json!({"objects": [sphere, {"mesh": tetra, "anchor": [x, 60], "scale": 0.4,
+                                     "material": {"type": "diffuse", "albedo": [0.2, 0.8, 0.3]}}]})
+    };
+    assert_eq!(post(&st.addr, "/api/insert", objects(44.0)).0, 204);
+    let v8 = result_of(&st.addr, v7["generation"].as_u64().unwrap() + 1);
+    assert_eq!(v8["objects"].as_array().unwrap().len(), 2, "{v8}");
+    assert_eq!(v8["objects"][0]["mesh"], "sphere");
+    let (_, placed) = get(&st.addr, "/api/images/result.exr");
+    assert_eq!(post(&st.addr, "/api/insert", objects(36.0)).0, 204);
+    let v9 = result_of(&st.addr, v8["generation"].as_u64().unwrap() + 1);
+    assert_ne!(get(&st.addr, "/api/images/result.exr").1, placed, "moved");
+    assert_eq!(post(&st.addr, "/api/undo", json!({})).0, 204);
+    result_of(&st.addr, v9["generation"].as_u64().unwrap() + 1);
+    assert_eq!(get(&st.addr, "/api/images/result.exr").1, placed, "undone");
     let (_, exr) = get(&st.addr, "/api/images/result.exr");
     // Exported and unpacked elsewhere, `matflow run` (its own, empty
     // cache) writes the studio's EXR byte for byte.
@@ -264,7 +309,8 @@ fn a_session_is_edited_undone_redone_and_exported_as_its_pipeline() {
     // The export, opened in the studio, is the same session.
     let again = start(&dir, &out.join("session.yaml"), "reopened", &[]);
     let v = result_of(&again.addr, 0);
-    assert_eq!(v["history"].as_array().unwrap().len(), 2, "{v}");
+    assert_eq!(v["history"].as_array().unwrap().len(), 4, "{v}");
+    assert_eq!(v["objects"].as_array().unwrap().len(), 2, "{v}");
     assert_eq!(get(&again.addr, "/api/images/result.exr").1, exr);
     drop(again);
     let _ = std::fs::remove_file(input);
@@ -444,6 +490,54 @@ fn bad_requests_get_a_4xx_with_a_message_and_nothing_else_is_reachable() {
             b"#?RADIANCE\nbroken".to_vec(),
             422,
             "uploaded envmap",
+        ),
+        (
+            "POST",
+            "/api/insert",
+            vec![json],
+            br#"{"objects": [{"mesh": "teapot", "anchor": [5, 5], "material": {"type": "diffuse"}}]}"#.to_vec(),
+            422,
+            "no mesh",
+        ),
+        (
+            "POST",
+            "/api/insert",
+            vec![json],
+            br#"{"objects": [{"mesh": "cube", "anchor": [5, 5], "scale": 0, "material": {"type": "diffuse"}}]}"#.to_vec(),
+            422,
+            "scale",
+        ),
+        (
+            "POST",
+            "/api/insert",
+            vec![json],
+            br#"{"objects": [{"mesh": "cube", "anchor": [5, 5], "material": {"type": "chrome"}}]}"#.to_vec(),
+            422,
+            "type",
+        ),
+        (
+            "POST",
+            "/api/insert",
+            vec![json],
+            br#"{"objects": [{"mesh": "cube", "anchor": [500, 5], "material": {"type": "diffuse"}}]}"#.to_vec(),
+            422,
+            "anchor",
+        ),
+        (
+            "POST",
+            "/api/insert",
+            vec![json],
+            br#"{"objects": []}"#.to_vec(),
+            422,
+            "undo",
+        ),
+        (
+            "POST",
+            "/api/insert/mesh",
+            vec!["Content-Type: application/octet-stream"],
+            b"v 0 0 0\nf 1 2 3\n".to_vec(),
+            422,
+            "uploaded mesh",
         ),
         (
             "POST",
@@ -749,6 +843,39 @@ fn in_chromium_a_click_and_a_colour_change_the_object_and_nothing_else() {
     let relit = to_img(&b.eval(pixels, json!([])));
     let (_, all) = change_in_and_out(&to_img(&before), &relit, &[false; 64 * 64]);
     assert!(all > 5.0, "the new light changed the canvas by {all:.1}");
+    // A sphere placed on the floor with the place tool, then dragged by
+    // its marker to the right.
+    b.click("input[name=tool][value=place]");
+    b.eval(
+        "const m = document.getElementById('obj-mesh'); m.value = 'sphere';          m.dispatchEvent(new Event('change', {bubbles: true}));",
+        json!([]),
+    );
+    let css = |x: f64, y: f64| ((x + 0.5) * w / 64.0, (y + 0.5) * h / 64.0);
+    let (px, py) = css(20.0, 58.0);
+    b.click_at("#overlay", px, py, None);
+    b.wait_for(
+        "the inserted sphere",
+        "return document.body.dataset.shown === '4/result';",
+        long,
+    );
+    b.screenshot(&shots.join("6-inserted.png"));
+    let inserted = to_img(&b.eval(pixels, json!([])));
+    let near: Vec<bool> = (0..64 * 64u32)
+        .map(|i| (i % 64).abs_diff(20) <= 6 && (i / 64).abs_diff(54) <= 8)
+        .collect();
+    let (inside, outside) = change_in_and_out(&relit, &inserted, &near);
+    assert!(
+        inside > 10.0 && outside < inside / 4.0,
+        "the sphere changed the canvas {inside:.1} near it and {outside:.1} elsewhere"
+    );
+    b.drag("#overlay", css(20.0, 58.0), css(34.0, 58.0));
+    let moved = b.wait_for(
+        "the moved sphere",
+        "return document.body.dataset.shown === '5/result' &&          JSON.stringify(document.getElementById('objects').textContent);",
+        long,
+    );
+    assert!(moved.as_str().unwrap().contains("at 34"), "{moved}");
+    b.screenshot(&shots.join("7-moved.png"));
     drop(b);
     drop(st);
     let _ = std::fs::remove_dir_all(&dir);

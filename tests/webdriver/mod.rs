@@ -286,6 +286,35 @@ impl Browser {
         self.call("DELETE", &self.at("actions"), None);
     }
 
+    /// A mouse drag from `from` to `to` (CSS pixels from the top left of
+    /// the element `css`), in steps as a hand moves.
+    pub fn drag(&self, css: &str, from: (f64, f64), to: (f64, f64)) {
+        let e = self.element(css);
+        let rect = self.eval(
+            "const r = arguments[0].getBoundingClientRect(); return [r.width, r.height];",
+            json!([e]),
+        );
+        let (w, h) = (rect[0].as_f64().unwrap(), rect[1].as_f64().unwrap());
+        let at = |(x, y): (f64, f64)| ((x - w / 2.0).round() as i64, (y - h / 2.0).round() as i64);
+        let (x0, y0) = at(from);
+        let mut steps = vec![
+            json!({"type": "pointerMove", "origin": e, "x": x0, "y": y0}),
+            json!({"type": "pointerDown", "button": 0}),
+        ];
+        for k in 1..=5 {
+            let t = k as f64 / 5.0;
+            let (x, y) = at((from.0 + t * (to.0 - from.0), from.1 + t * (to.1 - from.1)));
+            steps.push(json!({"type": "pointerMove", "origin": e, "x": x, "y": y, "duration": 20}));
+        }
+        steps.push(json!({"type": "pointerUp", "button": 0}));
+        let actions = json!({"actions": [{
+            "type": "pointer", "id": "mouse", "parameters": {"pointerType": "mouse"},
+            "actions": steps,
+        }]});
+        self.call("POST", &self.at("actions"), Some(&actions));
+        self.call("DELETE", &self.at("actions"), None);
+    }
+
     /// A screenshot of the window, written to `path` (PNG).
     pub fn screenshot(&self, path: &Path) {
         let v = self.call("GET", &self.at("screenshot"), None);

@@ -32,7 +32,10 @@ use matflow_scene::select::{grow_object, Grow};
 use matflow_scene::Image;
 
 use live::{request_error, Shared};
-use session::{Change, Light, Session};
+use session::{Change, Light, Object, Session};
+
+/// The largest mesh accepted by upload.
+const MESH_BYTES: usize = 64 << 20;
 
 /// The largest environment map accepted by upload (a 4096×2048 float
 /// EXR, uncompressed, is 96 MiB; HDR's run-length encoding is smaller).
@@ -130,6 +133,11 @@ fn router(app: Arc<App>) -> Router {
         .route(
             "/api/light/envmap",
             post(upload_envmap).layer(axum::extract::DefaultBodyLimit::max(ENVMAP_BYTES)),
+        )
+        .route("/api/insert", post(insert))
+        .route(
+            "/api/insert/mesh",
+            post(upload_mesh).layer(axum::extract::DefaultBodyLimit::max(MESH_BYTES)),
         )
         .route("/api/undo", post(undo))
         .route("/api/redo", post(redo))
@@ -556,6 +564,51 @@ async fn upload_envmap(State(app): State<Arc<App>>, body: Bytes) -> Answer {
     .map_err(|e| (StatusCode::INTERNAL_SERVER_ERROR, format!("{e}\n")))?
     .map_err(request_error)?;
     Ok(Json(serde_json::json!({ "envmap": name })).into_response())
+}
+
+#[derive(serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Objects {
+    objects: Vec<Object>,
+}
+
+/// `POST /api/insert {objects: [{mesh, anchor, scale, rotate, material}]}`:
+/// the objects in the scene, all of them (a new placement in the history).
+async fn insert(State(app): State<Arc<App>>, Json(o): Json<Objects>) -> Answer {
+    for (i, ob) in o.objects.iter().enumerate() {
+        let nums = [ob.anchor[0], ob.anchor[1], ob.scale, ob.rotate];
+        if !nums.iter().all(|v| v.is_finite()) || ob.scale <= 0.0 {
+            return Err(bad(format!(
+                "objects[{i}]: anchor, scale and rotate must be numbers, scale above 0"
+            )));
+        }
+    }
+    let mut l = app.shared.lock();
+    if l.surfaces.is_none() {
+        return Err((StatusCode::CONFLICT, "the scene is not ready yet\n".into()));
+    }
+    l.session
+        .insert(&o.objects, &app.shared.registry)
+        .map_err(request_error)?;
+    app.shared.changed(l);
+    Ok(StatusCode::NO_CONTENT.into_response())
+}
+
+/// `POST /api/insert/mesh` with an OBJ or PLY body: kept in the session
+/// (named by its contents) for `/api/insert`.
+async fn upload_mesh(State(app): State<Arc<App>>, body: Bytes) -> Answer {
+    let shared = app.shared.clone();
+    let name = tokio::task::spawn_blocking(move || {
+        let mut l = shared.lock();
+        let name = l.session.add_mesh(&body)?;
+        l.status.meshes = l.session.meshes();
+        shared.publish(&l);
+        Ok::<_, session::SessionError>(name)
+    })
+    .await
+    .map_err(|e| (StatusCode::INTERNAL_SERVER_ERROR, format!("{e}\n")))?
+    .map_err(request_error)?;
+    Ok(Json(serde_json::json!({ "mesh": name })).into_response())
 }
 
 async fn undo(State(app): State<Arc<App>>) -> Answer {

@@ -52,6 +52,10 @@ pub struct Status {
     pub selected: usize,
     /// The environment maps uploaded to the session, by name.
     pub envmaps: Vec<String>,
+    /// The meshes uploaded to the session, by name.
+    pub meshes: Vec<String>,
+    /// The objects inserted, as `/api/insert` takes them.
+    pub objects: serde_json::Value,
 }
 
 /// What selection grows over.
@@ -95,6 +99,8 @@ impl Shared {
         };
         (status.history, status.redo) = session.history();
         status.envmaps = session.envmaps();
+        status.meshes = session.meshes();
+        status.objects = session.objects_json();
         let s = Arc::new(Shared {
             live: Mutex::new(Live {
                 session,
@@ -132,6 +138,7 @@ impl Shared {
         live.result = None;
         live.images.remove("result");
         (live.status.history, live.status.redo) = live.session.history();
+        live.status.objects = live.session.objects_json();
         live.status.state = "running";
         live.status.message = "rendering the change".into();
         self.publish(&live);

@@ -116,6 +116,7 @@ fn quoted(s: &str) -> String {
 }
 
 /// [`quoted`]'s text back as the string.
+#[cfg(test)]
 fn unquoted(v: &str) -> String {
     serde_json::from_str(v).unwrap_or_else(|_| v.to_string())
 }
@@ -182,7 +183,64 @@ pub struct Light {
 }
 
 /// The history's stage kinds: a material edit, new lighting.
-const HISTORY_KINDS: [&str; 2] = ["edit", "relight"];
+const HISTORY_KINDS: [&str; 3] = ["edit", "relight", "insert"];
+
+/// The meshes the studio offers by name (`matflow_procgen::shapes::shipped`,
+/// written into the session as `mesh-NAME.obj` when first used).
+pub const SHIPPED_MESHES: [&str; 4] = ["jug", "torus", "sphere", "cube"];
+
+/// An object to insert, as the page sends it: a shipped mesh by name or
+/// one uploaded to the session (`mesh-….obj`/`.ply`), the pixel it stands
+/// on, its size and turn about its up axis, and its material.
+#[derive(Clone, Debug, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Object {
+    pub mesh: String,
+    pub anchor: [f64; 2],
+    #[serde(default = "one")]
+    pub scale: f64,
+    /// Degrees about the object's up axis.
+    #[serde(default)]
+    pub rotate: f64,
+    pub material: ObjectMaterial,
+}
+
+fn one() -> f64 {
+    1.0
+}
+
+/// An inserted object's material: `diffuse`, `principled` or `glass`;
+/// the albedo γ-encoded (as a colour picker shows it).
+#[derive(Clone, Debug, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ObjectMaterial {
+    #[serde(rename = "type")]
+    pub kind: String,
+    pub albedo: Option<[f64; 3]>,
+    pub roughness: Option<f64>,
+    pub metallic: Option<f64>,
+    pub ior: Option<f64>,
+}
+
+/// The session's own files named in `text` (masks, envmaps, meshes: the
+/// names the studio gives them).
+fn session_files(text: &str) -> Vec<String> {
+    let mut v: Vec<String> = text
+        .split(|c: char| !(c.is_ascii_alphanumeric() || matches!(c, '.' | '-' | '_')))
+        .filter(|w| {
+            ["mask-", "envmap-", "mesh-"]
+                .iter()
+                .any(|p| w.starts_with(p))
+                && [".png", ".hdr", ".exr", ".obj", ".ply"]
+                    .iter()
+                    .any(|e| w.ends_with(e))
+        })
+        .map(str::to_string)
+        .collect();
+    v.sort();
+    v.dedup();
+    v
+}
 
 /// A session: its folder and its stages.
 pub struct Session {
@@ -246,6 +304,78 @@ impl Session {
             .map_or("recovered", |e| e.name.as_str())
     }
 
+    /// The objects in the scene: the last `insert` of the history's.
+    fn objects(&self) -> Option<&str> {
+        self.edits
+            .iter()
+            .rev()
+            .find(|e| e.get("kind") == Some("insert"))
+            .and_then(|e| e.get("objects"))
+    }
+
+    /// The objects in the scene as the page sends them (shipped meshes by
+    /// name, the albedo γ-encoded), read back from the last `insert`.
+    pub fn objects_json(&self) -> serde_json::Value {
+        let Some(text) = self.objects() else {
+            return serde_json::json!([]);
+        };
+        let Ok((Value::List(items), _)) = parse_yaml(text) else {
+            return serde_json::json!([]);
+        };
+        let field = |m: &[(
+            String,
+            matflow_engine::value::Loc,
+            Value,
+            matflow_engine::value::Loc,
+        )],
+                     k: &str| {
+            m.iter()
+                .find(|(n, ..)| n == k)
+                .map(|(_, _, v, _)| v.clone())
+        };
+        let num = |v: Option<Value>| v.and_then(|v| v.as_f64());
+        let list = |v: Option<Value>| match v {
+            Some(Value::List(l)) => l.iter().filter_map(|x| x.as_f64()).collect(),
+            _ => vec![],
+        };
+        let objs: Vec<serde_json::Value> = items
+            .iter()
+            .filter_map(|it| match it {
+                Value::Map(m) => Some(m),
+                _ => None,
+            })
+            .map(|m| {
+                let mesh = match field(m, "mesh") {
+                    Some(Value::Str(f)) => f,
+                    _ => String::new(),
+                };
+                let shipped = SHIPPED_MESHES.iter().find(|s| mesh == format!("mesh-{s}.obj"));
+                let mat = match field(m, "material") {
+                    Some(Value::Map(mm)) => mm,
+                    _ => vec![],
+                };
+                let albedo: Vec<f64> = list(field(&mat, "albedo"))
+                    .iter()
+                    .map(|c| (matflow_scene::color::linear_to_gamma(*c as f32) as f64 * 1e3).round() / 1e3)
+                    .collect();
+                serde_json::json!({
+                    "mesh": shipped.map_or(mesh.clone(), |s| s.to_string()),
+                    "anchor": list(field(m, "anchor")),
+                    "scale": num(field(m, "scale")).unwrap_or(1.0),
+                    "rotate": list(field(m, "rotate")).get(1).copied().unwrap_or(0.0),
+                    "material": {
+                        "type": match field(&mat, "type") { Some(Value::Str(t)) => t, _ => "diffuse".into() },
+                        "albedo": (albedo.len() == 3).then_some(albedo),
+                        "roughness": num(field(&mat, "roughness")),
+                        "metallic": num(field(&mat, "metallic")),
+                        "ior": num(field(&mat, "ior")),
+                    },
+                })
+            })
+            .collect();
+        serde_json::Value::Array(objs)
+    }
+
     /// The lighting stage in force: the last `relight` of the history.
     fn light_stage(&self) -> Option<&str> {
         self.edits
@@ -277,29 +407,55 @@ impl Session {
                 ],
             )
         };
-        let (preview, mut result) = match self.light_stage() {
+        let spp = base.get("spp").unwrap_or("64").to_string();
+        let light = self.light_stage();
+        let (preview, mut result) = if let Some(objects) = self.objects() {
+            // Objects: rendered with full geometry and composited into the
+            // photo (photo + with − without); under new light, the whole
+            // render.
+            let insert = |name: &str, spp: String| {
+                let mut st = Stage::new(
+                    name,
+                    &[
+                        ("kind", "insert".into()),
+                        ("mesh", "mesh".into()),
+                        ("materials", self.last().into()),
+                        ("envmap", light.unwrap_or("recovered.envmap").into()),
+                        ("objects", objects.into()),
+                        ("spp", spp),
+                    ],
+                );
+                match light {
+                    None => st.set("photo", "scene".into()),
+                    Some(_) => st.set("composite", "full".into()),
+                }
+                st
+            };
+            (
+                insert("preview", PREVIEW_SPP.to_string()),
+                insert("result", spp),
+            )
+        } else if let Some(light) = light {
             // New light: the whole scene rendered under it (the kept paths
             // and the photo belong to the old one).
-            Some(light) => {
-                let relit = |name: &str, spp: String| {
-                    Stage::new(
-                        name,
-                        &[
-                            ("kind", "render".into()),
-                            ("mesh", "mesh".into()),
-                            ("materials", self.last().into()),
-                            ("envmap", light.into()),
-                            ("spp", spp),
-                        ],
-                    )
-                };
-                let spp = base.get("spp").unwrap_or("64").to_string();
-                (
-                    relit("preview", PREVIEW_SPP.to_string()),
-                    relit("result", spp),
+            let relit = |name: &str, spp: String| {
+                Stage::new(
+                    name,
+                    &[
+                        ("kind", "render".into()),
+                        ("mesh", "mesh".into()),
+                        ("materials", self.last().into()),
+                        ("envmap", light.into()),
+                        ("spp", spp),
+                    ],
                 )
-            }
-            None => (render("preview", "quick"), render("result", "base")),
+            };
+            (
+                relit("preview", PREVIEW_SPP.to_string()),
+                relit("result", spp),
+            )
+        } else {
+            (render("preview", "quick"), render("result", "base"))
         };
         result.set("output", quoted("result.exr"));
         let mut out = String::from(
@@ -409,6 +565,163 @@ impl Session {
         self.push(st, reg)
     }
 
+    /// Places `objects` (all of them: adding, moving and removing one are
+    /// each a new placement) as an `insert` stage of the history.
+    pub fn insert(&mut self, objects: &[Object], reg: &Registry) -> Result<(), SessionError> {
+        if objects.is_empty() {
+            return Err(SessionError::Request(
+                "no objects: to take the last one out, undo its insertion".into(),
+            ));
+        }
+        let meshes = self.meshes();
+        let mut items = Vec::new();
+        for (i, o) in objects.iter().enumerate() {
+            let file = if SHIPPED_MESHES.contains(&o.mesh.as_str()) {
+                self.shipped_mesh(&o.mesh)?
+            } else if meshes.contains(&o.mesh) {
+                o.mesh.clone()
+            } else {
+                return Err(SessionError::Request(format!(
+                    "objects[{i}]: no mesh {:?}: one of {} or an uploaded one",
+                    o.mesh,
+                    SHIPPED_MESHES.join(", ")
+                )));
+            };
+            let nums = |v: &[f64]| v.iter().map(|x| number(*x)).collect::<Vec<_>>().join(", ");
+            let m = &o.material;
+            let mut mat = vec![format!("type: {}", quoted(&m.kind))];
+            if let Some(a) = m.albedo {
+                // Linear, rounded: the file reads as the picker's colour.
+                let lin = a.map(|c| {
+                    let l = matflow_scene::color::gamma_to_linear(c.clamp(0.0, 1.0) as f32);
+                    (l as f64 * 1e4).round() / 1e4
+                });
+                mat.push(format!("albedo: [{}]", nums(&lin)));
+            }
+            for (k, v) in [
+                ("roughness", m.roughness),
+                ("metallic", m.metallic),
+                ("ior", m.ior),
+            ] {
+                if let Some(v) = v {
+                    mat.push(format!("{k}: {}", number(v)));
+                }
+            }
+            items.push(format!(
+                "{{mesh: {}, anchor: [{}], scale: {}, rotate: [0, {}, 0], material: {{{}}}}}",
+                quoted(&file),
+                nums(&o.anchor),
+                number(o.scale),
+                number(o.rotate),
+                mat.join(", ")
+            ));
+        }
+        let mut st = Stage::new(
+            &format!("edit{}", self.edits.len() + 1),
+            &[
+                ("kind", "insert".into()),
+                ("mesh", "mesh".into()),
+                ("materials", self.last().into()),
+                (
+                    "envmap",
+                    self.light_stage().unwrap_or("recovered.envmap").into(),
+                ),
+            ],
+        );
+        st.set("objects", format!("[{}]", items.join(", ")));
+        st.set("photo", "scene".into());
+        self.push(st, reg)
+    }
+
+    /// A shipped mesh written into the session (once), by its file name.
+    fn shipped_mesh(&self, name: &str) -> Result<String, SessionError> {
+        let file = format!("mesh-{name}.obj");
+        let path = self.dir.join(&file);
+        if !path.is_file() {
+            let (_, shape) = matflow_procgen::shapes::shipped()
+                .into_iter()
+                .find(|(n, _)| *n == name)
+                .ok_or_else(|| SessionError::Request(format!("no shipped mesh {name:?}")))?;
+            let part = matflow_scene::meshfile::MeshPart {
+                positions: shape.mesh.positions.clone(),
+                indices: shape.mesh.indices.clone(),
+                normals: shape.normals.clone(),
+                ..Default::default()
+            };
+            let text = matflow_scene::meshfile::obj_text(
+                &part,
+                &format!("{name}: generated by matflow (matflow_procgen::shapes::shipped)"),
+            );
+            matflow_scene::io::write_atomic(&path, text.as_bytes())
+                .map_err(|e| SessionError::Pipeline(e.to_string()))?;
+        }
+        Ok(file)
+    }
+
+    /// An uploaded mesh (PLY, told by its first bytes, else OBJ) kept in
+    /// the session's folder, named by its contents; read as `insert`
+    /// reads it, within its limits. Returns its name.
+    pub fn add_mesh(&self, bytes: &[u8]) -> Result<String, SessionError> {
+        let ext = if bytes.starts_with(b"ply") {
+            "ply"
+        } else {
+            "obj"
+        };
+        self.add_file(bytes, "mesh", ext, |f| {
+            matflow_scene::meshfile::read_mesh(f)
+                .map(|_| ())
+                .map_err(|e| e.to_string())
+        })
+    }
+
+    /// The meshes uploaded to the session, by name.
+    pub fn meshes(&self) -> Vec<String> {
+        self.files("mesh-", &[".obj", ".ply"])
+            .into_iter()
+            .filter(|n| !SHIPPED_MESHES.iter().any(|s| *n == format!("mesh-{s}.obj")))
+            .collect()
+    }
+
+    /// Keeps `bytes` as `PREFIX-HASH.EXT` in the session's folder once
+    /// `check` accepts the file (its errors name "the uploaded PREFIX").
+    fn add_file(
+        &self,
+        bytes: &[u8],
+        prefix: &str,
+        ext: &str,
+        check: impl FnOnce(&Path) -> Result<(), String>,
+    ) -> Result<String, SessionError> {
+        let hex = matflow_engine::store::Digest::of(bytes).hex();
+        let name = format!("{prefix}-{}.{ext}", &hex[..16]);
+        let file = self.dir.join(&name);
+        let tmp = self.dir.join(format!("upload-{}.{ext}", &hex[..16]));
+        std::fs::write(&tmp, bytes).map_err(io_err(&tmp))?;
+        match check(&tmp) {
+            Ok(()) => std::fs::rename(&tmp, &file).map_err(io_err(&file))?,
+            Err(e) => {
+                let _ = std::fs::remove_file(&tmp);
+                return Err(SessionError::Request(e.replace(
+                    &tmp.display().to_string(),
+                    &format!("the uploaded {prefix}"),
+                )));
+            }
+        }
+        Ok(name)
+    }
+
+    /// The session's files named `PREFIX…` ending in one of `exts`.
+    fn files(&self, prefix: &str, exts: &[&str]) -> Vec<String> {
+        let mut v: Vec<String> = std::fs::read_dir(&self.dir)
+            .into_iter()
+            .flatten()
+            .flatten()
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .filter(|n| n.starts_with(prefix) && exts.iter().any(|e| n.ends_with(e)))
+            .collect();
+        v.sort();
+        v
+    }
+
     /// An uploaded environment map (Radiance HDR or OpenEXR, told by its
     /// first bytes) kept in the session's folder, named by its contents;
     /// checked as `relight` reads it. Returns its name.
@@ -422,36 +735,16 @@ impl Session {
                 "not an environment map: give a Radiance .hdr or an OpenEXR .exr".into(),
             ));
         };
-        let hex = matflow_engine::store::Digest::of(bytes).hex();
-        let name = format!("env-{}.{ext}", &hex[..16]);
-        let file = self.dir.join(&name);
-        let tmp = self.dir.join(format!("upload-{}.{ext}", &hex[..16]));
-        std::fs::write(&tmp, bytes).map_err(io_err(&tmp))?;
-        let checked = matflow_scene::io::read_envmap(&tmp);
-        match checked {
-            Ok(_) => std::fs::rename(&tmp, &file).map_err(io_err(&file))?,
-            Err(e) => {
-                let _ = std::fs::remove_file(&tmp);
-                return Err(SessionError::Request(
-                    e.to_string()
-                        .replace(&tmp.display().to_string(), "the uploaded envmap"),
-                ));
-            }
-        }
-        Ok(name)
+        self.add_file(bytes, "envmap", ext, |f| {
+            matflow_scene::io::read_envmap(f)
+                .map(|_| ())
+                .map_err(|e| e.to_string())
+        })
     }
 
     /// The environment maps the session holds (uploaded), by name.
     pub fn envmaps(&self) -> Vec<String> {
-        let mut v: Vec<String> = std::fs::read_dir(&self.dir)
-            .into_iter()
-            .flatten()
-            .flatten()
-            .map(|e| e.file_name().to_string_lossy().into_owned())
-            .filter(|n| n.starts_with("env-") && (n.ends_with(".hdr") || n.ends_with(".exr")))
-            .collect();
-        v.sort();
-        v
+        self.files("envmap-", &[".hdr", ".exr"])
     }
 
     /// Appends a history stage, checked as the engine checks any pipeline.
@@ -502,16 +795,7 @@ impl Session {
         let bad = |e: matflow_dataset::tar::TarError| SessionError::Pipeline(e.to_string());
         tar.add("session.yaml", self.yaml().as_bytes())
             .map_err(bad)?;
-        let mut masks: Vec<String> = self
-            .edits
-            .iter()
-            .flat_map(|e| [e.get("mask_png"), e.get("path")])
-            .flatten()
-            .map(unquoted)
-            .collect();
-        masks.sort();
-        masks.dedup();
-        for m in masks {
+        for m in session_files(&self.yaml()) {
             let f = self.dir.join(&m);
             let bytes = std::fs::read(&f).map_err(io_err(&f))?;
             tar.add(&m, &bytes).map_err(bad)?;
@@ -643,6 +927,13 @@ fn stages_of_file(
             st.fields.push((k.clone(), text));
         }
         if is_edit {
+            let text: Vec<&str> = st.fields.iter().map(|(_, v)| v.as_str()).collect();
+            for f in session_files(&text.join(" ")) {
+                let (from, to) = (folder.join(&f), dir.join(&f));
+                if from != to && from.is_file() {
+                    std::fs::copy(&from, &to).map_err(io_err(&from))?;
+                }
+            }
             edits.push(st);
         } else {
             base.push(st);
@@ -783,7 +1074,7 @@ mod tests {
         assert!(y.contains("edit3:\n    kind: relight\n    source: recovered.envmap\n    rotation: 45\n    exposure: -0.5\n"), "{y}");
         assert!(y.contains("  preview:\n    kind: render\n    mesh: mesh\n    materials: edit2\n    envmap: edit3\n    spp: 4\n"), "{y}");
         let no_file = Light {
-            envmap: Some("env-none.hdr".into()),
+            envmap: Some("envmap-none.hdr".into()),
             ..Default::default()
         };
         assert!(matches!(

@@ -74,8 +74,25 @@ async function refreshOverlay() {
     const ctx = $("overlay").getContext("2d");
     ctx.clearRect(0, 0, ...state.dims);
     ctx.drawImage(img, 0, 0, ...state.dims);
+    state.overlay = img;
+    drawMarkers();
   } catch (e) {
     showError(e);
+  }
+}
+
+// Inserted objects' anchors, over the selection.
+function drawMarkers() {
+  const ctx = $("overlay").getContext("2d");
+  const [w] = state.dims;
+  const r = Math.max(2, w / 90);
+  ctx.lineWidth = Math.max(1, w / 256);
+  for (const [i, o] of (state.objects ?? []).entries()) {
+    const [x, y] = drag?.object === i && drag.to ? drag.to : o.anchor;
+    ctx.strokeStyle = "#ffd166";
+    ctx.beginPath();
+    ctx.arc(x, y, r, 0, 2 * Math.PI);
+    ctx.stroke();
   }
 }
 
@@ -119,6 +136,19 @@ async function onStatus(s) {
   if (state.pickEnvmap && s.envmaps.includes(state.pickEnvmap)) {
     pick.value = state.pickEnvmap;
     state.pickEnvmap = null;
+  }
+  const meshPick = $("obj-mesh");
+  const meshes = [...meshPick.options].map((o) => o.value);
+  for (const name of s.meshes) {
+    if (!meshes.includes(name)) meshPick.append(new Option(name, name));
+  }
+  if (state.pickMesh && s.meshes.includes(state.pickMesh)) {
+    meshPick.value = state.pickMesh;
+    state.pickMesh = null;
+  }
+  if (JSON.stringify(s.objects) !== JSON.stringify(state.objects)) {
+    state.objects = s.objects;
+    showObjects();
   }
   if (s.width && s.height) sizeCanvases(s.width, s.height);
   if (!mapsShown && s.maps.length) {
@@ -195,10 +225,21 @@ async function select(path, body) {
 
 let drag = null;
 
+// The object whose marker is under (x, y), if any.
+function objectAt(x, y) {
+  const r = Math.max(3, state.dims[0] / 60);
+  return (state.objects ?? []).findIndex((o) => Math.hypot(o.anchor[0] - x, o.anchor[1] - y) <= r);
+}
+
 $("overlay").addEventListener("pointerdown", (e) => {
   const [x, y] = toImage(e);
   const mode = modeOf(e);
-  if (tool() === "object") {
+  const hit = objectAt(x, y);
+  if (hit >= 0) {
+    drag = { object: hit };
+  } else if (tool() === "place") {
+    sendObjects([...(state.objects ?? []), objectFromControls([x, y])]);
+  } else if (tool() === "object") {
     select("api/select", { x, y, mode, tolerance: Number($("tolerance").value) });
   } else if (tool() === "rect") {
     drag = { x0: x, y0: y, mode };
@@ -212,7 +253,13 @@ $("overlay").addEventListener("pointerdown", (e) => {
 $("overlay").addEventListener("pointermove", (e) => {
   if (!drag) return;
   const [x, y] = toImage(e);
-  if (drag.points) {
+  if (drag.object !== undefined) {
+    drag.to = [x, y];
+    const ctx = $("overlay").getContext("2d");
+    ctx.clearRect(0, 0, ...state.dims);
+    if (state.overlay) ctx.drawImage(state.overlay, 0, 0, ...state.dims);
+    drawMarkers();
+  } else if (drag.points) {
     drag.points.push([x, y]);
     const ctx = $("overlay").getContext("2d");
     ctx.fillStyle = drag.mode === "remove" ? "rgba(0,0,0,0.4)" : "rgba(40,160,255,0.43)";
@@ -230,7 +277,12 @@ $("overlay").addEventListener("pointerup", (e) => {
   const d = drag;
   drag = null;
   const [x, y] = toImage(e);
-  if (d.points) {
+  if (d.object !== undefined) {
+    if (d.to) {
+      const objs = state.objects.map((o, i) => (i === d.object ? { ...o, anchor: [x, y] } : o));
+      sendObjects(objs);
+    }
+  } else if (d.points) {
     select("api/select/brush", { points: d.points, radius: Number($("radius").value), mode: d.mode });
   } else {
     select("api/select/rect", { x0: d.x0, y0: d.y0, x1: x, y1: y, mode: d.mode });
@@ -253,7 +305,7 @@ $("mask").addEventListener("change", async () => {
 
 // ---- changes --------------------------------------------------------------
 
-for (const [id, digits] of [["tolerance", 2], ["radius", 0], ["hue", 0], ["sat", 2], ["val", 2], ["rough", 2], ["metal", 2], ["rotation", 0], ["exposure", 1]]) {
+for (const [id, digits] of [["tolerance", 2], ["radius", 0], ["hue", 0], ["sat", 2], ["val", 2], ["rough", 2], ["metal", 2], ["rotation", 0], ["exposure", 1], ["obj-rough", 2], ["obj-metal", 2], ["obj-ior", 2], ["obj-scale", 2], ["obj-rotate", 0]]) {
   const show = () => ($(`${id}-v`).textContent = Number($(id).value).toFixed(digits));
   $(id).addEventListener("input", show);
   show();
@@ -308,6 +360,72 @@ $("envmap-file").addEventListener("change", async () => {
 });
 $("undo").addEventListener("click", () => act("api/undo"));
 $("redo").addEventListener("click", () => act("api/redo"));
+
+// ---- inserted objects -----------------------------------------------------
+
+const gamma = (hex) => [1, 3, 5].map((i) => Math.round((parseInt(hex.slice(i, i + 2), 16) / 255) * 1000) / 1000);
+
+function objectFromControls(anchor) {
+  const type = $("obj-type").value;
+  const material = { type, albedo: gamma($("obj-albedo").value), roughness: Number($("obj-rough").value) };
+  if (type === "principled") material.metallic = Number($("obj-metal").value);
+  if (type === "glass") {
+    material.ior = Number($("obj-ior").value);
+    delete material.albedo;
+  }
+  return {
+    mesh: $("obj-mesh").value,
+    anchor: anchor.map((v) => Math.round(v * 10) / 10),
+    scale: Number($("obj-scale").value),
+    rotate: Number($("obj-rotate").value),
+    material,
+  };
+}
+
+// The page's form of an object the server read back (nulls dropped).
+function clean(o) {
+  const material = Object.fromEntries(Object.entries(o.material).filter(([, v]) => v !== null));
+  return { ...o, material };
+}
+
+async function sendObjects(objects) {
+  await act("api/insert", { objects: objects.map(clean) });
+}
+
+function showObjects() {
+  const list = $("objects");
+  list.replaceChildren(
+    ...(state.objects ?? []).map((o, i) => {
+      const li = document.createElement("li");
+      li.textContent = `${o.mesh} (${o.material.type}) at ${o.anchor.map((v) => v.toFixed(0)).join(", ")}, ×${o.scale}`;
+      const update = document.createElement("button");
+      update.textContent = "set from controls";
+      update.onclick = () =>
+        sendObjects(state.objects.map((p, j) => (j === i ? objectFromControls(p.anchor) : p)));
+      const remove = document.createElement("button");
+      remove.textContent = "remove";
+      remove.onclick = () => sendObjects(state.objects.filter((_, j) => j !== i));
+      li.append(update, remove);
+      return li;
+    }),
+  );
+  const ctx = $("overlay").getContext("2d");
+  ctx.clearRect(0, 0, ...state.dims);
+  if (state.overlay) ctx.drawImage(state.overlay, 0, 0, ...state.dims);
+  drawMarkers();
+}
+
+$("mesh-file").addEventListener("change", async () => {
+  const f = $("mesh-file").files[0];
+  if (!f) return;
+  try {
+    showError(null);
+    const r = await post("api/insert/mesh", await f.arrayBuffer(), "application/octet-stream");
+    state.pickMesh = r.mesh;
+  } catch (e) {
+    showError(e);
+  }
+});
 
 $("dl-png").href = withToken("api/images/result.png");
 $("dl-exr").href = withToken("api/images/result.exr");

@@ -5,7 +5,8 @@
 //! different (nothing is served from the cache): the time from the change
 //! to its first preview and to its converged result (the studio's own
 //! clock, and the client's, polling every 5 ms), the first change after
-//! opening apart. Then: the studio's memory, its CPU time over an idle
+//! opening apart. Then a sphere is inserted and moved `--edits` times,
+//! timed alike. Then: the studio's memory, its CPU time over an idle
 //! `--idle` seconds, and whether the exported session, run by `matflow
 //! run` on an empty cache, writes the studio's EXR byte for byte.
 
@@ -228,6 +229,32 @@ pub fn bench_studio(a: BenchStudioArgs) -> Result<()> {
             result,
         ));
     }
+    // An object: a sphere stood on the floor, then moved `--edits` times
+    // (each to a new place: nothing from the cache).
+    let generation0 = a.edits as u64 + 1;
+    let mut moves = Vec::new();
+    for i in 0..=a.edits {
+        let x = (40.0 + 6.0 * i as f64) * scale;
+        let body = json!({"objects": [{"mesh": "sphere", "anchor": [x, 236.0 * scale],
+            "scale": 0.6, "material": {"type": "principled", "albedo": [0.8, 0.3, 0.2],
+            "roughness": 0.3, "metallic": 0.0}}]});
+        let t0 = Instant::now();
+        let (code, answer) = http(&st.addr, "POST", "/api/insert", Some(body))?;
+        if code != 204 {
+            bail!("insert: {}", String::from_utf8_lossy(&answer));
+        }
+        let generation = generation0 + i as u64 + 1;
+        let (_, preview) = until(&st.addr, t0, 300.0, |v| v["shown"] == generation)?;
+        let (v, result) = until(&st.addr, t0, 300.0, |v| {
+            v["shown"] == generation && v["image"] == "result"
+        })?;
+        moves.push((
+            v["preview_seconds"].as_f64().unwrap_or(f64::NAN),
+            v["result_seconds"].as_f64().unwrap_or(f64::NAN),
+            preview,
+            result,
+        ));
+    }
     let (rss, hwm) = memory_mib(pid)?;
     let cpu0 = cpu_seconds(pid)?;
     std::thread::sleep(Duration::from_secs_f64(a.idle));
@@ -287,6 +314,32 @@ pub fn bench_studio(a: BenchStudioArgs) -> Result<()> {
         col(|r| r.1),
         col(|r| r.2),
         col(|r| r.3)
+    );
+    outln!();
+    outln!("| object | preview (studio) | result, 64 spp (studio) | preview (client) | result (client) |");
+    outln!("|---|---|---|---|---|");
+    for (i, r) in moves.iter().enumerate() {
+        let what = if i == 0 {
+            "inserted".to_string()
+        } else {
+            format!("moved {i}")
+        };
+        outln!(
+            "| {what} | {:.3} s | {:.3} s | {:.3} s | {:.3} s |",
+            r.0,
+            r.1,
+            r.2,
+            r.3
+        );
+    }
+    let mcol = |f: fn(&(f64, f64, f64, f64)) -> f64| median(moves[1..].iter().map(f).collect());
+    outln!(
+        "| **median of {} moves** | **{:.3} s** | **{:.3} s** | **{:.3} s** | **{:.3} s** |",
+        moves.len() - 1,
+        mcol(|r| r.0),
+        mcol(|r| r.1),
+        mcol(|r| r.2),
+        mcol(|r| r.3)
     );
     outln!();
     outln!("memory of the open session: {rss:.0} MiB resident, {hwm:.0} MiB peak");
