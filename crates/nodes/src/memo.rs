@@ -59,6 +59,7 @@ impl<T> Recent<T> {
 
 static KEPT: Recent<Kept> = Recent::new();
 static GEOMETRY: Recent<RenderScene> = Recent::new();
+static RENDERS: Recent<RgbImage> = Recent::new();
 
 fn digest(parts: &[&[u8]]) -> Key {
     let mut h = blake3::Hasher::new();
@@ -73,6 +74,19 @@ fn digest(parts: &[&[u8]]) -> Key {
 /// they stay among the last [`SLOTS`]).
 pub fn kept(bytes: &[u8]) -> Result<Arc<Kept>, NodeError> {
     KEPT.get_or(digest(&[b"kept", bytes]), || Kept::decode(bytes))
+}
+
+/// A render that is a pure function of `parts` (the input bytes and the
+/// options it was made with, each given), made once per process while it
+/// stays among the last [`SLOTS`]: the plain scene behind inserted
+/// objects, which moving an object does not change.
+pub fn render(
+    parts: &[&[u8]],
+    make: impl FnOnce() -> Result<RgbImage, NodeError>,
+) -> Result<Arc<RgbImage>, NodeError> {
+    let mut all: Vec<&[u8]> = vec![b"render"];
+    all.extend_from_slice(parts);
+    RENDERS.get_or(digest(&all), make)
 }
 
 /// The scene of a mesh artifact with `maps` under `env` (no objects):

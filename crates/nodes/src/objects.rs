@@ -448,10 +448,22 @@ pub fn place(
     camera: &Camera,
     depth_mesh: &TriMesh,
 ) -> Result<Vec<SceneObject>, NodeError> {
+    place_with(specs, camera, depth_mesh, None)
+}
+
+/// [`place`] with the depth mesh's BVH already built (`None`: built here
+/// when an anchor needs it).
+pub fn place_with(
+    specs: &[ObjectSpec],
+    camera: &Camera,
+    depth_mesh: &TriMesh,
+    built: Option<&Bvh>,
+) -> Result<Vec<SceneObject>, NodeError> {
     check_specs(specs).map_err(err)?;
     check_anchors(specs, (camera.width, camera.height)).map_err(err)?;
-    let need_bvh = specs.iter().any(|s| s.anchor.is_some());
-    let bvh = need_bvh.then(|| Bvh::build(depth_mesh));
+    let need_bvh = built.is_none() && specs.iter().any(|s| s.anchor.is_some());
+    let own = need_bvh.then(|| Bvh::build(depth_mesh));
+    let bvh = built.or(own.as_ref());
     let scene_depth = depth_mesh
         .positions
         .iter()
@@ -464,7 +476,7 @@ pub fn place(
     for (i, s) in specs.iter().enumerate() {
         let name = s.mesh.display();
         let parts = read_entry(i, s).map_err(err)?;
-        let (origin, linear) = placement(i, s, camera, depth_mesh, bvh.as_ref())?;
+        let (origin, linear) = placement(i, s, camera, depth_mesh, bvh)?;
         let normal_m = linear.inverse().transpose();
         let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
         let mut in_front = false;
@@ -962,6 +974,28 @@ mod tests {
         // Differential compositing changes the photo only where a path
         // met an object: elsewhere with and without are bit-identical.
         let alpha = base.object_coverage(4);
+        // The matte traces only the objects' film box: the same as every
+        // pixel traced.
+        let every: Vec<f32> = (0..n * n)
+            .map(|k| {
+                let mut hits = 0;
+                for j in 0..4 {
+                    for i in 0..4 {
+                        let film = glam::Vec2::new(
+                            (k % n) as f32 + (i as f32 + 0.5) / 4.0,
+                            (k / n) as f32 + (j as f32 + 0.5) / 4.0,
+                        );
+                        let d = base.camera_ray(film);
+                        if let Some(hit) = base.bvh.intersect(Vec3::ZERO, d, 0.0, f32::INFINITY) {
+                            hits += (hit.prim as usize >= base.screen_prims) as u32;
+                        }
+                    }
+                }
+                hits as f32 / 16.0
+            })
+            .collect();
+        assert!(alpha == every, "the matte differs from tracing every pixel");
+        assert!(alpha.iter().any(|&a| a > 0.0));
         let photo = &s.maps.albedo; // any image of the right size
         let comp = composite_differential(photo, &image, &plain, &alpha);
         let mut same = 0;

@@ -726,11 +726,47 @@ impl RenderScene {
         use rayon::prelude::*;
         let (w, h) = (self.camera.width, self.camera.height);
         let n = n.max(1);
+        // Only pixels in the film box of the objects' vertices can see
+        // them (a camera ray meets a triangle only inside its projection);
+        // a vertex at or behind the camera plane leaves the whole film.
+        let (mut lo, mut hi) = (Vec2::splat(f32::INFINITY), Vec2::splat(f32::NEG_INFINITY));
+        let mut whole = false;
+        for p in self
+            .mesh
+            .positions
+            .get(self.object_vertices..)
+            .unwrap_or(&[])
+        {
+            match self.camera.project(*p) {
+                Some(f) if f.is_finite() => {
+                    lo = lo.min(f);
+                    hi = hi.max(f);
+                }
+                _ => whole = true,
+            }
+        }
+        let (x0, y0, x1, y1) = if whole {
+            (0, 0, w, h)
+        } else if lo.x > hi.x {
+            (0, 0, 0, 0)
+        } else {
+            let at = |v: f32, max: usize| v.clamp(0.0, max as f32) as usize;
+            (
+                at(lo.x.floor() - 1.0, w),
+                at(lo.y.floor() - 1.0, h),
+                at(hi.x.ceil() + 1.0, w),
+                at(hi.y.ceil() + 1.0, h),
+            )
+        };
         (0..w * h)
             .into_par_iter()
             .with_min_len(256)
             .map(|k| {
-                let (x, y) = ((k % w) as f32, (k / w) as f32);
+                let (px, py) = (k % w, k / w);
+                if px < x0 || px >= x1 || py < y0 || py >= y1 {
+                    return 0.0;
+                }
+                let (x, y) = (px as f32, py as f32);
                 let mut hits = 0u32;
                 for j in 0..n {
                     for i in 0..n {

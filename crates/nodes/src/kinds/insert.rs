@@ -43,7 +43,7 @@ pub(crate) const GLASS_DEPTH: ParamSpec = ParamSpec {
 
 const INSERT_INFO: NodeInfo = NodeInfo {
     kind: "insert",
-    version: 3,
+    version: 4,
     doc: "Inserts objects (OBJ/PLY meshes; diffuse, principled or glass) into the scene and \
          renders them with full geometry (shadows, inter-reflection, refraction of the \
          envmap); composites into the photo differentially (photo + with − without, the \
@@ -270,6 +270,15 @@ impl Node for InsertNode {
         let (cam, tri) = decode_mesh(ctx.input("mesh")?)?;
         let specs = objects::specs(p.get("objects"))?;
         let kept = ctx.opt_input("paths").map(Kept::decode).transpose()?;
+        // Without kept paths: the scene without the objects, its geometry
+        // (and BVH, which places anchored objects) from the memo.
+        let plain = match &kept {
+            None => {
+                let env = envmap_from(ctx.input("envmap")?)?;
+                Some((crate::memo::scene(ctx.input("mesh")?, &maps, &env)?, env))
+            }
+            Some(_) => None,
+        };
         let objs = match &kept {
             Some(k) if specs.is_empty() => {
                 if k.objects.is_empty() {
@@ -277,7 +286,7 @@ impl Node for InsertNode {
                 }
                 k.objects.clone()
             }
-            _ => objects::place(&specs, &cam, &tri)?,
+            _ => objects::place_with(&specs, &cam, &tri, plain.as_ref().map(|(s, _)| &s.bvh))?,
         };
         let differential = p.str("composite") == "differential";
         let progress = |d: usize, t: usize, part: usize, parts: usize| {
@@ -308,13 +317,31 @@ impl Node for InsertNode {
             };
             (with, without, w_scene)
         } else {
-            let env = envmap_from(ctx.input("envmap")?)?;
-            let opts = Self::options(p, ctx.seed)?;
+            let (plain, env) = plain.ok_or_else(|| err("no scene"))?;
+            // Seeded without the objects: the render behind them is the
+            // same wherever they stand (and shares the objects' render's
+            // sample streams), so moving one re-renders only the scene
+            // with it.
+            let mut without_objects = p.clone();
+            without_objects
+                .0
+                .insert("objects".into(), matflow_engine::Value::Null);
+            let seed = matflow_engine::key::node_seed(self, &without_objects);
+            let opts = Self::options(p, seed)?;
             let w_scene = scene_with(&cam, &tri, &maps, &env, &objs)?;
             let with = render(&w_scene, &opts, &|d, t| progress(d, t, 0, parts)).image;
             let without = if differential {
-                let s = scene_with(&cam, &tri, &maps, &env, &[])?;
-                Some(render(&s, &opts, &|d, t| progress(d, t, 1, parts)).image)
+                let what = format!("{opts:?}");
+                let b = crate::memo::render(
+                    &[
+                        ctx.input("mesh")?,
+                        ctx.input("materials")?,
+                        ctx.input("envmap")?,
+                        what.as_bytes(),
+                    ],
+                    || Ok(render(&plain, &opts, &|d, t| progress(d, t, 1, parts)).image),
+                )?;
+                Some((*b).clone())
             } else {
                 None
             };
