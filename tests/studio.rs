@@ -168,6 +168,13 @@ fn a_session_is_edited_undone_redone_and_exported_as_its_pipeline() {
         (v["width"].as_u64(), v["height"].as_u64()),
         (Some(64), Some(64))
     );
+    // The recovery's loss, step by step, for the page's curve.
+    assert_eq!(v["loss_stage"], "recovered", "{v}");
+    let loss = v["loss"].as_array().unwrap();
+    assert!(
+        loss.len() > 3 && loss.iter().all(|l| l.as_f64().is_some_and(|l| l >= 0.0)),
+        "{v}"
+    );
     for want in ["photo", "albedo", "roughness", "metallic", "depth"] {
         assert!(v["maps"].as_array().unwrap().contains(&json!(want)), "{v}");
         let (code, png) = get(&st.addr, &format!("/api/maps/{want}.png"));

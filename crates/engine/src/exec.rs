@@ -136,6 +136,9 @@ pub trait Observer: Sync {
     /// The stage started on `worker` (`local` or a worker's address).
     fn started(&self, _stage: &str, _kind: &str, _worker: &str) {}
     fn progress(&self, _stage: &str, _done: u64, _total: u64) {}
+    /// A named number the stage reported (e.g. `loss` per step; stages run
+    /// in this process only).
+    fn metric(&self, _stage: &str, _name: &str, _value: f64) {}
     /// An attempt failed for a reason that is not the stage's own (a
     /// worker died or hung, an input had to be recomputed); it runs again.
     fn retried(&self, _stage: &str, _reason: &str) {}
@@ -233,6 +236,11 @@ pub enum Event {
         stage: String,
         reason: String,
     },
+    Metric {
+        stage: String,
+        name: String,
+        value: f64,
+    },
     /// Exactly once per submitted job.
     Finished {
         stage: String,
@@ -275,6 +283,19 @@ pub fn execute_job(
     job: &Job,
     worker: &str,
     progress: &(dyn Fn(u64, u64) + Sync),
+) -> Result<Done, Failure> {
+    execute_job_observed(reg, store, job, worker, progress, &|_, _| {})
+}
+
+/// [`execute_job`], the stage's metrics (see [`RunContext::metric`]) to
+/// `metric`.
+pub fn execute_job_observed(
+    reg: &Registry,
+    store: &Tiered,
+    job: &Job,
+    worker: &str,
+    progress: &(dyn Fn(u64, u64) + Sync),
+    metric: &(dyn Fn(&str, f64) + Sync),
 ) -> Result<Done, Failure> {
     let infra = |e: crate::store::StoreError| Failure::Infra(e.to_string());
     let node = reg
@@ -326,6 +347,7 @@ pub fn execute_job(
         inputs: in_bytes,
         seed: node_seed(node, &job.params),
         progress,
+        metric,
     };
     let ts = Instant::now();
     let outs = run_node(node, &ctx).map_err(Failure::of)?;
@@ -425,7 +447,15 @@ impl LocalExecutor {
                             total,
                         })
                     };
-                    let result = execute_job(&reg, &store, &job, "local", &progress);
+                    let metric = |name: &str, value: f64| {
+                        sink(Event::Metric {
+                            stage: job.stage.clone(),
+                            name: name.into(),
+                            value,
+                        })
+                    };
+                    let result =
+                        execute_job_observed(&reg, &store, &job, "local", &progress, &metric);
                     sink(Event::Finished {
                         stage: job.stage.clone(),
                         result,
@@ -536,6 +566,7 @@ pub fn run_pipeline(
             Event::Started { stage, worker } => s.on_started(&stage, &worker),
             Event::Progress { stage, done, total } => obs.progress(&stage, done, total),
             Event::Retry { stage, reason } => s.on_retry(&stage, &reason),
+            Event::Metric { stage, name, value } => obs.metric(&stage, &name, value),
             Event::Finished { stage, result } => s.on_finished(&stage, result),
         }
     }
@@ -1149,6 +1180,7 @@ mod tests {
         }
         fn run(&self, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
             let n = ctx.opt_input("after").map_or(0, |b| b[0]) + 1;
+            (ctx.metric)("n", n as f64);
             Ok(BTreeMap::from([("n".to_string(), vec![n])]))
         }
     }
@@ -1210,6 +1242,41 @@ mod tests {
             r.stages.iter().all(|s| s.status != Status::Skipped),
             "{:?}",
             r.stages
+        );
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// Collects the metrics it hears: (stage, name, value).
+    struct Metrics(Mutex<Vec<(String, String, f64)>>);
+    impl Observer for Metrics {
+        fn metric(&self, stage: &str, name: &str, value: f64) {
+            self.0
+                .lock()
+                .unwrap()
+                .push((stage.into(), name.into(), value));
+        }
+    }
+
+    /// What a stage reports as it runs reaches the run's observer.
+    #[test]
+    fn a_stages_metrics_reach_the_observer() {
+        let dir = std::env::temp_dir().join(format!("matflow-metric-test-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let store = Arc::new(Tiered::new(crate::store::Store::open(&dir).unwrap(), None));
+        let mut reg = Registry::default();
+        reg.add(Box::new(Step));
+        let yaml = "pipeline: chain\noutputs: [b]\nstages:\n  a:\n    kind: step\n  \
+                    b:\n    kind: step\n    after: a\n";
+        let p = crate::spec::parse(yaml, &dir.join("chain.yaml"), &reg, &[]).unwrap();
+        let reg = Arc::new(reg);
+        let exec = crate::LocalExecutor::new(reg.clone(), store.clone(), 1);
+        let obs = Metrics(Mutex::new(vec![]));
+        let r = run_pipeline(&p, &reg, &store, &exec, &obs);
+        assert_eq!(r.failure(), None);
+        let seen = obs.0.lock().unwrap().clone();
+        assert_eq!(
+            seen,
+            [("a".into(), "n".into(), 1.0), ("b".into(), "n".into(), 2.0)]
         );
         let _ = std::fs::remove_dir_all(&dir);
     }

@@ -332,6 +332,9 @@ pub struct RunContext<'a> {
     /// inputs, so an upstream edit keeps the noise pattern).
     pub seed: u64,
     pub progress: &'a (dyn Fn(u64, u64) + Sync),
+    /// A named number as the stage goes (an optimiser's loss per step),
+    /// for a front end to plot; nothing keeps it.
+    pub metric: &'a (dyn Fn(&str, f64) + Sync),
 }
 
 impl RunContext<'_> {

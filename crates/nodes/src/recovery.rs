@@ -251,9 +251,13 @@ pub(crate) fn prepare(
     })
 }
 
-/// Progress: the optimisation steps of the current stage.
+/// Progress: the optimisation steps of the current stage, and each
+/// step's loss as the metric `loss`.
 pub(crate) fn on_event(ctx: &RunContext, e: Event) {
-    if let Event::Step { step, .. } = e {
-        (ctx.progress)(step as u64, 0)
+    if let Event::Step { step, loss } = e {
+        (ctx.progress)(step as u64, 0);
+        if loss.is_finite() {
+            (ctx.metric)("loss", loss);
+        }
     }
 }

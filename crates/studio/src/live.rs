@@ -50,6 +50,10 @@ pub struct Status {
     pub redo: usize,
     /// Pixels selected.
     pub selected: usize,
+    /// The loss of each step of the recovery stage running now (or that
+    /// ran last), and that stage's name.
+    pub loss: Vec<f64>,
+    pub loss_stage: String,
     /// The environment maps uploaded to the session, by name.
     pub envmaps: Vec<String>,
     /// The meshes uploaded to the session, by name.
@@ -164,6 +168,23 @@ impl Observer for Progress<'_> {
         let mut l = self.shared.lock();
         l.status.stage = stage.into();
         (l.status.done, l.status.total) = (done, total);
+        self.shared.publish(&l);
+    }
+    fn metric(&self, stage: &str, name: &str, value: f64) {
+        if name != "loss" {
+            return;
+        }
+        let mut l = self.shared.lock();
+        if l.status.loss_stage != stage {
+            l.status.loss_stage = stage.into();
+            l.status.loss.clear();
+        }
+        // Bounded: a long recovery keeps every other point.
+        if l.status.loss.len() >= 2000 {
+            let thinned: Vec<f64> = l.status.loss.iter().step_by(2).copied().collect();
+            l.status.loss = thinned;
+        }
+        l.status.loss.push(value);
         self.shared.publish(&l);
     }
     fn finished(&self, _report: &StageReport) {}

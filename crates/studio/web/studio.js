@@ -150,6 +150,7 @@ async function onStatus(s) {
     state.objects = s.objects;
     showObjects();
   }
+  drawLoss(s);
   if (s.width && s.height) sizeCanvases(s.width, s.height);
   if (!mapsShown && s.maps.length) {
     mapsShown = true;
@@ -172,6 +173,31 @@ async function onStatus(s) {
     }
   }
   document.body.dataset.state = s.state;
+}
+
+// The recovery's loss per step, on a log scale.
+function drawLoss(s) {
+  if (!s.loss.length) return;
+  $("loss-box").hidden = false;
+  const c = $("loss");
+  const ctx = c.getContext("2d");
+  ctx.clearRect(0, 0, c.width, c.height);
+  const logs = s.loss.map((v) => Math.log10(Math.max(v, 1e-12)));
+  const lo = Math.min(...logs);
+  const hi = Math.max(...logs);
+  const span = hi - lo || 1;
+  ctx.strokeStyle = "#61afef";
+  ctx.lineWidth = 1.5;
+  ctx.beginPath();
+  logs.forEach((v, i) => {
+    const x = 4 + (i / Math.max(1, logs.length - 1)) * (c.width - 8);
+    const y = 4 + (1 - (v - lo) / span) * (c.height - 8);
+    if (i === 0) ctx.moveTo(x, y);
+    else ctx.lineTo(x, y);
+  });
+  ctx.stroke();
+  const last = s.loss[s.loss.length - 1];
+  $("loss-caption").textContent = `${s.loss_stage} loss: ${last.toPrecision(4)} after ${s.loss.length} steps (log scale)`;
 }
 
 function showMaps(s) {

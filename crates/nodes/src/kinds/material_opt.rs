@@ -170,6 +170,7 @@ mod tests {
                 inputs: inputs.iter().cloned().collect(),
                 seed: 1,
                 progress: &|_, _| {},
+                metric: &|_, _| {},
             })
             .unwrap();
         let a = Artifact::decode(&out["report"], "report").unwrap();

@@ -179,6 +179,7 @@ mod tests {
                 inputs: [("scene".to_string(), std::sync::Arc::new(scene))].into(),
                 seed: 1,
                 progress: &|_, _| {},
+                metric: &|_, _| {},
             })
             .unwrap();
         let (cam, tri) = decode_mesh(&out["mesh"]).unwrap();

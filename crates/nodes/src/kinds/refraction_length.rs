@@ -164,6 +164,7 @@ mod tests {
             inputs,
             seed: 3,
             progress: &|_, _| {},
+            metric: &|_, _| {},
         })
         .unwrap()
     }

@@ -192,6 +192,7 @@ mod tests {
                     inputs: BTreeMap::new(),
                     seed: 9,
                     progress: &|_, _| {},
+                    metric: &|_, _| {},
                 })
                 .unwrap()
         };

@@ -472,6 +472,7 @@ mod node_tests {
                 inputs,
                 seed: 0,
                 progress: &|_, _| {},
+                metric: &|_, _| {},
             };
             let out = TransparencyNode.run(&ctx).unwrap();
             crate::data::materials_from(&out["materials"]).unwrap()

@@ -411,6 +411,7 @@ mod tests {
             inputs: BTreeMap::new(),
             seed: 5,
             progress: &|_, _| {},
+            metric: &|_, _| {},
         })
         .unwrap()
     }
