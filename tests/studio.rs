@@ -653,6 +653,57 @@ fn sky_hdr() -> Vec<u8> {
     matflow_scene::io::encode_hdr(Path::new("sky.hdr"), &img).unwrap()
 }
 
+/// A photo uploaded starts a session on it: saved in the session's
+/// folder by its contents, predicted (`matnet`), its maps shown; a file
+/// that is not a photo, or one too small to predict from, is refused and
+/// the session stays as it was.
+#[test]
+fn a_photo_opened_by_upload_starts_a_session_on_it() {
+    let dir = scratch("studio", "open");
+    room_pipeline(&dir);
+    let st = start(&dir, Path::new("room.yaml"), "session", &[]);
+    result_of(&st.addr, 0);
+    let octets = ["Content-Type: application/octet-stream"];
+    let refused = [(b"hello".to_vec(), "not a photo"), (png(16, 16), "16x16")];
+    for (body, says) in refused {
+        let (code, answer) = http_raw(&st.addr, "POST", "/api/open", &octets, &body);
+        let answer = String::from_utf8_lossy(&answer);
+        assert_eq!(code, 422, "{answer}");
+        assert!(answer.contains(says), "{answer}");
+    }
+    assert_eq!(status(&st.addr)["input"], "room.yaml");
+    // The room's own photo, as a user would upload a picture.
+    let (_, photo) = get(&st.addr, "/api/maps/photo.png");
+    let (code, answer) = http_raw(&st.addr, "POST", "/api/open", &octets, &photo);
+    assert_eq!(code, 204, "{}", String::from_utf8_lossy(&answer));
+    let (_, yaml) = get(&st.addr, "/api/pipeline.yaml");
+    let yaml = String::from_utf8_lossy(&yaml).into_owned();
+    let name = yaml
+        .lines()
+        .find_map(|l| l.trim().strip_prefix("photo: photo-"))
+        .unwrap_or_else(|| panic!("a matnet stage on the upload:\n{yaml}"));
+    assert!(yaml.contains("kind: matnet"), "{yaml}");
+    assert!(dir.join("session").join(format!("photo-{name}")).is_file());
+    // Predicted: the maps are MatNet's, at 512².
+    let t0 = Instant::now();
+    loop {
+        let v = status(&st.addr);
+        assert_ne!(v["state"], "failed", "{v}");
+        if v["width"] == 512 && !v["maps"].as_array().unwrap().is_empty() {
+            assert!(v["input"].as_str().unwrap().starts_with("photo-"), "{v}");
+            assert_eq!(v["history"], json!([]));
+            break;
+        }
+        assert!(t0.elapsed() < Duration::from_secs(120), "{v}");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let (code, albedo) = get(&st.addr, "/api/maps/albedo.png");
+    assert_eq!(code, 200);
+    assert_eq!(rgb(&albedo).dimensions(), (512, 512));
+    drop(st);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// A white `w`×`h` PNG.
 fn png(w: u32, h: u32) -> Vec<u8> {
     let img = image::GrayImage::from_pixel(w, h, image::Luma([255]));

@@ -14,6 +14,7 @@ pub mod artifact;
 mod data;
 pub use data::{render_seconds, SceneData};
 pub use kinds::insert::composite_differential;
+pub use kinds::matnet::MIN_PHOTO_SIDE;
 pub use kinds::matnet::{
     linear_square as matnet_linear_square, load_model as load_matnet_model,
     predict as matnet_predict, read_photo as read_matnet_photo,

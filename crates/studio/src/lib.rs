@@ -34,6 +34,9 @@ use matflow_scene::Image;
 use live::{request_error, Shared};
 use session::{Change, Light, Object, Session};
 
+/// The largest photo accepted by upload.
+const PHOTO_BYTES: usize = 64 << 20;
+
 /// The largest mesh accepted by upload.
 const MESH_BYTES: usize = 64 << 20;
 
@@ -133,6 +136,10 @@ fn router(app: Arc<App>) -> Router {
         .route(
             "/api/light/envmap",
             post(upload_envmap).layer(axum::extract::DefaultBodyLimit::max(ENVMAP_BYTES)),
+        )
+        .route(
+            "/api/open",
+            post(open_photo).layer(axum::extract::DefaultBodyLimit::max(PHOTO_BYTES)),
         )
         .route("/api/insert", post(insert))
         .route(
@@ -564,6 +571,30 @@ async fn upload_envmap(State(app): State<Arc<App>>, body: Bytes) -> Answer {
     .map_err(|e| (StatusCode::INTERNAL_SERVER_ERROR, format!("{e}\n")))?
     .map_err(request_error)?;
     Ok(Json(serde_json::json!({ "envmap": name })).into_response())
+}
+
+/// `POST /api/open` with a PNG, JPEG or EXR body: a new session on that
+/// photo (predicted, then recovered) in the studio's session folder.
+async fn open_photo(State(app): State<Arc<App>>, body: Bytes) -> Answer {
+    let shared = app.shared.clone();
+    tokio::task::spawn_blocking(move || {
+        let dir = shared.lock().session.dir.clone();
+        let photo = Session::add_photo(&dir, &body)?;
+        let session = Session::open(&photo, &dir, &shared.registry).map_err(|e| match e {
+            session::SessionError::Pipeline(m) => session::SessionError::Request(m),
+            e => e,
+        })?;
+        let name = photo
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        shared.replace(session, name);
+        Ok::<_, session::SessionError>(())
+    })
+    .await
+    .map_err(|e| (StatusCode::INTERNAL_SERVER_ERROR, format!("{e}\n")))?
+    .map_err(request_error)?;
+    Ok(StatusCode::NO_CONTENT.into_response())
 }
 
 #[derive(serde::Deserialize)]

@@ -151,6 +151,32 @@ impl Shared {
     }
 }
 
+impl Shared {
+    /// Starts over on another session (a photo opened): its stages, no
+    /// maps, no selection, no images until its scene has run.
+    pub fn replace(&self, session: Session, input: String) {
+        let mut l = self.lock();
+        l.session = session;
+        l.surfaces = None;
+        l.selection = Image::new(0, 0, false);
+        l.images.clear();
+        l.result = None;
+        let generation = l.status.generation;
+        let shown = l.status.shown;
+        l.status = Status {
+            state: "running",
+            input,
+            message: "opening the photo".into(),
+            generation,
+            shown,
+            envmaps: l.session.envmaps(),
+            meshes: l.session.meshes(),
+            ..Default::default()
+        };
+        self.changed(l);
+    }
+}
+
 /// The engine's progress for one generation, into the status.
 struct Progress<'a> {
     shared: &'a Shared,
@@ -247,7 +273,7 @@ pub fn runner(shared: Arc<Shared>, cache: &Path) {
         let needs_maps = shared.lock().surfaces.is_none();
         if needs_maps {
             match run(&["scene"]).and_then(|r| match r {
-                Some(r) => load_scene(&shared, &r, &store),
+                Some(r) => load_scene(&shared, &r, &store, generation),
                 None => Ok(()),
             }) {
                 Ok(()) => {}
@@ -348,12 +374,21 @@ fn output_image(
 }
 
 /// The scene's maps for the page and its surfaces for selection.
-fn load_scene(shared: &Shared, r: &matflow_engine::Report, store: &Tiered) -> Result<(), String> {
+fn load_scene(
+    shared: &Shared,
+    r: &matflow_engine::Report,
+    store: &Tiered,
+    generation: u64,
+) -> Result<(), String> {
     let b = output_bytes(r, store, "scene", "scene")?;
     let s = SceneData::decode(&b).map_err(|e| e.0)?;
     let maps = view::maps(&s);
     let (w, h) = (maps.width, maps.height);
     let mut l = shared.lock();
+    if l.status.generation != generation {
+        // Another session took over meanwhile (a photo opened).
+        return Ok(());
+    }
     l.status.width = w;
     l.status.height = h;
     l.status.maps = maps.images.iter().map(|(n, _)| *n).collect();

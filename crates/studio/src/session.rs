@@ -228,10 +228,10 @@ fn session_files(text: &str) -> Vec<String> {
     let mut v: Vec<String> = text
         .split(|c: char| !(c.is_ascii_alphanumeric() || matches!(c, '.' | '-' | '_')))
         .filter(|w| {
-            ["mask-", "envmap-", "mesh-"]
+            ["mask-", "envmap-", "mesh-", "photo-"]
                 .iter()
                 .any(|p| w.starts_with(p))
-                && [".png", ".hdr", ".exr", ".obj", ".ply"]
+                && [".png", ".hdr", ".exr", ".obj", ".ply", ".jpg"]
                     .iter()
                     .any(|e| w.ends_with(e))
         })
@@ -259,7 +259,12 @@ impl Session {
             .extension()
             .map(|e| e.to_string_lossy().to_lowercase())
             .unwrap_or_default();
-        let path = quoted(&input.display().to_string());
+        // A file in the session's own folder (an uploaded photo) is named
+        // relative to it, so that it travels with the session.
+        let path = match input.strip_prefix(dir) {
+            Ok(rel) if rel.components().count() == 1 => quoted(&rel.display().to_string()),
+            _ => quoted(&input.display().to_string()),
+        };
         let (mut base, edits) = if input.is_dir() {
             let scene = Stage::new(
                 "scene",
@@ -672,6 +677,49 @@ impl Session {
                 .map(|_| ())
                 .map_err(|e| e.to_string())
         })
+    }
+
+    /// An uploaded photo (PNG, JPEG or OpenEXR, told by its first bytes)
+    /// kept in `dir`, named by its contents, once its size (read from its
+    /// header) is one matflow predicts from. Returns its path.
+    pub fn add_photo(dir: &Path, bytes: &[u8]) -> Result<PathBuf, SessionError> {
+        let ext = if bytes.starts_with(b"\x89PNG") {
+            "png"
+        } else if bytes.starts_with(&[0xff, 0xd8, 0xff]) {
+            "jpg"
+        } else if bytes.starts_with(&[0x76, 0x2f, 0x31, 0x01]) {
+            "exr"
+        } else {
+            return Err(SessionError::Request(
+                "not a photo: give a PNG, a JPEG or a linear OpenEXR".into(),
+            ));
+        };
+        std::fs::create_dir_all(dir).map_err(io_err(dir))?;
+        let scratch = Session {
+            dir: dir.to_path_buf(),
+            base: vec![],
+            edits: vec![],
+            undone: vec![],
+        };
+        let name = scratch.add_file(bytes, "photo", ext, |f| {
+            let (w, h) = if ext == "exr" {
+                matflow_scene::io::exr_size(f).map_err(|e| e.to_string())?
+            } else {
+                let r = image::ImageReader::open(f)
+                    .and_then(|r| r.with_guessed_format())
+                    .map_err(|e| e.to_string())?;
+                let (w, h) = r.into_dimensions().map_err(|e| e.to_string())?;
+                (w as usize, h as usize)
+            };
+            let side = matflow_nodes::MIN_PHOTO_SIDE;
+            if w.min(h) < side || w.max(h) > 16384 {
+                return Err(format!(
+                    "the photo is {w}x{h}: its sides must be {side} to 16384 pixels"
+                ));
+            }
+            Ok(())
+        })?;
+        Ok(dir.join(name))
     }
 
     /// The meshes uploaded to the session, by name.

@@ -102,6 +102,15 @@ let shownKey = "";
 let mapsShown = false;
 
 async function onStatus(s) {
+  if (state.status && s.input !== state.status.input) {
+    // Another photo: its maps and images replace these.
+    mapsShown = false;
+    shownKey = "";
+    state.photo = null;
+    state.image = null;
+    $("maps").replaceChildren();
+    $("loss-box").hidden = true;
+  }
   state.status = s;
   $("input").textContent = s.input;
   const where = s.stage ? ` — ${s.stage}${s.total ? ` ${s.done}/${s.total}` : s.done ? ` step ${s.done}` : ""}` : "";
@@ -448,6 +457,17 @@ $("mesh-file").addEventListener("change", async () => {
     showError(null);
     const r = await post("api/insert/mesh", await f.arrayBuffer(), "application/octet-stream");
     state.pickMesh = r.mesh;
+  } catch (e) {
+    showError(e);
+  }
+});
+
+$("open").addEventListener("change", async () => {
+  const f = $("open").files[0];
+  if (!f) return;
+  try {
+    showError(null);
+    await post("api/open", await f.arrayBuffer(), "application/octet-stream");
   } catch (e) {
     showError(e);
   }
