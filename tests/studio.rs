@@ -299,6 +299,27 @@ fn a_session_is_edited_undone_redone_and_exported_as_its_pipeline() {
     assert_eq!(post(&st.addr, "/api/undo", json!({})).0, 204);
     result_of(&st.addr, v9["generation"].as_u64().unwrap() + 1);
     assert_eq!(get(&st.addr, "/api/images/result.exr").1, placed, "undone");
+    // The box made glass (its refraction lengths from the network): the
+    // box changes; the history has one entry more, undo takes it back.
+    assert_eq!(
+        post(&st.addr, "/api/select", json!({"x": BOX.0, "y": BOX.1})).0,
+        200
+    );
+    let g = status(&st.addr)["generation"].as_u64().unwrap();
+    let (code, body) = post(
+        &st.addr,
+        "/api/glass",
+        json!({"ior": 1.5, "transmission": 1}),
+    );
+    assert_eq!(code, 204, "{body}");
+    let vg = result_of(&st.addr, g + 1);
+    assert!(
+        vg["history"][4].as_str().unwrap().contains("transparency"),
+        "{vg}"
+    );
+    assert_ne!(get(&st.addr, "/api/images/result.exr").1, placed, "glass");
+    let (_, yaml) = get(&st.addr, "/api/pipeline.yaml");
+    assert!(String::from_utf8_lossy(&yaml).contains("edit5_lengths:\n    kind: refraction_length"));
     let (_, exr) = get(&st.addr, "/api/images/result.exr");
     // Exported and unpacked elsewhere, `matflow run` (its own, empty
     // cache) writes the studio's EXR byte for byte.
@@ -316,7 +337,7 @@ fn a_session_is_edited_undone_redone_and_exported_as_its_pipeline() {
     // The export, opened in the studio, is the same session.
     let again = start(&dir, &out.join("session.yaml"), "reopened", &[]);
     let v = result_of(&again.addr, 0);
-    assert_eq!(v["history"].as_array().unwrap().len(), 4, "{v}");
+    assert_eq!(v["history"].as_array().unwrap().len(), 5, "{v}");
     assert_eq!(v["objects"].as_array().unwrap().len(), 2, "{v}");
     assert_eq!(get(&again.addr, "/api/images/result.exr").1, exr);
     drop(again);

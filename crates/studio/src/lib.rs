@@ -32,7 +32,7 @@ use matflow_scene::select::{grow_object, Grow};
 use matflow_scene::Image;
 
 use live::{request_error, Shared};
-use session::{Change, Light, Object, Session};
+use session::{Change, Glass, Light, Object, Session};
 
 /// The largest photo accepted by upload.
 const PHOTO_BYTES: usize = 64 << 20;
@@ -132,6 +132,7 @@ fn router(app: Arc<App>) -> Router {
         .route("/api/select/mask", post(select_mask))
         .route("/api/select/clear", post(select_clear))
         .route("/api/edit", post(edit))
+        .route("/api/glass", post(glass))
         .route("/api/light", post(light))
         .route(
             "/api/light/envmap",
@@ -640,6 +641,21 @@ async fn upload_mesh(State(app): State<Arc<App>>, body: Bytes) -> Answer {
     .map_err(|e| (StatusCode::INTERNAL_SERVER_ERROR, format!("{e}\n")))?
     .map_err(request_error)?;
     Ok(Json(serde_json::json!({ "mesh": name })).into_response())
+}
+
+/// `POST /api/glass {ior, transmission, roughness}`: the selection made
+/// glass, its refraction lengths from matflow's network.
+async fn glass(State(app): State<Arc<App>>, Json(g): Json<Glass>) -> Answer {
+    let mut l = app.shared.lock();
+    if l.surfaces.is_none() {
+        return Err((StatusCode::CONFLICT, "the scene is not ready yet\n".into()));
+    }
+    let mask = l.selection.clone();
+    l.session
+        .glass(&mask, &g, &app.shared.registry)
+        .map_err(request_error)?;
+    app.shared.changed(l);
+    Ok(StatusCode::NO_CONTENT.into_response())
 }
 
 async fn undo(State(app): State<Arc<App>>) -> Answer {

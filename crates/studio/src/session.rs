@@ -57,6 +57,10 @@ fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> SessionError + '_ {
 pub struct Stage {
     pub name: String,
     pub fields: Vec<(String, String)>,
+    /// Stages this one needs that come and go with it in the history
+    /// (`editN_lengths`, the refraction lengths of a transparency),
+    /// written before it.
+    pub helpers: Vec<Stage>,
 }
 
 impl Stage {
@@ -67,6 +71,7 @@ impl Stage {
                 .iter()
                 .map(|(k, v)| (k.to_string(), v.clone()))
                 .collect(),
+            helpers: vec![],
         }
     }
     pub fn get(&self, key: &str) -> Option<&str> {
@@ -183,7 +188,22 @@ pub struct Light {
 }
 
 /// The history's stage kinds: a material edit, new lighting.
-const HISTORY_KINDS: [&str; 3] = ["edit", "relight", "insert"];
+const HISTORY_KINDS: [&str; 4] = ["edit", "relight", "insert", "transparency"];
+
+/// A region made glass, as the page sends it (on the selection).
+#[derive(Clone, Debug, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Glass {
+    #[serde(default = "ior")]
+    pub ior: f64,
+    #[serde(default = "one")]
+    pub transmission: f64,
+    pub roughness: Option<f64>,
+}
+
+fn ior() -> f64 {
+    1.5
+}
 
 /// The meshes the studio offers by name (`matflow_procgen::shapes::shipped`,
 /// written into the session as `mesh-NAME.obj` when first used).
@@ -305,7 +325,7 @@ impl Session {
         self.edits
             .iter()
             .rev()
-            .find(|e| e.get("kind") == Some("edit"))
+            .find(|e| matches!(e.get("kind"), Some("edit" | "transparency")))
             .map_or("recovered", |e| e.name.as_str())
     }
 
@@ -468,7 +488,11 @@ impl Session {
              # result (result.exr); `matflow studio session.yaml` opens it again.\n\
              pipeline: studio\noutputs: [result]\nstages:\n",
         );
-        let all = self.base.iter().chain(&self.edits);
+        let history = self
+            .edits
+            .iter()
+            .flat_map(|e| e.helpers.iter().chain(std::iter::once(e)));
+        let all = self.base.iter().chain(history);
         for st in all.chain([&quick, &preview, &result]) {
             out += &format!("  {}:\n", st.name);
             for (k, v) in &st.fields {
@@ -508,13 +532,7 @@ impl Session {
         if !mask.data.iter().any(|&b| b) {
             return Err(SessionError::Request("select something first".into()));
         }
-        let png = matflow_scene::io::png_mask_bytes(mask)
-            .map_err(|e| SessionError::Pipeline(e.to_string()))?;
-        let hex = matflow_engine::store::Digest::of(&png).hex();
-        let name = format!("mask-{}.png", &hex[..16]);
-        let file = self.dir.join(&name);
-        matflow_scene::io::write_if_changed(&file, &png)
-            .map_err(|e| SessionError::Pipeline(e.to_string()))?;
+        let name = self.write_mask(mask)?;
         let mut st = Stage::new(
             &format!("edit{}", self.edits.len() + 1),
             &[
@@ -567,6 +585,59 @@ impl Session {
         }
         st.set("rotation", number(light.rotation));
         st.set("exposure", number(light.exposure));
+        self.push(st, reg)
+    }
+
+    /// The mask as a PNG beside the pipeline, named by its contents.
+    fn write_mask(&self, mask: &Image<bool>) -> Result<String, SessionError> {
+        let png = matflow_scene::io::png_mask_bytes(mask)
+            .map_err(|e| SessionError::Pipeline(e.to_string()))?;
+        let hex = matflow_engine::store::Digest::of(&png).hex();
+        let name = format!("mask-{}.png", &hex[..16]);
+        let file = self.dir.join(&name);
+        matflow_scene::io::write_if_changed(&file, &png)
+            .map_err(|e| SessionError::Pipeline(e.to_string()))?;
+        Ok(name)
+    }
+
+    /// Makes `mask` glass (the paper's single-view transparency): a
+    /// `transparency` stage, its refraction lengths from matflow's network
+    /// (`refraction_length` on the same mask, its helper `editN_lengths`).
+    pub fn glass(
+        &mut self,
+        mask: &Image<bool>,
+        glass: &Glass,
+        reg: &Registry,
+    ) -> Result<(), SessionError> {
+        if !mask.data.iter().any(|&b| b) {
+            return Err(SessionError::Request("select something first".into()));
+        }
+        let name = self.write_mask(mask)?;
+        let n = self.edits.len() + 1;
+        let lengths = Stage::new(
+            &format!("edit{n}_lengths"),
+            &[
+                ("kind", "refraction_length".into()),
+                ("scene", "scene".into()),
+                ("mask_png", quoted(&name)),
+            ],
+        );
+        let mut st = Stage::new(
+            &format!("edit{n}"),
+            &[
+                ("kind", "transparency".into()),
+                ("materials", self.last().into()),
+                ("mesh", "mesh".into()),
+                ("mask_png", quoted(&name)),
+                ("refraction", lengths.name.clone()),
+                ("ior", number(glass.ior)),
+                ("transmission", number(glass.transmission)),
+            ],
+        );
+        if let Some(r) = glass.roughness {
+            st.set("roughness", number(r));
+        }
+        st.helpers.push(lengths);
         self.push(st, reg)
     }
 
@@ -926,7 +997,7 @@ fn stages_of_file(
         return Err(bad("no `stages:` mapping".into()));
     };
     let folder = file.parent().unwrap_or(Path::new("."));
-    let (mut base, mut edits) = (vec![], vec![]);
+    let (mut base, mut edits, mut helpers) = (vec![], vec![], vec![]);
     for (name, _, v, loc) in stages {
         let Value::Map(fields) = v else {
             return Err(bad(format!("{loc}: stage `{name}` is not a mapping")));
@@ -943,10 +1014,12 @@ fn stages_of_file(
             })
             .unwrap_or_default();
         let is_edit = HISTORY_KINDS.contains(&kind) && name == &format!("edit{}", edits.len() + 1);
+        let is_helper = name.starts_with(&format!("edit{}_", edits.len() + 1));
         let specs = reg.get(kind).map(|n| n.params()).unwrap_or(&[]);
         let mut st = Stage {
             name: name.clone(),
             fields: vec![],
+            helpers: vec![],
         };
         for (k, _, v, _) in fields {
             let in_path = specs
@@ -955,7 +1028,7 @@ fn stages_of_file(
             let text = match v {
                 Value::Str(s) if in_path && Path::new(s).is_relative() => {
                     let from = folder.join(s);
-                    if is_edit {
+                    if is_edit || is_helper {
                         let to = dir.join(Path::new(s).file_name().unwrap_or_default());
                         if from != to {
                             std::fs::copy(&from, &to).map_err(io_err(&from))?;
@@ -974,7 +1047,7 @@ fn stages_of_file(
             };
             st.fields.push((k.clone(), text));
         }
-        if is_edit {
+        if is_edit || is_helper {
             let text: Vec<&str> = st.fields.iter().map(|(_, v)| v.as_str()).collect();
             for f in session_files(&text.join(" ")) {
                 let (from, to) = (folder.join(&f), dir.join(&f));
@@ -982,6 +1055,11 @@ fn stages_of_file(
                     std::fs::copy(&from, &to).map_err(io_err(&from))?;
                 }
             }
+            if is_helper {
+                helpers.push(st);
+                continue;
+            }
+            st.helpers = std::mem::take(&mut helpers);
             edits.push(st);
         } else {
             base.push(st);

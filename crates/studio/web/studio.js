@@ -340,7 +340,7 @@ $("mask").addEventListener("change", async () => {
 
 // ---- changes --------------------------------------------------------------
 
-for (const [id, digits] of [["tolerance", 2], ["radius", 0], ["hue", 0], ["sat", 2], ["val", 2], ["rough", 2], ["metal", 2], ["rotation", 0], ["exposure", 1], ["obj-rough", 2], ["obj-metal", 2], ["obj-ior", 2], ["obj-scale", 2], ["obj-rotate", 0]]) {
+for (const [id, digits] of [["tolerance", 2], ["radius", 0], ["hue", 0], ["sat", 2], ["val", 2], ["rough", 2], ["metal", 2], ["rotation", 0], ["exposure", 1], ["obj-rough", 2], ["obj-metal", 2], ["obj-ior", 2], ["obj-scale", 2], ["obj-rotate", 0], ["glass-t", 2], ["glass-ior", 2]]) {
   const show = () => ($(`${id}-v`).textContent = Number($(id).value).toFixed(digits));
   $(id).addEventListener("input", show);
   show();
@@ -393,6 +393,9 @@ $("envmap-file").addEventListener("change", async () => {
     showError(e);
   }
 });
+$("glass").addEventListener("click", () =>
+  act("api/glass", { ior: Number($("glass-ior").value), transmission: Number($("glass-t").value) }),
+);
 $("undo").addEventListener("click", () => act("api/undo"));
 $("redo").addEventListener("click", () => act("api/redo"));
 
