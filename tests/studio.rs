@@ -53,17 +53,34 @@ fn room_pipeline(dir: &Path) -> PathBuf {
 const BOX: (f64, f64) = (51.0, 46.0);
 
 fn start(dir: &Path, input: &Path, session: &str, env: &[(&str, &str)]) -> Studio {
+    start_with(dir, input, session, env, &[])
+}
+
+/// [`start`] with more flags, and a cache of the session's own (so that
+/// two studios in one test share nothing but what the flags give).
+fn start_with(
+    dir: &Path,
+    input: &Path,
+    session: &str,
+    env: &[(&str, &str)],
+    extra: &[&str],
+) -> Studio {
     let addr_file = dir.join(format!("address-{session}"));
     let _ = std::fs::remove_file(&addr_file);
     let mut c = Command::new(env!("CARGO_BIN_EXE_matflow"));
     c.args(["studio", s(input), "--listen", "127.0.0.1:0"])
         .args([
             "--cache",
-            s(&dir.join("cache")),
+            s(&dir.join(if extra.is_empty() {
+                "cache".into()
+            } else {
+                format!("cache-{session}")
+            })),
             "--session",
             s(&dir.join(session)),
         ])
         .args(["--address-file", s(&addr_file)])
+        .args(extra)
         .env_remove("MATFLOW_TOKEN")
         .stdout(Stdio::null());
     for (k, v) in env {
@@ -722,6 +739,50 @@ fn a_photo_opened_by_upload_starts_a_session_on_it() {
     assert_eq!(code, 200);
     assert_eq!(rgb(&albedo).dimensions(), (512, 512));
     drop(st);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The studio on workers (a real `matflow worker` and a real cache server,
+/// buildbox-casd): the session's stages run there, an edit's result is
+/// the same bytes as in-process, and `run` of the export on the shared
+/// store is served from it.
+#[test]
+fn on_workers_the_studio_renders_what_it_renders_in_process() {
+    let dir = scratch("studio", "workers");
+    room_pipeline(&dir);
+    let casd = support::Casd::start(&dir.join("casd"));
+    let bin = Path::new(env!("CARGO_BIN_EXE_matflow"));
+    let w = support::Worker::start(bin, &dir.join("worker-cache"), &[], &[]);
+    let remote = [
+        "--workers",
+        w.addr.as_str(),
+        "--remote-cache",
+        casd.endpoint.as_str(),
+    ];
+    let edit = |st: &Studio| {
+        result_of(&st.addr, 0);
+        assert_eq!(
+            post(&st.addr, "/api/select", json!({"x": BOX.0, "y": BOX.1})).0,
+            200
+        );
+        let (code, body) = post(&st.addr, "/api/edit", json!({"hue_shift": 90}));
+        assert_eq!(code, 204, "{body}");
+        result_of(&st.addr, 1);
+        get(&st.addr, "/api/images/result.exr").1
+    };
+    let st = start_with(&dir, Path::new("room.yaml"), "on-workers", &[], &remote);
+    let there = edit(&st);
+    assert!(w.said("start "), "the worker ran nothing");
+    drop(st);
+    let st = start(&dir, Path::new("room.yaml"), "in-process", &[]);
+    let here = edit(&st);
+    drop(st);
+    assert!(
+        there == here,
+        "the workers' result differs from the in-process one"
+    );
+    drop(w);
+    drop(casd);
     let _ = std::fs::remove_dir_all(&dir);
 }
 

@@ -28,6 +28,11 @@ pub struct StudioArgs {
     /// to listen on anything but loopback.
     #[arg(long)]
     pub token_file: Option<PathBuf>,
+    /// Where the session's stages run and what store they share (as for
+    /// `run`: `--workers` and `--remote-cache`; default: in this process
+    /// on the local cache).
+    #[command(flatten)]
+    pub remote: crate::cluster::RemoteArgs,
     /// Write the address the studio listens on here (for scripts and
     /// tests: with `--listen 127.0.0.1:0` the port is the system's pick).
     #[arg(long)]
@@ -64,6 +69,8 @@ pub fn studio(a: StudioArgs) -> Result<()> {
         Some(s) => s.clone(),
         None => cache.join("studio").join(session_name(&a.input)?),
     };
+    let reg = std::sync::Arc::new(matflow_nodes::registry());
+    let (store, executor) = crate::cluster::executor(&a.remote, None, &cache, reg, 1)?;
     let rt = tokio::runtime::Runtime::new().context("starting the studio's runtime")?;
     rt.block_on(async move {
         let listener = tokio::net::TcpListener::bind(a.listen)
@@ -74,7 +81,8 @@ pub fn studio(a: StudioArgs) -> Result<()> {
             matflow_studio::StudioOptions {
                 input: a.input.clone(),
                 session,
-                cache,
+                store,
+                executor,
                 token,
             },
             bound,

@@ -54,8 +54,11 @@ pub struct StudioOptions {
     pub input: PathBuf,
     /// The session's folder (its `session.yaml`).
     pub session: PathBuf,
-    /// The engine's cache (shared with `matflow run`).
-    pub cache: PathBuf,
+    /// The store (the local cache, and a remote one when given) and the
+    /// executor (in-process, or workers) the session's stages run on:
+    /// the ones `matflow run` builds from the same flags.
+    pub store: Arc<matflow_engine::Tiered>,
+    pub executor: Box<dyn matflow_engine::exec::Executor>,
     /// Required of every request when set.
     pub token: Option<Token>,
 }
@@ -98,8 +101,8 @@ pub fn start(opts: StudioOptions, listen: SocketAddr) -> Result<Router, StudioEr
     let session = Session::open(&input, &opts.session, &reg)?;
     let shared = Shared::new(session, opts.input.display().to_string());
     let bg = shared.clone();
-    let cache = opts.cache.clone();
-    std::thread::spawn(move || live::runner(bg, &cache));
+    let (store, executor) = (opts.store, opts.executor);
+    std::thread::spawn(move || live::runner(bg, store, executor));
     Ok(router(Arc::new(App {
         shared,
         token: opts.token,

@@ -7,13 +7,12 @@
 //! for the page's event stream.
 
 use std::collections::BTreeMap;
-use std::path::Path;
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::Instant;
 
-use matflow_engine::exec::{Observer, StageReport};
+use matflow_engine::exec::{Executor, Observer, StageReport};
 use matflow_engine::store::Digest;
-use matflow_engine::{run_pipeline, LocalExecutor, Registry, Status as StageStatus, Store, Tiered};
+use matflow_engine::{run_pipeline, Registry, Status as StageStatus, Tiered};
 use matflow_nodes::SceneData;
 use matflow_scene::{Camera, GrayImage, Image, RgbImage};
 
@@ -221,13 +220,9 @@ impl Observer for Progress<'_> {
 
 /// The runner: forever, the newest generation's scene (once), preview
 /// and result. Runs on its own thread.
-pub fn runner(shared: Arc<Shared>, cache: &Path) {
-    let store = match Store::open(cache) {
-        Ok(s) => Arc::new(Tiered::new(s, None)),
-        Err(e) => return fail(&shared, &format!("{}: {e}", cache.display())),
-    };
-    let reg = Arc::new(matflow_nodes::registry());
-    let exec = LocalExecutor::new(reg.clone(), store.clone(), 1);
+pub fn runner(shared: Arc<Shared>, store: Arc<Tiered>, exec: Box<dyn Executor>) {
+    let reg = matflow_nodes::registry();
+    let exec = exec.as_ref();
     let mut ran: Option<u64> = None;
     loop {
         let (generation, pipeline, since) = {
@@ -261,7 +256,7 @@ pub fn runner(shared: Arc<Shared>, cache: &Path) {
         };
         let mut run = |outputs: &[&str]| -> Result<Option<matflow_engine::Report>, String> {
             p.outputs = outputs.iter().map(|s| s.to_string()).collect();
-            let report = run_pipeline(&p, &reg, &store, &exec, &obs);
+            let report = run_pipeline(&p, &reg, &store, exec, &obs);
             if let Some(f) = report.failure() {
                 return Err(f);
             }
