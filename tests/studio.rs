@@ -786,6 +786,45 @@ fn on_workers_the_studio_renders_what_it_renders_in_process() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// The geometry past the frame is the page's to change: what the mesh
+/// stage took is shown, and another choice runs the recovery again.
+#[test]
+fn the_geometry_past_the_frame_is_shown_and_changed() {
+    let dir = scratch("studio", "geometry");
+    room_pipeline(&dir);
+    let st = start(&dir, Path::new("room.yaml"), "session", &[]);
+    let v = result_of(&st.addr, 0);
+    // The room pipeline asks for none.
+    assert_eq!(v["geometry"], "none", "{v}");
+    assert_eq!(v["geometry_taken"], "past the frame: none", "{v}");
+    // An edit (without one the result is the photo, whatever the
+    // geometry), then the geometry: the recovery runs again, and the
+    // edit's render with it.
+    assert_eq!(
+        post(&st.addr, "/api/select", json!({"x": BOX.0, "y": BOX.1})).0,
+        200
+    );
+    assert_eq!(
+        post(&st.addr, "/api/edit", json!({"roughness": 0.1})).0,
+        204
+    );
+    result_of(&st.addr, 1);
+    let (_, before) = get(&st.addr, "/api/images/result.exr");
+    let (code, body) = post(&st.addr, "/api/geometry", json!({"complete": "closed"}));
+    assert_eq!(code, 204, "{body}");
+    let v = result_of(&st.addr, 2);
+    assert_eq!(v["geometry"], "closed", "{v}");
+    assert_eq!(v["geometry_taken"], "past the frame: closed", "{v}");
+    assert_ne!(get(&st.addr, "/api/images/result.exr").1, before);
+    let (_, yaml) = get(&st.addr, "/api/pipeline.yaml");
+    assert!(String::from_utf8_lossy(&yaml).contains("complete: closed"));
+    let (code, body) = post(&st.addr, "/api/geometry", json!({"complete": "cave"}));
+    assert_eq!(code, 422, "{body}");
+    assert!(body.contains("complete"), "{body}");
+    drop(st);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// A white `w`×`h` PNG.
 fn png(w: u32, h: u32) -> Vec<u8> {
     let img = image::GrayImage::from_pixel(w, h, image::Luma([255]));

@@ -251,8 +251,11 @@ impl Browser {
     /// element `css`, holding `key` (a WebDriver key code) if given.
     pub fn click_at(&self, css: &str, x: f64, y: f64, key: Option<&str>) {
         let e = self.element(css);
+        // Whole in view: WebDriver takes offsets from the centre of the
+        // element's visible part.
         let rect = self.eval(
-            "const r = arguments[0].getBoundingClientRect(); return [r.width, r.height];",
+            "arguments[0].scrollIntoView({block: 'center', inline: 'center'}); \
+             const r = arguments[0].getBoundingClientRect(); return [r.width, r.height];",
             json!([e]),
         );
         let (w, h) = (rect[0].as_f64().unwrap(), rect[1].as_f64().unwrap());
@@ -290,8 +293,11 @@ impl Browser {
     /// the element `css`), in steps as a hand moves.
     pub fn drag(&self, css: &str, from: (f64, f64), to: (f64, f64)) {
         let e = self.element(css);
+        // Whole in view: WebDriver takes offsets from the centre of the
+        // element's visible part.
         let rect = self.eval(
-            "const r = arguments[0].getBoundingClientRect(); return [r.width, r.height];",
+            "arguments[0].scrollIntoView({block: 'center', inline: 'center'}); \
+             const r = arguments[0].getBoundingClientRect(); return [r.width, r.height];",
             json!([e]),
         );
         let (w, h) = (rect[0].as_f64().unwrap(), rect[1].as_f64().unwrap());

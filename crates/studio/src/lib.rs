@@ -136,6 +136,7 @@ fn router(app: Arc<App>) -> Router {
         .route("/api/select/clear", post(select_clear))
         .route("/api/edit", post(edit))
         .route("/api/glass", post(glass))
+        .route("/api/geometry", post(geometry))
         .route("/api/light", post(light))
         .route(
             "/api/light/envmap",
@@ -657,6 +658,24 @@ async fn glass(State(app): State<Arc<App>>, Json(g): Json<Glass>) -> Answer {
     l.session
         .glass(&mask, &g, &app.shared.registry)
         .map_err(request_error)?;
+    app.shared.changed(l);
+    Ok(StatusCode::NO_CONTENT.into_response())
+}
+
+#[derive(serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Geometry {
+    complete: String,
+}
+
+/// `POST /api/geometry {complete}`: other geometry past the frame (auto,
+/// none, planes, room, closed): the recovery and the renders run again.
+async fn geometry(State(app): State<Arc<App>>, Json(g): Json<Geometry>) -> Answer {
+    let mut l = app.shared.lock();
+    l.session
+        .set_geometry(&g.complete, &app.shared.registry)
+        .map_err(request_error)?;
+    l.status.geometry_taken.clear();
     app.shared.changed(l);
     Ok(StatusCode::NO_CONTENT.into_response())
 }

@@ -53,6 +53,10 @@ pub struct Status {
     /// ran last), and that stage's name.
     pub loss: Vec<f64>,
     pub loss_stage: String,
+    /// The geometry past the frame asked for (`complete` of the `mesh`
+    /// stage) and what the mesh stage says it took.
+    pub geometry: String,
+    pub geometry_taken: String,
     /// The environment maps uploaded to the session, by name.
     pub envmaps: Vec<String>,
     /// The meshes uploaded to the session, by name.
@@ -103,6 +107,7 @@ impl Shared {
         (status.history, status.redo) = session.history();
         status.envmaps = session.envmaps();
         status.meshes = session.meshes();
+        status.geometry = session.geometry();
         status.objects = session.objects_json();
         let s = Arc::new(Shared {
             live: Mutex::new(Live {
@@ -142,6 +147,7 @@ impl Shared {
         live.images.remove("result");
         (live.status.history, live.status.redo) = live.session.history();
         live.status.objects = live.session.objects_json();
+        live.status.geometry = live.session.geometry();
         live.status.state = "running";
         live.status.message = "rendering the change".into();
         self.publish(&live);
@@ -170,6 +176,7 @@ impl Shared {
             shown,
             envmaps: l.session.envmaps(),
             meshes: l.session.meshes(),
+            geometry: l.session.geometry(),
             ..Default::default()
         };
         self.changed(l);
@@ -262,6 +269,18 @@ pub fn runner(shared: Arc<Shared>, store: Arc<Tiered>, exec: Box<dyn Executor>) 
             }
             if obs.cancelled() {
                 return Ok(None);
+            }
+            if let Some(note) = report
+                .stages
+                .iter()
+                .find(|s| s.name == "mesh")
+                .and_then(|s| s.notes.first())
+            {
+                let mut l = shared.lock();
+                if l.status.generation == generation && l.status.geometry_taken != *note {
+                    l.status.geometry_taken = note.clone();
+                    shared.publish(&l);
+                }
             }
             Ok(Some(report))
         };

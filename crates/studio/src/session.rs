@@ -121,7 +121,6 @@ fn quoted(s: &str) -> String {
 }
 
 /// [`quoted`]'s text back as the string.
-#[cfg(test)]
 fn unquoted(v: &str) -> String {
     serde_json::from_str(v).unwrap_or_else(|_| v.to_string())
 }
@@ -874,6 +873,32 @@ impl Session {
             return Err(SessionError::Request(e.to_string()));
         }
         self.undone.clear();
+        self.save()
+    }
+
+    /// The geometry past the frame the `mesh` stage is asked for (its
+    /// `complete`; `auto` when the file leaves it out).
+    pub fn geometry(&self) -> String {
+        self.stage("mesh")
+            .and_then(|m| m.get("complete"))
+            .map(unquoted)
+            .unwrap_or_else(|| "auto".into())
+    }
+
+    /// Asks the `mesh` stage for other geometry past the frame (not a step
+    /// of the history: the recovery and every render after it run again).
+    pub fn set_geometry(&mut self, mode: &str, reg: &Registry) -> Result<(), SessionError> {
+        let Some(i) = self.base.iter().position(|s| s.name == "mesh") else {
+            return Err(SessionError::Request(
+                "the session has no `mesh` stage".into(),
+            ));
+        };
+        let before = self.base[i].clone();
+        self.base[i].set("complete", quoted(mode));
+        if let Err(e) = self.pipeline(reg) {
+            self.base[i] = before;
+            return Err(SessionError::Request(e.to_string()));
+        }
         self.save()
     }
 

@@ -160,6 +160,10 @@ async function onStatus(s) {
     showObjects();
   }
   drawLoss(s);
+  if (document.activeElement !== $("geometry")) $("geometry").value = s.geometry || "auto";
+  $("geometry-taken").textContent = s.geometry_taken
+    ? `${s.geometry_taken}; changing it runs the recovery again`
+    : "";
   if (s.width && s.height) sizeCanvases(s.width, s.height);
   if (!mapsShown && s.maps.length) {
     mapsShown = true;
@@ -396,6 +400,7 @@ $("envmap-file").addEventListener("change", async () => {
 $("glass").addEventListener("click", () =>
   act("api/glass", { ior: Number($("glass-ior").value), transmission: Number($("glass-t").value) }),
 );
+$("geometry").addEventListener("change", () => act("api/geometry", { complete: $("geometry").value }));
 $("undo").addEventListener("click", () => act("api/undo"));
 $("redo").addEventListener("click", () => act("api/redo"));
 

@@ -63,7 +63,7 @@ pub(crate) const SILHOUETTES: ParamSpec = ParamSpec {
 
 const MESH_INFO: NodeInfo = NodeInfo {
     kind: "mesh",
-    version: 10,
+    version: 11,
     doc: "The triangle mesh of a scene's depth map (one vertex per pixel, cut at depth \
          discontinuities found by the reference's angle test), optionally completed past the \
          frame.",
@@ -92,11 +92,18 @@ const MESH_INFO: NodeInfo = NodeInfo {
                   assuming needs ten times the light of the sky it shows)",
         },
     ],
-    outputs: &[OutputSpec {
-        name: "mesh",
-        ty: "mesh",
-        doc: "vertices, triangles, film positions",
-    }],
+    outputs: &[
+        OutputSpec {
+            name: "mesh",
+            ty: "mesh",
+            doc: "vertices, triangles, film positions",
+        },
+        OutputSpec {
+            name: "note",
+            ty: "note",
+            doc: "the geometry taken past the frame (and whether `auto` chose it)",
+        },
+    ],
 };
 
 impl Node for MeshNode {
@@ -111,18 +118,27 @@ impl Node for MeshNode {
                 .ok_or_else(|| crate::err("silhouettes: not kept or reference"))?,
         };
         let mut tri = mesh_of(&s.depth, &mesh)?;
-        let mode = match ctx.params.str("complete") {
+        let asked = ctx.params.str("complete");
+        let mode = match asked {
             "auto" => auto_mode(&s, mesh)?,
             m => m,
+        };
+        let note = if asked == "auto" {
+            format!("past the frame: {mode} (chosen by auto)")
+        } else {
+            format!("past the frame: {mode}")
         };
         if let Some(p) = CompleteParams::for_mode(mode) {
             let cam = Camera::new(s.depth.width, s.depth.height);
             complete_beyond_frame(&mut tri, &s.depth, &cam, &p);
         }
-        Ok([(
-            "mesh".to_string(),
-            encode_mesh(s.depth.width, s.depth.height, &tri),
-        )]
+        Ok([
+            (
+                "mesh".to_string(),
+                encode_mesh(s.depth.width, s.depth.height, &tri),
+            ),
+            ("note".to_string(), note.into_bytes()),
+        ]
         .into())
     }
 }
