@@ -825,6 +825,54 @@ fn the_geometry_past_the_frame_is_shown_and_changed() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// In Chromium, a photo picked in the page's *open a photo* is uploaded,
+/// predicted and recovered (the session's own recovery settings), and its
+/// result shown; two browsers on one studio see the same session.
+#[test]
+fn in_chromium_a_photo_opened_in_the_page_is_predicted_and_recovered() {
+    let dir = scratch("studio", "chromium-open");
+    room_pipeline(&dir);
+    let st = start(&dir, Path::new("room.yaml"), "session", &[]);
+    result_of(&st.addr, 0);
+    let (_, photo) = get(&st.addr, "/api/maps/photo.png");
+    let file = dir.join("my photo.png");
+    std::fs::write(&file, &photo).unwrap();
+    let shots = Path::new(env!("CARGO_TARGET_TMPDIR")).join("studio");
+    std::fs::create_dir_all(&shots).unwrap();
+    let a = Browser::start(&dir.join("profile-a"), 1280, 900);
+    let b = Browser::start(&dir.join("profile-b"), 1280, 900);
+    for br in [&a, &b] {
+        br.open(&format!("http://{}/", st.addr));
+        br.wait_for(
+            "the first result",
+            "return document.body.dataset.shown === '0/result';",
+            Duration::from_secs(60),
+        );
+    }
+    a.choose_file("#open", &file);
+    // Both browsers follow the session onto the photo: predicted (512²)
+    // and recovered.
+    for br in [&a, &b] {
+        let input = br.wait_for(
+            "the photo's result",
+            "return document.body.dataset.shown === '1/result' && \
+             document.getElementById('view').width === 512 && \
+             document.getElementById('input').textContent;",
+            Duration::from_secs(300),
+        );
+        assert!(input.as_str().unwrap().starts_with("photo-"), "{input}");
+    }
+    a.screenshot(&shots.join("8-photo-opened.png"));
+    let v = status(&st.addr);
+    assert_eq!(
+        (v["width"].as_u64(), v["state"].as_str()),
+        (Some(512), Some("ready"))
+    );
+    drop((a, b));
+    drop(st);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// A white `w`×`h` PNG.
 fn png(w: u32, h: u32) -> Vec<u8> {
     let img = image::GrayImage::from_pixel(w, h, image::Luma([255]));

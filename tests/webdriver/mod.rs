@@ -321,6 +321,17 @@ impl Browser {
         self.call("DELETE", &self.at("actions"), None);
     }
 
+    /// Chooses `file` in the file input `css`, as a user picking it does.
+    pub fn choose_file(&self, css: &str, file: &Path) {
+        let e = self.element(css);
+        let id = e[ELEMENT].as_str().unwrap();
+        self.call(
+            "POST",
+            &self.at(&format!("element/{id}/value")),
+            Some(&json!({ "text": file.display().to_string() })),
+        );
+    }
+
     /// A screenshot of the window, written to `path` (PNG).
     pub fn screenshot(&self, path: &Path) {
         let v = self.call("GET", &self.at("screenshot"), None);

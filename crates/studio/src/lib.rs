@@ -578,17 +578,22 @@ async fn upload_envmap(State(app): State<Arc<App>>, body: Bytes) -> Answer {
     Ok(Json(serde_json::json!({ "envmap": name })).into_response())
 }
 
-/// `POST /api/open` with a PNG, JPEG or EXR body: a new session on that
-/// photo (predicted, then recovered) in the studio's session folder.
+/// `POST /api/open` with a PNG, JPEG or EXR body: the session on that
+/// photo (predicted, then recovered with the session's settings), its
+/// history empty, in the studio's session folder.
 async fn open_photo(State(app): State<Arc<App>>, body: Bytes) -> Answer {
     let shared = app.shared.clone();
     tokio::task::spawn_blocking(move || {
         let dir = shared.lock().session.dir.clone();
         let photo = Session::add_photo(&dir, &body)?;
-        let session = Session::open(&photo, &dir, &shared.registry).map_err(|e| match e {
-            session::SessionError::Pipeline(m) => session::SessionError::Request(m),
-            e => e,
-        })?;
+        let session = shared
+            .lock()
+            .session
+            .on_photo(&photo, &shared.registry)
+            .map_err(|e| match e {
+                session::SessionError::Pipeline(m) => session::SessionError::Request(m),
+                e => e,
+            })?;
         let name = photo
             .file_name()
             .map(|n| n.to_string_lossy().into_owned())

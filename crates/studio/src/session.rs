@@ -749,6 +749,40 @@ impl Session {
         })
     }
 
+    /// The session on another photo: its scene stage a `matnet` of
+    /// `photo` (in the session's folder), its other settings (mesh,
+    /// recovery, trace) kept, its history empty.
+    pub fn on_photo(&self, photo: &Path, reg: &Registry) -> Result<Session, SessionError> {
+        let name = photo
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        let scene = Stage::new(
+            "scene",
+            &[("kind", "matnet".into()), ("photo", quoted(&name))],
+        );
+        let base = self
+            .base
+            .iter()
+            .map(|s| {
+                if s.name == "scene" {
+                    scene.clone()
+                } else {
+                    s.clone()
+                }
+            })
+            .collect();
+        let s = Session {
+            dir: self.dir.clone(),
+            base,
+            edits: vec![],
+            undone: vec![],
+        };
+        s.pipeline(reg)?;
+        s.save()?;
+        Ok(s)
+    }
+
     /// An uploaded photo (PNG, JPEG or OpenEXR, told by its first bytes)
     /// kept in `dir`, named by its contents, once its size (read from its
     /// header) is one matflow predicts from. Returns its path.
