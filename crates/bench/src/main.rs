@@ -55,6 +55,9 @@ enum Suite {
     /// each backend, accuracy on held-out rooms and against the official
     /// MatNet's predictions, end-to-end re-render PSNR.
     Matnet(suites::matnet::BenchMatnetArgs),
+    /// One click's selection on a bundle's predictions, with its normals
+    /// and with normals from its depth: pixels taken, overlays to look at.
+    Select(suites::select::BenchSelectArgs),
     /// The studio over its API: a material change's first preview and
     /// converged result, memory, idle CPU, the export reproduced.
     Studio(suites::studio::BenchStudioArgs),
@@ -72,6 +75,7 @@ fn run(s: Suite) -> Result<()> {
         Suite::Refraction(a) => suites::dataset::bench_refraction(a),
         Suite::Matnet(a) => suites::matnet::bench_matnet(a),
         Suite::Studio(a) => suites::studio::bench_studio(a),
+        Suite::Select(a) => suites::select::bench_select(a),
     }
 }
 

@@ -413,6 +413,10 @@ fn load_scene(
     l.surfaces = Some(Surfaces {
         albedo: s.pred.albedo,
         depth: s.depth,
+        // The scene's normals where it has them: on the reference's photos
+        // they stop a click on the table at the pot and one on a courtyard
+        // at the tree, where normals from the depth let it through
+        // (`matflow-bench select`); without them, from the depth.
         normals: s.pred.normal,
         camera: Camera::new(w, h),
     });

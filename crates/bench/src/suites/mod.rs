@@ -10,5 +10,6 @@ pub mod matnet;
 pub mod pipeline;
 pub mod relight;
 pub mod render;
+pub mod select;
 pub mod studio;
 pub mod synthetic;
