@@ -1103,6 +1103,33 @@ fn in_chromium_a_click_and_a_colour_change_the_object_and_nothing_else() {
     );
     assert!(moved.as_str().unwrap().contains("at 34"), "{moved}");
     b.screenshot(&shots.join("7-moved.png"));
+    // The wheel over its marker scales it up a tenth.
+    let (mx, my) = css(34.0, 58.0);
+    b.wheel("#overlay", mx, my, -100);
+    let scaled = b.wait_for(
+        "the scaled sphere",
+        "return document.body.dataset.shown === '6/result' && \
+         JSON.stringify(document.getElementById('objects').textContent);",
+        long,
+    );
+    assert!(scaled.as_str().unwrap().contains("×0.55"), "{scaled}");
+    assert_eq!(status(&st.addr)["objects"][0]["scale"], 0.55);
+    // Shift-drag on its marker turns it: across a quarter of the image,
+    // half a turn.
+    b.drag_holding(
+        "#overlay",
+        css(34.0, 58.0),
+        css(50.0, 58.0),
+        Some("\u{E008}"),
+    );
+    b.wait_for(
+        "the turned sphere",
+        "return document.body.dataset.shown === '7/result';",
+        long,
+    );
+    let turned = status(&st.addr)["objects"][0]["rotate"].as_f64().unwrap();
+    assert!((turned.abs() - 180.0).abs() <= 12.0, "turned to {turned}°");
+    b.screenshot(&shots.join("7b-turned.png"));
     drop(b);
     drop(st);
     let _ = std::fs::remove_dir_all(&dir);

@@ -292,6 +292,12 @@ impl Browser {
     /// A mouse drag from `from` to `to` (CSS pixels from the top left of
     /// the element `css`), in steps as a hand moves.
     pub fn drag(&self, css: &str, from: (f64, f64), to: (f64, f64)) {
+        self.drag_holding(css, from, to, None)
+    }
+
+    /// [`Browser::drag`] holding `key` (a WebDriver key code, e.g. shift
+    /// `\u{E008}`) throughout.
+    pub fn drag_holding(&self, css: &str, from: (f64, f64), to: (f64, f64), key: Option<&str>) {
         let e = self.element(css);
         // Whole in view: WebDriver takes offsets from the centre of the
         // element's visible part.
@@ -313,9 +319,42 @@ impl Browser {
             steps.push(json!({"type": "pointerMove", "origin": e, "x": x, "y": y, "duration": 20}));
         }
         steps.push(json!({"type": "pointerUp", "button": 0}));
-        let actions = json!({"actions": [{
+        let mut sources = vec![json!({
             "type": "pointer", "id": "mouse", "parameters": {"pointerType": "mouse"},
             "actions": steps,
+        })];
+        if let Some(k) = key {
+            // Down before the pointer moves, up after it is released.
+            let mut keys = vec![json!({"type": "keyDown", "value": k})];
+            keys.extend((0..steps.len() - 1).map(|_| json!({"type": "pause", "duration": 0})));
+            keys.push(json!({"type": "keyUp", "value": k}));
+            sources.insert(0, json!({"type": "key", "id": "keys", "actions": keys}));
+            sources[1]["actions"]
+                .as_array_mut()
+                .unwrap()
+                .insert(0, json!({"type": "pause", "duration": 0}));
+        }
+        let actions = json!({ "actions": sources });
+        self.call("POST", &self.at("actions"), Some(&actions));
+        self.call("DELETE", &self.at("actions"), None);
+    }
+
+    /// One notch of the mouse wheel (`dy` > 0: towards the user, as
+    /// browsers scroll down) at (`x`, `y`) CSS pixels from the top left
+    /// of the element `css`.
+    pub fn wheel(&self, css: &str, x: f64, y: f64, dy: i64) {
+        let e = self.element(css);
+        let rect = self.eval(
+            "arguments[0].scrollIntoView({block: 'center', inline: 'center'}); \
+             const r = arguments[0].getBoundingClientRect(); return [r.width, r.height];",
+            json!([e]),
+        );
+        let (w, h) = (rect[0].as_f64().unwrap(), rect[1].as_f64().unwrap());
+        let actions = json!({"actions": [{
+            "type": "wheel", "id": "wheel",
+            "actions": [{"type": "scroll", "origin": e,
+                         "x": (x - w / 2.0).round() as i64, "y": (y - h / 2.0).round() as i64,
+                         "deltaX": 0, "deltaY": dy}],
         }]});
         self.call("POST", &self.at("actions"), Some(&actions));
         self.call("DELETE", &self.at("actions"), None);

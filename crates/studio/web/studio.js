@@ -275,7 +275,9 @@ $("overlay").addEventListener("pointerdown", (e) => {
   const mode = modeOf(e);
   const hit = objectAt(x, y);
   if (hit >= 0) {
-    drag = { object: hit };
+    // On a marker: drag moves the object; shift-drag turns it (two
+    // turns across the image's width).
+    drag = { object: hit, turn: e.shiftKey, from: [x, y] };
   } else if (tool() === "place") {
     sendObjects([...(state.objects ?? []), objectFromControls([x, y])]);
   } else if (tool() === "object") {
@@ -311,13 +313,34 @@ $("overlay").addEventListener("pointermove", (e) => {
   }
 });
 
+// The wheel over a marker scales its object (a tenth per notch).
+$("overlay").addEventListener(
+  "wheel",
+  (e) => {
+    const [x, y] = toImage(e);
+    const hit = objectAt(x, y);
+    if (hit < 0) return;
+    e.preventDefault();
+    const k = e.deltaY < 0 ? 1.1 : 1 / 1.1;
+    sendObjects(
+      state.objects.map((o, i) =>
+        i === hit ? { ...o, scale: Math.min(20, Math.max(0.01, Math.round(o.scale * k * 1000) / 1000)) } : o,
+      ),
+    );
+  },
+  { passive: false },
+);
+
 $("overlay").addEventListener("pointerup", (e) => {
   if (!drag) return;
   const d = drag;
   drag = null;
   const [x, y] = toImage(e);
   if (d.object !== undefined) {
-    if (d.to) {
+    if (d.to && d.turn) {
+      const turn = (o) => ((((o.rotate + (x - d.from[0]) * (360 / state.dims[0]) * 2) % 360) + 540) % 360) - 180;
+      sendObjects(state.objects.map((o, i) => (i === d.object ? { ...o, rotate: Math.round(turn(o)) } : o)));
+    } else if (d.to) {
       const objs = state.objects.map((o, i) => (i === d.object ? { ...o, anchor: [x, y] } : o));
       sendObjects(objs);
     }
