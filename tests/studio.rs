@@ -1000,7 +1000,6 @@ fn in_chromium_a_click_and_a_colour_change_the_object_and_nothing_else() {
         "#overlay",
         (BOX.0 + 0.5) * w / 64.0,
         (BOX.1 + 0.5) * h / 64.0,
-        None,
     );
     b.wait_for(
         "the selection",
@@ -1079,7 +1078,7 @@ fn in_chromium_a_click_and_a_colour_change_the_object_and_nothing_else() {
     );
     let css = |x: f64, y: f64| ((x + 0.5) * w / 64.0, (y + 0.5) * h / 64.0);
     let (px, py) = css(20.0, 58.0);
-    b.click_at("#overlay", px, py, None);
+    b.click_at("#overlay", px, py);
     b.wait_for(
         "the inserted sphere",
         "return document.body.dataset.shown === '4/result';",

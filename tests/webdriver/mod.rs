@@ -247,45 +247,37 @@ impl Browser {
         );
     }
 
-    /// A mouse click at (`x`, `y`) CSS pixels from the top left of the
-    /// element `css`, holding `key` (a WebDriver key code) if given.
-    pub fn click_at(&self, css: &str, x: f64, y: f64, key: Option<&str>) {
+    /// The element `css` scrolled whole into view, and how a point given
+    /// in CSS pixels from its top left is offset from its centre, as
+    /// WebDriver's actions take it (from the centre of the element's
+    /// visible part).
+    fn in_view(&self, css: &str) -> (Value, impl Fn((f64, f64)) -> (i64, i64)) {
         let e = self.element(css);
-        // Whole in view: WebDriver takes offsets from the centre of the
-        // element's visible part.
         let rect = self.eval(
             "arguments[0].scrollIntoView({block: 'center', inline: 'center'}); \
              const r = arguments[0].getBoundingClientRect(); return [r.width, r.height];",
             json!([e]),
         );
         let (w, h) = (rect[0].as_f64().unwrap(), rect[1].as_f64().unwrap());
-        // Offsets from the element's centre, as WebDriver takes them.
-        let (dx, dy) = ((x - w / 2.0).round(), (y - h / 2.0).round());
-        let mut actions = vec![json!({
+        let at =
+            move |(x, y): (f64, f64)| ((x - w / 2.0).round() as i64, (y - h / 2.0).round() as i64);
+        (e, at)
+    }
+
+    /// A mouse click at (`x`, `y`) CSS pixels from the top left of the
+    /// element `css`.
+    pub fn click_at(&self, css: &str, x: f64, y: f64) {
+        let (e, at) = self.in_view(css);
+        let (dx, dy) = at((x, y));
+        let actions = json!({"actions": [{
             "type": "pointer", "id": "mouse", "parameters": {"pointerType": "mouse"},
             "actions": [
-                {"type": "pause", "duration": 0},
-                {"type": "pointerMove", "origin": e, "x": dx as i64, "y": dy as i64},
+                {"type": "pointerMove", "origin": e, "x": dx, "y": dy},
                 {"type": "pointerDown", "button": 0},
                 {"type": "pointerUp", "button": 0},
             ],
-        })];
-        if let Some(k) = key {
-            actions.push(json!({
-                "type": "key", "id": "keys",
-                "actions": [
-                    {"type": "keyDown", "value": k},
-                    {"type": "pause", "duration": 0},
-                    {"type": "pause", "duration": 0},
-                    {"type": "keyUp", "value": k},
-                ],
-            }));
-        }
-        self.call(
-            "POST",
-            &self.at("actions"),
-            Some(&json!({ "actions": actions })),
-        );
+        }]});
+        self.call("POST", &self.at("actions"), Some(&actions));
         self.call("DELETE", &self.at("actions"), None);
     }
 
@@ -298,16 +290,7 @@ impl Browser {
     /// [`Browser::drag`] holding `key` (a WebDriver key code, e.g. shift
     /// `\u{E008}`) throughout.
     pub fn drag_holding(&self, css: &str, from: (f64, f64), to: (f64, f64), key: Option<&str>) {
-        let e = self.element(css);
-        // Whole in view: WebDriver takes offsets from the centre of the
-        // element's visible part.
-        let rect = self.eval(
-            "arguments[0].scrollIntoView({block: 'center', inline: 'center'}); \
-             const r = arguments[0].getBoundingClientRect(); return [r.width, r.height];",
-            json!([e]),
-        );
-        let (w, h) = (rect[0].as_f64().unwrap(), rect[1].as_f64().unwrap());
-        let at = |(x, y): (f64, f64)| ((x - w / 2.0).round() as i64, (y - h / 2.0).round() as i64);
+        let (e, at) = self.in_view(css);
         let (x0, y0) = at(from);
         let mut steps = vec![
             json!({"type": "pointerMove", "origin": e, "x": x0, "y": y0}),
@@ -343,17 +326,10 @@ impl Browser {
     /// browsers scroll down) at (`x`, `y`) CSS pixels from the top left
     /// of the element `css`.
     pub fn wheel(&self, css: &str, x: f64, y: f64, dy: i64) {
-        let e = self.element(css);
-        let rect = self.eval(
-            "arguments[0].scrollIntoView({block: 'center', inline: 'center'}); \
-             const r = arguments[0].getBoundingClientRect(); return [r.width, r.height];",
-            json!([e]),
-        );
-        let (w, h) = (rect[0].as_f64().unwrap(), rect[1].as_f64().unwrap());
+        let (e, at) = self.in_view(css);
         let actions = json!({"actions": [{
             "type": "wheel", "id": "wheel",
-            "actions": [{"type": "scroll", "origin": e,
-                         "x": (x - w / 2.0).round() as i64, "y": (y - h / 2.0).round() as i64,
+            "actions": [{"type": "scroll", "origin": e, "x": at((x, y)).0, "y": at((x, y)).1,
                          "deltaX": 0, "deltaY": dy}],
         }]});
         self.call("POST", &self.at("actions"), Some(&actions));

@@ -16,9 +16,8 @@
 //!   gap between them (even a grazing floor's plane passes well below the
 //!   outline of an object standing on it, but near where it stands; there
 //!   the fold rule below decides). In pixel-widths, the rule is the same
-//!   at any resolution. An optional cap `max_slope` on the depth step
-//!   (`tan θ` pixel-widths for a surface seen at incidence θ) is off by
-//!   default;
+//!   at any resolution, and a surface seen at grazing incidence (whose
+//!   depth steps by many pixel-widths) still grows;
 //! - **no inward fold**: where the surface folds *inwards* (the
 //!   two are not each behind the other's tangent plane, by half a pixel's
 //!   width between them, as where a box
@@ -46,8 +45,6 @@ use crate::{Camera, GrayImage, Image, RgbImage};
 pub struct Grow {
     /// Largest per-channel difference of γ-encoded albedo from the seed.
     pub albedo_tol: f32,
-    /// Largest depth step between neighbours, in pixel-widths.
-    pub max_slope: f32,
     /// Largest distance of a neighbour from the surface continued from
     /// the other (its tangent plane, along its ray), in pixel-widths.
     pub max_gap: f32,
@@ -59,7 +56,6 @@ impl Default for Grow {
     fn default() -> Self {
         Grow {
             albedo_tol: 0.2,
-            max_slope: f32::INFINITY,
             max_gap: 2.0,
             crease_deg: 30.0,
         }
@@ -105,9 +101,6 @@ pub fn grow_object(
             return sky && !seen(zq);
         }
         let width = zp.min(zq) / f;
-        if (zq - zp).abs() > g.max_slope * width {
-            return false;
-        }
         let (np, nq) = (normals.get(p.0, p.1), normals.get(q.0, q.1));
         let pp = camera.backproject(p.0 as f32, p.1 as f32, zp);
         let pq = camera.backproject(q.0 as f32, q.1 as f32, zq);

@@ -32,7 +32,7 @@ use matflow_scene::select::{grow_object, Grow};
 use matflow_scene::Image;
 
 use live::{request_error, Shared};
-use session::{Change, Glass, Light, Object, Session};
+use session::{Change, Glass, Light, Object, Session, SessionError};
 
 /// The largest photo accepted by upload.
 const PHOTO_BYTES: usize = 64 << 20;
@@ -532,79 +532,48 @@ async fn select_clear(State(app): State<Arc<App>>) -> Answer {
     })
 }
 
-/// `POST /api/edit {albedo, hue_shift, …}`: the selection changed, as a
-/// new edit stage; the renders follow.
-async fn edit(State(app): State<Arc<App>>, Json(c): Json<Change>) -> Answer {
+/// A change of the session's stages: `f` on the live state (once the
+/// scene is ready, where `needs_scene`), then a new generation for the
+/// runner.
+fn change(
+    app: &App,
+    needs_scene: bool,
+    f: impl FnOnce(&mut live::Live, &matflow_engine::Registry) -> Result<(), SessionError>,
+) -> Answer {
     let mut l = app.shared.lock();
-    if l.surfaces.is_none() {
+    if needs_scene && l.surfaces.is_none() {
         return Err((StatusCode::CONFLICT, "the scene is not ready yet\n".into()));
     }
-    let mask = l.selection.clone();
-    l.session
-        .edit(&mask, &c, &app.shared.registry)
-        .map_err(request_error)?;
+    f(&mut l, &app.shared.registry).map_err(request_error)?;
     app.shared.changed(l);
     Ok(StatusCode::NO_CONTENT.into_response())
 }
 
+/// `POST /api/edit {albedo, hue_shift, …}`: the selection changed, as a
+/// new edit stage; the renders follow.
+async fn edit(State(app): State<Arc<App>>, Json(c): Json<Change>) -> Answer {
+    change(&app, true, |l, reg| {
+        let mask = l.selection.clone();
+        l.session.edit(&mask, &c, reg)
+    })
+}
+
+/// `POST /api/glass {ior, transmission, roughness}`: the selection made
+/// glass, its refraction lengths from matflow's network.
+async fn glass(State(app): State<Arc<App>>, Json(g): Json<Glass>) -> Answer {
+    change(&app, true, |l, reg| {
+        let mask = l.selection.clone();
+        l.session.glass(&mask, &g, reg)
+    })
+}
+
 /// `POST /api/light {envmap, rotation, exposure}`: new lighting (the
 /// recovered envmap when `envmap` is absent), as a history stage.
-async fn light(State(app): State<Arc<App>>, Json(l): Json<Light>) -> Answer {
-    if !(l.rotation.is_finite() && l.exposure.is_finite()) {
+async fn light(State(app): State<Arc<App>>, Json(light): Json<Light>) -> Answer {
+    if !(light.rotation.is_finite() && light.exposure.is_finite()) {
         return Err(bad("rotation and exposure must be numbers"));
     }
-    let mut l_ = app.shared.lock();
-    l_.session
-        .light(&l, &app.shared.registry)
-        .map_err(request_error)?;
-    app.shared.changed(l_);
-    Ok(StatusCode::NO_CONTENT.into_response())
-}
-
-/// `POST /api/light/envmap` with a Radiance HDR or OpenEXR body: kept in
-/// the session (named by its contents) for `/api/light`.
-async fn upload_envmap(State(app): State<Arc<App>>, body: Bytes) -> Answer {
-    let shared = app.shared.clone();
-    let name = tokio::task::spawn_blocking(move || {
-        let mut l = shared.lock();
-        let name = l.session.add_envmap(&body)?;
-        l.status.envmaps = l.session.envmaps();
-        shared.publish(&l);
-        Ok::<_, session::SessionError>(name)
-    })
-    .await
-    .map_err(|e| (StatusCode::INTERNAL_SERVER_ERROR, format!("{e}\n")))?
-    .map_err(request_error)?;
-    Ok(Json(serde_json::json!({ "envmap": name })).into_response())
-}
-
-/// `POST /api/open` with a PNG, JPEG or EXR body: the session on that
-/// photo (predicted, then recovered with the session's settings), its
-/// history empty, in the studio's session folder.
-async fn open_photo(State(app): State<Arc<App>>, body: Bytes) -> Answer {
-    let shared = app.shared.clone();
-    tokio::task::spawn_blocking(move || {
-        let dir = shared.lock().session.dir.clone();
-        let photo = Session::add_photo(&dir, &body)?;
-        let session = shared
-            .lock()
-            .session
-            .on_photo(&photo, &shared.registry)
-            .map_err(|e| match e {
-                session::SessionError::Pipeline(m) => session::SessionError::Request(m),
-                e => e,
-            })?;
-        let name = photo
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_default();
-        shared.replace(session, name);
-        Ok::<_, session::SessionError>(())
-    })
-    .await
-    .map_err(|e| (StatusCode::INTERNAL_SERVER_ERROR, format!("{e}\n")))?
-    .map_err(request_error)?;
-    Ok(StatusCode::NO_CONTENT.into_response())
+    change(&app, false, |l, reg| l.session.light(&light, reg))
 }
 
 #[derive(serde::Deserialize)]
@@ -624,47 +593,7 @@ async fn insert(State(app): State<Arc<App>>, Json(o): Json<Objects>) -> Answer {
             )));
         }
     }
-    let mut l = app.shared.lock();
-    if l.surfaces.is_none() {
-        return Err((StatusCode::CONFLICT, "the scene is not ready yet\n".into()));
-    }
-    l.session
-        .insert(&o.objects, &app.shared.registry)
-        .map_err(request_error)?;
-    app.shared.changed(l);
-    Ok(StatusCode::NO_CONTENT.into_response())
-}
-
-/// `POST /api/insert/mesh` with an OBJ or PLY body: kept in the session
-/// (named by its contents) for `/api/insert`.
-async fn upload_mesh(State(app): State<Arc<App>>, body: Bytes) -> Answer {
-    let shared = app.shared.clone();
-    let name = tokio::task::spawn_blocking(move || {
-        let mut l = shared.lock();
-        let name = l.session.add_mesh(&body)?;
-        l.status.meshes = l.session.meshes();
-        shared.publish(&l);
-        Ok::<_, session::SessionError>(name)
-    })
-    .await
-    .map_err(|e| (StatusCode::INTERNAL_SERVER_ERROR, format!("{e}\n")))?
-    .map_err(request_error)?;
-    Ok(Json(serde_json::json!({ "mesh": name })).into_response())
-}
-
-/// `POST /api/glass {ior, transmission, roughness}`: the selection made
-/// glass, its refraction lengths from matflow's network.
-async fn glass(State(app): State<Arc<App>>, Json(g): Json<Glass>) -> Answer {
-    let mut l = app.shared.lock();
-    if l.surfaces.is_none() {
-        return Err((StatusCode::CONFLICT, "the scene is not ready yet\n".into()));
-    }
-    let mask = l.selection.clone();
-    l.session
-        .glass(&mask, &g, &app.shared.registry)
-        .map_err(request_error)?;
-    app.shared.changed(l);
-    Ok(StatusCode::NO_CONTENT.into_response())
+    change(&app, true, |l, reg| l.session.insert(&o.objects, reg))
 }
 
 #[derive(serde::Deserialize)]
@@ -676,30 +605,86 @@ struct Geometry {
 /// `POST /api/geometry {complete}`: other geometry past the frame (auto,
 /// none, planes, room, closed): the recovery and the renders run again.
 async fn geometry(State(app): State<Arc<App>>, Json(g): Json<Geometry>) -> Answer {
-    let mut l = app.shared.lock();
-    l.session
-        .set_geometry(&g.complete, &app.shared.registry)
-        .map_err(request_error)?;
-    l.status.geometry_taken.clear();
-    app.shared.changed(l);
-    Ok(StatusCode::NO_CONTENT.into_response())
+    change(&app, false, |l, reg| {
+        l.session.set_geometry(&g.complete, reg)?;
+        l.status.geometry_taken.clear();
+        Ok(())
+    })
 }
 
 async fn undo(State(app): State<Arc<App>>) -> Answer {
-    let mut l = app.shared.lock();
-    if !l.session.undo().map_err(request_error)? {
-        return Err((StatusCode::CONFLICT, "nothing to undo\n".into()));
-    }
-    app.shared.changed(l);
-    Ok(StatusCode::NO_CONTENT.into_response())
+    change(&app, false, |l, _| match l.session.undo()? {
+        true => Ok(()),
+        false => Err(SessionError::Conflict("nothing to undo".into())),
+    })
 }
 
 async fn redo(State(app): State<Arc<App>>) -> Answer {
+    change(&app, false, |l, _| match l.session.redo()? {
+        true => Ok(()),
+        false => Err(SessionError::Conflict("nothing to redo".into())),
+    })
+}
+
+/// A file uploaded to the session's folder by `add` (off the lock: the
+/// runner goes on), the status's lists of files refreshed; answers
+/// `{KEY: name}`.
+async fn upload(
+    app: &App,
+    body: Bytes,
+    key: &'static str,
+    add: fn(&std::path::Path, &[u8]) -> Result<String, SessionError>,
+) -> Answer {
+    let dir = app.shared.lock().session.dir.clone();
+    let name = tokio::task::spawn_blocking(move || add(&dir, &body))
+        .await
+        .map_err(|e| (StatusCode::INTERNAL_SERVER_ERROR, format!("{e}\n")))?
+        .map_err(request_error)?;
     let mut l = app.shared.lock();
-    if !l.session.redo().map_err(request_error)? {
-        return Err((StatusCode::CONFLICT, "nothing to redo\n".into()));
-    }
-    app.shared.changed(l);
+    l.status.envmaps = l.session.envmaps();
+    l.status.meshes = l.session.meshes();
+    app.shared.publish(&l);
+    Ok(Json(serde_json::json!({ key: name })).into_response())
+}
+
+/// `POST /api/light/envmap` with a Radiance HDR or OpenEXR body: kept in
+/// the session (named by its contents) for `/api/light`.
+async fn upload_envmap(State(app): State<Arc<App>>, body: Bytes) -> Answer {
+    upload(&app, body, "envmap", Session::add_envmap).await
+}
+
+/// `POST /api/insert/mesh` with an OBJ or PLY body: kept in the session
+/// (named by its contents) for `/api/insert`.
+async fn upload_mesh(State(app): State<Arc<App>>, body: Bytes) -> Answer {
+    upload(&app, body, "mesh", Session::add_mesh).await
+}
+
+/// `POST /api/open` with a PNG, JPEG or EXR body: the session on that
+/// photo (predicted, then recovered with the session's settings), its
+/// history empty, in the studio's session folder.
+async fn open_photo(State(app): State<Arc<App>>, body: Bytes) -> Answer {
+    let shared = app.shared.clone();
+    tokio::task::spawn_blocking(move || {
+        let dir = shared.lock().session.dir.clone();
+        let photo = Session::add_photo(&dir, &body)?;
+        let session = shared
+            .lock()
+            .session
+            .on_photo(&photo, &shared.registry)
+            .map_err(|e| match e {
+                SessionError::Pipeline(m) => SessionError::Request(m),
+                e => e,
+            })?;
+        let name = photo
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        shared.replace(session, name);
+        Ok::<_, SessionError>(())
+    })
+    .await
+    .map_err(|e| (StatusCode::INTERNAL_SERVER_ERROR, format!("{e}\n")))?
+    .map_err(request_error)?;
     Ok(StatusCode::NO_CONTENT.into_response())
 }
 

@@ -87,11 +87,16 @@ pub struct Live {
     changed_at: Instant,
 }
 
+/// The least time between two progress events sent to the page.
+const PROGRESS_EVERY: std::time::Duration = std::time::Duration::from_millis(50);
+
 /// The state, the runner's wake-up and the published status.
 pub struct Shared {
     live: Mutex<Live>,
     wake: Condvar,
     pub events: tokio::sync::watch::Sender<String>,
+    /// When the status was last sent.
+    published: Mutex<Instant>,
     pub registry: Registry,
 }
 
@@ -121,6 +126,7 @@ impl Shared {
             }),
             wake: Condvar::new(),
             events,
+            published: Mutex::new(Instant::now()),
             registry: matflow_nodes::registry(),
         });
         s.publish(&s.lock());
@@ -135,6 +141,17 @@ impl Shared {
     pub fn publish(&self, live: &Live) {
         let json = serde_json::to_string(&live.status).unwrap_or_default();
         self.events.send_replace(json);
+        *self.published.lock().unwrap_or_else(|e| e.into_inner()) = Instant::now();
+    }
+
+    /// [`Shared::publish`] for a stage's steps, which come faster than a
+    /// page redraws: at most every [`PROGRESS_EVERY`] (the next state
+    /// change sends the latest anyway).
+    fn publish_progress(&self, live: &Live) {
+        let last = *self.published.lock().unwrap_or_else(|e| e.into_inner());
+        if last.elapsed() >= PROGRESS_EVERY {
+            self.publish(live);
+        }
     }
 
     /// After a change of the session's stages: a new generation, the
@@ -200,7 +217,7 @@ impl Observer for Progress<'_> {
         let mut l = self.shared.lock();
         l.status.stage = stage.into();
         (l.status.done, l.status.total) = (done, total);
-        self.shared.publish(&l);
+        self.shared.publish_progress(&l);
     }
     fn metric(&self, stage: &str, name: &str, value: f64) {
         if name != "loss" {
@@ -217,7 +234,7 @@ impl Observer for Progress<'_> {
             l.status.loss = thinned;
         }
         l.status.loss.push(value);
-        self.shared.publish(&l);
+        self.shared.publish_progress(&l);
     }
     fn finished(&self, _report: &StageReport) {}
     fn cancelled(&self) -> bool {
@@ -430,6 +447,7 @@ pub fn request_error(e: SessionError) -> (axum::http::StatusCode, String) {
     use axum::http::StatusCode;
     match e {
         SessionError::Request(m) => (StatusCode::UNPROCESSABLE_ENTITY, format!("{m}\n")),
+        SessionError::Conflict(m) => (StatusCode::CONFLICT, format!("{m}\n")),
         e => (StatusCode::INTERNAL_SERVER_ERROR, format!("{e}\n")),
     }
 }

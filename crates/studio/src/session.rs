@@ -42,6 +42,9 @@ pub enum SessionError {
     /// A request the session cannot take (a 4xx).
     #[error("{0}")]
     Request(String),
+    /// A request the session cannot take as it stands (nothing to undo).
+    #[error("{0}")]
+    Conflict(String),
 }
 
 fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> SessionError + '_ {
@@ -734,15 +737,15 @@ impl Session {
     }
 
     /// An uploaded mesh (PLY, told by its first bytes, else OBJ) kept in
-    /// the session's folder, named by its contents; read as `insert`
-    /// reads it, within its limits. Returns its name.
-    pub fn add_mesh(&self, bytes: &[u8]) -> Result<String, SessionError> {
+    /// the session's folder `dir`, named by its contents; read as
+    /// `insert` reads it, within its limits. Returns its name.
+    pub fn add_mesh(dir: &Path, bytes: &[u8]) -> Result<String, SessionError> {
         let ext = if bytes.starts_with(b"ply") {
             "ply"
         } else {
             "obj"
         };
-        self.add_file(bytes, "mesh", ext, |f| {
+        keep_upload(dir, bytes, "mesh", ext, |f| {
             matflow_scene::meshfile::read_mesh(f)
                 .map(|_| ())
                 .map_err(|e| e.to_string())
@@ -798,14 +801,7 @@ impl Session {
                 "not a photo: give a PNG, a JPEG or a linear OpenEXR".into(),
             ));
         };
-        std::fs::create_dir_all(dir).map_err(io_err(dir))?;
-        let scratch = Session {
-            dir: dir.to_path_buf(),
-            base: vec![],
-            edits: vec![],
-            undone: vec![],
-        };
-        let name = scratch.add_file(bytes, "photo", ext, |f| {
+        let name = keep_upload(dir, bytes, "photo", ext, |f| {
             let (w, h) = if ext == "exr" {
                 matflow_scene::io::exr_size(f).map_err(|e| e.to_string())?
             } else {
@@ -834,33 +830,6 @@ impl Session {
             .collect()
     }
 
-    /// Keeps `bytes` as `PREFIX-HASH.EXT` in the session's folder once
-    /// `check` accepts the file (its errors name "the uploaded PREFIX").
-    fn add_file(
-        &self,
-        bytes: &[u8],
-        prefix: &str,
-        ext: &str,
-        check: impl FnOnce(&Path) -> Result<(), String>,
-    ) -> Result<String, SessionError> {
-        let hex = matflow_engine::store::Digest::of(bytes).hex();
-        let name = format!("{prefix}-{}.{ext}", &hex[..16]);
-        let file = self.dir.join(&name);
-        let tmp = self.dir.join(format!("upload-{}.{ext}", &hex[..16]));
-        std::fs::write(&tmp, bytes).map_err(io_err(&tmp))?;
-        match check(&tmp) {
-            Ok(()) => std::fs::rename(&tmp, &file).map_err(io_err(&file))?,
-            Err(e) => {
-                let _ = std::fs::remove_file(&tmp);
-                return Err(SessionError::Request(e.replace(
-                    &tmp.display().to_string(),
-                    &format!("the uploaded {prefix}"),
-                )));
-            }
-        }
-        Ok(name)
-    }
-
     /// The session's files named `PREFIX…` ending in one of `exts`.
     fn files(&self, prefix: &str, exts: &[&str]) -> Vec<String> {
         let mut v: Vec<String> = std::fs::read_dir(&self.dir)
@@ -875,9 +844,9 @@ impl Session {
     }
 
     /// An uploaded environment map (Radiance HDR or OpenEXR, told by its
-    /// first bytes) kept in the session's folder, named by its contents;
-    /// checked as `relight` reads it. Returns its name.
-    pub fn add_envmap(&self, bytes: &[u8]) -> Result<String, SessionError> {
+    /// first bytes) kept in the session's folder `dir`, named by its
+    /// contents; checked as `relight` reads it. Returns its name.
+    pub fn add_envmap(dir: &Path, bytes: &[u8]) -> Result<String, SessionError> {
         let ext = if bytes.starts_with(b"#?") {
             "hdr"
         } else if bytes.starts_with(&[0x76, 0x2f, 0x31, 0x01]) {
@@ -887,7 +856,7 @@ impl Session {
                 "not an environment map: give a Radiance .hdr or an OpenEXR .exr".into(),
             ));
         };
-        self.add_file(bytes, "envmap", ext, |f| {
+        keep_upload(dir, bytes, "envmap", ext, |f| {
             matflow_scene::io::read_envmap(f)
                 .map(|_| ())
                 .map_err(|e| e.to_string())
@@ -980,6 +949,34 @@ impl Session {
         }
         Ok(tar.finish())
     }
+}
+
+/// Keeps `bytes` as `PREFIX-HASH.EXT` in the session's folder `dir` once
+/// `check` accepts the file (its errors name "the uploaded PREFIX").
+fn keep_upload(
+    dir: &Path,
+    bytes: &[u8],
+    prefix: &str,
+    ext: &str,
+    check: impl FnOnce(&Path) -> Result<(), String>,
+) -> Result<String, SessionError> {
+    std::fs::create_dir_all(dir).map_err(io_err(dir))?;
+    let hex = matflow_engine::store::Digest::of(bytes).hex();
+    let name = format!("{prefix}-{}.{ext}", &hex[..16]);
+    let file = dir.join(&name);
+    let tmp = dir.join(format!("upload-{}.{ext}", &hex[..16]));
+    std::fs::write(&tmp, bytes).map_err(io_err(&tmp))?;
+    match check(&tmp) {
+        Ok(()) => std::fs::rename(&tmp, &file).map_err(io_err(&file))?,
+        Err(e) => {
+            let _ = std::fs::remove_file(&tmp);
+            return Err(SessionError::Request(e.replace(
+                &tmp.display().to_string(),
+                &format!("the uploaded {prefix}"),
+            )));
+        }
+    }
+    Ok(name)
 }
 
 /// The studio's stages after the scene, where the input does not have
@@ -1267,7 +1264,7 @@ mod tests {
             Err(SessionError::Request(_))
         ));
         assert!(matches!(
-            s.add_envmap(b"GIF89a"),
+            Session::add_envmap(&s.dir, b"GIF89a"),
             Err(SessionError::Request(_))
         ));
         s.undo().unwrap();

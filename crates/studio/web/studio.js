@@ -27,6 +27,21 @@ async function post(path, body, type = "application/json") {
   return r.status === 204 ? null : r.json();
 }
 
+// A file picked in the input `id` is posted to `path`; `then` gets the
+// answer.
+function onFile(id, path, type, then = () => {}) {
+  $(id).addEventListener("change", async () => {
+    const f = $(id).files[0];
+    if (!f) return;
+    try {
+      showError(null);
+      await then(await post(path, await f.arrayBuffer(), type));
+    } catch (e) {
+      showError(e);
+    }
+  });
+}
+
 function showError(e) {
   $("error").textContent = e ? e.message ?? String(e) : "";
 }
@@ -353,17 +368,7 @@ $("overlay").addEventListener("pointerup", (e) => {
 
 $("clear").addEventListener("click", () => select("api/select/clear"));
 
-$("mask").addEventListener("change", async () => {
-  const f = $("mask").files[0];
-  if (!f) return;
-  try {
-    showError(null);
-    await post("api/select/mask?mode=set", await f.arrayBuffer(), "image/png");
-    await refreshOverlay();
-  } catch (e) {
-    showError(e);
-  }
-});
+onFile("mask", "api/select/mask?mode=set", "image/png", refreshOverlay);
 
 // ---- changes --------------------------------------------------------------
 
@@ -409,17 +414,7 @@ $("relight").addEventListener("click", () =>
     exposure: Number($("exposure").value),
   }),
 );
-$("envmap-file").addEventListener("change", async () => {
-  const f = $("envmap-file").files[0];
-  if (!f) return;
-  try {
-    showError(null);
-    const r = await post("api/light/envmap", await f.arrayBuffer(), "application/octet-stream");
-    state.pickEnvmap = r.envmap;
-  } catch (e) {
-    showError(e);
-  }
-});
+onFile("envmap-file", "api/light/envmap", "application/octet-stream", (r) => (state.pickEnvmap = r.envmap));
 $("glass").addEventListener("click", () =>
   act("api/glass", { ior: Number($("glass-ior").value), transmission: Number($("glass-t").value) }),
 );
@@ -481,28 +476,9 @@ function showObjects() {
   drawMarkers();
 }
 
-$("mesh-file").addEventListener("change", async () => {
-  const f = $("mesh-file").files[0];
-  if (!f) return;
-  try {
-    showError(null);
-    const r = await post("api/insert/mesh", await f.arrayBuffer(), "application/octet-stream");
-    state.pickMesh = r.mesh;
-  } catch (e) {
-    showError(e);
-  }
-});
+onFile("mesh-file", "api/insert/mesh", "application/octet-stream", (r) => (state.pickMesh = r.mesh));
 
-$("open").addEventListener("change", async () => {
-  const f = $("open").files[0];
-  if (!f) return;
-  try {
-    showError(null);
-    await post("api/open", await f.arrayBuffer(), "application/octet-stream");
-  } catch (e) {
-    showError(e);
-  }
-});
+onFile("open", "api/open", "application/octet-stream");
 
 $("dl-png").href = withToken("api/images/result.png");
 $("dl-exr").href = withToken("api/images/result.exr");

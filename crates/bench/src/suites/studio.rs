@@ -163,6 +163,34 @@ fn memory_mib(pid: u32) -> Result<(f64, f64)> {
     Ok((kb("VmRSS:"), kb("VmHWM:")))
 }
 
+/// A table of timings (preview and result, by the studio's clock and the
+/// client's), one row per `rows` entry named by `what`, and the medians
+/// of all rows but the first (which is printed apart).
+fn table(head: &str, rows: &[(f64, f64, f64, f64)], what: impl Fn(usize) -> String) {
+    outln!("| {head} | preview (studio) | result, 64 spp (studio) | preview (client) | result (client) |");
+    outln!("|---|---|---|---|---|");
+    for (i, r) in rows.iter().enumerate() {
+        outln!(
+            "| {} | {:.3} s | {:.3} s | {:.3} s | {:.3} s |",
+            what(i),
+            r.0,
+            r.1,
+            r.2,
+            r.3
+        );
+    }
+    let col = |f: fn(&(f64, f64, f64, f64)) -> f64| median(rows[1..].iter().map(f).collect());
+    outln!(
+        "| **median of {}** | **{:.3} s** | **{:.3} s** | **{:.3} s** | **{:.3} s** |",
+        rows.len() - 1,
+        col(|r| r.0),
+        col(|r| r.1),
+        col(|r| r.2),
+        col(|r| r.3)
+    );
+    outln!();
+}
+
 pub fn bench_studio(a: BenchStudioArgs) -> Result<()> {
     let exe = matflow_exe()?;
     let _ = std::fs::remove_dir_all(&a.work);
@@ -290,58 +318,20 @@ pub fn bench_studio(a: BenchStudioArgs) -> Result<()> {
     outln!("machine: {machine}");
     outln!("opened (predict… recover, first preview and result): {opened:.1} s");
     outln!();
-    outln!("| change | preview (studio) | result, 64 spp (studio) | preview (client) | result (client) |");
-    outln!("|---|---|---|---|---|");
-    for (i, r) in rows.iter().enumerate() {
-        let what = if i == 0 {
-            "first after opening".to_string()
+    table("change", &rows, |i| {
+        if i == 0 {
+            "first after opening".into()
         } else {
             format!("{i}")
-        };
-        outln!(
-            "| {what} | {:.3} s | {:.3} s | {:.3} s | {:.3} s |",
-            r.0,
-            r.1,
-            r.2,
-            r.3
-        );
-    }
-    let col = |f: fn(&(f64, f64, f64, f64)) -> f64| median(rows[1..].iter().map(f).collect());
-    outln!(
-        "| **median of {}** | **{:.3} s** | **{:.3} s** | **{:.3} s** | **{:.3} s** |",
-        rows.len() - 1,
-        col(|r| r.0),
-        col(|r| r.1),
-        col(|r| r.2),
-        col(|r| r.3)
-    );
-    outln!();
-    outln!("| object | preview (studio) | result, 64 spp (studio) | preview (client) | result (client) |");
-    outln!("|---|---|---|---|---|");
-    for (i, r) in moves.iter().enumerate() {
-        let what = if i == 0 {
-            "inserted".to_string()
+        }
+    });
+    table("object", &moves, |i| {
+        if i == 0 {
+            "inserted".into()
         } else {
             format!("moved {i}")
-        };
-        outln!(
-            "| {what} | {:.3} s | {:.3} s | {:.3} s | {:.3} s |",
-            r.0,
-            r.1,
-            r.2,
-            r.3
-        );
-    }
-    let mcol = |f: fn(&(f64, f64, f64, f64)) -> f64| median(moves[1..].iter().map(f).collect());
-    outln!(
-        "| **median of {} moves** | **{:.3} s** | **{:.3} s** | **{:.3} s** | **{:.3} s** |",
-        moves.len() - 1,
-        mcol(|r| r.0),
-        mcol(|r| r.1),
-        mcol(|r| r.2),
-        mcol(|r| r.3)
-    );
-    outln!();
+        }
+    });
     outln!("memory of the open session: {rss:.0} MiB resident, {hwm:.0} MiB peak");
     outln!("idle: {idle_cpu:.2} CPU-seconds in {:.0} s", a.idle);
     outln!(
