@@ -34,16 +34,21 @@ impl Drop for Studio {
 /// The room matflow generates (64², the red box at about (51, 46)), with
 /// a recovery of a few seconds: the studio's input in these tests.
 fn room_pipeline(dir: &Path) -> PathBuf {
+    room_pipeline_at(dir, 16)
+}
+
+/// The room, its renders (the kept trace and the results) at `spp`.
+fn room_pipeline_at(dir: &Path, spp: u32) -> PathBuf {
     let f = dir.join("room.yaml");
     std::fs::write(
         &f,
-        "pipeline: room\noutputs: [recovered]\nstages:\n  scene:\n    kind: synthetic_scene\n    \
+        format!("pipeline: room\noutputs: [recovered]\nstages:\n  scene:\n    kind: synthetic_scene\n    \
          seed: 1\n    size: 64\n    spp: 16\n  mesh:\n    kind: mesh\n    scene: scene\n    \
          complete: none\n  lighting:\n    kind: envmap_opt\n    scene: scene\n    mesh: mesh\n    \
          budget_seconds: 1\n    trust_rm: true\n  recovered:\n    kind: material_opt\n    \
          scene: scene\n    mesh: mesh\n    envmap: lighting\n    budget_seconds: 2\n    \
          trust_rm: true\n  base:\n    kind: trace\n    mesh: mesh\n    materials: recovered\n    \
-         envmap: recovered.envmap\n    spp: 16\n    path_spp: 4\n",
+         envmap: recovered.envmap\n    spp: {spp}\n    path_spp: 4\n"),
     )
     .unwrap();
     f
@@ -691,6 +696,46 @@ fn sky_hdr() -> Vec<u8> {
     matflow_scene::io::encode_hdr(Path::new("sky.hdr"), &img).unwrap()
 }
 
+/// A change while the result of the one before is rendering stops that
+/// render (between its tiles; nothing of it is shown or stored) and
+/// renders the newer one. The room's renders take 2048 samples per
+/// pixel here, so that the stop lands inside one.
+#[test]
+fn a_newer_change_stops_the_render_it_supersedes() {
+    let dir = scratch("studio", "stop");
+    room_pipeline_at(&dir, 2048);
+    let st = start(&dir, Path::new("room.yaml"), "session", &[]);
+    result_of(&st.addr, 0);
+    assert_eq!(status(&st.addr)["stopped"], 0);
+    let (code, body) = post(&st.addr, "/api/light", json!({"rotation": 90}));
+    assert_eq!(code, 204, "{body}");
+    let t0 = Instant::now();
+    loop {
+        let v = status(&st.addr);
+        assert_ne!(v["state"], "failed", "{v}");
+        let done = v["shown"] == 1 && v["image"] == "result";
+        assert!(!done, "the result came before it was superseded: {v}");
+        if v["generation"] == 1 && v["stage"] == "result" {
+            break;
+        }
+        assert!(t0.elapsed() < Duration::from_secs(60), "{v}");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let (code, body) = post(&st.addr, "/api/light", json!({"rotation": 180}));
+    assert_eq!(code, 204, "{body}");
+    let v = result_of(&st.addr, 2);
+    assert_eq!(v["stopped"], 1, "{v}");
+    assert_eq!(v["history"].as_array().unwrap().len(), 2, "{v}");
+    // Undone to the first light, its result renders whole: the stopped
+    // render left no entry behind to be served.
+    let (code, body) = post(&st.addr, "/api/undo", json!({}));
+    assert_eq!(code, 204, "{body}");
+    let v = result_of(&st.addr, 3);
+    assert!(v["message"].as_str().unwrap().contains("1 executed"), "{v}");
+    drop(st);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// A photo uploaded starts a session on it: saved in the session's
 /// folder by its contents, predicted (`matnet`), its maps shown; a file
 /// that is not a photo, or one too small to predict from, is refused and
@@ -826,8 +871,9 @@ fn the_geometry_past_the_frame_is_shown_and_changed() {
 }
 
 /// In Chromium, a photo picked in the page's *open a photo* is uploaded,
-/// predicted and recovered (the session's own recovery settings), and its
-/// result shown; two browsers on one studio see the same session.
+/// predicted and recovered (the session's own recovery settings), the
+/// recovery's fit so far shown as it goes, and its result shown; two
+/// browsers on one studio see the same session.
 #[test]
 fn in_chromium_a_photo_opened_in_the_page_is_predicted_and_recovered() {
     let dir = scratch("studio", "chromium-open");
@@ -849,7 +895,20 @@ fn in_chromium_a_photo_opened_in_the_page_is_predicted_and_recovered() {
             Duration::from_secs(60),
         );
     }
+    // Every image the page shows, as it shows it.
+    a.eval(
+        "window.seen = []; new MutationObserver(() => window.seen.push(document.body.dataset.shown))\
+         .observe(document.body, {attributes: true, attributeFilter: ['data-shown']});",
+        json!([]),
+    );
     a.choose_file("#open", &file);
+    // The recovery's fit so far is shown while it runs: screenshot it.
+    a.wait_for(
+        "the recovery's fit so far",
+        "return (document.body.dataset.shown || '').startsWith('1/recovery/');",
+        Duration::from_secs(300),
+    );
+    a.screenshot(&shots.join("8-photo-recovering.png"));
     // Both browsers follow the session onto the photo: predicted (512²)
     // and recovered.
     for br in [&a, &b] {
@@ -862,12 +921,33 @@ fn in_chromium_a_photo_opened_in_the_page_is_predicted_and_recovered() {
         );
         assert!(input.as_str().unwrap().starts_with("photo-"), "{input}");
     }
-    a.screenshot(&shots.join("8-photo-opened.png"));
+    a.screenshot(&shots.join("10-photo-opened.png"));
     let v = status(&st.addr);
     assert_eq!(
         (v["width"].as_u64(), v["state"].as_str()),
         (Some(512), Some("ready"))
     );
+    // The page showed the fit after each of the recovery's fitting
+    // stages it heard of, then the preview, then the result; the latest
+    // fit is served at the photo's size.
+    let seen = a.eval("return window.seen;", json!([]));
+    let seen: Vec<&str> = seen
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(|v| v.as_str())
+        .collect();
+    let fits = seen.iter().filter(|k| k.starts_with("1/recovery/")).count();
+    let shots_taken = v["recovery_shots"].as_u64().unwrap();
+    assert!(
+        fits >= 1 && shots_taken >= 3,
+        "{seen:?}, {shots_taken} shots"
+    );
+    assert_eq!(seen.last(), Some(&"1/result"), "{seen:?}");
+    let (code, fit) = get(&st.addr, "/api/images/recovery.png");
+    assert_eq!(code, 200);
+    assert_eq!(rgb(&fit).dimensions(), (512, 512));
+    std::fs::write(shots.join("9-photo-recovered-fit.png"), &fit).unwrap();
     drop((a, b));
     drop(st);
     let _ = std::fs::remove_dir_all(&dir);

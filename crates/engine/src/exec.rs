@@ -150,6 +150,32 @@ pub trait Observer: Sync {
     fn cancelled(&self) -> bool {
         false
     }
+    /// What stages running in this process may ask of the front end as
+    /// they go (see [`Watch`]); `None`: nobody watches.
+    fn watch(&self) -> Option<Watch> {
+        None
+    }
+    /// An intermediate image a stage showed ([`crate::RunContext::image`]):
+    /// `rgb` is linear, `width × height × 3`, row by row.
+    fn image(&self, _stage: &str, _name: &str, _width: usize, _height: usize, _rgb: &[f32]) {}
+}
+
+/// A front end's hold on the stages of its run that execute in this
+/// process: whether they are still wanted, asked as they run (a newer
+/// edit superseding a render stops it between tiles), and whether it
+/// wants their intermediate images. Stages on workers finish regardless.
+#[derive(Clone)]
+pub struct Watch {
+    pub cancelled: Arc<dyn Fn() -> bool + Send + Sync>,
+    pub images: bool,
+}
+
+impl std::fmt::Debug for Watch {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Watch")
+            .field("images", &self.images)
+            .finish_non_exhaustive()
+    }
 }
 
 /// An observer that shows nothing.
@@ -174,6 +200,9 @@ pub struct Job {
     pub skip_cache: bool,
     /// It reads files on the submitter's disk: it runs there.
     pub local_only: bool,
+    /// The front end's hold on it while it runs in this process (never
+    /// sent to a worker).
+    pub watch: Option<Watch>,
 }
 
 /// How a job ended well.
@@ -199,6 +228,8 @@ pub enum Failure {
     InputsMissing(Vec<String>),
     /// The infrastructure failed (store, network, every attempt used up).
     Infra(String),
+    /// The run no longer wanted it ([`Watch::cancelled`]); nothing stored.
+    Cancelled,
 }
 
 impl Failure {
@@ -208,6 +239,7 @@ impl Failure {
         match e.kind() {
             crate::node::NodeErrorKind::Stage => Failure::Node(e.0),
             crate::node::NodeErrorKind::Machine => Failure::Infra(e.0),
+            crate::node::NodeErrorKind::Cancelled => Failure::Cancelled,
         }
     }
 
@@ -217,6 +249,7 @@ impl Failure {
             Failure::InputsMissing(ps) => {
                 format!("inputs missing or corrupt in the store: {}", ps.join(", "))
             }
+            Failure::Cancelled => "cancelled: the run no longer wanted it".into(),
         }
     }
 }
@@ -240,6 +273,14 @@ pub enum Event {
         stage: String,
         name: String,
         value: f64,
+    },
+    /// An intermediate image ([`crate::RunContext::image`]).
+    Image {
+        stage: String,
+        name: String,
+        width: usize,
+        height: usize,
+        rgb: Vec<f32>,
     },
     /// Exactly once per submitted job.
     Finished {
@@ -284,11 +325,12 @@ pub fn execute_job(
     worker: &str,
     progress: &(dyn Fn(u64, u64) + Sync),
 ) -> Result<Done, Failure> {
-    execute_job_observed(reg, store, job, worker, progress, &|_, _| {})
+    execute_job_observed(reg, store, job, worker, progress, &|_, _| {}, None)
 }
 
 /// [`execute_job`], the stage's metrics (see [`RunContext::metric`]) to
-/// `metric`.
+/// `metric` and its intermediate images to `image` (when the job's
+/// [`Watch`] wants them); it stops early when the watch cancels it.
 pub fn execute_job_observed(
     reg: &Registry,
     store: &Tiered,
@@ -296,6 +338,7 @@ pub fn execute_job_observed(
     worker: &str,
     progress: &(dyn Fn(u64, u64) + Sync),
     metric: &(dyn Fn(&str, f64) + Sync),
+    image: Option<&crate::node::LiveImage<'_>>,
 ) -> Result<Done, Failure> {
     let infra = |e: crate::store::StoreError| Failure::Infra(e.to_string());
     let node = reg
@@ -341,6 +384,7 @@ pub fn execute_job_observed(
     if !missing.is_empty() {
         return Err(Failure::InputsMissing(missing));
     }
+    let cancelled = || job.watch.as_ref().is_some_and(|w| (w.cancelled)());
     let ctx = RunContext {
         stage: &job.stage,
         params: &job.params,
@@ -348,6 +392,8 @@ pub fn execute_job_observed(
         seed: node_seed(node, &job.params),
         progress,
         metric,
+        cancelled: &cancelled,
+        image: image.filter(|_| job.watch.as_ref().is_some_and(|w| w.images)),
     };
     let ts = Instant::now();
     let outs = run_node(node, &ctx).map_err(Failure::of)?;
@@ -454,8 +500,24 @@ impl LocalExecutor {
                             value,
                         })
                     };
-                    let result =
-                        execute_job_observed(&reg, &store, &job, "local", &progress, &metric);
+                    let image = |name: &str, width: usize, height: usize, rgb: &[f32]| {
+                        sink(Event::Image {
+                            stage: job.stage.clone(),
+                            name: name.into(),
+                            width,
+                            height,
+                            rgb: rgb.to_vec(),
+                        })
+                    };
+                    let result = execute_job_observed(
+                        &reg,
+                        &store,
+                        &job,
+                        "local",
+                        &progress,
+                        &metric,
+                        Some(&image),
+                    );
                     sink(Event::Finished {
                         stage: job.stage.clone(),
                         result,
@@ -567,6 +629,13 @@ pub fn run_pipeline(
             Event::Progress { stage, done, total } => obs.progress(&stage, done, total),
             Event::Retry { stage, reason } => s.on_retry(&stage, &reason),
             Event::Metric { stage, name, value } => obs.metric(&stage, &name, value),
+            Event::Image {
+                stage,
+                name,
+                width,
+                height,
+                rgb,
+            } => obs.image(&stage, &name, width, height, &rgb),
             Event::Finished { stage, result } => s.on_finished(&stage, result),
         }
     }
@@ -748,6 +817,7 @@ impl<'a> Scheduler<'a> {
                 // A miss found here is not looked up again.
                 skip_cache: slot_skip || inline,
                 local_only: reads_local_files(node, &stage.params),
+                watch: self.obs.watch(),
             },
             self.sink.clone(),
         );
@@ -793,6 +863,15 @@ impl<'a> Scheduler<'a> {
         match result {
             Ok(done) => self.on_done(name, key, rep, done),
             Err(Failure::InputsMissing(params)) => self.on_inputs_missing(name, rep, params),
+            Err(Failure::Cancelled) => {
+                // Stopped for the run's front end: no failure, nothing
+                // stored; what depends on it is reported skipped.
+                rep.status = Status::Skipped;
+                rep.notes.push("cancelled while running".into());
+                self.obs.finished(&rep);
+                slot.state = State::Failed;
+                slot.report = Some(rep);
+            }
             Err(f) => slot.fail(rep, f.message(), self.obs),
         }
     }
@@ -1108,6 +1187,7 @@ mod tests {
             inputs: BTreeMap::new(),
             skip_cache: false,
             local_only: false,
+            watch: None,
         };
         match execute_job(&reg, &store, &job, "here", &|_, _| {}) {
             Err(Failure::Node(msg)) => {
@@ -1278,6 +1358,114 @@ mod tests {
             seen,
             [("a".into(), "n".into(), 1.0), ("b".into(), "n".into(), 2.0)]
         );
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// Shows an image, then works in small pieces until its run no longer
+    /// wants it (or 10 s pass: a broken watch fails the test, not hangs it).
+    struct Spin;
+    static SPIN: NodeInfo = NodeInfo {
+        kind: "spin",
+        version: 1,
+        doc: "works until cancelled",
+        params: &[crate::node::ParamSpec {
+            name: "after",
+            ty: crate::node::ParamType::Ref(&["n"]),
+            default: Some("~"),
+            unit: "",
+            doc: "the stage before",
+        }],
+        outputs: &[OutputSpec {
+            name: "n",
+            ty: "n",
+            doc: "a number",
+        }],
+    };
+    impl Node for Spin {
+        fn info(&self) -> &'static NodeInfo {
+            &SPIN
+        }
+        fn run(&self, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
+            if let Some(show) = ctx.image {
+                show("current", 2, 1, &[0.5, 0.5, 0.5, 1.0, 0.0, 0.0]);
+            }
+            let t0 = Instant::now();
+            while t0.elapsed().as_secs() < 10 {
+                ctx.check_cancelled()?;
+                std::thread::sleep(std::time::Duration::from_millis(5));
+            }
+            Ok(BTreeMap::from([("n".to_string(), vec![1])]))
+        }
+    }
+
+    /// Watches a run: keeps the images shown and cancels the run once it
+    /// has seen one.
+    /// An image a stage showed: `stage/name`, width, height, pixels.
+    type Shown = (String, usize, usize, Vec<f32>);
+    struct CancelOnImage {
+        images: Mutex<Vec<Shown>>,
+        flag: Arc<std::sync::atomic::AtomicBool>,
+    }
+    impl Observer for CancelOnImage {
+        fn watch(&self) -> Option<Watch> {
+            let flag = self.flag.clone();
+            Some(Watch {
+                cancelled: Arc::new(move || flag.load(std::sync::atomic::Ordering::SeqCst)),
+                images: true,
+            })
+        }
+        fn image(&self, stage: &str, name: &str, width: usize, height: usize, rgb: &[f32]) {
+            self.images.lock().unwrap().push((
+                format!("{stage}/{name}"),
+                width,
+                height,
+                rgb.to_vec(),
+            ));
+            self.flag.store(true, std::sync::atomic::Ordering::SeqCst);
+        }
+        fn cancelled(&self) -> bool {
+            self.flag.load(std::sync::atomic::Ordering::SeqCst)
+        }
+    }
+
+    /// A stage its front end stops while it runs: its image reached the
+    /// front end, it ends early, nothing fails, nothing is stored (the next
+    /// run executes it again), and what depends on it is skipped.
+    #[test]
+    fn a_running_stage_stops_when_its_run_is_cancelled() {
+        let dir = std::env::temp_dir().join(format!("matflow-stop-test-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let store = Arc::new(Tiered::new(crate::store::Store::open(&dir).unwrap(), None));
+        let mut reg = Registry::default();
+        reg.add(Box::new(Spin));
+        reg.add(Box::new(Step));
+        let yaml = "pipeline: stop\noutputs: [b]\nstages:\n  a:\n    kind: spin\n  \
+                    b:\n    kind: step\n    after: a\n";
+        let p = crate::spec::parse(yaml, &dir.join("stop.yaml"), &reg, &[]).unwrap();
+        let reg = Arc::new(reg);
+        let exec = crate::LocalExecutor::new(reg.clone(), store.clone(), 1);
+        for round in 0..2 {
+            let obs = CancelOnImage {
+                images: Mutex::new(vec![]),
+                flag: Arc::new(false.into()),
+            };
+            let t0 = Instant::now();
+            let r = run_pipeline(&p, &reg, &store, &exec, &obs);
+            assert!(
+                t0.elapsed().as_secs_f64() < 5.0,
+                "round {round}: not stopped"
+            );
+            assert_eq!(r.failure(), None);
+            let a = r.stage("a").unwrap();
+            assert_eq!(a.status, Status::Skipped, "round {round}");
+            assert_eq!(a.notes, ["cancelled while running"]);
+            assert_eq!(r.stage("b").unwrap().status, Status::Skipped);
+            let images = obs.images.lock().unwrap().clone();
+            assert_eq!(
+                images,
+                [("a/current".into(), 2, 1, vec![0.5, 0.5, 0.5, 1.0, 0.0, 0.0])]
+            );
+        }
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -195,6 +195,9 @@ pub enum NodeErrorKind {
     /// write): another attempt may succeed, so a remote stage is retried
     /// on another worker as a lost one is.
     Machine,
+    /// The run that asked for it no longer wants it (see
+    /// [`RunContext::cancelled`]): nothing is stored, nothing failed.
+    Cancelled,
 }
 
 impl NodeError {
@@ -205,6 +208,14 @@ impl NodeError {
     /// A failure of the machine ([`NodeErrorKind::Machine`]).
     pub fn machine(msg: impl Into<String>) -> NodeError {
         NodeError(msg.into(), NodeErrorKind::Machine)
+    }
+    /// The stage stopped because its run no longer wants it
+    /// ([`NodeErrorKind::Cancelled`]).
+    pub fn cancelled() -> NodeError {
+        NodeError(
+            "cancelled: a newer request superseded the run".into(),
+            NodeErrorKind::Cancelled,
+        )
     }
     pub fn kind(&self) -> NodeErrorKind {
         self.1
@@ -335,6 +346,25 @@ pub struct RunContext<'a> {
     /// A named number as the stage goes (an optimiser's loss per step),
     /// for a front end to plot; nothing keeps it.
     pub metric: &'a (dyn Fn(&str, f64) + Sync),
+    /// Whether the run still wants this stage. A long stage asks between
+    /// pieces of its work (tiles, optimiser stages) and, when it is no
+    /// longer wanted, returns [`NodeError::cancelled`]: a front end whose
+    /// newer edit supersedes a render does not wait for it. Always false
+    /// on workers and in plain runs.
+    pub cancelled: &'a (dyn Fn() -> bool + Sync),
+    /// Where the stage may show an intermediate image (`name`, width,
+    /// height, linear RGB row by row), e.g. an optimiser's current
+    /// re-render; `None` when nobody watches, so that the stage spends
+    /// nothing making one. Nothing keeps it.
+    pub image: Option<&'a LiveImage<'a>>,
+}
+
+/// See [`RunContext::image`].
+pub type LiveImage<'a> = dyn Fn(&str, usize, usize, &[f32]) + Sync + 'a;
+
+/// A [`RunContext::cancelled`] for runs nobody cancels.
+pub fn never_cancelled() -> bool {
+    false
 }
 
 impl RunContext<'_> {
@@ -348,6 +378,15 @@ impl RunContext<'_> {
     }
     pub fn opt_input(&self, name: &str) -> Option<&[u8]> {
         self.inputs.get(name).map(|v| v.as_slice())
+    }
+    /// `Err(`[`NodeError::cancelled`]`)` once the run no longer wants the
+    /// stage.
+    pub fn check_cancelled(&self) -> Result<(), NodeError> {
+        if (self.cancelled)() {
+            Err(NodeError::cancelled())
+        } else {
+            Ok(())
+        }
     }
 }
 

@@ -369,6 +369,18 @@ pub enum Event<'a> {
         done: usize,
         total: usize,
     },
+    /// A fitting stage has ended: what the scene looks like now (the
+    /// frozen paths under the current materials and light, `width ×
+    /// height` linear RGB, filtered for viewing by
+    /// [`crate::denoise::viewable`]), computed only when `image()` is
+    /// called (it costs one evaluation of the paths and the filter);
+    /// `after` names the stage.
+    Current {
+        after: &'a str,
+        width: usize,
+        height: usize,
+        image: &'a (dyn Fn() -> Vec<Vec3> + Sync),
+    },
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -405,6 +417,9 @@ pub enum InvertError {
     LampSite { index: usize },
     #[error("tracing the frozen light paths")]
     Cache(#[from] CacheError),
+    /// The caller's `stop` said so ([`invert_until`]).
+    #[error("stopped: the recovery is no longer wanted")]
+    Stopped,
     #[error("building the {what}")]
     Render {
         what: &'static str,
@@ -490,11 +505,36 @@ struct Run<'a> {
     pixels: Vec<u32>,
     stages: Vec<StageReport>,
     events: &'a (dyn Fn(Event) + Sync),
+    stop: &'a (dyn Fn() -> bool + Sync),
+    /// What each pixel sees first (geometry only: it never changes).
+    guide: &'a Guide,
 }
 
 impl Run<'_> {
-    fn begin(&self, name: &str, steps: usize) {
+    /// Announces a stage, unless the caller has asked to stop.
+    fn begin(&self, name: &str, steps: usize) -> Result<(), InvertError> {
+        if (self.stop)() {
+            return Err(InvertError::Stopped);
+        }
         (self.events)(Event::Stage { name, steps });
+        Ok(())
+    }
+
+    /// Shows the scene as `cache` renders it under `mats` and `env`,
+    /// filtered for viewing ([`Event::Current`]).
+    fn current(&self, after: &str, cache: &PathCache, mats: &[Material], env: &[Vec3]) {
+        let image = || {
+            let raw = transport::render(cache, mats, env);
+            let albedo: Vec<Vec3> = mats.iter().map(|m| m.albedo).collect();
+            let passes = matflow_render::denoise::RENDER_PASSES;
+            crate::denoise::viewable(&raw, &albedo, self.guide, passes)
+        };
+        (self.events)(Event::Current {
+            after,
+            width: cache.width,
+            height: cache.height,
+            image: &image,
+        });
     }
 
     fn end(&mut self, report: StageReport) {
@@ -525,7 +565,7 @@ impl Run<'_> {
 
     /// Traces `spp` frozen paths per pixel through the current scene.
     fn trace(&mut self, name: &str, spp: u32, seed: u64) -> Result<PathCache, InvertError> {
-        self.begin(name, self.scene.camera.height);
+        self.begin(name, self.scene.camera.height)?;
         let events = self.events;
         let cache = PathCache::build(
             &self.scene,
@@ -582,8 +622,8 @@ impl Run<'_> {
         mats: &[Material],
         current: &[Vec3],
         steps: usize,
-    ) -> Vec<Vec3> {
-        self.begin(name, steps);
+    ) -> Result<Vec<Vec3>, InvertError> {
+        self.begin(name, steps)?;
         let tr = EnvTransport::build(cache, mats, self.pixels.clone());
         let events = self.events;
         let (env, trace) = fitter.fit(
@@ -598,7 +638,8 @@ impl Run<'_> {
             &|step, loss| events(Event::Step { step, loss }),
         );
         self.end(StageReport::fit(name, &trace));
-        env
+        self.current(name, cache, mats, &env);
+        Ok(env)
     }
 }
 
@@ -652,11 +693,11 @@ fn rm_per_segment(
     dist: &[f32],
     pred: &mut [Material],
     mats: &mut [Material],
-) -> RmSearchReport {
+) -> Result<RmSearchReport, InvertError> {
     let opts = run.opts;
     let (w, h) = (run.scene.camera.width, run.scene.camera.height);
     let name = "R/M per segment";
-    run.begin(name, 1);
+    run.begin(name, 1)?;
     let tabs = fresh_tables(cache, mats, env, guide, opts.denoise);
     let tabs = &tabs;
     let albedo: Vec<Vec3> = pred.iter().map(|m| m.albedo).collect();
@@ -680,13 +721,13 @@ fn rm_per_segment(
         .map(|c| c.pixels)
         .sum();
     run.end(StageReport::plain(name, choices.len()));
-    RmSearchReport {
+    Ok(RmSearchReport {
         segments: count,
         scored: choices.len(),
         moved: choices.iter().filter(|c| c.moved).count(),
         moved_pixels,
         metal_pixels: metal,
-    }
+    })
 }
 
 /// With the albedo's level held: after a stage that fits albedo, its mean
@@ -720,9 +761,13 @@ fn hold_level(
 /// The independent re-render of the recovered scene (fresh random
 /// numbers), denoised when asked: the image and, denoised, the same
 /// samples unfiltered.
-fn final_render(run: &mut Run, guide: &Guide, final_spp: u32) -> (RgbImage, Option<RgbImage>) {
+fn final_render(
+    run: &mut Run,
+    guide: &Guide,
+    final_spp: u32,
+) -> Result<(RgbImage, Option<RgbImage>), InvertError> {
     let (opts, events) = (run.opts, run.events);
-    run.begin("render", run.scene.camera.height);
+    run.begin("render", run.scene.camera.height)?;
     let render_opts = RenderOptions {
         spp: final_spp,
         max_depth: opts.max_depth,
@@ -750,12 +795,17 @@ fn final_render(run: &mut Run, guide: &Guide, final_spp: u32) -> (RgbImage, Opti
     let out = match denoised {
         Some(d) => (d.image, Some(d.raw)),
         None => (
-            matflow_render::render(&run.scene, &render_opts, &trace).image,
+            matflow_render::render_until(&run.scene, &render_opts, &trace, run.stop)
+                .ok_or(InvertError::Stopped)?
+                .image,
             None,
         ),
     };
+    if (run.stop)() {
+        return Err(InvertError::Stopped);
+    }
     run.end(StageReport::plain("render", final_spp as usize));
-    out
+    Ok(out)
 }
 
 /// The sun stage: searches the photo's light and shadow for a sun the
@@ -768,10 +818,10 @@ fn sun_stage(
     guide: &Guide,
     env: &mut Vec<Vec3>,
     scout: &PathCache,
-) -> (Option<SunReport>, Option<f64>) {
+) -> Result<(Option<SunReport>, Option<f64>), InvertError> {
     let opts = run.opts;
     let (ew, eh, sites) = (opts.env_width, opts.env_height, opts.lamp_sites.len());
-    run.begin("sun", 1);
+    run.begin("sun", 1)?;
     let found = run.find_sun(mats, guide);
     let report = found.as_ref().map(|(fit, taken)| SunReport {
         found: *taken,
@@ -794,18 +844,32 @@ fn sun_stage(
         extra_rays = Some(scout.stats.vertices as f64 / n);
     }
     run.end(StageReport::plain("sun", run.sun.is_some() as usize));
-    (report, extra_rays)
+    Ok((report, extra_rays))
 }
 
 /// Recovers envmap and materials. `scene` carries camera and geometry (its
 /// materials and envmap are replaced); `target` is the linear input image;
 /// `pred` the predicted materials.
 pub fn invert(
+    scene: RenderScene,
+    target_linear: &RgbImage,
+    pred: &[Material],
+    opts: &InvertOptions,
+    events: &(dyn Fn(Event) + Sync),
+) -> Result<InvertResult, InvertError> {
+    invert_until(scene, target_linear, pred, opts, events, &|| false)
+}
+
+/// [`invert`], asking `stop()` before each of its stages and the final
+/// render's tiles: once it says yes, the recovery ends with
+/// [`InvertError::Stopped`]. Never stopped, the result is [`invert`]'s.
+pub fn invert_until(
     mut scene: RenderScene,
     target_linear: &RgbImage,
     pred: &[Material],
     opts: &InvertOptions,
     events: &(dyn Fn(Event) + Sync),
+    stop: &(dyn Fn() -> bool + Sync),
 ) -> Result<InvertResult, InvertError> {
     let (w, h) = (scene.camera.width, scene.camera.height);
     let npix = w * h;
@@ -861,6 +925,8 @@ pub fn invert(
     let first = plan_for(SceneCost::default().guided(guided).with_portals(portals));
     let pred = starting_materials(pred, opts);
     let mut mats = pred.clone();
+    // What each pixel sees first (geometry only: it never changes).
+    let guide = Guide::build(&scene);
     let mut run = Run {
         scene,
         opts,
@@ -869,10 +935,9 @@ pub fn invert(
         pixels: strided_pixels(w, h, first.env_stride),
         stages: Vec::new(),
         events,
+        stop,
+        guide: &guide,
     };
-
-    // What each pixel sees first (geometry only: it never changes).
-    let guide = Guide::build(&run.scene);
 
     // 1. Scout.
     let flat = with_lamps(vec![Vec3::ONE; ew * eh], Vec3::ONE);
@@ -899,7 +964,7 @@ pub fn invert(
         None => {
             let init: Vec<Vec3> = flat.iter().map(|e| *e * exposure).collect();
             let steps = plan.env_steps;
-            run.fit_env("envmap (scout)", &mut *env_fit, &scout, &mats, &init, steps)
+            run.fit_env("envmap (scout)", &mut *env_fit, &scout, &mats, &init, steps)?
         }
     };
     // The sun, where the scout's envmap shows one: a distant lamp in the
@@ -907,7 +972,7 @@ pub fn invert(
     // it costs one more shadow ray per vertex.
     let mut sun_report = None;
     if opts.sun {
-        let (report, extra_rays) = sun_stage(&mut run, &mats, &guide, &mut env, &scout);
+        let (report, extra_rays) = sun_stage(&mut run, &mats, &guide, &mut env, &scout)?;
         sun_report = report;
         if let Some(x) = extra_rays {
             plan = Plan {
@@ -943,6 +1008,7 @@ pub fn invert(
             &mut mats,
         )
     });
+    let rm_search = rm_search.transpose()?;
 
     // 3. Alternation. With the level held, after each stage that fits
     // albedo its mean per channel goes back to the prediction's (past the
@@ -962,13 +1028,13 @@ pub fn invert(
     });
     for l in 0..plan.loops {
         let name = format!("envmap {}", l + 1);
-        env = run.fit_env(&name, &mut *env_fit, &cache, &mats, &env, plan.env_steps);
+        env = run.fit_env(&name, &mut *env_fit, &cache, &mats, &env, plan.env_steps)?;
         let Some(mat_fit) = mat_fit.as_mut() else {
             continue;
         };
         for &parts in mat_route.stages() {
             let name = format!("materials {} {}", parts.name(), l + 1);
-            run.begin(&name, plan.mat_steps);
+            run.begin(&name, plan.mat_steps)?;
             let tabs = fresh_tables(&cache, &mats, &env, &guide, opts.denoise);
             let fit = mat_fit.fit(
                 &tabs,
@@ -1003,6 +1069,7 @@ pub fn invert(
                 );
             }
             run.end(StageReport::fit(&name, &fit.trace));
+            run.current(&name, &cache, &mats, &env);
         }
     }
     // 4. Final envmap for the final materials.
@@ -1013,7 +1080,7 @@ pub fn invert(
         &mats,
         &env,
         plan.env_steps,
-    );
+    )?;
 
     let fit = transport::render(&cache, &mats, &env);
     let (fit_loss, _) = loss_and_grad(&fit, &run.target, None);
@@ -1022,7 +1089,7 @@ pub fn invert(
 
     // 5. Independent re-render.
     run.set_scene(&mats, &env)?;
-    let (rendered, rendered_raw) = final_render(&mut run, &guide, plan.final_spp);
+    let (rendered, rendered_raw) = final_render(&mut run, &guide, plan.final_spp)?;
     let lamps = lamps_of(&env, opts, run.sun);
     if let (Some(r), Some(sun)) = (sun_report.as_mut(), lamps.last()) {
         if r.found {
@@ -1152,6 +1219,98 @@ mod tests {
             "held {} free {}",
             held.report.fit_loss,
             free.report.fit_loss
+        );
+    }
+
+    /// A watched recovery: after each fitting stage it offers the fit so
+    /// far, the frozen paths' image filtered for viewing (closer to the
+    /// photo at the end than after the scout; the last is the result's
+    /// `fit_image`, filtered);
+    /// watching changes
+    /// nothing of the result; asked to stop, it ends before its next stage.
+    #[test]
+    fn a_recovery_shows_its_fit_and_stops_when_asked() {
+        let n = 16;
+        let t = room(3, n);
+        let target = matflow_render::render(
+            &t.scene,
+            &RenderOptions {
+                spp: 8,
+                ..Default::default()
+            },
+            &|_, _| {},
+        )
+        .image;
+        let pred = materials_of(&t.maps);
+        let opts = InvertOptions {
+            budget_seconds: 1.0,
+            env_route: env_route("texel", &[]).expect("env route"),
+            mat_route: mat_route("solve", &[]).expect("mat route"),
+            spp: Some(4),
+            final_spp: Some(4),
+            loops: Some(1),
+            env_steps: Some(30),
+            mat_steps: Some(20),
+            ..Default::default()
+        };
+        let shots = std::sync::Mutex::new(Vec::<(String, Vec<Vec3>)>::new());
+        let watched = invert(room(3, n).scene, &target, &pred, &opts, &|e| {
+            if let Event::Current {
+                after,
+                width,
+                height,
+                image,
+            } = e
+            {
+                assert_eq!((width, height), (n, n));
+                shots.lock().unwrap().push((after.to_string(), image()));
+            }
+        })
+        .expect("invert");
+        let shots = shots.into_inner().unwrap();
+        let names: Vec<&str> = shots.iter().map(|(a, _)| a.as_str()).collect();
+        assert_eq!(names.first(), Some(&"envmap (scout)"));
+        assert_eq!(names.last(), Some(&"envmap final"));
+        assert!(
+            names.iter().any(|a| a.starts_with("materials")),
+            "{names:?}"
+        );
+        // The last is the result's fit, filtered for viewing.
+        let albedo: Vec<Vec3> = watched.materials.iter().map(|m| m.albedo).collect();
+        let guide = Guide::build(&room(3, n).scene);
+        let passes = matflow_render::denoise::RENDER_PASSES;
+        let viewed = crate::denoise::viewable(&watched.fit_image.data, &albedo, &guide, passes);
+        assert_eq!(shots.last().unwrap().1, viewed);
+        let err = |img: &[Vec3]| -> f64 {
+            img.iter()
+                .zip(&target.data)
+                .map(|(a, b)| (*a - *b).length_squared() as f64)
+                .sum()
+        };
+        let (first, last) = (err(&shots[0].1), err(&shots.last().unwrap().1));
+        assert!(last < first, "first {first} last {last}");
+        let plain = invert(room(3, n).scene, &target, &pred, &opts, &|_| {}).expect("invert");
+        assert_eq!(plain.materials, watched.materials);
+        assert_eq!(plain.rendered.data, watched.rendered.data);
+        // Stopped once the first fit was shown: nothing more runs.
+        let stages = std::sync::Mutex::new(Vec::<String>::new());
+        let shown = std::sync::atomic::AtomicBool::new(false);
+        let r = invert_until(
+            room(3, n).scene,
+            &target,
+            &pred,
+            &opts,
+            &|e| match e {
+                Event::Stage { name, .. } => stages.lock().unwrap().push(name.into()),
+                Event::Current { .. } => shown.store(true, std::sync::atomic::Ordering::SeqCst),
+                _ => {}
+            },
+            &|| shown.load(std::sync::atomic::Ordering::SeqCst),
+        );
+        assert!(matches!(r, Err(InvertError::Stopped)), "{:?}", r.err());
+        assert_eq!(
+            stages.into_inner().unwrap(),
+            ["trace scout", "envmap (scout)"]
         );
     }
 

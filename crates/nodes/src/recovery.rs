@@ -6,7 +6,9 @@ use std::sync::OnceLock;
 
 use matflow_engine::node::Params;
 use matflow_engine::{NodeError, OutputSpec, ParamSpec, ParamType, RunContext};
-use matflow_inverse::invert::{Event, InvertOptions, InvertReport, MAX_LEVEL_BAND};
+use matflow_inverse::invert::{
+    invert_until, Event, InvertError, InvertOptions, InvertReport, InvertResult, MAX_LEVEL_BAND,
+};
 use matflow_inverse::routes::{
     self, all_options, Chosen, EnvRoute, MatRoute, OptionKind, Side, ENV_ROUTE_NAMES,
     MAT_ROUTE_NAMES,
@@ -251,13 +253,55 @@ pub(crate) fn prepare(
     })
 }
 
-/// Progress: the optimisation steps of the current stage, and each
-/// step's loss as the metric `loss`.
+/// Progress: the optimisation steps of the current stage, each step's
+/// loss as the metric `loss`, and, where someone watches, the current
+/// re-render after each fitting stage as the image `current`.
 pub(crate) fn on_event(ctx: &RunContext, e: Event) {
-    if let Event::Step { step, loss } = e {
-        (ctx.progress)(step as u64, 0);
-        if loss.is_finite() {
-            (ctx.metric)("loss", loss);
+    match e {
+        Event::Step { step, loss } => {
+            (ctx.progress)(step as u64, 0);
+            if loss.is_finite() {
+                (ctx.metric)("loss", loss);
+            }
         }
+        Event::Current {
+            width,
+            height,
+            image,
+            ..
+        } => {
+            if let Some(show) = ctx.image {
+                let rgb: Vec<f32> = image()
+                    .iter()
+                    .flat_map(|v| v.to_array())
+                    .map(|x| if x.is_finite() { x.max(0.0) } else { 0.0 })
+                    .collect();
+                show("current", width, height, &rgb);
+            }
+        }
+        _ => {}
     }
+}
+
+/// The recovery for a stage: [`invert_until`] with the stage's progress
+/// ([`on_event`]), stopped when its run no longer wants it.
+pub(crate) fn run_invert(
+    ctx: &RunContext,
+    scene: matflow_render::RenderScene,
+    target: &RgbImage,
+    start: &[matflow_render::Material],
+    opts: &InvertOptions,
+) -> Result<InvertResult, NodeError> {
+    invert_until(
+        scene,
+        target,
+        start,
+        opts,
+        &|e| on_event(ctx, e),
+        ctx.cancelled,
+    )
+    .map_err(|e| match e {
+        InvertError::Stopped => NodeError::cancelled(),
+        e => err(e),
+    })
 }

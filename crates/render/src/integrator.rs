@@ -9,7 +9,7 @@
 //! buffers and merged in tile order, so the image bytes do not depend on the
 //! thread count.
 
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
 use glam::{Vec2, Vec3, Vec4};
 use matflow_scene::{Image, RgbImage};
@@ -1170,6 +1170,22 @@ pub fn render(
     opts: &RenderOptions,
     progress: &(dyn Fn(usize, usize) + Sync),
 ) -> RenderOutput {
+    render_until(scene, opts, progress, &|| false).unwrap_or_else(|| RenderOutput {
+        image: Image::new(0, 0, Vec3::ZERO),
+        stats: RenderStats::default(),
+    })
+}
+
+/// [`render`], asking `stop()` before each tile: once it says yes, the
+/// tiles not started are skipped and the render returns `None` (a front
+/// end whose newer request supersedes this one does not wait for it).
+/// When it never says yes, the image is [`render`]'s, bit for bit.
+pub fn render_until(
+    scene: &RenderScene,
+    opts: &RenderOptions,
+    progress: &(dyn Fn(usize, usize) + Sync),
+    stop: &(dyn Fn() -> bool + Sync),
+) -> Option<RenderOutput> {
     let (w, h) = (scene.camera.width, scene.camera.height);
     // The window rendered: [wx0, wx1) × [wy0, wy1), inside the film.
     let (wx0, wy0, wx1, wy1) = match opts.crop {
@@ -1202,9 +1218,14 @@ pub fn render(
     let spp = opts.spp.max(1);
     let weights = opts.filter.weights();
 
+    let stopped = AtomicBool::new(false);
     let results: Vec<(Vec<Vec4>, RenderStats)> = tiles
         .par_iter()
         .map(|t| {
+            if stopped.load(Ordering::Relaxed) || stop() {
+                stopped.store(true, Ordering::Relaxed);
+                return (Vec::new(), RenderStats::default());
+            }
             let bw = t.x1 - t.x0 + 2 * border;
             let bh = t.y1 - t.y0 + 2 * border;
             let mut buf = vec![Vec4::ZERO; bw * bh];
@@ -1271,6 +1292,9 @@ pub fn render(
             (buf, st)
         })
         .collect();
+    if stopped.load(Ordering::Relaxed) {
+        return None;
+    }
 
     // Merge tiles in a fixed order (deterministic whatever the threads did).
     let mut acc = vec![[0f64; 4]; ww * wh];
@@ -1312,10 +1336,10 @@ pub fn render(
             }
         })
         .collect();
-    RenderOutput {
+    Some(RenderOutput {
         image: Image::from_vec(ww, wh, data),
         stats,
-    }
+    })
 }
 
 /// Box-filtered values of the listed pixels (row-major indices), each
@@ -1428,6 +1452,44 @@ mod tests {
         for (k, &p) in px.iter().enumerate() {
             assert_eq!(part[k], full.image.data[p as usize], "pixel {p}");
         }
+    }
+
+    /// A render that is never stopped is the plain render bit for bit; one
+    /// stopped before it starts, or after some tiles, gives nothing and
+    /// skips the tiles left.
+    #[test]
+    fn a_stopped_render_gives_nothing_and_skips_the_rest() {
+        let scene = plane_scene(
+            32,
+            crate::Material {
+                albedo: Vec3::splat(0.5),
+                roughness: 0.4,
+                metallic: 0.0,
+            },
+        );
+        let opts = RenderOptions {
+            spp: 4,
+            seed: 3,
+            tile_size: 8,
+            ..Default::default()
+        };
+        let full = render(&scene, &opts, &|_, _| {});
+        let kept = render_until(&scene, &opts, &|_, _| {}, &|| false).expect("not stopped");
+        assert_eq!(kept.image.data, full.image.data);
+        assert!(render_until(&scene, &opts, &|_, _| {}, &|| true).is_none());
+        // Stopped after the third tile: 16 tiles, most never traced.
+        let done = AtomicUsize::new(0);
+        let out = render_until(
+            &scene,
+            &opts,
+            &|_, _| {
+                done.fetch_add(1, Ordering::Relaxed);
+            },
+            &|| done.load(Ordering::Relaxed) >= 3,
+        );
+        assert!(out.is_none());
+        let traced = done.load(Ordering::Relaxed);
+        assert!((3..16).contains(&traced), "{traced} of 16 tiles traced");
     }
 
     /// Triangles that name a material pixel (geometry completed past the

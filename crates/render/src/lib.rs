@@ -23,7 +23,7 @@ pub use bsdf::Material;
 pub use dielectric::Dielectric;
 pub use envmap::EnvMap;
 pub use filter::PixelFilter;
-pub use integrator::{render, Crop, RenderOptions, RenderOutput, RenderStats};
+pub use integrator::{render, render_until, Crop, RenderOptions, RenderOutput, RenderStats};
 pub use scene::{scene_from_depth, texture_at, Lamp, LampAt, RenderScene, SceneObject, Surface};
 
 #[derive(Debug, thiserror::Error)]

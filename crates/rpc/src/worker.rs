@@ -225,6 +225,7 @@ pub fn validate(reg: &Registry, req: &pb::ExecuteRequest) -> Result<Job, Refused
         inputs,
         skip_cache: req.skip_cache_lookup,
         local_only: false,
+        watch: None,
     })
 }
 
@@ -373,6 +374,8 @@ async fn run(
             ps,
         ),
         Ok(Err(Failure::Infra(m))) => error(ErrorCode::Unavailable, m, vec![]),
+        // Workers' jobs carry no watch: a node cannot be cancelled here.
+        Ok(Err(f @ Failure::Cancelled)) => error(ErrorCode::NodeFailed, f.message(), vec![]),
         Ok(Ok((done, outs))) => Ev::Result(pb::ExecuteResult {
             outputs: outs
                 .iter()

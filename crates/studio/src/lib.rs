@@ -293,10 +293,12 @@ fn served(app: &App, name: &str, ty: &'static str) -> Response {
     }
 }
 
-/// `/api/images/NAME`: the renders (`preview.png`, `result.png`,
+/// `/api/images/NAME`: the renders (`recovery.png`, the recovery's fit so
+/// far; `preview.png`, `result.png`,
 /// `result.exr`) and the selection's overlay (`selection.png`).
 async fn image_file(State(app): State<Arc<App>>, UrlPath(file): UrlPath<String>) -> Response {
     match file.as_str() {
+        "recovery.png" => served(&app, "recovery", "image/png"),
         "preview.png" => served(&app, "preview", "image/png"),
         "result.png" => served(&app, "result", "image/png"),
         "result.exr" => {

@@ -2,15 +2,18 @@
 //! runs its pipeline on the engine. A change bumps the session's
 //! generation and wakes the runner; the runner works on the newest
 //! generation only: a run that a newer change supersedes submits nothing
-//! more (the engine asks [`Observer::cancelled`] between stages), and its
-//! renders are never shown. Every change of state is published as JSON
+//! more (the engine asks [`Observer::cancelled`] between stages), its
+//! stage running now stops (renders between tiles, the recovery between
+//! its inner stages: [`Observer::watch`]), and its renders are never
+//! shown. Every change of state is published as JSON
 //! for the page's event stream.
 
 use std::collections::BTreeMap;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::Instant;
 
-use matflow_engine::exec::{Executor, Observer, StageReport};
+use matflow_engine::exec::{Executor, Observer, StageReport, Watch};
 use matflow_engine::store::Digest;
 use matflow_engine::{run_pipeline, Registry, Status as StageStatus, Tiered};
 use matflow_nodes::SceneData;
@@ -53,6 +56,11 @@ pub struct Status {
     /// ran last), and that stage's name.
     pub loss: Vec<f64>,
     pub loss_stage: String,
+    /// How many stages a newer change stopped while they ran.
+    pub stopped: u64,
+    /// How many of the recovery's intermediate re-renders were shown
+    /// (`/api/images/recovery.png` is the latest).
+    pub recovery_shots: u64,
     /// The geometry past the frame asked for (`complete` of the `mesh`
     /// stage) and what the mesh stage says it took.
     pub geometry: String,
@@ -98,6 +106,9 @@ pub struct Shared {
     /// When the status was last sent.
     published: Mutex<Instant>,
     pub registry: Registry,
+    /// The newest generation, readable without the lock (a running
+    /// stage asks it between tiles).
+    newest: Arc<AtomicU64>,
 }
 
 impl Shared {
@@ -128,6 +139,7 @@ impl Shared {
             events,
             published: Mutex::new(Instant::now()),
             registry: matflow_nodes::registry(),
+            newest: Arc::new(AtomicU64::new(0)),
         });
         s.publish(&s.lock());
         s
@@ -158,6 +170,7 @@ impl Shared {
     /// runner woken, the status published.
     pub fn changed(&self, mut live: MutexGuard<'_, Live>) {
         live.status.generation += 1;
+        self.newest.store(live.status.generation, Ordering::SeqCst);
         live.changed_at = Instant::now();
         // The result of an older generation is not this one's.
         live.result = None;
@@ -236,9 +249,47 @@ impl Observer for Progress<'_> {
         l.status.loss.push(value);
         self.shared.publish_progress(&l);
     }
-    fn finished(&self, _report: &StageReport) {}
+    fn finished(&self, report: &StageReport) {
+        if report.notes.iter().any(|n| n == "cancelled while running") {
+            let mut l = self.shared.lock();
+            l.status.stopped += 1;
+            self.shared.publish(&l);
+        }
+    }
     fn cancelled(&self) -> bool {
         self.shared.lock().status.generation != self.generation
+    }
+    fn watch(&self) -> Option<Watch> {
+        let (newest, generation) = (self.shared.newest.clone(), self.generation);
+        Some(Watch {
+            cancelled: Arc::new(move || newest.load(Ordering::SeqCst) != generation),
+            images: true,
+        })
+    }
+    /// The recovery's current re-render (its frozen paths under the
+    /// materials and light fitted so far), shown until the preview comes.
+    fn image(&self, stage: &str, name: &str, width: usize, height: usize, rgb: &[f32]) {
+        if name != "current" || rgb.len() != width * height * 3 {
+            return;
+        }
+        let img = RgbImage::from_vec(
+            width,
+            height,
+            rgb.chunks_exact(3)
+                .map(|c| glam::Vec3::new(c[0], c[1], c[2]))
+                .collect(),
+        );
+        let png = view::png(&img);
+        let mut l = self.shared.lock();
+        if l.status.generation != self.generation {
+            return;
+        }
+        l.images.insert("recovery".into(), png);
+        l.status.image = Some("recovery");
+        l.status.shown = self.generation;
+        l.status.recovery_shots += 1;
+        l.status.message = format!("recovering (`{stage}`): the fit so far");
+        self.shared.publish(&l);
     }
 }
 
@@ -281,11 +332,13 @@ pub fn runner(shared: Arc<Shared>, store: Arc<Tiered>, exec: Box<dyn Executor>) 
         let mut run = |outputs: &[&str]| -> Result<Option<matflow_engine::Report>, String> {
             p.outputs = outputs.iter().map(|s| s.to_string()).collect();
             let report = run_pipeline(&p, &reg, &store, exec, &obs);
-            if let Some(f) = report.failure() {
-                return Err(f);
-            }
+            // Superseded (its running stage may have stopped early): not
+            // a failure, and nothing of it is shown.
             if obs.cancelled() {
                 return Ok(None);
+            }
+            if let Some(f) = report.failure() {
+                return Err(f);
             }
             if let Some(note) = report
                 .stages

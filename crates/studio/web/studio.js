@@ -189,10 +189,12 @@ async function onStatus(s) {
     }
     refreshOverlay();
   }
-  const key = `${s.shown}/${s.image}`;
+  // The recovery shows its fit so far several times in one generation.
+  const shot = s.image === "recovery" ? `/${s.recovery_shots}` : "";
+  const key = `${s.shown}/${s.image}${shot}`;
   if (s.image && key !== shownKey) {
     shownKey = key;
-    const img = await loadImage(`api/images/${s.image}.png?g=${s.shown}`);
+    const img = await loadImage(`api/images/${s.image}.png?g=${s.shown}${shot ? `&n=${s.recovery_shots}` : ""}`);
     // A newer status may have come while this one loaded.
     if (shownKey === key) {
       state.image = img;

@@ -6,7 +6,9 @@
 //! to its first preview and to its converged result (the studio's own
 //! clock, and the client's, polling every 5 ms), the first change after
 //! opening apart. Then a sphere is inserted and moved `--edits` times,
-//! timed alike. Then: the studio's memory, its CPU time over an idle
+//! timed alike, and `--edits` + 1 times moved again half a second into
+//! the result of the move before (which the newer move stops). Then: the
+//! studio's memory, its CPU time over an idle
 //! `--idle` seconds, and whether the exported session, run by `matflow
 //! run` on an empty cache, writes the studio's EXR byte for byte.
 
@@ -283,6 +285,49 @@ pub fn bench_studio(a: BenchStudioArgs) -> Result<()> {
             result,
         ));
     }
+    // Moves made while the move before renders its result: each stops
+    // that render (between tiles) and the newer move's preview follows.
+    // (Before the stages could be stopped, the preview waited for the
+    // superseded result to finish.)
+    let mut interrupted = Vec::new();
+    let stopped0 = status(&st.addr)?["stopped"].as_u64().unwrap_or(0);
+    let sphere_at = |x: f64| {
+        json!({"objects": [{"mesh": "sphere", "anchor": [x * scale, 236.0 * scale],
+            "scale": 0.6, "material": {"type": "principled", "albedo": [0.8, 0.3, 0.2],
+            "roughness": 0.3, "metallic": 0.0}}]})
+    };
+    for i in 0..=a.edits {
+        let t0 = Instant::now();
+        let first = sphere_at(110.0 + 6.0 * i as f64);
+        let (code, answer) = http(&st.addr, "POST", "/api/insert", Some(first))?;
+        if code != 204 {
+            bail!("insert: {}", String::from_utf8_lossy(&answer));
+        }
+        let generation = status(&st.addr)?["generation"].as_u64().unwrap_or(0);
+        until(&st.addr, t0, 300.0, |v| {
+            v["shown"] == generation && v["stage"] == "result"
+        })?;
+        // Half a second into its result, the next move.
+        std::thread::sleep(Duration::from_millis(500));
+        let t1 = Instant::now();
+        let second = sphere_at(113.0 + 6.0 * i as f64);
+        let (code, answer) = http(&st.addr, "POST", "/api/insert", Some(second))?;
+        if code != 204 {
+            bail!("insert: {}", String::from_utf8_lossy(&answer));
+        }
+        let next = generation + 1;
+        let (_, preview) = until(&st.addr, t1, 300.0, |v| v["shown"] == next)?;
+        let (v, result) = until(&st.addr, t1, 300.0, |v| {
+            v["shown"] == next && v["image"] == "result"
+        })?;
+        interrupted.push((
+            v["preview_seconds"].as_f64().unwrap_or(f64::NAN),
+            v["result_seconds"].as_f64().unwrap_or(f64::NAN),
+            preview,
+            result,
+        ));
+    }
+    let stopped = status(&st.addr)?["stopped"].as_u64().unwrap_or(0) - stopped0;
     let (rss, hwm) = memory_mib(pid)?;
     let cpu0 = cpu_seconds(pid)?;
     std::thread::sleep(Duration::from_secs_f64(a.idle));
@@ -332,6 +377,15 @@ pub fn bench_studio(a: BenchStudioArgs) -> Result<()> {
             format!("moved {i}")
         }
     });
+    table(
+        "object moved again 0.5 s into its result",
+        &interrupted,
+        |i| format!("{}", i + 1),
+    );
+    outln!(
+        "renders stopped by a newer move: {stopped} of {}",
+        interrupted.len()
+    );
     outln!("memory of the open session: {rss:.0} MiB resident, {hwm:.0} MiB peak");
     outln!("idle: {idle_cpu:.2} CPU-seconds in {:.0} s", a.idle);
     outln!(

@@ -11,7 +11,7 @@ use glam::Vec3;
 use matflow_engine::node::{Bytes, Params};
 use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
 use matflow_geom::MeshParams;
-use matflow_inverse::invert::{invert, materials_to_maps, InvertOptions, InvertResult};
+use matflow_inverse::invert::{materials_to_maps, InvertOptions, InvertResult};
 use matflow_inverse::routes::Side;
 use matflow_render::{scene_from_depth, EnvMap};
 use matflow_scene::metrics::{mse_gamma, psnr_gamma, ssim_gamma};
@@ -23,7 +23,7 @@ use crate::completion::{
 };
 use crate::kinds::bundle_mesh::{complete_arg, on_off, silhouettes, BUNDLE};
 use crate::recovery::{
-    budget_options, env_route, mat_route, material_options, on_event, with_route_params,
+    budget_options, env_route, mat_route, material_options, run_invert, with_route_params,
     ALBEDO_LEVEL, ALBEDO_LEVEL_BAND, BUDGET, DELTA, ENV_ROUTE, LOOPS, MAT_ROUTE, TRUST,
 };
 use crate::{err, Context};
@@ -307,7 +307,7 @@ impl Node for BundleInvertNode {
         let light_guided = opts.light_guide && scene.light_visibility.is_some();
         let portals = if opts.portals { scene.portals.len() } else { 0 };
         let pred = matflow_render::scene::materials_from_maps(&maps);
-        let res = invert(scene, &target, &pred, &opts, &|e| on_event(ctx, e)).map_err(err)?;
+        let res = run_invert(ctx, scene, &target, &pred, &opts)?;
         let rerender = image_metrics(&res.rendered, &target);
         let fit = image_metrics(&res.fit_image, &target);
         let rerender_raw = res

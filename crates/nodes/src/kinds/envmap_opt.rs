@@ -5,12 +5,11 @@ use std::sync::OnceLock;
 
 use matflow_engine::node::Params;
 use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
-use matflow_inverse::invert::{invert, InvertOptions};
+use matflow_inverse::invert::InvertOptions;
 use matflow_inverse::routes::Side;
 
 use crate::data::{encode_image, MESH, SCENE};
-use crate::err;
-use crate::recovery::{base_options, env_route, on_event, prepare, summary, with_route_params};
+use crate::recovery::{base_options, env_route, prepare, run_invert, summary, with_route_params};
 use crate::recovery::{BUDGET, ENV_ROUTE, REPORT, TRUST};
 
 pub struct EnvmapOptNode;
@@ -66,10 +65,7 @@ impl Node for EnvmapOptNode {
             env_only: true,
             ..base_options(ctx.params, ctx.seed)?
         };
-        let res = invert(pr.scene, &pr.target, &pr.start, &opts, &|e| {
-            on_event(ctx, e)
-        })
-        .map_err(err)?;
+        let res = run_invert(ctx, pr.scene, &pr.target, &pr.start, &opts)?;
         Ok([
             (
                 "envmap".to_string(),

@@ -21,13 +21,13 @@ use std::path::PathBuf;
 
 use matflow_engine::node::{Bytes, Params};
 use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
-use matflow_render::{render, RenderOptions, RenderScene, SceneObject};
+use matflow_render::{RenderOptions, RenderScene, SceneObject};
 use matflow_scene::{Image, MaterialMaps, RgbImage};
 
 use crate::artifact::Artifact;
 use crate::data::{decode_mesh, encode_image, envmap_from, materials_from, Kept, SceneData, MESH};
 use crate::err;
-use crate::kinds::render::pair;
+use crate::kinds::render::{pair, render_or_stop};
 use crate::objects;
 
 pub struct InsertNode;
@@ -311,7 +311,12 @@ impl Node for InsertNode {
                 // full render of it without the objects.
                 _ if differential => {
                     let s = scene_with(&cam, &tri, &maps, &kept.envmap, &[])?;
-                    Some(render(&s, &kept.render_options(), &|d, t| progress(d, t, 1, 2)).image)
+                    Some(
+                        render_or_stop(ctx, &s, &kept.render_options(), &|d, t| {
+                            progress(d, t, 1, 2)
+                        })?
+                        .image,
+                    )
                 }
                 _ => None,
             };
@@ -329,7 +334,8 @@ impl Node for InsertNode {
             let seed = matflow_engine::key::node_seed(self, &without_objects);
             let opts = Self::options(p, seed)?;
             let w_scene = scene_with(&cam, &tri, &maps, &env, &objs)?;
-            let with = render(&w_scene, &opts, &|d, t| progress(d, t, 0, parts)).image;
+            let with =
+                render_or_stop(ctx, &w_scene, &opts, &|d, t| progress(d, t, 0, parts))?.image;
             let without = if differential {
                 let what = format!("{opts:?}");
                 let b = crate::memo::render(
@@ -339,7 +345,12 @@ impl Node for InsertNode {
                         ctx.input("envmap")?,
                         what.as_bytes(),
                     ],
-                    || Ok(render(&plain, &opts, &|d, t| progress(d, t, 1, parts)).image),
+                    || {
+                        Ok(
+                            render_or_stop(ctx, &plain, &opts, &|d, t| progress(d, t, 1, parts))?
+                                .image,
+                        )
+                    },
                 )?;
                 Some((*b).clone())
             } else {

@@ -6,13 +6,12 @@ use std::sync::OnceLock;
 
 use matflow_engine::node::Params;
 use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
-use matflow_inverse::invert::{invert, materials_to_maps, InvertOptions};
+use matflow_inverse::invert::{materials_to_maps, InvertOptions};
 use matflow_inverse::routes::Side;
 
 use crate::data::{encode_image, encode_materials, envmap_from, MESH, SCENE};
-use crate::err;
 use crate::recovery::{
-    base_options, mat_route, material_options, on_event, prepare, summary, with_route_params,
+    base_options, mat_route, material_options, prepare, run_invert, summary, with_route_params,
 };
 use crate::recovery::{
     ALBEDO_LEVEL, ALBEDO_LEVEL_BAND, BUDGET, DELTA, ENV_ROUTE, LOOPS, MAT_ROUTE, REPORT, TRUST,
@@ -97,10 +96,7 @@ impl Node for MaterialOptNode {
             },
         );
         let (w, h) = (pr.target.width, pr.target.height);
-        let res = invert(pr.scene, &pr.target, &pr.start, &opts, &|e| {
-            on_event(ctx, e)
-        })
-        .map_err(err)?;
+        let res = run_invert(ctx, pr.scene, &pr.target, &pr.start, &opts)?;
         let maps = materials_to_maps(w, h, &res.materials);
         Ok([
             ("materials".to_string(), encode_materials(&maps)),
@@ -171,6 +167,8 @@ mod tests {
                 seed: 1,
                 progress: &|_, _| {},
                 metric: &|_, _| {},
+                cancelled: &matflow_engine::node::never_cancelled,
+                image: None,
             })
             .unwrap();
         let a = Artifact::decode(&out["report"], "report").unwrap();

@@ -196,6 +196,8 @@ mod tests {
                 seed: 1,
                 progress: &|_, _| {},
                 metric: &|_, _| {},
+                cancelled: &matflow_engine::node::never_cancelled,
+                image: None,
             })
             .unwrap();
         let (cam, tri) = decode_mesh(&out["mesh"]).unwrap();

@@ -165,6 +165,8 @@ mod tests {
             seed: 3,
             progress: &|_, _| {},
             metric: &|_, _| {},
+            cancelled: &matflow_engine::node::never_cancelled,
+            image: None,
         })
         .unwrap()
     }

@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 
 use matflow_engine::node::{Bytes, Params};
 use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
-use matflow_render::{render, RenderOptions};
+use matflow_render::RenderOptions;
 use matflow_scene::{io, MaterialMaps, RgbImage};
 
 use crate::artifact::Artifact;
@@ -211,6 +211,18 @@ fn composite_for(asked: &str, before: &MaterialMaps, after: &MaterialMaps) -> Co
     }
 }
 
+/// The render of `scene`, stopped between tiles when the stage's run no
+/// longer wants it ([`RunContext::cancelled`]).
+pub(crate) fn render_or_stop(
+    ctx: &RunContext,
+    scene: &matflow_render::RenderScene,
+    opts: &RenderOptions,
+    progress: &(dyn Fn(usize, usize) + Sync),
+) -> Result<matflow_render::RenderOutput, NodeError> {
+    matflow_render::render_until(scene, opts, progress, ctx.cancelled)
+        .ok_or_else(NodeError::cancelled)
+}
+
 /// An `output` parameter must name an EXR (a PNG is written beside it).
 pub(crate) fn check_exr_output(p: &Params) -> Result<(), String> {
     if let Some(out) = p.path("output") {
@@ -337,7 +349,9 @@ impl Node for RenderNode {
             filter: p.parse("filter").map_err(err)?,
             ..Default::default()
         };
-        let out = render(&scene, &opts, &|d, t| (ctx.progress)(d as u64, t as u64));
+        let out = render_or_stop(ctx, &scene, &opts, &|d, t| {
+            (ctx.progress)(d as u64, t as u64)
+        })?;
         Ok([(
             "image".to_string(),
             encode_image("image", "image", &out.image),

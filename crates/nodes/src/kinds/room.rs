@@ -193,6 +193,8 @@ mod tests {
                     seed: 9,
                     progress: &|_, _| {},
                     metric: &|_, _| {},
+                    cancelled: &matflow_engine::node::never_cancelled,
+                    image: None,
                 })
                 .unwrap()
         };

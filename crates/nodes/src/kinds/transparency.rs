@@ -473,6 +473,8 @@ mod node_tests {
                 seed: 0,
                 progress: &|_, _| {},
                 metric: &|_, _| {},
+                cancelled: &matflow_engine::node::never_cancelled,
+                image: None,
             };
             let out = TransparencyNode.run(&ctx).unwrap();
             crate::data::materials_from(&out["materials"]).unwrap()

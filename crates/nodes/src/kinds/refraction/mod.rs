@@ -412,6 +412,8 @@ mod tests {
             seed: 5,
             progress: &|_, _| {},
             metric: &|_, _| {},
+            cancelled: &matflow_engine::node::never_cancelled,
+            image: None,
         })
         .unwrap()
     }
