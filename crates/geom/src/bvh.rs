@@ -127,6 +127,9 @@ pub struct Bvh {
     triangle_count: usize,
     /// Root slot: an inner node, a single leaf, or empty.
     root: u32,
+    /// Triangles added after the build ([`Bvh::with_added`]), in a
+    /// hierarchy of their own; every query asks it after this one.
+    added: Option<Box<Bvh>>,
 }
 
 /// Möller–Trumbore with the barycentric tolerance, written out
@@ -376,9 +379,29 @@ impl Bvh {
     /// Builds the hierarchy. Degenerate (zero-area or non-finite) triangles
     /// are kept out of it.
     pub fn build(mesh: &TriMesh) -> Bvh {
-        let mut tris = Vec::with_capacity(mesh.indices.len());
-        let mut orig = Vec::with_capacity(mesh.indices.len());
-        for (i, idx) in mesh.indices.iter().enumerate() {
+        Bvh::build_from(mesh, 0)
+    }
+
+    /// This hierarchy with `mesh`'s triangles from index `first` on added
+    /// (their hits numbered as in `mesh`), where this one was built over
+    /// `mesh`'s first `first` triangles: inserted objects without
+    /// rebuilding the scene's hierarchy. The added triangles get a
+    /// hierarchy of their own, asked after this one with the nearer hit
+    /// bounding it, so every query answers as [`Bvh::build`]`(mesh)`'s
+    /// does (the tie rule included: at equal t the lower index, which is
+    /// this one's), up to the module's rounding effect.
+    pub fn with_added(mut self, mesh: &TriMesh, first: usize) -> Bvh {
+        let added = Bvh::build_from(mesh, first);
+        self.triangle_count += added.triangle_count;
+        self.added = (added.root != EMPTY).then(|| Box::new(added));
+        self
+    }
+
+    /// The hierarchy of `mesh`'s triangles from index `first` on.
+    fn build_from(mesh: &TriMesh, first: usize) -> Bvh {
+        let mut tris = Vec::with_capacity(mesh.indices.len().saturating_sub(first));
+        let mut orig = Vec::with_capacity(mesh.indices.len().saturating_sub(first));
+        for (i, idx) in mesh.indices.iter().enumerate().skip(first) {
             let [a, b, c] = idx.map(|k| glam::Vec3A::from(mesh.positions[k as usize]));
             let area2 = (b - a).cross(c - a).length_squared();
             if !(area2 > 0.0) || !area2.is_finite() {
@@ -397,6 +420,7 @@ impl Bvh {
                 tris: Vec::new(),
                 triangle_count: 0,
                 root: EMPTY,
+                added: None,
             };
         }
         // Leaves of up to four triangles (one 4-wide test); the builder's
@@ -413,6 +437,7 @@ impl Bvh {
             tris: Vec::with_capacity(tris.len() / 2),
             triangle_count: tris.len(),
             root: EMPTY,
+            added: None,
         };
         out.root = out.collapse(&bvh2, 0, &tris, &orig);
         out
@@ -518,6 +543,30 @@ impl Bvh {
     /// in which the hierarchy is traversed.
     #[inline]
     pub fn intersect(&self, origin: Vec3, dir: Vec3, tmin: f32, tmax: f32) -> Option<Hit> {
+        let hit = self.intersect_here(origin, dir, tmin, tmax);
+        match &self.added {
+            None => hit,
+            Some(a) => a.nearer(hit, origin, dir, tmin, tmax),
+        }
+    }
+
+    /// `hit` (this hierarchy's owner's), or a nearer one of this one's.
+    /// The bound is open, so a tie stays with `hit`: its index is lower.
+    #[inline]
+    fn nearer(
+        &self,
+        hit: Option<Hit>,
+        origin: Vec3,
+        dir: Vec3,
+        tmin: f32,
+        tmax: f32,
+    ) -> Option<Hit> {
+        let bound = hit.map_or(tmax, |h| h.t);
+        self.intersect_here(origin, dir, tmin, bound).or(hit)
+    }
+
+    #[inline]
+    fn intersect_here(&self, origin: Vec3, dir: Vec3, tmin: f32, tmax: f32) -> Option<Hit> {
         if self.root == EMPTY {
             return None;
         }
@@ -550,6 +599,11 @@ impl Bvh {
         assert_eq!(dirs.len(), out.len(), "one result per ray");
         for (d, o) in dirs.chunks(PACKET).zip(out.chunks_mut(PACKET)) {
             self.packet(origin, d, tmin, tmax, o);
+        }
+        if let Some(a) = &self.added {
+            for (d, o) in dirs.iter().zip(out.iter_mut()) {
+                *o = a.nearer(*o, origin, *d, tmin, tmax);
+            }
         }
     }
 
@@ -652,6 +706,15 @@ impl Bvh {
     /// True when anything lies on the segment t in (tmin, tmax).
     #[inline]
     pub fn occluded(&self, origin: Vec3, dir: Vec3, tmin: f32, tmax: f32) -> bool {
+        self.occluded_here(origin, dir, tmin, tmax)
+            || self
+                .added
+                .as_ref()
+                .is_some_and(|a| a.occluded_here(origin, dir, tmin, tmax))
+    }
+
+    #[inline]
+    fn occluded_here(&self, origin: Vec3, dir: Vec3, tmin: f32, tmax: f32) -> bool {
         if self.root == EMPTY {
             return false;
         }
@@ -859,6 +922,11 @@ impl Bvh {
         out: &mut [Option<Hit>],
     ) {
         self.stream(rays, tmin, tmax, out, None, Walk::step_closest);
+        if let Some(a) = &self.added {
+            for ((o, d), h) in rays.iter().zip(out.iter_mut()) {
+                *h = a.nearer(*h, *o, *d, tmin, tmax);
+            }
+        }
     }
 
     /// Occlusion of many rays: `out[i]` is [`Bvh::occluded`] of ray i,
@@ -866,6 +934,11 @@ impl Bvh {
     /// [`Bvh::intersect_stream`]).
     pub fn occluded_stream(&self, rays: &[(Vec3, Vec3)], tmin: f32, tmax: f32, out: &mut [bool]) {
         self.stream(rays, tmin, tmax, out, false, Walk::step_occluded);
+        if let Some(a) = &self.added {
+            for ((o, d), b) in rays.iter().zip(out.iter_mut()) {
+                *b = *b || a.occluded_here(*o, *d, tmin, tmax);
+            }
+        }
     }
 
     /// Steps [`IN_FLIGHT`] walks in turn, each with `step` until it has
@@ -1166,6 +1239,99 @@ mod tests {
         empty.intersect_stream(&[(Vec3::ZERO, Vec3::X)], 0.0, 1.0, &mut h);
         empty.occluded_stream(&[(Vec3::ZERO, Vec3::X)], 0.0, 1.0, &mut b);
         assert_eq!((h[0], b[0]), (None, false));
+    }
+
+    /// Objects added to a built hierarchy ([`Bvh::with_added`]): every
+    /// query answers as brute force does — single rays, packets and
+    /// streams, nearer and farther hits, a quad coincident with the floor
+    /// (whichever face rounds nearer wins; at equal t the lower index) —
+    /// and as the one hierarchy over everything does, but for the
+    /// module's rounding effect on coincident faces.
+    #[test]
+    fn added_triangles_answer_as_one_hierarchy_over_everything() {
+        let mut mesh = test_mesh();
+        let scene = mesh.triangle_count();
+        let base = Bvh::build(&mesh);
+        // Objects: a box standing on the grid, one floating, and a quad
+        // lying exactly in the grid's plane (coincident: ties).
+        mesh.add_box(Vec3::new(2.0, -2.0, 2.0), Vec3::new(3.0, -1.0, 3.0));
+        mesh.add_box(Vec3::new(-3.0, 1.0, -3.0), Vec3::new(-2.0, 1.5, -2.0));
+        let q = mesh.positions.len() as u32;
+        mesh.positions.extend([
+            Vec3::new(-1.5, -2.0, 1.0),
+            Vec3::new(1.5, -2.0, 1.0),
+            Vec3::new(1.5, -2.0, 3.0),
+            Vec3::new(-1.5, -2.0, 3.0),
+        ]);
+        let quad_from = mesh.triangle_count();
+        mesh.indices.extend([[q, q + 1, q + 2], [q, q + 2, q + 3]]);
+        let whole = Bvh::build(&mesh);
+        let added = base.clone().with_added(&mesh, scene);
+        assert_eq!(added.triangle_count(), whole.triangle_count());
+        let mut rng = Rng(0x5eed_0bec);
+        let rays: Vec<(Vec3, Vec3)> = (0..3000)
+            .map(|k| {
+                let o = Vec3::new(
+                    rng.f() * 8.0 - 4.0,
+                    rng.f() * 8.0 - 4.0,
+                    rng.f() * 8.0 - 4.0,
+                );
+                let d = match k % 5 {
+                    0 => Vec3::NEG_Y,
+                    _ => rng.dir(),
+                };
+                (o, d)
+            })
+            .collect();
+        let (mut objects_hit, mut rounded) = (0, 0);
+        for tmax in [0.7, f32::INFINITY] {
+            let mut hits = vec![None; rays.len()];
+            added.intersect_stream(&rays, 1e-4, tmax, &mut hits);
+            let mut blocked = vec![false; rays.len()];
+            added.occluded_stream(&rays, 1e-4, tmax, &mut blocked);
+            for (i, &(o, d)) in rays.iter().enumerate() {
+                let h = added.intersect(o, d, 1e-4, tmax);
+                assert_eq!(h, brute_force_intersect(&mesh, o, d, 1e-4, tmax), "ray {i}");
+                // The one hierarchy may differ by the module's rounding
+                // effect alone: on coincident faces, a hit an ulp away.
+                let w = whole.intersect(o, d, 1e-4, tmax);
+                if w != h {
+                    let (a, b) = (w.map(|w| w.t), h.map(|h| h.t));
+                    let close = matches!((a, b), (Some(a), Some(b)) if (a - b).abs() <= 1e-6 * a);
+                    let quad = [w, h]
+                        .iter()
+                        .flatten()
+                        .any(|x| x.prim as usize >= quad_from);
+                    assert!(close && quad, "ray {i} from {o} dir {d}: {w:?} {h:?}");
+                    rounded += 1;
+                }
+                assert_eq!(hits[i], h, "stream, ray {i}");
+                assert_eq!(added.occluded(o, d, 1e-4, tmax), h.is_some(), "ray {i}");
+                assert_eq!(blocked[i], h.is_some(), "stream, ray {i}");
+                objects_hit += h.is_some_and(|h| h.prim as usize >= scene) as usize;
+            }
+        }
+        assert!(objects_hit > 50, "{objects_hit} rays met an object");
+        assert!(
+            rounded < 30,
+            "{rounded} of 6000 rays differ from one hierarchy's"
+        );
+        // A packet straight down onto the coincident quad.
+        let origin = Vec3::new(0.1, 3.0, 2.1);
+        let dirs: Vec<Vec3> = (0..100)
+            .map(|k| {
+                (Vec3::new(0.0, -5.0, 0.0)
+                    + Vec3::new(0.01 * (k % 10) as f32, 0.0, 0.01 * (k / 10) as f32))
+                .normalize()
+            })
+            .collect();
+        let mut packet = vec![None; dirs.len()];
+        added.intersect_packet(origin, &dirs, 1e-4, f32::INFINITY, &mut packet);
+        for (d, p) in dirs.iter().zip(&packet) {
+            let h = brute_force_intersect(&mesh, origin, *d, 1e-4, f32::INFINITY);
+            assert_eq!(*p, h, "dir {d}");
+            assert!(h.is_some(), "{d}");
+        }
     }
 
     #[test]

@@ -303,7 +303,7 @@ impl RenderScene {
         env: EnvMap,
         guided: bool,
     ) -> Result<RenderScene, RenderError> {
-        RenderScene::build(camera, mesh, maps, env, &[], guided)
+        RenderScene::build(camera, mesh, maps, env, &[], guided, None)
     }
 
     /// The scene with objects added to the depth mesh.
@@ -314,7 +314,28 @@ impl RenderScene {
         env: EnvMap,
         objects: &[SceneObject],
     ) -> Result<RenderScene, RenderError> {
-        RenderScene::build(camera, mesh, maps, env, objects, true)
+        RenderScene::build(camera, mesh, maps, env, objects, true, None)
+    }
+
+    /// [`RenderScene::with_objects`] on `plain`'s mesh and camera (a scene
+    /// built without objects), its hierarchy kept and the objects'
+    /// triangles added to it ([`Bvh::with_added`]) instead of one built
+    /// over everything: moving an object in a large scene rebuilds only
+    /// the object's. Renders as the scene built whole does (the same hits
+    /// up to [`matflow_geom::bvh`]'s rounding effect on coincident faces).
+    pub fn with_objects_over(
+        plain: &RenderScene,
+        maps: &MaterialMaps,
+        env: EnvMap,
+        objects: &[SceneObject],
+    ) -> Result<RenderScene, RenderError> {
+        let mut mesh = plain.mesh.clone();
+        mesh.indices.truncate(plain.screen_prims);
+        mesh.positions.truncate(plain.object_vertices);
+        mesh.film.truncate(plain.object_vertices);
+        let bvh = (!plain.prim_object.is_empty()).then(|| Bvh::build(&mesh));
+        let over = bvh.as_ref().unwrap_or(&plain.bvh);
+        RenderScene::build(plain.camera, mesh, maps, env, objects, true, Some(over))
     }
 
     fn build(
@@ -324,6 +345,7 @@ impl RenderScene {
         env: EnvMap,
         objects: &[SceneObject],
         guided: bool,
+        over: Option<&Bvh>,
     ) -> Result<RenderScene, RenderError> {
         if maps.width() != camera.width || maps.height() != camera.height {
             return Err(RenderError::MaterialSize {
@@ -366,7 +388,10 @@ impl RenderScene {
         if !mesh.film.is_empty() {
             mesh.film.resize(mesh.positions.len(), Vec2::ZERO);
         }
-        let bvh = Bvh::build(&mesh);
+        let bvh = match over {
+            Some(b) => b.clone().with_added(&mesh, screen_prims),
+            None => Bvh::build(&mesh),
+        };
         let face_normals = (0..mesh.triangle_count())
             .map(|i| mesh.face_normal(i))
             .collect();

@@ -43,7 +43,7 @@ pub(crate) const GLASS_DEPTH: ParamSpec = ParamSpec {
 
 const INSERT_INFO: NodeInfo = NodeInfo {
     kind: "insert",
-    version: 4,
+    version: 5,
     doc: "Inserts objects (OBJ/PLY meshes; diffuse, principled or glass) into the scene and \
          renders them with full geometry (shadows, inter-reflection, refraction of the \
          envmap); composites into the photo differentially (photo + with − without, the \
@@ -333,7 +333,15 @@ impl Node for InsertNode {
                 .insert("objects".into(), matflow_engine::Value::Null);
             let seed = matflow_engine::key::node_seed(self, &without_objects);
             let opts = Self::options(p, seed)?;
-            let w_scene = scene_with(&cam, &tri, &maps, &env, &objs)?;
+            // The plain scene's hierarchy with the objects added: a move
+            // rebuilds only the objects'.
+            let w_scene = RenderScene::with_objects_over(
+                &plain,
+                &maps,
+                matflow_render::EnvMap::new(&env).map_err(err)?,
+                &objs,
+            )
+            .map_err(crate::failed)?;
             let with =
                 render_or_stop(ctx, &w_scene, &opts, &|d, t| progress(d, t, 0, parts))?.image;
             let without = if differential {
