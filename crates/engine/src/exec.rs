@@ -1237,22 +1237,26 @@ mod tests {
 
     /// One number out, after an optional stage of its kind.
     struct Step;
+    /// The test chains' parameter: the stage before (optional).
+    const AFTER: &[crate::node::ParamSpec] = &[crate::node::ParamSpec {
+        name: "after",
+        ty: crate::node::ParamType::Ref(&["n"]),
+        default: Some("~"),
+        unit: "",
+        doc: "the stage before",
+    }];
+    /// The test chains' output: a number.
+    const N: &[OutputSpec] = &[OutputSpec {
+        name: "n",
+        ty: "n",
+        doc: "a number",
+    }];
     static STEP: NodeInfo = NodeInfo {
         kind: "step",
         version: 1,
         doc: "a link of a chain",
-        params: &[crate::node::ParamSpec {
-            name: "after",
-            ty: crate::node::ParamType::Ref(&["n"]),
-            default: Some("~"),
-            unit: "",
-            doc: "the stage before",
-        }],
-        outputs: &[OutputSpec {
-            name: "n",
-            ty: "n",
-            doc: "a number",
-        }],
+        params: AFTER,
+        outputs: N,
     };
     impl Node for Step {
         fn info(&self) -> &'static NodeInfo {
@@ -1368,18 +1372,8 @@ mod tests {
         kind: "spin",
         version: 1,
         doc: "works until cancelled",
-        params: &[crate::node::ParamSpec {
-            name: "after",
-            ty: crate::node::ParamType::Ref(&["n"]),
-            default: Some("~"),
-            unit: "",
-            doc: "the stage before",
-        }],
-        outputs: &[OutputSpec {
-            name: "n",
-            ty: "n",
-            doc: "a number",
-        }],
+        params: AFTER,
+        outputs: N,
     };
     impl Node for Spin {
         fn info(&self) -> &'static NodeInfo {

@@ -132,6 +132,18 @@ mod tests {
     use crate::tables::build_tables_with_variance;
     use crate::testutil::{materials_of, room, texels};
 
+    /// Frozen paths of the test room at `spp` paths per pixel.
+    fn opts(spp: u32, seed: u64) -> CacheOptions {
+        CacheOptions {
+            spp,
+            max_depth: 3,
+            seed,
+            env_width: 32,
+            env_height: 16,
+            lamp_scale: 1.0,
+        }
+    }
+
     /// On a scene lit by a constant envmap, filtering must bring the
     /// tables closer to a high-sample estimate than the raw ones are.
     #[test]
@@ -140,14 +152,6 @@ mod tests {
         let scene = &t.scene;
         let mats = materials_of(&t.maps);
         let env = texels(&t.env);
-        let opts = |spp, seed| CacheOptions {
-            spp,
-            max_depth: 3,
-            seed,
-            env_width: 32,
-            env_height: 16,
-            lamp_scale: 1.0,
-        };
         let noisy = PathCache::build(scene, &opts(4, 1), &|_, _| {}).unwrap();
         let truth = PathCache::build(scene, &opts(256, 2), &|_, _| {}).unwrap();
         let (mut t, var, valid) = build_tables_with_variance(&noisy, &mats, &env);
@@ -176,14 +180,6 @@ mod tests {
         let t = room(3, 48);
         let mats = materials_of(&t.maps);
         let env = texels(&t.env);
-        let opts = |spp, seed| CacheOptions {
-            spp,
-            max_depth: 3,
-            seed,
-            env_width: 32,
-            env_height: 16,
-            lamp_scale: 1.0,
-        };
         let noisy = PathCache::build(&t.scene, &opts(2, 1), &|_, _| {}).unwrap();
         let truth = PathCache::build(&t.scene, &opts(256, 2), &|_, _| {}).unwrap();
         let raw = crate::transport::render(&noisy, &mats, &env);

@@ -124,6 +124,21 @@ fn until(
     }
 }
 
+/// Waits for generation `generation`'s preview and result: their
+/// seconds by the studio's clock, then by the client's from `t0`.
+fn timed(addr: &str, t0: Instant, generation: u64) -> Result<(f64, f64, f64, f64)> {
+    let (_, preview) = until(addr, t0, 300.0, |v| v["shown"] == generation)?;
+    let (v, result) = until(addr, t0, 300.0, |v| {
+        v["shown"] == generation && v["image"] == "result"
+    })?;
+    Ok((
+        v["preview_seconds"].as_f64().unwrap_or(f64::NAN),
+        v["result_seconds"].as_f64().unwrap_or(f64::NAN),
+        preview,
+        result,
+    ))
+}
+
 /// The room pipeline the studio opens (the procedural room of
 /// `pipelines/demo.yaml`, its recovery at 2 + 4 s budgets).
 fn room(dir: &Path, size: usize) -> Result<PathBuf> {
@@ -248,16 +263,7 @@ pub fn bench_studio(a: BenchStudioArgs) -> Result<()> {
             bail!("edit: {}", String::from_utf8_lossy(&body));
         }
         let generation = i as u64 + 1;
-        let (_, preview) = until(&st.addr, t0, 120.0, |v| v["shown"] == generation)?;
-        let (v, result) = until(&st.addr, t0, 120.0, |v| {
-            v["shown"] == generation && v["image"] == "result"
-        })?;
-        rows.push((
-            v["preview_seconds"].as_f64().unwrap_or(f64::NAN),
-            v["result_seconds"].as_f64().unwrap_or(f64::NAN),
-            preview,
-            result,
-        ));
+        rows.push(timed(&st.addr, t0, generation)?);
     }
     // An object: a sphere stood on the floor, then moved `--edits` times
     // (each to a new place: nothing from the cache).
@@ -274,16 +280,7 @@ pub fn bench_studio(a: BenchStudioArgs) -> Result<()> {
             bail!("insert: {}", String::from_utf8_lossy(&answer));
         }
         let generation = generation0 + i as u64 + 1;
-        let (_, preview) = until(&st.addr, t0, 300.0, |v| v["shown"] == generation)?;
-        let (v, result) = until(&st.addr, t0, 300.0, |v| {
-            v["shown"] == generation && v["image"] == "result"
-        })?;
-        moves.push((
-            v["preview_seconds"].as_f64().unwrap_or(f64::NAN),
-            v["result_seconds"].as_f64().unwrap_or(f64::NAN),
-            preview,
-            result,
-        ));
+        moves.push(timed(&st.addr, t0, generation)?);
     }
     // Moves made while the move before renders its result: each stops
     // that render (between tiles) and the newer move's preview follows.
@@ -315,17 +312,7 @@ pub fn bench_studio(a: BenchStudioArgs) -> Result<()> {
         if code != 204 {
             bail!("insert: {}", String::from_utf8_lossy(&answer));
         }
-        let next = generation + 1;
-        let (_, preview) = until(&st.addr, t1, 300.0, |v| v["shown"] == next)?;
-        let (v, result) = until(&st.addr, t1, 300.0, |v| {
-            v["shown"] == next && v["image"] == "result"
-        })?;
-        interrupted.push((
-            v["preview_seconds"].as_f64().unwrap_or(f64::NAN),
-            v["result_seconds"].as_f64().unwrap_or(f64::NAN),
-            preview,
-            result,
-        ));
+        interrupted.push(timed(&st.addr, t1, generation + 1)?);
     }
     let stopped = status(&st.addr)?["stopped"].as_u64().unwrap_or(0) - stopped0;
     let (rss, hwm) = memory_mib(pid)?;
