@@ -107,7 +107,7 @@ pub struct Shared {
     published: Mutex<Instant>,
     pub registry: Registry,
     /// The newest generation, readable without the lock (a running
-    /// stage asks it between tiles).
+    /// stage asks it between tiles, the runner between stages).
     newest: Arc<AtomicU64>,
 }
 
@@ -257,7 +257,7 @@ impl Observer for Progress<'_> {
         }
     }
     fn cancelled(&self) -> bool {
-        self.shared.lock().status.generation != self.generation
+        self.shared.newest.load(Ordering::SeqCst) != self.generation
     }
     fn watch(&self) -> Option<Watch> {
         let (newest, generation) = (self.shared.newest.clone(), self.generation);

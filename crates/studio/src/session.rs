@@ -531,9 +531,6 @@ impl Session {
         change: &Change,
         reg: &Registry,
     ) -> Result<(), SessionError> {
-        if !mask.data.iter().any(|&b| b) {
-            return Err(SessionError::Request("select something first".into()));
-        }
         let name = self.write_mask(mask)?;
         let mut st = Stage::new(
             &format!("edit{}", self.edits.len() + 1),
@@ -590,8 +587,12 @@ impl Session {
         self.push(st, reg)
     }
 
-    /// The mask as a PNG beside the pipeline, named by its contents.
+    /// The mask as a PNG beside the pipeline, named by its contents; an
+    /// empty one is refused (nothing selected).
     fn write_mask(&self, mask: &Image<bool>) -> Result<String, SessionError> {
+        if !mask.data.iter().any(|&b| b) {
+            return Err(SessionError::Request("select something first".into()));
+        }
         let png = matflow_scene::io::png_mask_bytes(mask)
             .map_err(|e| SessionError::Pipeline(e.to_string()))?;
         let hex = matflow_engine::store::Digest::of(&png).hex();
@@ -611,9 +612,6 @@ impl Session {
         glass: &Glass,
         reg: &Registry,
     ) -> Result<(), SessionError> {
-        if !mask.data.iter().any(|&b| b) {
-            return Err(SessionError::Request("select something first".into()));
-        }
         let name = self.write_mask(mask)?;
         let n = self.edits.len() + 1;
         let lengths = Stage::new(
