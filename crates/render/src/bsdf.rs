@@ -21,7 +21,8 @@ use std::f32::consts::PI;
 
 use glam::Vec3;
 
-use crate::warp::{square_to_cosine_hemisphere, Frame};
+use crate::lanes::{sin_cos, F, M, V3};
+use crate::warp::{cosine_hemisphere_lanes, FrameLanes};
 
 pub const MIN_ROUGHNESS: f32 = 0.07;
 
@@ -51,18 +52,6 @@ impl Material {
     }
 }
 
-#[inline]
-fn pow5(x: f32) -> f32 {
-    let x2 = x * x;
-    x2 * x2 * x
-}
-
-#[inline]
-fn ggx_d(noh: f32, alpha2: f32) -> f32 {
-    let t = noh * noh * (alpha2 - 1.0) + 1.0 + 1e-6;
-    alpha2 / (PI * t * t)
-}
-
 /// The BRDF times the cosine n·l, for unit n, v (towards the viewer) and l
 /// (towards the light). Returns zero for l below the surface.
 #[inline]
@@ -77,30 +66,105 @@ pub fn pdf(m: &Material, n: Vec3, v: Vec3, l: Vec3) -> f32 {
 }
 
 /// [`eval`] and [`pdf`] together, sharing the half vector and the GGX
-/// term (what a path tracer needs at every light sample and BSDF sample).
+/// term (what a path tracer needs at every light sample and BSDF sample):
+/// [`eval_pdf_lanes`] at width 1.
 #[inline(always)]
 pub fn eval_pdf(m: &Material, n: Vec3, v: Vec3, l: Vec3) -> (Vec3, f32) {
+    let (f, pdf) = eval_pdf_lanes(&MaterialLanes::<1>::splat(m), v3(n), v3(v), v3(l));
+    (f.lane(0), pdf.0[0])
+}
+
+#[inline(always)]
+fn v3(v: Vec3) -> V3<1> {
+    V3::splat(v)
+}
+
+/// The materials of `W` lanes.
+#[derive(Clone, Copy, Debug)]
+pub struct MaterialLanes<const W: usize> {
+    pub albedo: V3<W>,
+    pub roughness: F<W>,
+    pub metallic: F<W>,
+}
+
+impl<const W: usize> MaterialLanes<W> {
+    #[inline(always)]
+    pub fn splat(m: &Material) -> MaterialLanes<W> {
+        MaterialLanes {
+            albedo: V3::splat(m.albedo),
+            roughness: F::splat(m.roughness),
+            metallic: F::splat(m.metallic),
+        }
+    }
+    /// Lanes `0..W` from `f(i)`.
+    #[inline(always)]
+    pub fn gather(f: impl Fn(usize) -> Material) -> MaterialLanes<W> {
+        let mut m = MaterialLanes::splat(&Material {
+            albedo: Vec3::ZERO,
+            roughness: 1.0,
+            metallic: 0.0,
+        });
+        for i in 0..W {
+            let a = f(i);
+            m.albedo.x.0[i] = a.albedo.x;
+            m.albedo.y.0[i] = a.albedo.y;
+            m.albedo.z.0[i] = a.albedo.z;
+            m.roughness.0[i] = a.roughness;
+            m.metallic.0[i] = a.metallic;
+        }
+        m
+    }
+}
+
+#[inline(always)]
+fn pow5_lanes<const W: usize>(x: F<W>) -> F<W> {
+    let x2 = x * x;
+    x2 * x2 * x
+}
+
+/// [`eval_pdf`] of `W` lanes: the one implementation of the BRDF.
+#[inline(always)]
+pub fn eval_pdf_lanes<const W: usize>(
+    m: &MaterialLanes<W>,
+    n: V3<W>,
+    v: V3<W>,
+    l: V3<W>,
+) -> (V3<W>, F<W>) {
     let nol = n.dot(l).max(0.0);
     let h = (l + v).normalize_or_zero();
     let voh = v.dot(h).max(0.0);
     let noh = n.dot(h).max(0.0);
     let r = m.roughness.clamp(MIN_ROUGHNESS, 1.0);
     let alpha = r * r;
-    let d = ggx_d(noh, alpha * alpha);
+    let alpha2 = alpha * alpha;
+    // GGX: α²/(π((n·h)²(α² − 1) + 1 + 10⁻⁶)²).
+    let t = noh * noh * (alpha2 - 1.0) + 1.0 + 1e-6;
+    let d = alpha2 / (PI * t * t);
     let pdf = 0.5 * d * noh / (4.0 * voh.max(1e-6)) + 0.5 * nol / PI;
-    if nol <= 0.0 {
-        return (Vec3::ZERO, pdf);
-    }
     let nov = n.dot(v).max(0.0);
     let k = (r + 1.0) * (r + 1.0) / 8.0;
     let vis = 1.0 / ((nov * (1.0 - k) + k + 1e-6) * (nol * (1.0 - k) + k + 1e-6));
-    let f0 = Vec3::splat(0.04 * (1.0 - m.metallic)) + m.albedo * m.metallic;
-    let fr = f0 + (Vec3::ONE - f0) * pow5(1.0 - voh);
+    let f0_base = 0.04 * (1.0 - m.metallic);
+    let f0 = V3::new(
+        f0_base + m.albedo.x * m.metallic,
+        f0_base + m.albedo.y * m.metallic,
+        f0_base + m.albedo.z * m.metallic,
+    );
+    let schlick = pow5_lanes(1.0 - voh);
+    let fr = V3::new(
+        f0.x + (1.0 - f0.x) * schlick,
+        f0.y + (1.0 - f0.y) * schlick,
+        f0.z + (1.0 - f0.z) * schlick,
+    );
     let fd90 = 0.5 + 2.0 * r * voh * voh;
-    let fd = |x: f32| 1.0 + (fd90 - 1.0) * pow5(1.0 - x);
-    let diffuse = m.albedo * ((1.0 - m.metallic) / PI * fd(nov) * fd(nol) * nol);
-    let specular = fr * (d * vis / 4.0 * nol);
-    (diffuse + specular, pdf)
+    let fd = |x: F<W>| 1.0 + (fd90 - 1.0) * pow5_lanes(1.0 - x);
+    let diffuse = m
+        .albedo
+        .scale((1.0 - m.metallic) / PI * fd(nov) * fd(nol) * nol);
+    let specular = fr.scale(d * vis / 4.0 * nol);
+    let f = diffuse + specular;
+    let below = nol.le(0.0);
+    (V3::select(below, V3::splat(Vec3::ZERO), f), pdf)
 }
 
 /// A sampled direction with its weight f·cos/pdf and pdf.
@@ -111,46 +175,75 @@ pub struct BsdfSample {
     pub pdf: f32,
 }
 
-/// Samples l given the lobe selector `u_lobe` and a 2-D sample.
+/// Samples l given the lobe selector `u_lobe` and a 2-D sample:
+/// [`sample_lanes`] at width 1.
 #[inline]
 pub fn sample(m: &Material, n: Vec3, v: Vec3, u_lobe: f32, u1: f32, u2: f32) -> Option<BsdfSample> {
-    let frame = Frame::from_normal(n);
-    let l = if u_lobe > 0.5 {
-        frame.to_world(square_to_cosine_hemisphere(u1, u2))
-    } else {
-        let r = m.roughness.clamp(MIN_ROUGHNESS, 1.0);
-        let a2 = r * r * r * r;
-        let cos_t = ((1.0 - u1) / (u1 * (a2 - 1.0) + 1.0))
-            .clamp(0.0, 1.0)
-            .sqrt();
-        let sin_t = (1.0 - cos_t * cos_t).max(0.0).sqrt();
-        let phi = 2.0 * PI * u2;
-        let h = frame.to_world(Vec3::new(sin_t * phi.cos(), sin_t * phi.sin(), cos_t));
-        2.0 * v.dot(h) * h - v
-    };
-    let l = l.normalize_or_zero();
-    if l == Vec3::ZERO {
-        return None;
-    }
-    let (f, p) = eval_pdf(m, n, v, l);
-    if !(p > 1e-6) || !p.is_finite() {
-        return None;
-    }
-    let weight = f / (p + 1e-6);
-    if !weight.is_finite() {
-        return None;
-    }
-    Some(BsdfSample {
+    let s = sample_lanes(
+        &MaterialLanes::<1>::splat(m),
+        v3(n),
+        v3(v),
+        F([u_lobe]),
+        F([u1]),
+        F([u2]),
+    );
+    s.valid.0[0].then(|| BsdfSample {
+        dir: s.dir.lane(0),
+        weight: s.weight.lane(0),
+        pdf: s.pdf.0[0],
+    })
+}
+
+/// [`BsdfSample`]s of `W` lanes; a lane is a sample where `valid`.
+#[derive(Clone, Copy, Debug)]
+pub struct SampleLanes<const W: usize> {
+    pub dir: V3<W>,
+    pub weight: V3<W>,
+    pub pdf: F<W>,
+    pub valid: M<W>,
+}
+
+/// [`sample`] of `W` lanes: both lobes' directions are computed and each
+/// lane keeps the one its `u_lobe` picks.
+#[inline(always)]
+pub fn sample_lanes<const W: usize>(
+    m: &MaterialLanes<W>,
+    n: V3<W>,
+    v: V3<W>,
+    u_lobe: F<W>,
+    u1: F<W>,
+    u2: F<W>,
+) -> SampleLanes<W> {
+    let frame = FrameLanes::from_normal(n);
+    let diffuse = frame.to_world(cosine_hemisphere_lanes(u1, u2));
+    let r = m.roughness.clamp(MIN_ROUGHNESS, 1.0);
+    let a2 = r * r * r * r;
+    let cos_t = ((1.0 - u1) / (u1 * (a2 - 1.0) + 1.0))
+        .clamp(0.0, 1.0)
+        .sqrt();
+    let sin_t = (1.0 - cos_t * cos_t).max(0.0).sqrt();
+    let (sin_p, cos_p) = sin_cos(2.0 * PI * u2);
+    let h = frame.to_world(V3::new(sin_t * cos_p, sin_t * sin_p, cos_t));
+    let vh2 = 2.0 * v.dot(h);
+    let specular = h.scale(vh2) - v;
+    let l = V3::select(u_lobe.gt(0.5), diffuse, specular).normalize_or_zero();
+    let nonzero = !(l.x.eq(0.0) & l.y.eq(0.0) & l.z.eq(0.0));
+    let (f, p) = eval_pdf_lanes(m, n, v, l);
+    let weight = V3::new(f.x / (p + 1e-6), f.y / (p + 1e-6), f.z / (p + 1e-6));
+    let valid = nonzero & p.gt(1e-6) & p.is_finite() & weight.is_finite();
+    SampleLanes {
         dir: l,
         weight,
         pdf: p,
-    })
+        valid,
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::rng::Pcg32;
+    use crate::warp::square_to_cosine_hemisphere;
 
     fn materials() -> Vec<Material> {
         let mut v = Vec::new();

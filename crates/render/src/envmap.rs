@@ -22,6 +22,7 @@ use std::sync::Arc;
 
 use crate::fmath::{self, ONE_BELOW};
 use crate::guide::{Draw, Guide, Visibility, NO_CLUSTER};
+use crate::lanes::{self, F};
 use crate::RenderError;
 
 /// The sampling cell (row, column) at (u, v).
@@ -55,17 +56,24 @@ pub struct EnvMap {
     guide: Option<Arc<Guide>>,
 }
 
+/// sin and cos of one angle, by the lanes' polynomial.
+#[inline(always)]
+fn sin_cos1(x: f32) -> (f32, f32) {
+    let (s, c) = lanes::sin_cos(F::<1>([x]));
+    (s.0[0], c.0[0])
+}
+
 /// Direction → (u, v) in [0, 1)².
 #[inline]
 pub fn dir_to_uv(d: Vec3) -> (f32, f32) {
-    let mut u = d.x.atan2(-d.z) * (0.5 / PI);
+    let mut u = lanes::atan2(F::<1>([d.x]), F::<1>([-d.z])).0[0] * (0.5 / PI);
     if u < 0.0 {
         u += 1.0;
     }
     if u >= 1.0 {
         u -= 1.0;
     }
-    let v = d.y.clamp(-1.0, 1.0).acos() / PI;
+    let v = lanes::acos(F::<1>([d.y.clamp(-1.0, 1.0)])).0[0] / PI;
     (u, v)
 }
 
@@ -74,8 +82,8 @@ pub fn dir_to_uv(d: Vec3) -> (f32, f32) {
 pub fn uv_to_dir(u: f32, v: f32) -> Vec3 {
     let phi = 2.0 * PI * u;
     let theta = PI * v;
-    let (st, ct) = theta.sin_cos();
-    let (sp, cp) = phi.sin_cos();
+    let (st, ct) = sin_cos1(theta);
+    let (sp, cp) = sin_cos1(phi);
     Vec3::new(st * sp, ct, -st * cp)
 }
 
@@ -380,12 +388,12 @@ impl EnvMap {
         let u = if u >= 1.0 { u - 1.0 } else { u };
         let sin_t = (1.0 - cos_t * cos_t).max(0.0).sqrt();
         let phi = 2.0 * PI * u;
-        let (sp, cp) = phi.sin_cos();
+        let (sp, cp) = sin_cos1(phi);
         let d = Vec3::new(sin_t * sp, cos_t, -sin_t * cp);
         let pdf = p / self.row_solid_angle[r];
         // Radiance by bilinear blend inside the known cell (no atan2/acos).
         let fx = ur as f32;
-        let v = cos_t.acos() / PI;
+        let v = lanes::acos(F::<1>([cos_t])).0[0] / PI;
         let fy = (v * rows as f32 - r as f32).clamp(0.0, 1.0);
         let c1 = (c + 1) % w;
         let a = self.texel(c, r) * (1.0 - fx) + self.texel(c1, r) * fx;

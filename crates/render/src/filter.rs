@@ -6,6 +6,8 @@
 //! g(x) = max(0, exp(−x²/2σ²) − exp(−r²/2σ²)), σ = 0.5, r = 2; a pixel is
 //! Σ w·L / Σ w. The box filter keeps each sample in its own pixel.
 
+use crate::lanes::{exp, F};
+
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum PixelFilter {
     Gaussian { stddev: f32, radius: f32 },
@@ -47,7 +49,7 @@ impl PixelFilter {
                 FilterWeights {
                     filter: *self,
                     a,
-                    floor: (a * radius * radius).exp(),
+                    floor: exp(F::<1>([a * radius * radius])).0[0],
                 }
             }
             PixelFilter::Box => FilterWeights {
@@ -74,23 +76,36 @@ pub struct FilterWeights {
 }
 
 impl FilterWeights {
-    /// 1-D weight at offset `x` (pixels) from a pixel centre.
+    /// 1-D weight at offset `x` (pixels) from a pixel centre:
+    /// [`FilterWeights::weight_lanes`] at width 1.
     #[inline]
     pub fn weight_1d(&self, x: f32) -> f32 {
+        self.weight_lanes(F::<1>([x])).0[0]
+    }
+
+    /// 1-D weights at `W` offsets (pixels) from pixel centres.
+    #[inline(always)]
+    pub fn weight_lanes<const W: usize>(&self, x: F<W>) -> F<W> {
+        let zero = F::splat(0.0);
         match self.filter {
             PixelFilter::Gaussian { radius, .. } => {
-                if x.abs() >= radius {
-                    return 0.0;
-                }
-                ((self.a * x * x).exp() - self.floor).max(0.0)
+                let g = (exp(self.a * x * x) - self.floor).max(0.0);
+                F::select(x.abs().lt(radius), g, zero)
             }
-            PixelFilter::Box => {
-                if x.abs() <= 0.5 {
-                    1.0
-                } else {
-                    0.0
-                }
-            }
+            PixelFilter::Box => F::select(x.abs().le(0.5), F::splat(1.0), zero),
+        }
+    }
+
+    /// The 1-D weights of the pixels `first`, `first + 1`, … (as many as
+    /// `out` holds) for a sample at film coordinate `at`.
+    #[inline]
+    pub fn weights_from(&self, first: i64, at: f32, out: &mut [f32]) {
+        for (c, chunk) in out.chunks_mut(8).enumerate() {
+            let x = F::<8>(std::array::from_fn(|k| {
+                (first + (c * 8 + k) as i64) as f32 + 0.5 - at
+            }));
+            let w = self.weight_lanes(x);
+            chunk.copy_from_slice(&w.0[..chunk.len()]);
         }
     }
 }

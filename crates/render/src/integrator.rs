@@ -21,7 +21,8 @@ use crate::bsdf;
 use crate::dielectric;
 use crate::filter::PixelFilter;
 use crate::fmath;
-use crate::rng::{Keys1d, Keys2d, Sampler};
+use crate::lanes::{F, V3};
+use crate::rng::{draws_1d, draws_2d, Keys1d, Keys2d, Sampler};
 use crate::scene::{LampAt, RenderScene, Surface};
 use crate::warp::{square_to_cosine_hemisphere, Frame};
 
@@ -231,7 +232,7 @@ const LAMP_TMAX: f32 = 1.0 - 1e-4;
 /// The keys of a vertex's draws — envmap sample (2-D), lobe (1-D),
 /// direction (2-D) — for a sampler standing at the vertex's first
 /// dimension.
-#[derive(Clone, Copy)]
+#[derive(Clone, Copy, Default)]
 struct VertexKeys {
     light: Keys2d,
     lobe: Keys1d,
@@ -289,6 +290,13 @@ struct Path {
     /// chooses it (drawn with the envmap sample).
     lamp: Option<LampSample>,
     u_lamp: f32,
+    /// The vertex's draws, made in lanes for the step's paths
+    /// ([`draw_vertices`]): envmap sample (2), lobe (1), direction (2).
+    u: [f32; 5],
+    /// f·cos and pdf of the vertex's envmap sample, evaluated with other
+    /// paths' in lanes ([`eval_screen_lights`]) when it arrives.
+    light_f: Vec3,
+    light_pdf: f32,
     next: Option<Continuation>,
     /// The envmap's sampling cluster of the vertex being shaded
     /// ([`crate::EnvMap::cluster`]): its light sample and a BSDF sample
@@ -334,6 +342,9 @@ impl Path {
             light: None,
             lamp: None,
             u_lamp: 0.0,
+            u: [0.0; 5],
+            light_f: Vec3::ZERO,
+            light_pdf: 0.0,
             next: None,
             cluster: crate::guide::NO_CLUSTER,
             sky_from: Vec3::ZERO,
@@ -380,6 +391,9 @@ pub struct Wavefront {
     /// Paths whose continuation went through a transparent region to a
     /// background vertex (no ray traced).
     teleported: Vec<u32>,
+    /// Depth-mesh vertices of the step, whose BSDF samples and envmap
+    /// samples' BSDF values are computed in lanes.
+    screen: Vec<u32>,
 }
 
 /// Pixels per batch of the renderer's [`Wavefront`]: enough paths that
@@ -544,19 +558,10 @@ impl Wavefront {
     ) {
         self.rays.clear();
         self.lamp_rays.clear();
-        // The samples of a pixel stand at the same dimension of its
-        // sampler: the keys of the vertex's draws are computed once.
-        let mut keys: Option<(Sampler, VertexKeys)> = None;
+        self.screen.clear();
+        draw_vertices_now(&mut self.paths, &self.active);
         for &i in &self.active {
             let path = &mut self.paths[i as usize];
-            let k = match &keys {
-                Some((at, k)) if at.same_dimension(&path.rng) => *k,
-                _ => {
-                    let k = VertexKeys::of(&path.rng);
-                    keys = Some((path.rng.clone(), k));
-                    k
-                }
-            };
             sinks[i as usize].vertex(path.q, path.vertices == 0);
             path.vertices += 1;
             if let Some(&surface) = scene.object_surface(path.q) {
@@ -568,7 +573,6 @@ impl Wavefront {
                     scene,
                     path,
                     surface,
-                    k,
                     st,
                     &mut self.rays,
                     &mut self.lamp_rays,
@@ -576,11 +580,10 @@ impl Wavefront {
                 continue;
             }
             if let Some(g) = scene.glass_pixel(path.q) {
-                shade_screen_glass(scene, path, *g, k, st, &mut self.rays);
+                shade_screen_glass(scene, path, *g, st, &mut self.rays);
                 continue;
             }
             let n = scene.face_normals[path.hit.prim as usize];
-            let v = -path.dir;
             let mat = scene.screen_material(path.q);
             path.n = n;
             path.ng = n;
@@ -592,7 +595,6 @@ impl Wavefront {
             sample_light(
                 scene,
                 path,
-                k.light,
                 true,
                 n,
                 |wl| n.dot(wl) > 0.0,
@@ -601,31 +603,11 @@ impl Wavefront {
             );
             sample_lamp(scene, path, n, |l| n.dot(l) > 0.0, st, &mut self.lamp_rays);
 
-            // The BSDF sample the path continues with.
-            let u_lobe = path.rng.next_f32_with(k.lobe);
-            let (u1, u2) = path.rng.next_2d_with(k.direction);
-            path.next = bsdf::sample(&mat, n, v, u_lobe, u1, u2)
-                .filter(|s| s.weight.max_element() > 0.0)
-                .map(|s| {
-                    let dir = if opts.reference_compat {
-                        let n_sh = scene.shading_normal(path.hit.prim, path.hit.u, path.hit.v);
-                        let s0 = Frame::from_normal(n).s;
-                        let sx =
-                            (s0 - n_sh * n_sh.dot(s0)).normalize_or(Frame::from_normal(n_sh).s);
-                        let ty = n_sh.cross(sx);
-                        (sx * s.dir.x + ty * s.dir.y + n_sh * s.dir.z).normalize_or(s.dir)
-                    } else {
-                        s.dir
-                    };
-                    Continuation {
-                        dir,
-                        weight: s.weight,
-                        pdf: s.pdf,
-                        delta: false,
-                        teleport: None,
-                    }
-                });
+            // The BSDF sample the path continues with: sampled below with
+            // the step's other depth-mesh vertices.
+            self.screen.push(i);
         }
+        sample_screen_bsdfs_now(scene, opts, &mut self.paths, &self.screen);
     }
 
     /// Traces the shadow rays: occlusion, or with partly open surfaces what
@@ -668,6 +650,20 @@ impl Wavefront {
         self.rays.clear();
         self.ray_path.clear();
         self.teleported.clear();
+        // The depth-mesh vertices' envmap samples that arrive, in lanes.
+        self.screen.clear();
+        for &i in &self.active {
+            let path = &self.paths[i as usize];
+            if let Some(ls) = path.light {
+                if path.obj == NO_OBJECT
+                    && !path.glass_vertex
+                    && arrives(&self.transmit, &self.blocked, ls.ray) > 0.0
+                {
+                    self.screen.push(i);
+                }
+            }
+        }
+        eval_screen_lights_now(&mut self.paths, &self.screen);
         for &i in &self.active {
             let path = &mut self.paths[i as usize];
             let sink = &mut sinks[i as usize];
@@ -675,7 +671,11 @@ impl Wavefront {
             if let Some(ls) = path.light {
                 let t = arrives(&self.transmit, &self.blocked, ls.ray);
                 if t > 0.0 {
-                    let (f, pdf_b) = vertex_eval_pdf(scene, path, n, v, ls.dir);
+                    let (f, pdf_b) = if path.obj == NO_OBJECT && !path.glass_vertex {
+                        (path.light_f, path.light_pdf)
+                    } else {
+                        vertex_eval_pdf(scene, path, n, v, ls.dir)
+                    };
                     let w = mis_power(ls.pdf, pdf_b) / ls.pdf * t;
                     sink.emitter(n, v, ls.dir, w);
                     path.l += path.throughput * f * ls.le * w;
@@ -826,6 +826,118 @@ impl Wavefront {
     }
 }
 
+crate::lane_kernel!(fn draw_vertices_now = draw_vertices(paths: &mut [Path], active: &[u32]));
+
+/// The draws of the vertex each path of `active` stands at, into
+/// [`Path::u`], `W` lanes at a time; the samplers move past them. The
+/// samples of a pixel stand at the same dimension of its sampler: the
+/// keys of a vertex's draws are computed once for them.
+#[inline(always)]
+fn draw_vertices<const W: usize>(paths: &mut [Path], active: &[u32]) {
+    let mut cached: Option<(Sampler, VertexKeys)> = None;
+    for group in active.chunks(W) {
+        let mut keys = [VertexKeys::default(); W];
+        let mut sample = [0u32; W];
+        let mut spp = [1u32; W];
+        for lane in 0..W {
+            let rng = &paths[group[lane.min(group.len() - 1)] as usize].rng;
+            keys[lane] = match &cached {
+                Some((at, k)) if at.same_dimension(rng) => *k,
+                _ => {
+                    let k = VertexKeys::of(rng);
+                    cached = Some((rng.clone(), k));
+                    k
+                }
+            };
+            (sample[lane], spp[lane]) = rng.index();
+        }
+        let (e1, e2) = draws_2d(sample, spp, keys.map(|k| k.light));
+        let lobe = draws_1d(sample, spp, keys.map(|k| k.lobe));
+        let (d1, d2) = draws_2d(sample, spp, keys.map(|k| k.direction));
+        for (lane, &i) in group.iter().enumerate() {
+            let path = &mut paths[i as usize];
+            path.u = [e1[lane], e2[lane], lobe[lane], d1[lane], d2[lane]];
+            path.rng.skip(3);
+        }
+    }
+}
+
+crate::lane_kernel!(fn sample_screen_bsdfs_now = sample_screen_bsdfs(
+    scene: &RenderScene,
+    opts: &RenderOptions,
+    paths: &mut [Path],
+    screen: &[u32],
+));
+crate::lane_kernel!(fn eval_screen_lights_now = eval_screen_lights(
+    paths: &mut [Path],
+    screen: &[u32],
+));
+
+/// The BSDF samples of the depth-mesh vertices `screen` (their draws in
+/// [`Path::u`]), `W` lanes at a time; a short last group repeats its
+/// first path in the lanes it lacks.
+#[inline(always)]
+fn sample_screen_bsdfs<const W: usize>(
+    scene: &RenderScene,
+    opts: &RenderOptions,
+    paths: &mut [Path],
+    screen: &[u32],
+) {
+    for group in screen.chunks(W) {
+        let at = |i: usize| &paths[group[i.min(group.len() - 1)] as usize];
+        let m = bsdf::MaterialLanes::<W>::gather(|i| at(i).mat);
+        let n = V3::gather(|i| at(i).n);
+        let v = V3::gather(|i| -at(i).dir);
+        let u = |k: usize| F::<W>(std::array::from_fn(|i| at(i).u[k]));
+        let s = bsdf::sample_lanes(&m, n, v, u(2), u(3), u(4));
+        let positive = s.weight.max_element().gt(0.0);
+        for (lane, &i) in group.iter().enumerate() {
+            let path = &mut paths[i as usize];
+            if !(s.valid.0[lane] && positive.0[lane]) {
+                path.next = None;
+                continue;
+            }
+            let mut dir = s.dir.lane(lane);
+            if opts.reference_compat {
+                let n = path.n;
+                let n_sh = scene.shading_normal(path.hit.prim, path.hit.u, path.hit.v);
+                let s0 = Frame::from_normal(n).s;
+                let sx = (s0 - n_sh * n_sh.dot(s0)).normalize_or(Frame::from_normal(n_sh).s);
+                let ty = n_sh.cross(sx);
+                dir = (sx * dir.x + ty * dir.y + n_sh * dir.z).normalize_or(dir);
+            }
+            path.next = Some(Continuation {
+                dir,
+                weight: s.weight.lane(lane),
+                pdf: s.pdf.0[lane],
+                delta: false,
+                teleport: None,
+            });
+        }
+    }
+}
+
+/// f·cos and pdf of the envmap samples of the depth-mesh vertices
+/// `screen`, into [`Path::light_f`] and [`Path::light_pdf`], `W` lanes at
+/// a time.
+#[inline(always)]
+fn eval_screen_lights<const W: usize>(paths: &mut [Path], screen: &[u32]) {
+    for group in screen.chunks(W) {
+        let at = |i: usize| &paths[group[i.min(group.len() - 1)] as usize];
+        let light = |i: usize| at(i).light.map_or(Vec3::Z, |l| l.dir);
+        let m = bsdf::MaterialLanes::<W>::gather(|i| at(i).mat);
+        let n = V3::gather(|i| at(i).n);
+        let v = V3::gather(|i| -at(i).dir);
+        let l = V3::gather(light);
+        let (f, pdf) = bsdf::eval_pdf_lanes(&m, n, v, l);
+        for (lane, &i) in group.iter().enumerate() {
+            let path = &mut paths[i as usize];
+            path.light_f = f.lane(lane);
+            path.light_pdf = pdf.0[lane];
+        }
+    }
+}
+
 /// The share of shadow ray `ray`'s light that arrives, from
 /// [`Wavefront::shadows`]: 0 or 1, or the openness of the partly open
 /// surface it meets.
@@ -849,8 +961,8 @@ fn may_shade(scene: &RenderScene, opts: &RenderOptions, path: &Path, q: usize) -
     }
 }
 
-/// Next-event estimation towards the environment map: draws the vertex's
-/// envmap sample (always, so every vertex draws the same dimensions) and,
+/// Next-event estimation towards the environment map: with the vertex's
+/// envmap draws (every vertex draws the same dimensions), and
 /// when `enabled`, `accept(direction)` and its pdf is positive, queues the
 /// shadow ray, leaving by the geometric normal `ng`.
 #[inline(always)]
@@ -858,14 +970,13 @@ fn may_shade(scene: &RenderScene, opts: &RenderOptions, path: &Path, q: usize) -
 fn sample_light(
     scene: &RenderScene,
     path: &mut Path,
-    key: Keys2d,
     enabled: bool,
     ng: Vec3,
     accept: impl Fn(Vec3) -> bool,
     st: &mut RenderStats,
     rays: &mut Vec<(Vec3, Vec3)>,
 ) {
-    let (ue1, ue2) = path.rng.next_2d_with(key);
+    let [ue1, ue2, ..] = path.u;
     path.light = None;
     path.lamp = None;
     path.u_lamp = ue2;
@@ -983,7 +1094,6 @@ fn shade_object(
     scene: &RenderScene,
     path: &mut Path,
     surface: Surface,
-    k: VertexKeys,
     st: &mut RenderStats,
     rays: &mut Vec<(Vec3, Vec3)>,
     lamp_rays: &mut Vec<(Vec3, Vec3)>,
@@ -1011,12 +1121,11 @@ fn shade_object(
     // Next-event estimation (not for smooth glass: its lobes are deltas).
     let smooth = glass.is_some_and(|g| g.is_smooth());
     let facing = |wl: Vec3| glass.is_some() || (ng.dot(wl) > 0.0 && n.dot(wl) > 0.0);
-    sample_light(scene, path, k.light, !smooth, ng, facing, st, rays);
+    sample_light(scene, path, !smooth, ng, facing, st, rays);
     if glass.is_none() {
         sample_lamp(scene, path, ng, facing, st, lamp_rays);
     }
-    let u_lobe = path.rng.next_f32_with(k.lobe);
-    let (u1, u2) = path.rng.next_2d_with(k.direction);
+    let [_, _, u_lobe, u1, u2] = path.u;
     path.next = match surface {
         Surface::Principled(m) => bsdf::sample(&m, n, v, u_lobe, u1, u2).map(|s| Continuation {
             dir: s.dir,
@@ -1067,7 +1176,6 @@ fn shade_screen_glass(
     scene: &RenderScene,
     path: &mut Path,
     g: crate::scene::GlassPixel,
-    k: VertexKeys,
     st: &mut RenderStats,
     rays: &mut Vec<(Vec3, Vec3)>,
 ) {
@@ -1081,18 +1189,8 @@ fn shade_screen_glass(
     let frame = Frame::from_normal(n);
     // Only reflection reaches the envmap directly from here.
     let reflects = |wl: Vec3| n.dot(wl) > 0.0 && n.dot(v) > 0.0;
-    sample_light(
-        scene,
-        path,
-        k.light,
-        !g.interface.is_smooth(),
-        n,
-        reflects,
-        st,
-        rays,
-    );
-    let u_lobe = path.rng.next_f32_with(k.lobe);
-    let (u1, u2) = path.rng.next_2d_with(k.direction);
+    sample_light(scene, path, !g.interface.is_smooth(), n, reflects, st, rays);
+    let [_, _, u_lobe, u1, u2] = path.u;
     let wi = frame.to_local(v);
     path.next = dielectric::sample(&g.interface, wi, u_lobe, u1, u2).and_then(|s| {
         let dir = frame.to_world(s.wo).normalize_or(s.wo);
@@ -1230,8 +1328,9 @@ pub fn render_until(
             let bh = t.y1 - t.y0 + 2 * border;
             let mut buf = vec![Vec4::ZERO; bw * bh];
             let mut st = RenderStats::default();
-            // 1-D filter weights of a sample's footprint columns.
-            let mut wx = vec![0f32; 2 * border + 2];
+            // 1-D filter weights of a sample's footprint columns and rows.
+            let mut wx = vec![0f32; (2 * border + 2).max(4)];
+            let mut wy = vec![0f32; (2 * border + 2).max(4)];
             let mut wave = Wavefront::default();
             let mut sinks = Vec::new();
             let mut pixels = Vec::with_capacity(BATCH_PIXELS);
@@ -1263,12 +1362,28 @@ pub fn render_until(
                                 let hi_y =
                                     (fmath::floor(film.y - 0.5 + r) as i64).min(wy1 as i64 - 1);
                                 // Separable: the 1-D weights of the
-                                // footprint's columns, once per sample.
-                                for (i, px) in (lo_x..=hi_x).enumerate() {
-                                    wx[i] = weights.weight_1d(px as f32 + 0.5 - film.x);
+                                // footprint's columns and rows, once per
+                                // sample, in lanes.
+                                let nx = (hi_x - lo_x + 1).max(0) as usize;
+                                let ny = (hi_y - lo_y + 1).max(0) as usize;
+                                if nx <= 4 && ny <= 4 {
+                                    // Columns in lanes 0–3, rows in 4–7.
+                                    let w =
+                                        weights.weight_lanes(F::<8>(std::array::from_fn(|k| {
+                                            if k < 4 {
+                                                (lo_x + k as i64) as f32 + 0.5 - film.x
+                                            } else {
+                                                (lo_y + k as i64 - 4) as f32 + 0.5 - film.y
+                                            }
+                                        })));
+                                    wx[..4].copy_from_slice(&w.0[..4]);
+                                    wy[..4].copy_from_slice(&w.0[4..]);
+                                } else {
+                                    weights.weights_from(lo_x, film.x, &mut wx[..nx]);
+                                    weights.weights_from(lo_y, film.y, &mut wy[..ny]);
                                 }
-                                for py in lo_y..=hi_y {
-                                    let wy = weights.weight_1d(py as f32 + 0.5 - film.y);
+                                for (j, py) in (lo_y..=hi_y).enumerate() {
+                                    let wy = wy[j];
                                     if wy <= 0.0 {
                                         continue;
                                     }

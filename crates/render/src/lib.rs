@@ -14,6 +14,7 @@ pub mod filter;
 pub mod fmath;
 pub mod guide;
 pub mod integrator;
+pub mod lanes;
 pub mod portal;
 pub mod rng;
 pub mod scene;

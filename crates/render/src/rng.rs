@@ -61,44 +61,68 @@ impl Pcg32 {
 
 /// Kensler's hashed permutation (Correlated Multi-Jittered Sampling,
 /// 2013): element `i` of a pseudo-random permutation of 0..`n` chosen by
-/// `key`.
+/// `key`. [`permutation_lanes`] at width 1.
 #[inline]
 pub fn permutation_element(i: u32, n: u32, key: u32) -> u32 {
-    if n <= 1 {
-        return 0;
-    }
-    let mut w = n - 1;
-    w |= w >> 1;
-    w |= w >> 2;
-    w |= w >> 4;
-    w |= w >> 8;
-    w |= w >> 16;
-    let p = key;
-    let mut i = i;
+    permutation_lanes([i], [n], [key])[0]
+}
+
+/// [`permutation_element`] of `W` lanes: every lane hashes until its
+/// value falls below its `n` (cycle walking), the lanes together until
+/// the last one has.
+#[inline(always)]
+pub fn permutation_lanes<const W: usize>(i: [u32; W], n: [u32; W], key: [u32; W]) -> [u32; W] {
+    let w: [u32; W] = std::array::from_fn(|l| {
+        let mut w = n[l].wrapping_sub(1);
+        w |= w >> 1;
+        w |= w >> 2;
+        w |= w >> 4;
+        w |= w >> 8;
+        w |= w >> 16;
+        w
+    });
+    let mut cur = i;
+    let mut out = [0u32; W];
+    // Lanes with n ≤ 1 have the one element 0.
+    let mut done: [bool; W] = std::array::from_fn(|l| n[l] <= 1);
     loop {
-        i ^= p;
-        i = i.wrapping_mul(0xe170_893d);
-        i ^= p >> 16;
-        i ^= (i & w) >> 4;
-        i ^= p >> 8;
-        i = i.wrapping_mul(0x0929_eb3f);
-        i ^= p >> 23;
-        i ^= (i & w) >> 1;
-        i = i.wrapping_mul(1 | p >> 27);
-        i = i.wrapping_mul(0x6935_fa69);
-        i ^= (i & w) >> 11;
-        i = i.wrapping_mul(0x74dc_b303);
-        i ^= (i & w) >> 2;
-        i = i.wrapping_mul(0x9e50_1cc3);
-        i ^= (i & w) >> 2;
-        i = i.wrapping_mul(0xc860_a3df);
-        i &= w;
-        i ^= i >> 5;
-        if i < n {
+        for l in 0..W {
+            let (p, w) = (key[l], w[l]);
+            let mut i = cur[l];
+            i ^= p;
+            i = i.wrapping_mul(0xe170_893d);
+            i ^= p >> 16;
+            i ^= (i & w) >> 4;
+            i ^= p >> 8;
+            i = i.wrapping_mul(0x0929_eb3f);
+            i ^= p >> 23;
+            i ^= (i & w) >> 1;
+            i = i.wrapping_mul(1 | p >> 27);
+            i = i.wrapping_mul(0x6935_fa69);
+            i ^= (i & w) >> 11;
+            i = i.wrapping_mul(0x74dc_b303);
+            i ^= (i & w) >> 2;
+            i = i.wrapping_mul(0x9e50_1cc3);
+            i ^= (i & w) >> 2;
+            i = i.wrapping_mul(0xc860_a3df);
+            i &= w;
+            i ^= i >> 5;
+            cur[l] = i;
+        }
+        let mut all = true;
+        for l in 0..W {
+            let hit = !done[l] && cur[l] < n[l];
+            if hit {
+                out[l] = cur[l];
+            }
+            done[l] |= hit;
+            all &= done[l];
+        }
+        if all {
             break;
         }
     }
-    (i.wrapping_add(p)) % n
+    std::array::from_fn(|l| out[l].wrapping_add(key[l]) % n[l].max(1))
 }
 
 /// Owen scrambling with a hash (Burley, "Practical Hash-based Owen
@@ -107,7 +131,7 @@ pub fn permutation_element(i: u32, n: u32, key: u32) -> u32 {
 /// uniform scramble does. The hash works on the reversed bits, so the
 /// caller passes them (a Sobol index is already its first coordinate
 /// reversed); the result is the scrambled fraction.
-#[inline]
+#[inline(always)]
 pub fn owen_scramble_reversed(mut v: u32, seed: u32) -> u32 {
     v ^= v.wrapping_mul(0x3d20_adea);
     v = v.wrapping_add(seed);
@@ -136,10 +160,48 @@ pub fn sobol_2d_reversed(i: u32) -> (u32, u32) {
     (i, y)
 }
 
-#[inline]
+#[inline(always)]
 fn to_unit(x: u32) -> f32 {
-    // 24 bits: never 1.0.
-    (x >> 8) as f32 * (1.0 / 16_777_216.0)
+    // 24 bits: never 1.0 (and exact through i32, which vectorises).
+    ((x >> 8) as i32) as f32 * (1.0 / 16_777_216.0)
+}
+
+/// [`Sampler::next_2d_with`] of `W` samplers (sample index and count of
+/// each, and its keys), without advancing them.
+#[inline(always)]
+pub(crate) fn draws_2d<const W: usize>(
+    sample: [u32; W],
+    spp: [u32; W],
+    k: [Keys2d; W],
+) -> ([f32; W], [f32; W]) {
+    let i = permutation_lanes(sample, spp, std::array::from_fn(|l| k[l].permutation));
+    // Sobol's first two dimensions, bit-reversed (what the scramble works
+    // on), for every lane: as many rounds as the largest index has bits.
+    let mut y = [0u32; W];
+    let mut v = [1u32; W];
+    let mut rest = i;
+    while rest.iter().any(|&r| r != 0) {
+        for l in 0..W {
+            y[l] ^= v[l] & (rest[l] & 1).wrapping_neg();
+            rest[l] >>= 1;
+            v[l] ^= v[l] << 1;
+        }
+    }
+    (
+        std::array::from_fn(|l| to_unit(owen_scramble_reversed(i[l], k[l].scramble_x))),
+        std::array::from_fn(|l| to_unit(owen_scramble_reversed(y[l], k[l].scramble_y))),
+    )
+}
+
+/// [`Sampler::next_f32_with`] of `W` samplers, without advancing them.
+#[inline(always)]
+pub(crate) fn draws_1d<const W: usize>(
+    sample: [u32; W],
+    spp: [u32; W],
+    k: [Keys1d; W],
+) -> [f32; W] {
+    let i = permutation_lanes(sample, spp, std::array::from_fn(|l| k[l].permutation));
+    std::array::from_fn(|l| to_unit(owen_scramble_reversed(i[l], k[l].scramble)))
 }
 
 /// Per-pixel stratified sample generator ("padded" scrambled Sobol, as in
@@ -233,15 +295,16 @@ impl Sampler {
     #[inline]
     pub fn next_2d_with(&mut self, k: Keys2d) -> (f32, f32) {
         debug_assert!(k == self.keys_2d());
-        let i = permutation_element(self.sample, self.spp, k.permutation);
+        let (x, y) = draws_2d([self.sample], [self.spp], [k]);
         self.dim += 1;
-        // The Sobol point's coordinates bit-reversed: what the scramble
-        // works on (it reverses its input and output).
-        let (xr, yr) = sobol_2d_reversed(i);
-        (
-            to_unit(owen_scramble_reversed(xr, k.scramble_x)),
-            to_unit(owen_scramble_reversed(yr, k.scramble_y)),
-        )
+        (x[0], y[0])
+    }
+
+    /// The sample index and count: where this sampler stands among its
+    /// pixel's samples.
+    #[inline(always)]
+    pub(crate) fn index(&self) -> (u32, u32) {
+        (self.sample, self.spp)
     }
 
     #[inline]
@@ -254,15 +317,15 @@ impl Sampler {
     #[inline]
     pub fn next_f32_with(&mut self, k: Keys1d) -> f32 {
         debug_assert!(k == self.keys_1d());
-        let i = permutation_element(self.sample, self.spp, k.permutation);
+        let x = draws_1d([self.sample], [self.spp], [k]);
         self.dim += 1;
-        to_unit(owen_scramble_reversed(i, k.scramble))
+        x[0]
     }
 }
 
 /// The keys of one 2-D draw of a pixel's samples: which permutation of
 /// the samples, and the two coordinates' scrambles.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Keys2d {
     permutation: u32,
     scramble_x: u32,
@@ -270,7 +333,7 @@ pub struct Keys2d {
 }
 
 /// The keys of one 1-D draw of a pixel's samples.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Keys1d {
     permutation: u32,
     scramble: u32,

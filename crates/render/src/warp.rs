@@ -3,23 +3,67 @@
 use glam::Vec3;
 use std::f32::consts::PI;
 
-/// Cosine-weighted hemisphere around +z; pdf = cos θ / π.
+use crate::lanes::{sin_cos, F, V3};
+
+/// Cosine-weighted hemisphere around +z; pdf = cos θ / π. The lane
+/// kernel [`cosine_hemisphere_lanes`] at width 1.
 #[inline]
 pub fn square_to_cosine_hemisphere(u1: f32, u2: f32) -> Vec3 {
-    // Concentric disk mapping (Shirley–Chiu).
+    cosine_hemisphere_lanes(F::<1>([u1]), F::<1>([u2])).lane(0)
+}
+
+/// [`square_to_cosine_hemisphere`] of `W` lanes: the concentric disk
+/// mapping (Shirley–Chiu), lifted to the hemisphere.
+#[inline(always)]
+pub fn cosine_hemisphere_lanes<const W: usize>(u1: F<W>, u2: F<W>) -> V3<W> {
     let a = 2.0 * u1 - 1.0;
     let b = 2.0 * u2 - 1.0;
-    let (r, phi) = if a == 0.0 && b == 0.0 {
-        (0.0, 0.0)
-    } else if a * a > b * b {
-        (a, (PI / 4.0) * (b / a))
-    } else {
-        (b, (PI / 2.0) - (PI / 4.0) * (a / b))
-    };
-    let x = r * phi.cos();
-    let y = r * phi.sin();
+    let centre = a.eq(0.0) & b.eq(0.0);
+    let wide = (a * a).gt(b * b);
+    let zero = F::splat(0.0);
+    let r = F::select(centre, zero, F::select(wide, a, b));
+    let phi = F::select(
+        centre,
+        zero,
+        F::select(
+            wide,
+            (PI / 4.0) * (b / a),
+            (PI / 2.0) - (PI / 4.0) * (a / b),
+        ),
+    );
+    let (sin, cos) = sin_cos(phi);
+    let x = r * cos;
+    let y = r * sin;
     let z = (1.0 - x * x - y * y).max(0.0).sqrt();
-    Vec3::new(x, y, z)
+    V3::new(x, y, z)
+}
+
+/// [`Frame`]s of `W` lanes.
+#[derive(Clone, Copy, Debug)]
+pub struct FrameLanes<const W: usize> {
+    pub s: V3<W>,
+    pub t: V3<W>,
+    pub n: V3<W>,
+}
+
+impl<const W: usize> FrameLanes<W> {
+    /// [`Frame::from_normal`] per lane, with its operations.
+    #[inline(always)]
+    pub fn from_normal(n: V3<W>) -> FrameLanes<W> {
+        let sign = F::splat(1.0).copysign(n.z);
+        let a = -1.0 / (sign + n.z);
+        let b = n.x * n.y * a;
+        FrameLanes {
+            s: V3::new(1.0 + sign * n.x * n.x * a, sign * b, -sign * n.x),
+            t: V3::new(b, sign + n.y * n.y * a, -n.y),
+            n,
+        }
+    }
+    /// [`Frame::to_world`] per lane.
+    #[inline(always)]
+    pub fn to_world(&self, v: V3<W>) -> V3<W> {
+        self.s.scale(v.x) + self.t.scale(v.y) + self.n.scale(v.z)
+    }
 }
 
 /// Orthonormal basis with `n` as third axis (Duff et al. 2017).

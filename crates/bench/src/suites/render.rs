@@ -61,6 +61,11 @@ pub struct BenchRenderArgs {
     /// Scratch folder for the exported scene and compiled programs.
     #[arg(long, default_value = "target/bench-render")]
     pub work_dir: PathBuf,
+    /// Only time the full render at each of these shading lane widths
+    /// (1, 4, 8, 16; runs interleaved, the same seed) and check that
+    /// every width gives the same image bytes
+    #[arg(long, value_delimiter = ',')]
+    pub widths: Vec<usize>,
 }
 
 pub fn bench_render(a: BenchRenderArgs) -> Result<()> {
@@ -90,6 +95,9 @@ pub fn bench_render(a: BenchRenderArgs) -> Result<()> {
         threads,
         runs
     );
+    if !a.widths.is_empty() {
+        return lane_widths(&a, scene, runs);
+    }
     let depth = matflow_scene::Bundle::open(&a.bundle)?.load_depth()?;
     let build_t = build_times(scene, &depth, runs);
     let (primary, incoherent) = ray_sets(scene);
@@ -332,6 +340,66 @@ fn full_renders(
         out.stats.total_rays() as f64 / 1e6
     );
     (render_s, out.image)
+}
+
+/// The full render at each lane width of `--widths`, runs interleaved
+/// (width after width, `runs` rounds) so that a machine's drift falls on
+/// all of them alike; fails unless every width gives the same bytes.
+fn lane_widths(
+    a: &BenchRenderArgs,
+    scene: &matflow_render::RenderScene,
+    runs: usize,
+) -> Result<()> {
+    let opts = RenderOptions {
+        spp: a.spp,
+        max_depth: a.depth,
+        reference_compat: a.reference_compat,
+        ..Default::default()
+    };
+    let mut times = vec![Vec::new(); a.widths.len()];
+    let mut images: Vec<Option<Vec<u32>>> = vec![None; a.widths.len()];
+    for _ in 0..runs {
+        for (k, &w) in a.widths.iter().enumerate() {
+            matflow_render::lanes::force_width(Some(w)).map_err(anyhow::Error::msg)?;
+            let t0 = Instant::now();
+            let out = render(scene, &opts, &|_, _| {});
+            times[k].push(t0.elapsed().as_secs_f64());
+            matflow_render::lanes::force_width(None).map_err(anyhow::Error::msg)?;
+            let bits = out
+                .image
+                .data
+                .iter()
+                .flat_map(|v| [v.x.to_bits(), v.y.to_bits(), v.z.to_bits()])
+                .collect();
+            images[k].get_or_insert(bits);
+        }
+    }
+    outln!(
+        "  render {} spp, depth {}, by shading lane width (CPU's own: {}):",
+        a.spp,
+        a.depth,
+        matflow_render::lanes::native_width()
+    );
+    for (k, &w) in a.widths.iter().enumerate() {
+        let same = images[k] == images[0];
+        outln!(
+            "    {w:2} lanes {:8.2} s wall (runs: {}){}",
+            median(times[k].clone()),
+            times[k]
+                .iter()
+                .map(|t| format!("{t:.2}"))
+                .collect::<Vec<_>>()
+                .join(" "),
+            if same { "" } else { "  IMAGE DIFFERS" }
+        );
+    }
+    anyhow::ensure!(
+        images.iter().all(|i| *i == images[0]),
+        "the lane widths {:?} gave different images",
+        a.widths
+    );
+    outln!("    every width gave the same image bytes");
+    Ok(())
 }
 
 /// PSNR against the bundle's stored render, when it has a linear one of
