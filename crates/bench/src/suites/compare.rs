@@ -126,13 +126,22 @@ pub fn run_mitsuba(
     out: Option<&Path>,
 ) -> Result<MitsubaRun> {
     let script = bench_dir.join("mitsuba_render.py");
-    let mut cmd = Command::new("python3");
+    // Dr.Jit 1.5 hangs in its first kernel with `set_thread_count(1)`
+    // (seen here: both threads asleep on a futex); one core is given as
+    // two threads pinned to CPU 0 instead.
+    let mut cmd = if threads == 1 {
+        let mut c = Command::new("taskset");
+        c.args(["-c", "0", "python3"]);
+        c
+    } else {
+        Command::new("python3")
+    };
     cmd.arg(&script)
         .arg(scene_dir)
         .args(["--spp", &spp.to_string()])
         .args(["--depth", &depth.to_string()])
         .args(["--runs", &runs.to_string()])
-        .args(["--threads", &threads.to_string()])
+        .args(["--threads", &threads.max(2).to_string()])
         .args(["--seed", &seed.to_string()]);
     if let Some(c) = crop {
         cmd.arg("--crop");

@@ -10,7 +10,7 @@ use glam::{Vec2, Vec3};
 use matflow_geom::Bvh;
 use matflow_render::rng::Pcg32;
 use matflow_render::warp::{square_to_cosine_hemisphere, Frame};
-use matflow_render::{render, Crop, RenderOptions};
+use matflow_render::{render, Crop, RenderOptions, RenderScene};
 use matflow_scene::metrics::psnr_gamma;
 use matflow_scene::{io, MaterialSource};
 use rayon::prelude::*;
@@ -66,6 +66,15 @@ pub struct BenchRenderArgs {
     /// every width gives the same image bytes
     #[arg(long, value_delimiter = ',')]
     pub widths: Vec<usize>,
+    /// Only measure how the render's time grows with resolution (the
+    /// scene resampled to 256², 512², 1024², 16 spp), spp (16 to 1024 on
+    /// the central 128² window), triangles (the mesh as built and each
+    /// triangle split in 4, central 256², 64 spp) and threads (1, 2;
+    /// central 256², 64 spp), with Mitsuba 3 on the same scenes and
+    /// windows when installed (for one thread: on one core, as Dr.Jit
+    /// hangs with one thread)
+    #[arg(long)]
+    pub scaling: bool,
 }
 
 pub fn bench_render(a: BenchRenderArgs) -> Result<()> {
@@ -97,6 +106,9 @@ pub fn bench_render(a: BenchRenderArgs) -> Result<()> {
     );
     if !a.widths.is_empty() {
         return lane_widths(&a, scene, runs);
+    }
+    if a.scaling {
+        return scaling(&a, &loaded, runs);
     }
     let depth = matflow_scene::Bundle::open(&a.bundle)?.load_depth()?;
     let build_t = build_times(scene, &depth, runs);
@@ -400,6 +412,230 @@ fn lane_widths(
     );
     outln!("    every width gave the same image bytes");
     Ok(())
+}
+
+/// `--scaling`: matflow's and Mitsuba 3's render times (medians of
+/// `runs`) as resolution, spp, triangle count and threads grow.
+fn scaling(
+    a: &BenchRenderArgs,
+    loaded: &matflow_nodes::bundle_scene::LoadedScene,
+    runs: usize,
+) -> Result<()> {
+    use crate::suites::compare::*;
+    let base = &loaded.scene;
+    let bench_dir = a.bench_dir.clone().unwrap_or_else(default_bench_dir);
+    let mitsuba = mitsuba_installed() && !a.reference_compat;
+    let threads_now = rayon::current_num_threads();
+    let centre = |s: usize| {
+        let c = base.camera;
+        let s = s.min(c.width).min(c.height);
+        Crop {
+            x: (c.width - s) / 2,
+            y: (c.height - s) / 2,
+            width: s,
+            height: s,
+        }
+    };
+    // One row: matflow's median, then Mitsuba's on the exported scene.
+    let row = |what: String,
+               scene: &matflow_render::RenderScene,
+               dir: &std::path::Path,
+               spp: u32,
+               crop: Option<Crop>,
+               threads: usize|
+     -> Result<()> {
+        let opts = RenderOptions {
+            spp,
+            max_depth: a.depth,
+            crop,
+            ..Default::default()
+        };
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()?;
+        let times: Vec<f64> = (0..runs)
+            .map(|r| {
+                let o = RenderOptions {
+                    seed: r as u64,
+                    ..opts
+                };
+                let t0 = Instant::now();
+                pool.install(|| render(scene, &o, &|_, _| {}));
+                t0.elapsed().as_secs_f64()
+            })
+            .collect();
+        let ours = median(times);
+        if !mitsuba {
+            outln!("  {what:<40}{ours:9.3} s");
+            return Ok(());
+        }
+        let mi = run_mitsuba(&bench_dir, dir, spp, a.depth, runs, threads, 0, crop, None)?;
+        outln!(
+            "  {what:<40}{ours:9.3} s {:9.3} s   matflow/Mitsuba {:.2}",
+            mi.median_s,
+            ours / mi.median_s
+        );
+        Ok(())
+    };
+    let work = &a.work_dir;
+    let export = |scene: &matflow_render::RenderScene, name: &str| -> Result<PathBuf> {
+        let dir = work.join(name);
+        if mitsuba {
+            export_scene(scene, &dir)?;
+        }
+        Ok(dir)
+    };
+    outln!(
+        "scaling: depth {}, medians of {runs}; matflow{}",
+        a.depth,
+        if mitsuba {
+            ", Mitsuba 3 (llvm_ad_rgb) beside it"
+        } else {
+            " (Mitsuba 3 not installed)"
+        }
+    );
+    let base_dir = export(base, "scaling-base")?;
+
+    // Resolution: depth and maps resampled (bilinear), the mesh rebuilt.
+    let bundle = matflow_scene::Bundle::open(&a.bundle)?;
+    let depth = bundle.load_depth()?;
+    for n in [256usize, 512, 1024] {
+        let (scene, dir) = if n == base.camera.width && n == base.camera.height {
+            (None, base_dir.clone())
+        } else {
+            let s = resampled_scene(&depth, &loaded.maps, &loaded.env, n)?;
+            let d = export(&s, &format!("scaling-{n}"))?;
+            (Some(s), d)
+        };
+        let scene = scene.as_ref().unwrap_or(base);
+        row(
+            format!("{n}², 16 spp, {} triangles", scene.mesh.triangle_count()),
+            scene,
+            &dir,
+            16,
+            None,
+            threads_now,
+        )?;
+    }
+    // Samples per pixel.
+    for spp in [16u32, 64, 256, 1024] {
+        row(
+            format!("central 128², {spp} spp"),
+            base,
+            &base_dir,
+            spp,
+            Some(centre(128)),
+            threads_now,
+        )?;
+    }
+    // Triangles: each split into four (the same surface).
+    let split = RenderScene::new(
+        base.camera,
+        split_triangles(&base.mesh),
+        &loaded.maps,
+        loaded.env.clone(),
+    )?;
+    let split_dir = export(&split, "scaling-split")?;
+    for (scene, dir) in [(base, &base_dir), (&split, &split_dir)] {
+        row(
+            format!(
+                "central 256², 64 spp, {} triangles",
+                scene.mesh.triangle_count()
+            ),
+            scene,
+            dir,
+            64,
+            Some(centre(256)),
+            threads_now,
+        )?;
+    }
+    drop(split);
+    // Threads (one thread: matflow's pool of one; Mitsuba's two threads
+    // pinned to one core, see `run_mitsuba`).
+    for threads in [1usize, 2] {
+        row(
+            format!("central 256², 64 spp, {threads} thread(s)"),
+            base,
+            &base_dir,
+            64,
+            Some(centre(256)),
+            threads,
+        )?;
+    }
+    Ok(())
+}
+
+/// The bundle's scene at `n`×`n`: depth and material maps resampled
+/// (bilinear), the mesh and BVH rebuilt.
+fn resampled_scene(
+    depth: &matflow_scene::GrayImage,
+    maps: &matflow_scene::MaterialMaps,
+    env: &matflow_render::EnvMap,
+    n: usize,
+) -> Result<RenderScene> {
+    let gray = |g: &matflow_scene::GrayImage| {
+        let rgb = matflow_scene::Image::from_fn(g.width, g.height, |x, y| Vec3::splat(g.get(x, y)));
+        let r = io::resize_bilinear(&rgb, n, n);
+        matflow_scene::Image::from_fn(n, n, |x, y| r.get(x, y).x)
+    };
+    let mut m = maps.clone();
+    m.albedo = io::resize_bilinear(&maps.albedo, n, n);
+    m.roughness = gray(&maps.roughness);
+    m.metallic = gray(&maps.metallic);
+    m.normal = None;
+    m.transparency = None;
+    let (scene, _, _) = matflow_render::scene_from_depth(
+        &gray(depth),
+        &m,
+        env.clone(),
+        matflow_geom::MeshParams::default(),
+        None,
+    )?;
+    Ok(scene)
+}
+
+/// `mesh` with every triangle split into four at its edges' midpoints:
+/// the same surface with four times the triangles (per-triangle
+/// attributes copied to the four).
+fn split_triangles(mesh: &matflow_geom::TriMesh) -> matflow_geom::TriMesh {
+    let mut out = matflow_geom::TriMesh {
+        portals: mesh.portals.clone(),
+        ..Default::default()
+    };
+    let film = !mesh.film.is_empty();
+    for (t, tri) in mesh.indices.iter().enumerate() {
+        let p = tri.map(|i| mesh.positions[i as usize]);
+        let base = out.positions.len() as u32;
+        out.positions.extend([
+            p[0],
+            p[1],
+            p[2],
+            (p[0] + p[1]) * 0.5,
+            (p[1] + p[2]) * 0.5,
+            (p[2] + p[0]) * 0.5,
+        ]);
+        if film {
+            let f = tri.map(|i| mesh.film[i as usize]);
+            out.film.extend([
+                f[0],
+                f[1],
+                f[2],
+                (f[0] + f[1]) * 0.5,
+                (f[1] + f[2]) * 0.5,
+                (f[2] + f[0]) * 0.5,
+            ]);
+        }
+        let [a, b, c, ab, bc, ca] = [0, 1, 2, 3, 4, 5].map(|k| base + k);
+        out.indices
+            .extend([[a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca]]);
+        if let Some(&m) = mesh.material_pixel.get(t) {
+            out.material_pixel.extend([m; 4]);
+        }
+        if let Some(&o) = mesh.openness.get(t) {
+            out.openness.extend([o; 4]);
+        }
+    }
+    out
 }
 
 /// PSNR against the bundle's stored render, when it has a linear one of
