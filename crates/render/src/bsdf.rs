@@ -22,7 +22,7 @@ use std::f32::consts::PI;
 use glam::Vec3;
 
 use crate::lanes::{sin_cos, F, M, V3};
-use crate::warp::{cosine_hemisphere_lanes, FrameLanes};
+use crate::warp::{concentric_polar, lift_to_hemisphere, FrameLanes};
 
 pub const MIN_ROUGHNESS: f32 = 0.07;
 
@@ -214,19 +214,28 @@ pub fn sample_lanes<const W: usize>(
     u1: F<W>,
     u2: F<W>,
 ) -> SampleLanes<W> {
+    // Each lane's lobe picks its angle; one sin/cos and one frame
+    // transform serve both lobes.
+    let diffuse = u_lobe.gt(0.5);
     let frame = FrameLanes::from_normal(n);
-    let diffuse = frame.to_world(cosine_hemisphere_lanes(u1, u2));
+    let (r_disk, phi_disk) = concentric_polar(u1, u2);
     let r = m.roughness.clamp(MIN_ROUGHNESS, 1.0);
     let a2 = r * r * r * r;
     let cos_t = ((1.0 - u1) / (u1 * (a2 - 1.0) + 1.0))
         .clamp(0.0, 1.0)
         .sqrt();
     let sin_t = (1.0 - cos_t * cos_t).max(0.0).sqrt();
-    let (sin_p, cos_p) = sin_cos(2.0 * PI * u2);
-    let h = frame.to_world(V3::new(sin_t * cos_p, sin_t * sin_p, cos_t));
-    let vh2 = 2.0 * v.dot(h);
-    let specular = h.scale(vh2) - v;
-    let l = V3::select(u_lobe.gt(0.5), diffuse, specular).normalize_or_zero();
+    let (sin_p, cos_p) = sin_cos(F::select(diffuse, phi_disk, 2.0 * PI * u2));
+    let local = V3::select(
+        diffuse,
+        lift_to_hemisphere(r_disk, sin_p, cos_p),
+        V3::new(sin_t * cos_p, sin_t * sin_p, cos_t),
+    );
+    // The cosine sample, or the GGX half vector reflected about v.
+    let w = frame.to_world(local);
+    let vh2 = 2.0 * v.dot(w);
+    let specular = w.scale(vh2) - v;
+    let l = V3::select(diffuse, w, specular).normalize_or_zero();
     let nonzero = !(l.x.eq(0.0) & l.y.eq(0.0) & l.z.eq(0.0));
     let (f, p) = eval_pdf_lanes(m, n, v, l);
     let weight = V3::new(f.x / (p + 1e-6), f.y / (p + 1e-6), f.z / (p + 1e-6));

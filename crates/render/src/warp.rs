@@ -16,6 +16,14 @@ pub fn square_to_cosine_hemisphere(u1: f32, u2: f32) -> Vec3 {
 /// mapping (Shirley–Chiu), lifted to the hemisphere.
 #[inline(always)]
 pub fn cosine_hemisphere_lanes<const W: usize>(u1: F<W>, u2: F<W>) -> V3<W> {
+    let (r, phi) = concentric_polar(u1, u2);
+    let (sin, cos) = sin_cos(phi);
+    lift_to_hemisphere(r, sin, cos)
+}
+
+/// The concentric disk mapping's radius and angle of (u1, u2).
+#[inline(always)]
+pub fn concentric_polar<const W: usize>(u1: F<W>, u2: F<W>) -> (F<W>, F<W>) {
     let a = 2.0 * u1 - 1.0;
     let b = 2.0 * u2 - 1.0;
     let centre = a.eq(0.0) & b.eq(0.0);
@@ -31,7 +39,13 @@ pub fn cosine_hemisphere_lanes<const W: usize>(u1: F<W>, u2: F<W>) -> V3<W> {
             (PI / 2.0) - (PI / 4.0) * (a / b),
         ),
     );
-    let (sin, cos) = sin_cos(phi);
+    (r, phi)
+}
+
+/// The disk point at radius `r` and angle (sin, cos), lifted to the
+/// hemisphere above it.
+#[inline(always)]
+pub fn lift_to_hemisphere<const W: usize>(r: F<W>, sin: F<W>, cos: F<W>) -> V3<W> {
     let x = r * cos;
     let y = r * sin;
     let z = (1.0 - x * x - y * y).max(0.0).sqrt();
