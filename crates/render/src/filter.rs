@@ -96,10 +96,33 @@ impl FilterWeights {
         }
     }
 
+    /// The separable weights of a sample at film position `at` for the
+    /// columns `first.0, first.0 + 1, …` and rows `first.1, …` (as many
+    /// as `wx` and `wy` hold). A footprint of up to 4×4 (the default
+    /// Gaussian's) takes one 8-lane evaluation: columns in lanes 0–3,
+    /// rows in 4–7.
+    #[inline]
+    pub fn footprint(&self, at: glam::Vec2, first: (i64, i64), wx: &mut [f32], wy: &mut [f32]) {
+        if wx.len() > 4 || wy.len() > 4 {
+            self.weights_from(first.0, at.x, wx);
+            self.weights_from(first.1, at.y, wy);
+            return;
+        }
+        let w = self.weight_lanes(F::<8>(std::array::from_fn(|k| {
+            if k < 4 {
+                (first.0 + k as i64) as f32 + 0.5 - at.x
+            } else {
+                (first.1 + k as i64 - 4) as f32 + 0.5 - at.y
+            }
+        })));
+        wx.copy_from_slice(&w.0[..wx.len()]);
+        wy.copy_from_slice(&w.0[4..4 + wy.len()]);
+    }
+
     /// The 1-D weights of the pixels `first`, `first + 1`, … (as many as
     /// `out` holds) for a sample at film coordinate `at`.
     #[inline]
-    pub fn weights_from(&self, first: i64, at: f32, out: &mut [f32]) {
+    fn weights_from(&self, first: i64, at: f32, out: &mut [f32]) {
         for (c, chunk) in out.chunks_mut(8).enumerate() {
             let x = F::<8>(std::array::from_fn(|k| {
                 (first + (c * 8 + k) as i64) as f32 + 0.5 - at

@@ -655,9 +655,7 @@ impl Wavefront {
         for &i in &self.active {
             let path = &self.paths[i as usize];
             if let Some(ls) = path.light {
-                if path.obj == NO_OBJECT
-                    && !path.glass_vertex
-                    && arrives(&self.transmit, &self.blocked, ls.ray) > 0.0
+                if path.on_screen_material() && arrives(&self.transmit, &self.blocked, ls.ray) > 0.0
                 {
                     self.screen.push(i);
                 }
@@ -671,7 +669,7 @@ impl Wavefront {
             if let Some(ls) = path.light {
                 let t = arrives(&self.transmit, &self.blocked, ls.ray);
                 if t > 0.0 {
-                    let (f, pdf_b) = if path.obj == NO_OBJECT && !path.glass_vertex {
+                    let (f, pdf_b) = if path.on_screen_material() {
                         (path.light_f, path.light_pdf)
                     } else {
                         vertex_eval_pdf(scene, path, n, v, ls.dir)
@@ -873,6 +871,21 @@ crate::lane_kernel!(fn eval_screen_lights_now = eval_screen_lights(
     screen: &[u32],
 ));
 
+/// The materials, normals and directions towards the viewer of the
+/// paths of `group`, one a lane; lanes past its end repeat its first.
+#[inline(always)]
+fn gather_vertices<const W: usize>(
+    paths: &[Path],
+    group: &[u32],
+) -> (bsdf::MaterialLanes<W>, V3<W>, V3<W>) {
+    let at = |i: usize| &paths[group[i.min(group.len() - 1)] as usize];
+    (
+        bsdf::MaterialLanes::gather(|i| at(i).mat),
+        V3::gather(|i| at(i).n),
+        V3::gather(|i| -at(i).dir),
+    )
+}
+
 /// The BSDF samples of the depth-mesh vertices `screen` (their draws in
 /// [`Path::u`]), `W` lanes at a time; a short last group repeats its
 /// first path in the lanes it lacks.
@@ -884,10 +897,8 @@ fn sample_screen_bsdfs<const W: usize>(
     screen: &[u32],
 ) {
     for group in screen.chunks(W) {
+        let (m, n, v) = gather_vertices::<W>(paths, group);
         let at = |i: usize| &paths[group[i.min(group.len() - 1)] as usize];
-        let m = bsdf::MaterialLanes::<W>::gather(|i| at(i).mat);
-        let n = V3::gather(|i| at(i).n);
-        let v = V3::gather(|i| -at(i).dir);
         let u = |k: usize| F::<W>(std::array::from_fn(|i| at(i).u[k]));
         let s = bsdf::sample_lanes(&m, n, v, u(2), u(3), u(4));
         let positive = s.weight.max_element().gt(0.0);
@@ -923,12 +934,9 @@ fn sample_screen_bsdfs<const W: usize>(
 #[inline(always)]
 fn eval_screen_lights<const W: usize>(paths: &mut [Path], screen: &[u32]) {
     for group in screen.chunks(W) {
+        let (m, n, v) = gather_vertices::<W>(paths, group);
         let at = |i: usize| &paths[group[i.min(group.len() - 1)] as usize];
-        let light = |i: usize| at(i).light.map_or(Vec3::Z, |l| l.dir);
-        let m = bsdf::MaterialLanes::<W>::gather(|i| at(i).mat);
-        let n = V3::gather(|i| at(i).n);
-        let v = V3::gather(|i| -at(i).dir);
-        let l = V3::gather(light);
+        let l = V3::gather(|i| at(i).light.map_or(Vec3::Z, |l| l.dir));
         let (f, pdf) = bsdf::eval_pdf_lanes(&m, n, v, l);
         for (lane, &i) in group.iter().enumerate() {
             let path = &mut paths[i as usize];
@@ -1067,6 +1075,16 @@ fn vertex_eval_pdf(scene: &RenderScene, path: &Path, n: Vec3, v: Vec3, l: Vec3) 
 
 /// [`Path::obj`] of a vertex on the depth mesh.
 const NO_OBJECT: u32 = u32::MAX;
+
+impl Path {
+    /// Whether the vertex being shaded is the depth mesh's own (a
+    /// screen-space material, not an object or a transparent region): the
+    /// vertices whose BSDF runs in lanes.
+    #[inline(always)]
+    fn on_screen_material(&self) -> bool {
+        self.obj == NO_OBJECT && !self.glass_vertex
+    }
+}
 
 /// f·cos and pdf of an object's surface for the outgoing direction `l`
 /// (`n` the shading normal the vertex was shaded with).
@@ -1329,8 +1347,8 @@ pub fn render_until(
             let mut buf = vec![Vec4::ZERO; bw * bh];
             let mut st = RenderStats::default();
             // 1-D filter weights of a sample's footprint columns and rows.
-            let mut wx = vec![0f32; (2 * border + 2).max(4)];
-            let mut wy = vec![0f32; (2 * border + 2).max(4)];
+            let mut wx = vec![0f32; 2 * border + 2];
+            let mut wy = vec![0f32; 2 * border + 2];
             let mut wave = Wavefront::default();
             let mut sinks = Vec::new();
             let mut pixels = Vec::with_capacity(BATCH_PIXELS);
@@ -1366,22 +1384,7 @@ pub fn render_until(
                                 // sample, in lanes.
                                 let nx = (hi_x - lo_x + 1).max(0) as usize;
                                 let ny = (hi_y - lo_y + 1).max(0) as usize;
-                                if nx <= 4 && ny <= 4 {
-                                    // Columns in lanes 0–3, rows in 4–7.
-                                    let w =
-                                        weights.weight_lanes(F::<8>(std::array::from_fn(|k| {
-                                            if k < 4 {
-                                                (lo_x + k as i64) as f32 + 0.5 - film.x
-                                            } else {
-                                                (lo_y + k as i64 - 4) as f32 + 0.5 - film.y
-                                            }
-                                        })));
-                                    wx[..4].copy_from_slice(&w.0[..4]);
-                                    wy[..4].copy_from_slice(&w.0[4..]);
-                                } else {
-                                    weights.weights_from(lo_x, film.x, &mut wx[..nx]);
-                                    weights.weights_from(lo_y, film.y, &mut wy[..ny]);
-                                }
+                                weights.footprint(film, (lo_x, lo_y), &mut wx[..nx], &mut wy[..ny]);
                                 for (j, py) in (lo_y..=hi_y).enumerate() {
                                     let wy = wy[j];
                                     if wy <= 0.0 {

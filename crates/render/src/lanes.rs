@@ -120,13 +120,6 @@ impl<const W: usize> Not for M<W> {
     }
 }
 
-impl<const W: usize> M<W> {
-    #[inline(always)]
-    pub fn any(self) -> bool {
-        self.0.iter().any(|&b| b)
-    }
-}
-
 impl<const W: usize> F<W> {
     #[inline(always)]
     pub fn splat(x: f32) -> F<W> {
@@ -212,7 +205,7 @@ impl<const W: usize> F<W> {
     pub fn is_finite(self) -> M<W> {
         M(std::array::from_fn(|i| self.0[i].is_finite()))
     }
-    /// `self` where `m`, else `other`.
+    /// `a` where `m`, else `b`.
     #[inline(always)]
     pub fn select(m: M<W>, a: F<W>, b: F<W>) -> F<W> {
         F(std::array::from_fn(

@@ -145,17 +145,27 @@ pub fn owen_scramble_reversed(mut v: u32, seed: u32) -> u32 {
 /// Corput, Sobol's second dimension; a (0, 2)-sequence) as 32-bit
 /// fractions with their bits reversed, as [`owen_scramble_reversed`]
 /// takes them: (i, the second dimension's generator columns applied in
-/// reversed bit order).
+/// reversed bit order). [`sobol_2d_reversed_lanes`] at width 1.
 #[inline]
 pub fn sobol_2d_reversed(i: u32) -> (u32, u32) {
-    let mut y = 0u32;
-    let mut v = 1u32;
-    let mut k = i;
-    while k != 0 {
-        // Branch-free: the bit is unpredictable.
-        y ^= v & (k & 1).wrapping_neg();
-        k >>= 1;
-        v ^= v << 1;
+    let (x, y) = sobol_2d_reversed_lanes([i]);
+    (x[0], y[0])
+}
+
+/// [`sobol_2d_reversed`] of `W` lanes: as many rounds as the largest
+/// index has bits.
+#[inline(always)]
+pub fn sobol_2d_reversed_lanes<const W: usize>(i: [u32; W]) -> ([u32; W], [u32; W]) {
+    let mut y = [0u32; W];
+    let mut v = [1u32; W];
+    let mut rest = i;
+    while rest.iter().any(|&r| r != 0) {
+        for l in 0..W {
+            // Branch-free: the bit is unpredictable.
+            y[l] ^= v[l] & (rest[l] & 1).wrapping_neg();
+            rest[l] >>= 1;
+            v[l] ^= v[l] << 1;
+        }
     }
     (i, y)
 }
@@ -175,20 +185,11 @@ pub(crate) fn draws_2d<const W: usize>(
     k: [Keys2d; W],
 ) -> ([f32; W], [f32; W]) {
     let i = permutation_lanes(sample, spp, std::array::from_fn(|l| k[l].permutation));
-    // Sobol's first two dimensions, bit-reversed (what the scramble works
-    // on), for every lane: as many rounds as the largest index has bits.
-    let mut y = [0u32; W];
-    let mut v = [1u32; W];
-    let mut rest = i;
-    while rest.iter().any(|&r| r != 0) {
-        for l in 0..W {
-            y[l] ^= v[l] & (rest[l] & 1).wrapping_neg();
-            rest[l] >>= 1;
-            v[l] ^= v[l] << 1;
-        }
-    }
+    // The Sobol point's coordinates bit-reversed: what the scramble works
+    // on (it reverses its input and output).
+    let (x, y) = sobol_2d_reversed_lanes(i);
     (
-        std::array::from_fn(|l| to_unit(owen_scramble_reversed(i[l], k[l].scramble_x))),
+        std::array::from_fn(|l| to_unit(owen_scramble_reversed(x[l], k[l].scramble_x))),
         std::array::from_fn(|l| to_unit(owen_scramble_reversed(y[l], k[l].scramble_y))),
     )
 }

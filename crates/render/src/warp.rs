@@ -61,7 +61,7 @@ pub struct FrameLanes<const W: usize> {
 }
 
 impl<const W: usize> FrameLanes<W> {
-    /// [`Frame::from_normal`] per lane, with its operations.
+    /// The frame of each lane's normal (Duff et al. 2017).
     #[inline(always)]
     pub fn from_normal(n: V3<W>) -> FrameLanes<W> {
         let sign = F::splat(1.0).copysign(n.z);
@@ -89,14 +89,13 @@ pub struct Frame {
 }
 
 impl Frame {
+    /// [`FrameLanes::from_normal`] at width 1.
     #[inline]
     pub fn from_normal(n: Vec3) -> Frame {
-        let sign = 1.0f32.copysign(n.z);
-        let a = -1.0 / (sign + n.z);
-        let b = n.x * n.y * a;
+        let f = FrameLanes::<1>::from_normal(V3::splat(n));
         Frame {
-            s: Vec3::new(1.0 + sign * n.x * n.x * a, sign * b, -sign * n.x),
-            t: Vec3::new(b, sign + n.y * n.y * a, -n.y),
+            s: f.s.lane(0),
+            t: f.t.lane(0),
             n,
         }
     }
