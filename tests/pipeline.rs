@@ -99,6 +99,13 @@ fn re_edit_reruns_only_the_edit_and_its_render_then_nothing() {
     }
     assert!(dir.path().join("edited.exr").is_file());
     assert!(dir.path().join("relit.png").is_file());
+    // A file written anew is a new inode (written aside, then renamed).
+    let inode = |f: &str| {
+        use std::os::unix::fs::MetadataExt;
+        std::fs::metadata(dir.path().join(f)).unwrap().ino()
+    };
+    let relit_before = (inode("relit.exr"), inode("relit.png"));
+    let edited_before = inode("edited.exr");
 
     let second = run_demo(&cache, dir.path(), &["--set", "shiny.roughness=0.4"], None);
     let st = statuses(&second.report);
@@ -125,6 +132,16 @@ fn re_edit_reruns_only_the_edit_and_its_render_then_nothing() {
     assert_eq!(outputs(&third.report), o2);
     let table = String::from_utf8_lossy(&third.out.stdout);
     assert!(table.contains("0 executed"), "{table}");
+
+    // Files already holding what the stage would write are left alone;
+    // the edit's image is written again, and so is a file changed by hand.
+    assert_eq!((inode("relit.exr"), inode("relit.png")), relit_before);
+    assert_ne!(inode("edited.exr"), edited_before);
+    let png = std::fs::read(dir.path().join("relit.png")).unwrap();
+    std::fs::write(dir.path().join("relit.png"), b"scribbled over").unwrap();
+    run_demo(&cache, dir.path(), &["--set", "shiny.roughness=0.4"], None);
+    assert_eq!(std::fs::read(dir.path().join("relit.png")).unwrap(), png);
+    assert_eq!(inode("relit.exr"), relit_before.0);
 }
 
 #[test]

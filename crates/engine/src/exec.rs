@@ -883,7 +883,7 @@ impl<'a> Scheduler<'a> {
         let stage = self.by_name[name];
         let node = self.reg.get(&stage.kind).expect("validated kind");
         let slot = self.slots.get_mut(name).unwrap();
-        match materialize(node, stage, &done.outputs, self.store) {
+        match materialize(node, stage, &key, &done.outputs, self.store) {
             Ok(files) => {
                 rep.status = done.status;
                 rep.worker = Some(done.worker);
@@ -1042,10 +1042,14 @@ fn notes(node: &dyn Node, outputs: &BTreeMap<String, Digest>, store: &Tiered) ->
 }
 
 /// Writes the user's files for a stage (render outputs); a blob that
-/// cannot be read is reported as missing.
+/// cannot be read is reported as missing. Files already on the disk with
+/// the bytes this stage (its key, its outputs, the paths asked) wrote
+/// last time are left as they are: a re-run that changes nothing upstream
+/// of them neither reads their blobs nor encodes them again.
 fn materialize(
     node: &dyn Node,
     stage: &crate::spec::Stage,
+    key: &Digest,
     outputs: &BTreeMap<String, Digest>,
     store: &Tiered,
 ) -> Result<Vec<String>, Failure> {
@@ -1055,6 +1059,14 @@ fn materialize(
         .any(|sp| matches!(sp.ty, ParamType::OutPath) && stage.params.is_set(sp.name));
     if !wants_files {
         return Ok(vec![]);
+    }
+    let shown = |v: &[std::path::PathBuf]| v.iter().map(|p| p.display().to_string()).collect();
+    let stamp = written_stamp(node, stage, key, outputs);
+    if let Some(files) = stamp
+        .as_ref()
+        .and_then(|s| store.local().written_up_to_date(s))
+    {
+        return Ok(shown(&files));
     }
     let mut bytes = BTreeMap::new();
     for (name, d) in outputs {
@@ -1066,9 +1078,41 @@ fn materialize(
             Err(e) => return Err(Failure::Infra(e.to_string())),
         }
     }
-    node.materialize(&stage.params, &bytes)
-        .map(|v| v.iter().map(|p| p.display().to_string()).collect())
-        .map_err(Failure::of)
+    let files = node
+        .materialize(&stage.params, &bytes)
+        .map_err(Failure::of)?;
+    if let Some(s) = &stamp {
+        // Only a shortcut for the next run: without the record the files
+        // are written again.
+        let _ = store.local().put_written(s, &files);
+    }
+    Ok(shown(&files))
+}
+
+/// What a stage's files are a function of: its key (kind, version,
+/// parameters, inputs), its outputs and the absolute paths it writes.
+/// `None` when a path cannot be made absolute.
+fn written_stamp(
+    node: &dyn Node,
+    stage: &crate::spec::Stage,
+    key: &Digest,
+    outputs: &BTreeMap<String, Digest>,
+) -> Option<Digest> {
+    let mut h = blake3::Hasher::new();
+    h.update(b"matflow written v1\0");
+    h.update(env!("CARGO_PKG_VERSION").as_bytes());
+    h.update(&key.0);
+    for (name, d) in outputs {
+        h.update(name.as_bytes());
+        h.update(b"\0");
+        h.update(&d.0);
+    }
+    for p in node.output_files(&stage.params) {
+        let abs = std::path::absolute(&p).ok()?;
+        h.update(abs.as_os_str().as_encoded_bytes());
+        h.update(b"\0");
+    }
+    Some(Digest(*h.finalize().as_bytes()))
 }
 
 /// The action keys a pipeline's needed stages currently resolve to, for

@@ -206,6 +206,14 @@ fn host_name() -> &'static str {
     })
 }
 
+/// One file of a [`Store::put_written`] record.
+#[derive(serde::Serialize, serde::Deserialize)]
+struct Written {
+    path: PathBuf,
+    size: u64,
+    blake3: String,
+}
+
 impl Store {
     pub fn open(root: impl Into<PathBuf>) -> Result<Store, StoreError> {
         let root = root.into();
@@ -328,6 +336,56 @@ impl Store {
         serde_json::from_slice::<Action>(&bytes)
             .ok()
             .filter(|a| a.digests().is_some())
+    }
+
+    /// Where the record of the files written for `stamp` lives
+    /// ([`Store::put_written`]).
+    fn written_path(&self, stamp: &Digest) -> PathBuf {
+        let h = stamp.hex();
+        self.root
+            .join("written")
+            .join(&h[..2])
+            .join(format!("{}.json", &h[2..]))
+    }
+
+    /// Records the user's files a stage wrote for `stamp` (its key, its
+    /// outputs and the paths asked): each file's path, size and digest,
+    /// read back from the disk. Files that cannot be read are not
+    /// recorded, so they are written again next time.
+    pub fn put_written(&self, stamp: &Digest, files: &[PathBuf]) -> Result<(), StoreError> {
+        let mut rec = Vec::with_capacity(files.len());
+        for f in files {
+            let Ok(bytes) = std::fs::read(f) else {
+                return Ok(());
+            };
+            rec.push(Written {
+                path: f.clone(),
+                size: bytes.len() as u64,
+                blake3: Digest::of(&bytes).hex(),
+            });
+        }
+        let json = serde_json::to_vec(&rec).expect("records serialise");
+        self.write_atomic(&self.written_path(stamp), &json)
+    }
+
+    /// The files recorded for `stamp` if every one of them is still on the
+    /// disk with the recorded bytes (size, then digest): writing them again
+    /// would change nothing. `None` when there is no record or a file
+    /// differs, is missing or unreadable.
+    pub fn written_up_to_date(&self, stamp: &Digest) -> Option<Vec<PathBuf>> {
+        let bytes = std::fs::read(self.written_path(stamp)).ok()?;
+        let rec: Vec<Written> = serde_json::from_slice(&bytes).ok()?;
+        for w in &rec {
+            let meta = std::fs::metadata(&w.path).ok()?;
+            if !meta.is_file() || meta.len() != w.size {
+                return None;
+            }
+            let now = std::fs::read(&w.path).ok()?;
+            if Digest::of(&now).hex() != w.blake3 {
+                return None;
+            }
+        }
+        Some(rec.into_iter().map(|w| w.path).collect())
     }
 
     /// Removes an action entry; `Ok(false)` if there was none.

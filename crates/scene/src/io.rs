@@ -299,7 +299,9 @@ fn exr_to_bytes(
     Ok(cur.into_inner())
 }
 
-/// Writes linear RGB as a 32-bit float, PIZ-compressed scanline EXR.
+/// Writes linear RGB as a 32-bit float, PIZ-compressed scanline EXR
+/// (blocks compressed on all cores, written in line order: the bytes do
+/// not depend on the thread count).
 pub fn write_exr_rgb(path: &Path, img: &RgbImage) -> Result<()> {
     write_atomic(path, &encode_exr_rgb(path, img)?)
 }
@@ -314,7 +316,7 @@ pub fn encode_exr_rgb(path: &Path, img: &RgbImage) -> Result<Vec<u8>> {
     let image = x::Image::from_encoded_channels((img.width, img.height), exr_encoding(), channels);
     exr_to_bytes(path, |c| {
         use x::WritableImage;
-        image.write().non_parallel().to_buffered(c)
+        image.write().to_buffered(c)
     })
 }
 
@@ -330,7 +332,7 @@ pub fn encode_exr_gray(path: &Path, img: &GrayImage) -> Result<Vec<u8>> {
     let image = x::Image::from_encoded_channels((img.width, img.height), exr_encoding(), channels);
     exr_to_bytes(path, |c| {
         use x::WritableImage;
-        image.write().non_parallel().to_buffered(c)
+        image.write().to_buffered(c)
     })
 }
 
@@ -866,6 +868,33 @@ pub fn read_photo(path: &Path) -> Result<Photo> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// EXR blocks are compressed on all cores but written in line order:
+    /// the bytes are those of compressing them one after another.
+    #[test]
+    fn exr_bytes_do_not_depend_on_parallel_compression() {
+        let img = Image::from_fn(97, 300, |x, y| {
+            let h = ((x * 7919 + y * 104_729) as u32).wrapping_mul(0x9e37_79b9);
+            Vec3::new((h >> 20) as f32 / 7.0, (h % 77) as f32, 0.5)
+        });
+        let w = img.width;
+        let channels = x::SpecificChannels::rgb(|p: x::Vec2<usize>| {
+            let v = img.data[p.1 * w + p.0];
+            (v.x, v.y, v.z)
+        });
+        let one =
+            x::Image::from_encoded_channels((img.width, img.height), exr_encoding(), channels);
+        let serial = exr_to_bytes(Path::new("a.exr"), |c| {
+            use x::WritableImage;
+            one.write().non_parallel().to_buffered(c)
+        })
+        .unwrap();
+        assert_eq!(encode_exr_rgb(Path::new("a.exr"), &img).unwrap(), serial);
+        let f = std::env::temp_dir().join(format!("matflow-exrpar-{}.exr", std::process::id()));
+        std::fs::write(&f, &serial).unwrap();
+        assert_eq!(read_exr_rgb(&f).unwrap().data, img.data);
+        let _ = std::fs::remove_file(&f);
+    }
 
     #[test]
     fn an_exr_header_claiming_more_pixels_than_its_file_holds_is_refused_unread() {
