@@ -79,6 +79,25 @@ const BLOCK_INDEX: u32 = 0x0fff_ffff;
 const LANES: usize = 8;
 const HALVES: usize = LANES / 4;
 
+/// Words per stored node: six bound vectors of `LANES` lanes, then the
+/// child slots.
+const NODE_WORDS: usize = 6 * LANES + LANES;
+
+/// A hierarchy as flat words ([`Bvh::to_words`]).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct BvhWords {
+    pub root: u32,
+    pub triangle_count: u32,
+    pub nodes: Vec<u32>,
+    /// Per block of four triangles, their indices (`u32::MAX`: unused).
+    pub prims: Vec<u32>,
+}
+
+/// Stored hierarchy words that cannot be a hierarchy of the mesh.
+#[derive(Debug, thiserror::Error)]
+#[error("stored BVH: {0}")]
+pub struct BvhError(&'static str);
+
 /// A node's children's boxes as [min x, min y, min z, max x, max y, max z],
 /// each a lane per child. Empty slots have min = +∞, max = −∞ and so are
 /// never entered.
@@ -528,6 +547,119 @@ impl Bvh {
         // block's index and, in bits 28–29, the count less one.
         let blocks = self.tris.len() - at;
         LEAF | ((blocks as u32 - 1) << 28) | at as u32
+    }
+
+    /// The hierarchy as words (box bounds as their bits; of each block of
+    /// four triangles only their indices, the vertices being the mesh's),
+    /// to be stored beside its mesh and read back with
+    /// [`Bvh::from_words`] instead of building it again. `None` for one
+    /// with added triangles ([`Bvh::with_added`]), which is never stored.
+    pub fn to_words(&self) -> Option<BvhWords> {
+        if self.added.is_some() {
+            return None;
+        }
+        let mut nodes = Vec::with_capacity(self.nodes.len() * NODE_WORDS);
+        for n in &self.nodes {
+            for axis in &n.bounds {
+                for half in axis {
+                    nodes.extend(half.to_array().map(f32::to_bits));
+                }
+            }
+            nodes.extend_from_slice(&n.child);
+        }
+        Some(BvhWords {
+            root: self.root,
+            triangle_count: self.triangle_count as u32,
+            nodes,
+            prims: self.tris.iter().flat_map(|t| t.prim).collect(),
+        })
+    }
+
+    /// The hierarchy [`Bvh::build`]`(mesh)` built, from its
+    /// [`Bvh::to_words`]: it answers every query as that one does (its
+    /// triangle blocks are made from `mesh` as the build makes them).
+    /// Whatever the words, using the result cannot loop or index out of
+    /// range: every inner child lies after its parent, every leaf's blocks
+    /// exist, every triangle index is the mesh's (or an unused lane).
+    pub fn from_words(w: &BvhWords, mesh: &TriMesh) -> Result<Bvh, BvhError> {
+        if !w.nodes.len().is_multiple_of(NODE_WORDS) || !w.prims.len().is_multiple_of(4) {
+            return Err(BvhError("the arrays are cut short"));
+        }
+        let (n_nodes, n_tris) = (w.nodes.len() / NODE_WORDS, w.prims.len() / 4);
+        if w.triangle_count as usize > mesh.triangle_count() {
+            return Err(BvhError("more triangles than the mesh has"));
+        }
+        let slot_ok = |slot: u32, parent: Option<usize>| -> bool {
+            if slot == EMPTY {
+                return true;
+            }
+            if slot & LEAF != 0 {
+                let at = (slot & BLOCK_INDEX) as usize;
+                let count = ((slot >> 28) & 3) as usize + 1;
+                return slot & !(LEAF | BLOCK_INDEX | 3 << 28) == 0 && at + count <= n_tris;
+            }
+            (slot as usize) < n_nodes && parent.is_none_or(|p| slot as usize > p)
+        };
+        if !slot_ok(w.root, None) {
+            return Err(BvhError("the root is out of range"));
+        }
+        let f = |c: &[u32]| Vec4::from_array([c[0], c[1], c[2], c[3]].map(f32::from_bits));
+        let mut nodes = Vec::with_capacity(n_nodes);
+        for (i, c) in w.nodes.chunks_exact(NODE_WORDS).enumerate() {
+            let mut n = Node::empty();
+            for (a, axis) in n.bounds.iter_mut().enumerate() {
+                for (h, half) in axis.iter_mut().enumerate() {
+                    *half = f(&c[(a * HALVES + h) * 4..]);
+                }
+            }
+            n.child.copy_from_slice(&c[6 * HALVES * 4..]);
+            if !n.child.iter().all(|&s| slot_ok(s, Some(i))) {
+                return Err(BvhError("a node's child is out of range or before it"));
+            }
+            nodes.push(n);
+        }
+        let mut tris = Vec::with_capacity(n_tris);
+        for prim in w.prims.chunks_exact(4) {
+            let mut t = Tri4 {
+                v0: [Vec4::ZERO; 3],
+                e1: [Vec4::ZERO; 3],
+                e2: [Vec4::ZERO; 3],
+                prim: [u32::MAX; 4],
+            };
+            for (lane, &p) in prim.iter().enumerate() {
+                if p == u32::MAX {
+                    continue;
+                }
+                let idx = mesh
+                    .indices
+                    .get(p as usize)
+                    .ok_or(BvhError("a triangle index is out of range"))?;
+                let mut v = [glam::Vec3A::ZERO; 3];
+                for (k, &i) in idx.iter().enumerate() {
+                    v[k] = glam::Vec3A::from(
+                        *mesh
+                            .positions
+                            .get(i as usize)
+                            .ok_or(BvhError("a vertex index is out of range"))?,
+                    );
+                }
+                let (e1, e2) = (v[1] - v[0], v[2] - v[0]);
+                for a in 0..3 {
+                    t.v0[a][lane] = v[0][a];
+                    t.e1[a][lane] = e1[a];
+                    t.e2[a][lane] = e2[a];
+                }
+                t.prim[lane] = p;
+            }
+            tris.push(t);
+        }
+        Ok(Bvh {
+            nodes,
+            tris,
+            triangle_count: w.triangle_count as usize,
+            root: w.root,
+            added: None,
+        })
     }
 
     pub fn triangle_count(&self) -> usize {
@@ -1068,6 +1200,52 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// A stored hierarchy reads back to the same words and answers every
+    /// query as the one built; words that are not a hierarchy of the mesh
+    /// (a child before its parent, a leaf past the blocks, a triangle the
+    /// mesh lacks, cut short) are refused.
+    #[test]
+    fn stored_words_read_back_to_the_same_hierarchy() {
+        let mesh = test_mesh();
+        let built = Bvh::build(&mesh);
+        let w = built.to_words().unwrap();
+        let back = Bvh::from_words(&w, &mesh).unwrap();
+        assert_eq!(back.to_words().unwrap(), w);
+        let mut rng = Rng(0x0b1d_5eed);
+        for _ in 0..2000 {
+            let o = Vec3::new(rng.signed(), rng.signed(), rng.signed()) * 4.0;
+            let d = rng.dir();
+            assert_eq!(
+                back.intersect(o, d, 1e-4, f32::INFINITY),
+                built.intersect(o, d, 1e-4, f32::INFINITY)
+            );
+            assert_eq!(
+                back.occluded(o, d, 1e-4, 3.0),
+                built.occluded(o, d, 1e-4, 3.0)
+            );
+        }
+        let refused = |w: &BvhWords, m: &TriMesh| Bvh::from_words(w, m).is_err();
+        let mut fewer = mesh.clone();
+        fewer.indices.truncate(mesh.triangle_count() - 1);
+        assert!(refused(&w, &fewer), "too few triangles");
+        let mut cut = w.clone();
+        cut.prims.pop();
+        assert!(refused(&cut, &mesh));
+        let mut back_edge = w.clone();
+        assert!(built.node_count() >= 2);
+        // Node 1's first child made node 0: a cycle.
+        back_edge.nodes[NODE_WORDS + 6 * LANES] = 0;
+        assert!(refused(&back_edge, &mesh), "a cycle");
+        let mut leaf = w.clone();
+        leaf.root = LEAF | (3 << 28) | (w.prims.len() / 4) as u32;
+        assert!(refused(&leaf, &mesh), "blocks past the end");
+        let mut prim = w.clone();
+        prim.prims[0] = mesh.triangle_count() as u32;
+        assert!(refused(&prim, &mesh), "a triangle out of range");
+        let empty = Bvh::build(&TriMesh::default()).to_words().unwrap();
+        assert!(Bvh::from_words(&empty, &TriMesh::default()).is_ok());
     }
 
     /// An axis-aligned box room (12 triangles, planes on all three axes),

@@ -10,7 +10,7 @@ pub mod depth_mesh;
 pub mod mesh;
 pub mod planes;
 
-pub use bvh::{Bvh, Hit, PACKET};
+pub use bvh::{Bvh, BvhError, BvhWords, Hit, PACKET};
 pub use complete::{
     assumed_planes, complete_beyond_frame, extensions, window_slots, AssumedPlane, CompleteParams,
     Completion, Extension, Extensions, WindowSlot, COMPLETE_MODES, HIGH_WALLS, MAX_WINDOW_PLANES,

@@ -256,6 +256,105 @@ pub struct PathWords<'a> {
     pub records: Cow<'a, [u32]>,
 }
 
+/// Which materials each pixel's kept paths meet (texel indices as the
+/// render scene numbers them: pixels, then objects, then background
+/// vertices), sorted, each once: all an edit needs to find the pixels it
+/// can reach, a small part of the paths' size.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Reach {
+    pub width: usize,
+    pub height: usize,
+    /// Pixel `p`'s materials are `texels[offsets[p]..offsets[p + 1]]`.
+    offsets: Vec<u32>,
+    texels: Vec<u32>,
+}
+
+impl Reach {
+    /// From its arrays, checked: one offset per pixel and one more,
+    /// starting at 0, never decreasing, ending at the texel count.
+    pub fn from_parts(
+        width: usize,
+        height: usize,
+        offsets: Vec<u32>,
+        texels: Vec<u32>,
+    ) -> Result<Reach, CacheError> {
+        let npix = width
+            .checked_mul(height)
+            .ok_or(CacheError::Layout("size"))?;
+        if offsets.len() != npix + 1
+            || offsets[0] != 0
+            || offsets[npix] as usize != texels.len()
+            || offsets.windows(2).any(|p| p[0] > p[1])
+        {
+            return Err(CacheError::Layout("reach offsets are inconsistent"));
+        }
+        Ok(Reach {
+            width,
+            height,
+            offsets,
+            texels,
+        })
+    }
+
+    /// The per-pixel offsets (`width·height + 1`) and the texels.
+    pub fn parts(&self) -> (&[u32], &[u32]) {
+        (&self.offsets, &self.texels)
+    }
+
+    /// The materials pixel `p`'s paths meet.
+    #[inline]
+    pub fn texels_of(&self, p: usize) -> &[u32] {
+        &self.texels[self.offsets[p] as usize..self.offsets[p + 1] as usize]
+    }
+
+    /// Pixels whose value a change of the materials at `changed` texels
+    /// can alter: those whose own texel changed or whose paths meet a
+    /// changed texel (row-major, ascending).
+    pub fn pixels_reaching(&self, changed: &[bool]) -> Vec<u32> {
+        let w = self.width;
+        let rows: Vec<Vec<u32>> = (0..self.height)
+            .into_par_iter()
+            .map(|y| {
+                (y * w..(y + 1) * w)
+                    .filter(|&p| {
+                        changed.get(p) == Some(&true)
+                            || self
+                                .texels_of(p)
+                                .iter()
+                                .any(|&q| changed.get(q as usize) == Some(&true))
+                    })
+                    .map(|p| p as u32)
+                    .collect()
+            })
+            .collect();
+        rows.concat()
+    }
+
+    /// An image rendered with `opts` from a scene whose materials have
+    /// changed at the `changed` texels since `base` was rendered (with
+    /// the same options, geometry and lighting): the pixels these paths
+    /// say the change can reach are re-traced with the base render's own
+    /// sample streams (so they equal a full re-render bit for bit), the
+    /// rest keep their base value.
+    pub fn rerender_changed(
+        &self,
+        base: &matflow_scene::RgbImage,
+        edited: &RenderScene,
+        opts: &RenderOptions,
+        changed: &[bool],
+    ) -> matflow_scene::RgbImage {
+        let px = self.pixels_reaching(changed);
+        let mut img = base.clone();
+        if !px.is_empty() {
+            let vals = matflow_render::integrator::render_pixels(edited, opts, &px);
+            for (p, v) in px.iter().zip(vals) {
+                img.data[*p as usize] = v;
+            }
+        }
+        img
+    }
+}
+
 impl PathCache {
     pub fn npix(&self) -> usize {
         self.width * self.height
@@ -352,50 +451,36 @@ impl PathCache {
         (&row.vertices[v0..v1], &row.records[r0..r1])
     }
 
-    /// Pixels whose value a change of the materials at `changed` texels
-    /// can alter: those whose own texel changed or whose paths meet a
-    /// changed texel (row-major, ascending).
-    pub fn pixels_reaching(&self, changed: &[bool]) -> Vec<u32> {
+    /// Per pixel, the materials its paths meet: what an edit needs of
+    /// these paths to know which pixels it reaches ([`Reach`]).
+    pub fn reach(&self) -> Reach {
         let (w, h) = (self.width, self.height);
-        let rows: Vec<Vec<u32>> = (0..h)
-            .into_par_iter()
-            .map(|y| {
-                (0..w)
-                    .filter(|&x| {
-                        changed.get(y * w + x) == Some(&true)
-                            || self.pixel(x, y).0.iter().any(|v| {
-                                v.q != NO_MATERIAL && changed.get(v.q as usize) == Some(&true)
-                            })
-                    })
-                    .map(|x| (y * w + x) as u32)
-                    .collect()
-            })
-            .collect();
-        rows.concat()
-    }
-
-    /// An image rendered with `opts` from a scene whose materials have
-    /// changed at the `changed` texels since `base` was rendered (with
-    /// the same options, geometry and lighting): the pixels these paths
-    /// say the change can reach are re-traced with the base render's own
-    /// sample streams (so they equal a full re-render bit for bit), the
-    /// rest keep their base value.
-    pub fn rerender_changed(
-        &self,
-        base: &matflow_scene::RgbImage,
-        edited: &RenderScene,
-        opts: &RenderOptions,
-        changed: &[bool],
-    ) -> matflow_scene::RgbImage {
-        let px = self.pixels_reaching(changed);
-        let mut img = base.clone();
-        if !px.is_empty() {
-            let vals = matflow_render::integrator::render_pixels(edited, opts, &px);
-            for (p, v) in px.iter().zip(vals) {
-                img.data[*p as usize] = v;
+        let mut offsets = Vec::with_capacity(w * h + 1);
+        let mut texels = Vec::new();
+        offsets.push(0u32);
+        let mut seen = Vec::new();
+        for y in 0..h {
+            for x in 0..w {
+                seen.clear();
+                seen.extend(
+                    self.pixel(x, y)
+                        .0
+                        .iter()
+                        .map(|v| v.q)
+                        .filter(|&q| q != NO_MATERIAL),
+                );
+                seen.sort_unstable();
+                seen.dedup();
+                texels.extend_from_slice(&seen);
+                offsets.push(texels.len() as u32);
             }
         }
-        img
+        Reach {
+            width: w,
+            height: h,
+            offsets,
+            texels,
+        }
     }
 
     /// The paths as flat words (see [`PathWords`]).
@@ -737,6 +822,57 @@ mod tests {
     /// after the envmap's texels, each entry the lamp's intensity over the
     /// lamp scale squared, the sun's irradiance over the mean texel's
     /// solid angle.
+    /// A pixel is reached by a change exactly when its own texel or a
+    /// texel one of its paths' vertices uses changed; the reach lists are
+    /// each pixel's vertex texels, sorted, once each.
+    #[test]
+    fn reach_lists_each_pixels_vertex_texels_once() {
+        let t = room(5, 24);
+        let opts = CacheOptions {
+            spp: 4,
+            max_depth: 4,
+            seed: 2,
+            env_width: t.env.width,
+            env_height: t.env.height,
+            lamp_scale: 1.0,
+        };
+        let cache = PathCache::build(&t.scene, &opts, &|_, _| {}).unwrap();
+        let reach = cache.reach();
+        let n = cache.npix();
+        let (offsets, texels) = reach.parts();
+        for p in 0..n {
+            let mine = reach.texels_of(p);
+            assert!(mine.windows(2).all(|w| w[0] < w[1]), "sorted, once each");
+            let (v, _) = cache.pixel(p % cache.width, p / cache.width);
+            for q in v.iter().map(|v| v.q).filter(|&q| q != NO_MATERIAL) {
+                assert!(mine.binary_search(&q).is_ok());
+            }
+            assert!(mine.iter().all(|q| v.iter().any(|v| v.q == *q)));
+        }
+        for k in [1usize, 7, 40] {
+            let changed: Vec<bool> = (0..n).map(|i| i % 97 < k).collect();
+            let brute: Vec<u32> = (0..n)
+                .filter(|&p| {
+                    let (v, _) = cache.pixel(p % cache.width, p / cache.width);
+                    changed[p]
+                        || v.iter()
+                            .any(|v| v.q != NO_MATERIAL && changed[v.q as usize])
+                })
+                .map(|p| p as u32)
+                .collect();
+            assert_eq!(reach.pixels_reaching(&changed), brute);
+        }
+        let rebuilt =
+            Reach::from_parts(reach.width, reach.height, offsets.to_vec(), texels.to_vec());
+        assert_eq!(rebuilt.unwrap(), reach);
+        let mut bad = offsets.to_vec();
+        bad[3] = bad[4] + 1;
+        assert!(Reach::from_parts(reach.width, reach.height, bad, texels.to_vec()).is_err());
+        assert!(
+            Reach::from_parts(reach.width, reach.height + 1, offsets.to_vec(), vec![]).is_err()
+        );
+    }
+
     #[test]
     fn recorded_paths_replay_to_the_renderers_radiance() {
         for (seed, lamps) in [(3u64, false), (8, false), (3, true)] {

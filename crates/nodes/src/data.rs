@@ -6,7 +6,7 @@ use std::path::Path;
 use glam::{Vec2, Vec3};
 use matflow_engine::{NodeError, ParamSpec, ParamType};
 use matflow_geom::{mesh_for_view, MeshParams, Portal, TriMesh};
-use matflow_inverse::paths::{PathCache, PathWords};
+use matflow_inverse::paths::Reach;
 use matflow_render::{EnvMap, PixelFilter, RenderOptions, RenderScene};
 use matflow_scene::{io, Camera, GrayImage, MaterialMaps, RgbImage};
 
@@ -147,6 +147,13 @@ pub fn encode_mesh(width: usize, height: usize, m: &TriMesh) -> Vec<u8> {
     if !m.openness.is_empty() {
         a.put_f32("openness", m.openness.len() as u32, 1, m.openness.clone());
     }
+    // The mesh's ray-tracing hierarchy, so that the stages (and re-runs)
+    // reading it do not build it again.
+    if let Some(w) = matflow_geom::Bvh::build(m).to_words() {
+        a.put_u32("bvh", 2, 1, vec![w.root, w.triangle_count]);
+        a.put_u32("bvh_nodes", w.nodes.len() as u32, 1, w.nodes);
+        a.put_u32("bvh_prims", w.prims.len() as u32, 1, w.prims);
+    }
     // And only closed rooms with windows have portals.
     if !m.portals.is_empty() {
         a.put_f32(
@@ -164,7 +171,30 @@ pub fn encode_mesh(width: usize, height: usize, m: &TriMesh) -> Vec<u8> {
 }
 
 pub fn decode_mesh(b: &[u8]) -> Result<(Camera, TriMesh), NodeError> {
-    let a = Artifact::decode(b, "mesh")?;
+    mesh_of_artifact(&Artifact::decode(b, "mesh")?)
+}
+
+/// The hierarchy stored with `mesh` (`None` in
+/// a mesh artifact written before hierarchies were stored).
+fn stored_bvh(a: &Artifact, mesh: &TriMesh) -> Result<Option<matflow_geom::Bvh>, NodeError> {
+    if !a.has("bvh") {
+        return Ok(None);
+    }
+    let [root, triangle_count] = a.u32_list("bvh", 1)?[..] else {
+        return Err(err("mesh artifact: the bvh section is not 2 words"));
+    };
+    let words = matflow_geom::BvhWords {
+        root,
+        triangle_count,
+        nodes: a.u32_list("bvh_nodes", 1)?.to_vec(),
+        prims: a.u32_list("bvh_prims", 1)?.to_vec(),
+    };
+    matflow_geom::Bvh::from_words(&words, mesh)
+        .map(Some)
+        .map_err(|e| err(format!("mesh artifact: {e}")))
+}
+
+fn mesh_of_artifact(a: &Artifact) -> Result<(Camera, TriMesh), NodeError> {
     let cam = a.u32_list("camera", 1)?;
     if cam.len() != 2 {
         return Err(err("mesh artifact: bad camera"));
@@ -191,9 +221,8 @@ pub fn decode_mesh(b: &[u8]) -> Result<(Camera, TriMesh), NodeError> {
         .chunks_exact(2)
         .map(|c| Vec2::new(c[0], c[1]))
         .collect();
-    let material_pixel =
-        per_triangle(&a, "material_pixel", indices.len(), |a, n| a.u32_list(n, 1))?;
-    let openness = per_triangle(&a, "openness", indices.len(), |a, n| a.f32_list(n, 1))?;
+    let material_pixel = per_triangle(a, "material_pixel", indices.len(), |a, n| a.u32_list(n, 1))?;
+    let openness = per_triangle(a, "openness", indices.len(), |a, n| a.f32_list(n, 1))?;
     if openness.iter().any(|o| !(0.0..=1.0).contains(o)) {
         return Err(err("mesh artifact: openness outside [0, 1]"));
     }
@@ -253,8 +282,29 @@ pub fn render_scene(
     maps: &MaterialMaps,
     env: &RgbImage,
 ) -> Result<RenderScene, NodeError> {
-    let (cam, tri) = decode_mesh(mesh)?;
-    scene_of(cam, tri, maps, env, &[])
+    let a = Artifact::decode(mesh, "mesh")?;
+    let (cam, tri) = mesh_of_artifact(&a)?;
+    match stored_bvh(&a, &tri)? {
+        Some(bvh) => {
+            check_material_size(&cam, maps)?;
+            RenderScene::with_bvh(cam, tri, maps, EnvMap::new(env).map_err(err)?, bvh)
+                .map_err(failed)
+        }
+        None => scene_of(cam, tri, maps, env, &[]),
+    }
+}
+
+fn check_material_size(cam: &Camera, maps: &MaterialMaps) -> Result<(), NodeError> {
+    if maps.width() != cam.width || maps.height() != cam.height {
+        return Err(err(format!(
+            "materials are {}x{} but the mesh's camera is {}x{}",
+            maps.width(),
+            maps.height(),
+            cam.width,
+            cam.height
+        )));
+    }
+    Ok(())
 }
 
 /// A renderable scene from a decoded mesh, materials, an envmap and
@@ -266,15 +316,7 @@ pub fn scene_of(
     env: &RgbImage,
     objects: &[matflow_render::SceneObject],
 ) -> Result<RenderScene, NodeError> {
-    if maps.width() != cam.width || maps.height() != cam.height {
-        return Err(err(format!(
-            "materials are {}x{} but the mesh's camera is {}x{}",
-            maps.width(),
-            maps.height(),
-            cam.width,
-            cam.height
-        )));
-    }
+    check_material_size(&cam, maps)?;
     RenderScene::with_objects(cam, tri, maps, EnvMap::new(env).map_err(err)?, objects)
         .map_err(failed)
 }
@@ -322,10 +364,11 @@ pub fn read_image(path: &Path, size: usize) -> Result<RgbImage, NodeError> {
 /// What a `paths` artifact holds: a `trace` stage's kept paths and the
 /// base render they belong to.
 pub struct Kept {
-    pub cache: PathCache,
-    /// Samples per pixel and seed of the base render (box filter, the
-    /// cache's max_depth).
+    /// Which materials each pixel's kept paths meet.
+    pub reach: Reach,
+    /// Samples per pixel, depth and seed of the base render (box filter).
     pub spp: u32,
+    pub max_depth: u32,
     pub seed: u64,
     pub materials: MaterialMaps,
     pub envmap: RgbImage,
@@ -345,41 +388,42 @@ impl Kept {
     pub fn render_options(&self) -> RenderOptions {
         RenderOptions {
             spp: self.spp,
-            max_depth: self.cache.max_depth,
+            max_depth: self.max_depth,
             seed: self.seed,
             filter: PixelFilter::Box,
             ..Default::default()
         }
     }
 
-    /// The `paths` artifact, stored compactly and losslessly: records
-    /// split into their geometry, weight and (sky records only) envmap
-    /// words — a continuation record's envmap words are always zero —
-    /// and every large array byte-plane shuffled and deflated in fixed
-    /// chunks (in parallel; the bytes do not depend on the thread count).
+    /// The `paths` artifact: the base render, its materials and envmap,
+    /// and per pixel the materials its kept paths meet, stored as counts
+    /// and sorted texel indices delta-coded (the first against the pixel
+    /// itself), byte-plane shuffled and deflated in fixed chunks (in
+    /// parallel; the bytes do not depend on the thread count).
     pub fn encode(&self) -> Vec<u8> {
-        let w = self.cache.to_words();
-        let mut meta = w.meta.to_vec();
-        meta.extend([self.spp, self.seed as u32, (self.seed >> 32) as u32]);
+        let (w, h) = (self.reach.width, self.reach.height);
+        let meta = vec![
+            w as u32,
+            h as u32,
+            self.max_depth,
+            self.spp,
+            self.seed as u32,
+            (self.seed >> 32) as u32,
+        ];
         let mut a = Artifact::new("paths");
-        a.put_u32("meta", 9, 1, meta);
-        let n = |v: &[u32], k: usize| (v.len() / k) as u32;
-        let (vs, rs) = (w.vert_start.into_owned(), w.rec_start.into_owned());
-        let counts = w.row_counts.into_owned();
-        a.put_u32("vert_start", n(&vs, 1), 1, vs);
-        a.put_u32("rec_start", n(&rs, 1), 1, rs);
-        a.put_u32("row_counts", n(&counts, 2), 2, counts);
-        a.put_bytes("z_vertices", pack::deflate_words(&w.vertices));
-        match pack::split_records(&w.vertices, &w.records) {
-            Some((geo, weight, sky)) => {
-                a.put_bytes("z_rec_geo", pack::deflate_words(&geo));
-                a.put_bytes("z_rec_w", pack::deflate_words(&weight));
-                a.put_bytes("z_rec_sky", pack::deflate_words(&sky));
+        a.put_u32("meta", 6, 1, meta);
+        let (offsets, texels) = self.reach.parts();
+        let counts: Vec<u32> = offsets.windows(2).map(|p| p[1] - p[0]).collect();
+        let mut deltas = Vec::with_capacity(texels.len());
+        for (p, o) in offsets.windows(2).enumerate() {
+            let mut prev = p as u32;
+            for &q in &texels[o[0] as usize..o[1] as usize] {
+                deltas.push(q.wrapping_sub(prev));
+                prev = q;
             }
-            // Not the recorder's layout (cannot happen for paths it
-            // made): every word, as is.
-            None => a.put_bytes("z_records", pack::deflate_words(&w.records)),
         }
+        a.put_bytes("z_reach_counts", pack::deflate_words(&counts));
+        a.put_bytes("z_reach_texels", pack::deflate_words(&deltas));
         a.put_materials("base_", &self.materials);
         a.put_rgb("envmap", &self.envmap);
         a.put_rgb("image", &self.image);
@@ -398,47 +442,38 @@ impl Kept {
     pub fn decode(b: &[u8]) -> Result<Kept, NodeError> {
         let a = Artifact::decode(b, "paths")?;
         let meta = a.u32_list("meta", 1)?;
-        let [w, h, spp, depth, ew, eh, base_spp, seed_lo, seed_hi] = meta[..] else {
-            return Err(err("paths artifact: the meta section is not 9 words"));
+        let [w, h, max_depth, spp, seed_lo, seed_hi] = meta[..] else {
+            return Err(err("paths artifact: the meta section is not 6 words"));
         };
-        let counts = a.u32_list("row_counts", 2)?;
-        // Totals bound what the packed arrays may inflate to.
-        let (mut nv, mut nr) = (0usize, 0usize);
-        for c in counts.chunks_exact(2) {
-            nv = nv.saturating_add(c[0] as usize);
-            nr = nr.saturating_add(c[1] as usize);
+        let (w, h) = (w as usize, h as usize);
+        let npix = w
+            .checked_mul(h)
+            .filter(|&n| n < u32::MAX as usize)
+            .ok_or_else(|| err("paths artifact: the image is too large"))?;
+        let counts = pack::inflate_words(a.bytes("z_reach_counts")?, npix, "reach counts")?;
+        let mut offsets = Vec::with_capacity(npix + 1);
+        let mut total = 0u32;
+        offsets.push(0);
+        for &c in &counts {
+            total = total
+                .checked_add(c)
+                .ok_or_else(|| err("paths artifact: reach counts overflow"))?;
+            offsets.push(total);
         }
-        let vertices =
-            pack::inflate_words(a.bytes("z_vertices")?, nv.saturating_mul(2), "vertices")?;
-        let records = match a.bytes("z_records") {
-            Ok(z) => pack::inflate_words(z, nr.saturating_mul(5), "records")?,
-            Err(_) => {
-                let geo = pack::inflate_words(
-                    a.bytes("z_rec_geo")?,
-                    nr.saturating_mul(2),
-                    "record geometry",
-                )?;
-                let weight = pack::inflate_words(a.bytes("z_rec_w")?, nr, "record weights")?;
-                let n_sky: usize = vertices
-                    .chunks_exact(2)
-                    .map(|v| (v[1] & 0xffff) as usize)
-                    .sum();
-                let sky = pack::inflate_words(a.bytes("z_rec_sky")?, 2 * n_sky, "sky records")?;
-                pack::join_records(&vertices, &geo, &weight, &sky)?
+        let mut texels =
+            pack::inflate_words(a.bytes("z_reach_texels")?, total as usize, "reach texels")?;
+        for (p, o) in offsets.windows(2).enumerate() {
+            let mut prev = p as u32;
+            for q in &mut texels[o[0] as usize..o[1] as usize] {
+                prev = prev.wrapping_add(*q);
+                *q = prev;
             }
-        };
-        let cache = PathCache::from_words(&PathWords {
-            meta: [w, h, spp, depth, ew, eh],
-            vert_start: a.u32_list("vert_start", 1)?.into(),
-            rec_start: a.u32_list("rec_start", 1)?.into(),
-            row_counts: counts.into(),
-            vertices: vertices.into(),
-            records: records.into(),
-        })
-        .map_err(failed)?;
+        }
+        let reach = Reach::from_parts(w, h, offsets, texels).map_err(failed)?;
         Ok(Kept {
-            cache,
-            spp: base_spp,
+            reach,
+            spp,
+            max_depth,
             seed: seed_lo as u64 | (seed_hi as u64) << 32,
             materials: a.materials("base_")?,
             envmap: a.rgb("envmap")?,
@@ -451,7 +486,7 @@ impl Kept {
             },
             coverage: if a.has("coverage") {
                 let c = a.f32_list("coverage", 1)?;
-                if c.len() != (w as usize) * (h as usize) {
+                if c.len() != w * h {
                     return Err(err("paths artifact: coverage does not match the image"));
                 }
                 Some(c.to_vec())
@@ -462,7 +497,7 @@ impl Kept {
     }
 }
 
-/// Compact storage of frozen paths' word arrays.
+/// Compact storage of word arrays: byte-plane shuffled, deflated in chunks.
 mod pack {
     use super::{err, NodeError};
     use rayon::prelude::*;
@@ -472,70 +507,6 @@ mod pack {
     const CHUNK: usize = 1 << 20;
     /// Deflate level: the fastest of miniz's (ratio within 2 % of 6 here).
     const LEVEL: u8 = 1;
-
-    /// Splits the recorder's 5-word records (see `PathWords`) into
-    /// geometry (2 words each), weight (1) and, for sky records only,
-    /// envmap cell and position (2). `None` when a continuation record's
-    /// envmap words are not zero (then this split would lose them).
-    pub fn split_records(
-        vertices: &[u32],
-        records: &[u32],
-    ) -> Option<(Vec<u32>, Vec<u32>, Vec<u32>)> {
-        let n = records.len() / 5;
-        let (mut geo, mut w, mut sky) = (
-            Vec::with_capacity(2 * n),
-            Vec::with_capacity(n),
-            Vec::with_capacity(2 * n),
-        );
-        let mut r = 0usize;
-        for v in vertices.chunks_exact(2) {
-            let (n_env, cont) = ((v[1] & 0xffff) as usize, v[1] >> 16 & 2 != 0);
-            for k in 0..n_env + cont as usize {
-                let rec = records.get(5 * r..5 * r + 5)?;
-                geo.extend_from_slice(&rec[..2]);
-                w.push(rec[2]);
-                if k < n_env {
-                    sky.extend_from_slice(&rec[3..]);
-                } else if rec[3] != 0 || rec[4] != 0 {
-                    return None;
-                }
-                r += 1;
-            }
-        }
-        (5 * r == records.len()).then_some((geo, w, sky))
-    }
-
-    /// The inverse of [`split_records`]; an error when the arrays do not
-    /// fit the vertices.
-    pub fn join_records(
-        vertices: &[u32],
-        geo: &[u32],
-        w: &[u32],
-        sky: &[u32],
-    ) -> Result<Vec<u32>, NodeError> {
-        let bad = || err("paths artifact: packed records do not match the vertices");
-        let mut out = Vec::with_capacity(5 * w.len());
-        let (mut r, mut s) = (0usize, 0usize);
-        for v in vertices.chunks_exact(2) {
-            let (n_env, cont) = ((v[1] & 0xffff) as usize, v[1] >> 16 & 2 != 0);
-            for k in 0..n_env + cont as usize {
-                let g = geo.get(2 * r..2 * r + 2).ok_or_else(bad)?;
-                out.extend_from_slice(g);
-                out.push(*w.get(r).ok_or_else(bad)?);
-                if k < n_env {
-                    out.extend_from_slice(sky.get(2 * s..2 * s + 2).ok_or_else(bad)?);
-                    s += 1;
-                } else {
-                    out.extend_from_slice(&[0, 0]);
-                }
-                r += 1;
-            }
-        }
-        if 2 * r != geo.len() || r != w.len() || 2 * s != sky.len() {
-            return Err(bad());
-        }
-        Ok(out)
-    }
 
     /// Byte planes of little-endian words (every word's byte 0, then
     /// byte 1, …): neighbouring words' high bytes repeat, which deflate
@@ -643,32 +614,6 @@ mod pack {
                     let _ = inflate_words(&bad, n, "t");
                 }
             }
-        }
-
-        #[test]
-        fn records_split_and_join_losslessly() {
-            // Vertices: (q, n_env | flags << 16); V_CONT = 2.
-            let vertices = [5, 2 | 3 << 16, 6, 1, 7, 2 << 16];
-            let recs: Vec<u32> = (0..5u32)
-                .flat_map(|r| {
-                    let sky = r != 2 && r != 4;
-                    [
-                        10 * r,
-                        10 * r + 1,
-                        10 * r + 2,
-                        if sky { 10 * r + 3 } else { 0 },
-                        if sky { 10 * r + 4 } else { 0 },
-                    ]
-                })
-                .collect();
-            let (g, w, s) = split_records(&vertices, &recs).unwrap();
-            assert_eq!((g.len(), w.len(), s.len()), (10, 5, 6));
-            assert_eq!(join_records(&vertices, &g, &w, &s).unwrap(), recs);
-            // A continuation with envmap words cannot be split.
-            let mut odd = recs.clone();
-            odd[2 * 5 + 3] = 1;
-            assert!(split_records(&vertices, &odd).is_none());
-            assert!(join_records(&vertices, &g[..8], &w, &s).is_err());
         }
     }
 }

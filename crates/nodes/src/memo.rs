@@ -121,9 +121,10 @@ mod tests {
     use crate::testutil::{opts, small_room};
     use matflow_render::render;
 
-    /// A scene from the memo (its geometry built for other materials and
-    /// another envmap) renders bit for bit as one built whole, and a
-    /// second mesh does not get the first's geometry.
+    /// A scene from the memo (its geometry made for other materials and
+    /// another envmap, its hierarchy read from the mesh artifact) renders
+    /// bit for bit as one built whole, and a second mesh does not get the
+    /// first's geometry.
     #[test]
     fn a_remembered_geometry_renders_as_a_fresh_build() {
         let (s, cam, tri) = small_room(24);
@@ -137,7 +138,16 @@ mod tests {
         scene(&mesh, &s.maps, &s.envmap).unwrap();
         // ... then asked for others.
         let got = render(&scene(&mesh, &red, &dim).unwrap(), &opts(), &|_, _| {}).image;
-        let fresh = crate::data::render_scene(&mesh, &red, &dim).unwrap();
+        assert!(crate::artifact::Artifact::decode(&mesh, "mesh")
+            .unwrap()
+            .has("bvh"));
+        let fresh = matflow_render::RenderScene::new(
+            cam,
+            tri.clone(),
+            &red,
+            matflow_render::envmap::EnvMap::new(&dim).unwrap(),
+        )
+        .unwrap();
         let want = render(&fresh, &opts(), &|_, _| {}).image;
         assert!(
             got.data == want.data,

@@ -57,8 +57,9 @@ pub(crate) fn trace_kept(
     )
     .unwrap();
     let kept = Kept {
-        cache,
+        reach: cache.reach(),
         spp: o.spp,
+        max_depth: o.max_depth,
         seed: o.seed,
         materials: maps.clone(),
         envmap: envmap.clone(),
@@ -67,7 +68,13 @@ pub(crate) fn trace_kept(
         objects: objects.to_vec(),
         background,
     };
-    Kept::decode(&kept.encode()).unwrap()
+    let back = Kept::decode(&kept.encode()).unwrap();
+    assert_eq!(back.reach, kept.reach, "the reach lists round-trip");
+    assert_eq!(
+        (back.spp, back.max_depth, back.seed),
+        (o.spp, o.max_depth, o.seed)
+    );
+    back
 }
 
 /// Checks `got` (a re-edit from `kept`'s paths for the texels `changed`)
@@ -81,7 +88,7 @@ pub(crate) fn check_retrace(
     got: &RgbImage,
     full: &RgbImage,
 ) -> (usize, usize) {
-    let hit: BTreeSet<u32> = kept.cache.pixels_reaching(changed).into_iter().collect();
+    let hit: BTreeSet<u32> = kept.reach.pixels_reaching(changed).into_iter().collect();
     let mut missed = 0;
     for p in 0..got.data.len() {
         if hit.contains(&(p as u32)) {

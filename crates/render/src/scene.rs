@@ -215,12 +215,25 @@ pub const NO_SURFACE: u32 = u32::MAX;
 
 pub use matflow_scene::lamps::{Lamp, LampAt};
 
+/// Where a scene's ray-tracing hierarchy comes from.
+enum Hierarchy<'a> {
+    /// Built over the whole mesh.
+    Build,
+    /// This one (built over the mesh without its objects), the objects'
+    /// triangles added.
+    Over(&'a Bvh),
+    /// Given: built over this mesh before and stored.
+    Given(Bvh),
+}
+
 #[derive(Clone)]
 pub struct RenderScene {
     pub camera: Camera,
     /// The depth mesh's triangles first, then each object's.
     pub mesh: TriMesh,
-    pub bvh: Bvh,
+    /// Shared between the copies of a scene (its materials or envmap
+    /// changed, the geometry not).
+    pub bvh: std::sync::Arc<Bvh>,
     pub face_normals: Vec<Vec3>,
     /// Angle-weighted vertex normals (on the depth mesh used only by the
     /// reference-compatible sampling frame; the shading normals of objects).
@@ -303,7 +316,7 @@ impl RenderScene {
         env: EnvMap,
         guided: bool,
     ) -> Result<RenderScene, RenderError> {
-        RenderScene::build(camera, mesh, maps, env, &[], guided, None)
+        RenderScene::build(camera, mesh, maps, env, &[], guided, Hierarchy::Build)
     }
 
     /// The scene with objects added to the depth mesh.
@@ -314,7 +327,19 @@ impl RenderScene {
         env: EnvMap,
         objects: &[SceneObject],
     ) -> Result<RenderScene, RenderError> {
-        RenderScene::build(camera, mesh, maps, env, objects, true, None)
+        RenderScene::build(camera, mesh, maps, env, objects, true, Hierarchy::Build)
+    }
+
+    /// [`RenderScene::new`] with the mesh's hierarchy given (one built by
+    /// [`Bvh::build`] on this mesh and stored) instead of built.
+    pub fn with_bvh(
+        camera: Camera,
+        mesh: TriMesh,
+        maps: &MaterialMaps,
+        env: EnvMap,
+        bvh: Bvh,
+    ) -> Result<RenderScene, RenderError> {
+        RenderScene::build(camera, mesh, maps, env, &[], true, Hierarchy::Given(bvh))
     }
 
     /// [`RenderScene::with_objects`] on `plain`'s mesh and camera (a scene
@@ -335,7 +360,15 @@ impl RenderScene {
         mesh.film.truncate(plain.object_vertices);
         let bvh = (!plain.prim_object.is_empty()).then(|| Bvh::build(&mesh));
         let over = bvh.as_ref().unwrap_or(&plain.bvh);
-        RenderScene::build(plain.camera, mesh, maps, env, objects, true, Some(over))
+        RenderScene::build(
+            plain.camera,
+            mesh,
+            maps,
+            env,
+            objects,
+            true,
+            Hierarchy::Over(over),
+        )
     }
 
     fn build(
@@ -345,7 +378,7 @@ impl RenderScene {
         env: EnvMap,
         objects: &[SceneObject],
         guided: bool,
-        over: Option<&Bvh>,
+        over: Hierarchy<'_>,
     ) -> Result<RenderScene, RenderError> {
         if maps.width() != camera.width || maps.height() != camera.height {
             return Err(RenderError::MaterialSize {
@@ -388,10 +421,11 @@ impl RenderScene {
         if !mesh.film.is_empty() {
             mesh.film.resize(mesh.positions.len(), Vec2::ZERO);
         }
-        let bvh = match over {
-            Some(b) => b.clone().with_added(&mesh, screen_prims),
-            None => Bvh::build(&mesh),
-        };
+        let bvh = std::sync::Arc::new(match over {
+            Hierarchy::Over(b) => b.clone().with_added(&mesh, screen_prims),
+            Hierarchy::Given(b) => b,
+            Hierarchy::Build => Bvh::build(&mesh),
+        });
         let face_normals = (0..mesh.triangle_count())
             .map(|i| mesh.face_normal(i))
             .collect();

@@ -286,7 +286,7 @@ impl Node for InsertNode {
                 }
                 k.objects.clone()
             }
-            _ => objects::place_with(&specs, &cam, &tri, plain.as_ref().map(|(s, _)| &s.bvh))?,
+            _ => objects::place_with(&specs, &cam, &tri, plain.as_ref().map(|(s, _)| &*s.bvh))?,
         };
         let differential = p.str("composite") == "differential";
         let progress = |d: usize, t: usize, part: usize, parts: usize| {

@@ -240,7 +240,7 @@ pub(crate) fn check_exr_output(p: &Params) -> Result<(), String> {
 
 /// The image of a `trace` stage's scene with its materials edited to
 /// `edited`: the base render, re-traced where the kept paths say the edit
-/// reaches ([`matflow_inverse::paths::PathCache::rerender_changed`]). The
+/// reaches ([`matflow_inverse::paths::Reach::rerender_changed`]). The
 /// trace's objects stay in the scene as they were.
 pub(crate) fn edited_image(
     k: &Kept,
@@ -265,13 +265,13 @@ pub(crate) fn rerender_kept(
     edited: &MaterialMaps,
     objs: &[matflow_render::SceneObject],
 ) -> Result<RgbImage, NodeError> {
-    if edited.width() != k.cache.width || edited.height() != k.cache.height {
+    if edited.width() != k.reach.width || edited.height() != k.reach.height {
         return Err(err(format!(
             "the materials are {}x{} but the kept paths are {}x{}",
             edited.width(),
             edited.height(),
-            k.cache.width,
-            k.cache.height
+            k.reach.width,
+            k.reach.height
         )));
     }
     let mut changed = k.materials.changed_texels(edited);
@@ -283,7 +283,7 @@ pub(crate) fn rerender_kept(
     );
     // Background vertices (seen through transparent regions) come last.
     changed.extend(k.materials.changed_background(edited));
-    Ok(k.cache
+    Ok(k.reach
         .rerender_changed(&k.image, scene, &k.render_options(), &changed))
 }
 

@@ -1,12 +1,13 @@
-//! `trace`: a full render of the unedited scene that also keeps its light
-//! paths, so that renders of material edits cost an evaluation, not a
-//! path trace.
+//! `trace`: a full render of the unedited scene that also keeps which
+//! materials its light paths meet, so that a material edit re-traces only
+//! the pixels it reaches.
 //!
 //! Geometry and lighting do not change under a material edit, and every
 //! (pixel, sample) of the render has its own random stream, so a pixel's
 //! value changes only if one of its paths meets a changed material. The
 //! kept paths (`inverse::paths`, a separate set of `path_spp` paths per
-//! pixel) show which pixels' light passes through which material texels:
+//! pixel, of which only the texels each pixel's paths meet are stored)
+//! show which pixels' light passes through which material texels:
 //! an edit re-traces exactly the pixels that see a changed texel directly
 //! or along a kept path, with the base render's own sample streams — so
 //! those pixels are bit-identical to a full re-render — and keeps the base
@@ -29,8 +30,9 @@ pub struct TraceNode;
 const TRACE_INFO: NodeInfo = NodeInfo {
     kind: "trace",
     // 2: the kept paths are stored packed (same paths, other bytes).
-    // 3: objects (4: with textures).
-    version: 6,
+    // 3: objects (4: with textures). 7: only the texels each pixel's
+    // paths meet are stored, not the paths.
+    version: 7,
     doc: "A full render of the unedited scene (box pixel filter) that also keeps a set of its \
          light paths: a `render` given these `paths` re-traces only the pixels whose own \
          material changed or whose kept paths meet a changed material, with the base \
@@ -67,7 +69,7 @@ const TRACE_INFO: NodeInfo = NodeInfo {
                 ty: ParamType::Int { min: 1, max: 1024 },
                 default: Some("8"),
                 unit: "paths/px",
-                doc: "paths kept per pixel to find which pixels an edit reaches (~11 MB per path/px at 512²)",
+                doc: "paths kept per pixel to find which pixels an edit reaches (only the texels they meet are stored: ~0.2 MB per path/px at 512²)",
             },
             ParamSpec {
                 name: "depth",
@@ -183,8 +185,9 @@ impl Node for TraceNode {
         .map_err(failed)?;
         let kept = Kept {
             spp,
+            max_depth: depth,
             seed: ctx.seed,
-            cache,
+            reach: cache.reach(),
             materials: maps,
             envmap: env,
             image,
@@ -240,7 +243,7 @@ mod tests {
         // What the kept paths miss is rare indirect light.
         assert!(differ * 4 < n * n, "{differ} pixels missed");
         assert!(kept
-            .cache
+            .reach
             .pixels_reaching(&kept.materials.changed_texels(&s.maps))
             .is_empty());
     }
