@@ -31,6 +31,9 @@ struct Cli {
 enum Suite {
     /// BVH build time, ray throughput and wall time of a full render.
     Render(suites::render::BenchRenderArgs),
+    /// The renderer's BRDF kernel written with matflow's lanes, `wide`
+    /// and `pulp`: time per evaluation, same bits.
+    Lanes(suites::lanes::BenchLanesArgs),
     /// Inverse rendering: wall time against rerender error per budget,
     /// route and skip.
     Invert(suites::invert::BenchInvertArgs),
@@ -66,6 +69,7 @@ enum Suite {
 fn run(s: Suite) -> Result<()> {
     match s {
         Suite::Render(a) => suites::render::bench_render(a),
+        Suite::Lanes(a) => suites::lanes::bench_lanes(a),
         Suite::Invert(a) => suites::invert::bench_invert(a),
         Suite::Synthetic(a) => suites::synthetic::bench_synthetic(a),
         Suite::Pipeline(a) => suites::pipeline::bench_pipeline(a),

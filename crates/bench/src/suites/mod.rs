@@ -6,6 +6,7 @@ pub mod distributed;
 pub mod glass;
 pub mod insert;
 pub mod invert;
+pub mod lanes;
 pub mod matnet;
 pub mod pipeline;
 pub mod relight;
