@@ -139,6 +139,30 @@ struct Tri4 {
     prim: [u32; 4],
 }
 
+impl Tri4 {
+    fn empty() -> Tri4 {
+        Tri4 {
+            v0: [Vec4::ZERO; 3],
+            e1: [Vec4::ZERO; 3],
+            e2: [Vec4::ZERO; 3],
+            prim: [u32::MAX; 4],
+        }
+    }
+
+    /// Lane `lane` becomes triangle `prim` with vertices `v`: the one place
+    /// the edges are computed, so a block rebuilt from a stored hierarchy
+    /// ([`Bvh::from_words`]) has the built one's bits.
+    fn set_lane(&mut self, lane: usize, v: [glam::Vec3A; 3], prim: u32) {
+        let (e1, e2) = (v[1] - v[0], v[2] - v[0]);
+        for a in 0..3 {
+            self.v0[a][lane] = v[0][a];
+            self.e1[a][lane] = e1[a];
+            self.e2[a][lane] = e2[a];
+        }
+        self.prim[lane] = prim;
+    }
+}
+
 #[derive(Clone)]
 pub struct Bvh {
     nodes: Vec<Node>,
@@ -525,21 +549,10 @@ impl Bvh {
         }
         let at = self.tris.len();
         for chunk in prims.chunks(4) {
-            let mut t = Tri4 {
-                v0: [Vec4::ZERO; 3],
-                e1: [Vec4::ZERO; 3],
-                e2: [Vec4::ZERO; 3],
-                prim: [u32::MAX; 4],
-            };
+            let mut t = Tri4::empty();
             for (lane, &pi) in chunk.iter().enumerate() {
                 let tri = &tris[pi as usize];
-                let (e1, e2) = (tri.v1 - tri.v0, tri.v2 - tri.v0);
-                for a in 0..3 {
-                    t.v0[a][lane] = tri.v0[a];
-                    t.e1[a][lane] = e1[a];
-                    t.e2[a][lane] = e2[a];
-                }
-                t.prim[lane] = orig[pi as usize];
+                t.set_lane(lane, [tri.v0, tri.v1, tri.v2], orig[pi as usize]);
             }
             self.tris.push(t);
         }
@@ -620,12 +633,7 @@ impl Bvh {
         }
         let mut tris = Vec::with_capacity(n_tris);
         for prim in w.prims.chunks_exact(4) {
-            let mut t = Tri4 {
-                v0: [Vec4::ZERO; 3],
-                e1: [Vec4::ZERO; 3],
-                e2: [Vec4::ZERO; 3],
-                prim: [u32::MAX; 4],
-            };
+            let mut t = Tri4::empty();
             for (lane, &p) in prim.iter().enumerate() {
                 if p == u32::MAX {
                     continue;
@@ -643,13 +651,7 @@ impl Bvh {
                             .ok_or(BvhError("a vertex index is out of range"))?,
                     );
                 }
-                let (e1, e2) = (v[1] - v[0], v[2] - v[0]);
-                for a in 0..3 {
-                    t.v0[a][lane] = v[0][a];
-                    t.e1[a][lane] = e1[a];
-                    t.e2[a][lane] = e2[a];
-                }
-                t.prim[lane] = p;
+                t.set_lane(lane, v, p);
             }
             tris.push(t);
         }

@@ -136,7 +136,7 @@ impl<const W: usize> F<W> {
         let o = o.into();
         F(std::array::from_fn(|i| {
             let (a, b) = (self.0[i], o.0[i]);
-            if a < b || a.is_nan() {
+            if (a < b) | a.is_nan() {
                 b
             } else {
                 a
@@ -149,7 +149,7 @@ impl<const W: usize> F<W> {
         let o = o.into();
         F(std::array::from_fn(|i| {
             let (a, b) = (self.0[i], o.0[i]);
-            if b < a || a.is_nan() {
+            if (b < a) | a.is_nan() {
                 b
             } else {
                 a
@@ -203,7 +203,12 @@ impl<const W: usize> F<W> {
     }
     #[inline(always)]
     pub fn is_finite(self) -> M<W> {
-        M(std::array::from_fn(|i| self.0[i].is_finite()))
+        // x − x is 0 for finite x and NaN for ±∞ and NaN: a float
+        // subtraction and compare per lane, where `f32::is_finite` becomes
+        // an integer class test that LLVM does not vectorize.
+        #[allow(clippy::eq_op)]
+        let z = self - self;
+        M(std::array::from_fn(|i| z.0[i] == 0.0))
     }
     /// `a` where `m`, else `b`.
     #[inline(always)]
