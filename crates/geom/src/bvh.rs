@@ -33,6 +33,7 @@
 //! at once with one interval box test per node (Wald's packet traversal,
 //! with the frustum bound by interval arithmetic instead of planes).
 
+use std::borrow::Cow;
 use std::time::Duration;
 
 use glam::{BVec4A, Vec3, Vec4};
@@ -83,14 +84,15 @@ const HALVES: usize = LANES / 4;
 /// child slots.
 const NODE_WORDS: usize = 6 * LANES + LANES;
 
-/// A hierarchy as flat words ([`Bvh::to_words`]).
+/// A hierarchy as flat words ([`Bvh::to_words`]); read back, the arrays
+/// may borrow the stored bytes.
 #[derive(Clone, Debug, PartialEq, Eq)]
-pub struct BvhWords {
+pub struct BvhWords<'a> {
     pub root: u32,
     pub triangle_count: u32,
-    pub nodes: Vec<u32>,
+    pub nodes: Cow<'a, [u32]>,
     /// Per block of four triangles, their indices (`u32::MAX`: unused).
-    pub prims: Vec<u32>,
+    pub prims: Cow<'a, [u32]>,
 }
 
 /// Stored hierarchy words that cannot be a hierarchy of the mesh.
@@ -567,7 +569,7 @@ impl Bvh {
     /// to be stored beside its mesh and read back with
     /// [`Bvh::from_words`] instead of building it again. `None` for one
     /// with added triangles ([`Bvh::with_added`]), which is never stored.
-    pub fn to_words(&self) -> Option<BvhWords> {
+    pub fn to_words(&self) -> Option<BvhWords<'static>> {
         if self.added.is_some() {
             return None;
         }
@@ -583,8 +585,13 @@ impl Bvh {
         Some(BvhWords {
             root: self.root,
             triangle_count: self.triangle_count as u32,
-            nodes,
-            prims: self.tris.iter().flat_map(|t| t.prim).collect(),
+            nodes: nodes.into(),
+            prims: self
+                .tris
+                .iter()
+                .flat_map(|t| t.prim)
+                .collect::<Vec<_>>()
+                .into(),
         })
     }
 
@@ -594,7 +601,7 @@ impl Bvh {
     /// Whatever the words, using the result cannot loop or index out of
     /// range: every inner child lies after its parent, every leaf's blocks
     /// exist, every triangle index is the mesh's (or an unused lane).
-    pub fn from_words(w: &BvhWords, mesh: &TriMesh) -> Result<Bvh, BvhError> {
+    pub fn from_words(w: &BvhWords<'_>, mesh: &TriMesh) -> Result<Bvh, BvhError> {
         if !w.nodes.len().is_multiple_of(NODE_WORDS) || !w.prims.len().is_multiple_of(4) {
             return Err(BvhError("the arrays are cut short"));
         }
@@ -1228,23 +1235,23 @@ mod tests {
                 built.occluded(o, d, 1e-4, 3.0)
             );
         }
-        let refused = |w: &BvhWords, m: &TriMesh| Bvh::from_words(w, m).is_err();
+        let refused = |w: &BvhWords<'_>, m: &TriMesh| Bvh::from_words(w, m).is_err();
         let mut fewer = mesh.clone();
         fewer.indices.truncate(mesh.triangle_count() - 1);
         assert!(refused(&w, &fewer), "too few triangles");
         let mut cut = w.clone();
-        cut.prims.pop();
+        cut.prims.to_mut().pop();
         assert!(refused(&cut, &mesh));
         let mut back_edge = w.clone();
         assert!(built.node_count() >= 2);
         // Node 1's first child made node 0: a cycle.
-        back_edge.nodes[NODE_WORDS + 6 * LANES] = 0;
+        back_edge.nodes.to_mut()[NODE_WORDS + 6 * LANES] = 0;
         assert!(refused(&back_edge, &mesh), "a cycle");
         let mut leaf = w.clone();
         leaf.root = LEAF | (3 << 28) | (w.prims.len() / 4) as u32;
         assert!(refused(&leaf, &mesh), "blocks past the end");
         let mut prim = w.clone();
-        prim.prims[0] = mesh.triangle_count() as u32;
+        prim.prims.to_mut()[0] = mesh.triangle_count() as u32;
         assert!(refused(&prim, &mesh), "a triangle out of range");
         let empty = Bvh::build(&TriMesh::default()).to_words().unwrap();
         assert!(Bvh::from_words(&empty, &TriMesh::default()).is_ok());

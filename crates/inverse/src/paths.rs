@@ -31,7 +31,6 @@
 //! each vertex followed in the record array by its sky records and then, if
 //! the path continues, its continuation record.
 
-use std::borrow::Cow;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 use glam::Vec3;
@@ -233,27 +232,6 @@ pub enum CacheError {
     Overflow { row: usize },
     #[error("stored paths: {0}")]
     Layout(&'static str),
-}
-
-/// Frozen paths as flat arrays of words, the layout they are stored in
-/// (little-endian when written): everything [`PathCache`] holds but its
-/// statistics.
-/// Read back, the arrays may borrow the stored bytes.
-#[derive(Clone, Debug, PartialEq)]
-pub struct PathWords<'a> {
-    /// width, height, spp, max_depth, env_width, env_height.
-    pub meta: [u32; 6],
-    /// Per row, its `vert_start` (width + 1 each).
-    pub vert_start: Cow<'a, [u32]>,
-    /// Per row, its `rec_start` (width + 1 each).
-    pub rec_start: Cow<'a, [u32]>,
-    /// Per row, its vertex and record counts.
-    pub row_counts: Cow<'a, [u32]>,
-    /// Two words per vertex: q; n_env | flags << 16.
-    pub vertices: Cow<'a, [u32]>,
-    /// Five words per record: geo q0 | q1 << 16; q2 | q3 << 16; w's bits;
-    /// cell | fx << 16; fy | pad << 16.
-    pub records: Cow<'a, [u32]>,
 }
 
 /// Which materials each pixel's kept paths meet (texel indices as the
@@ -481,130 +459,6 @@ impl PathCache {
             offsets,
             texels,
         }
-    }
-
-    /// The paths as flat words (see [`PathWords`]).
-    ///
-    /// Paths traced with lamps are not stored (pipelines, which keep paths,
-    /// light scenes by their envmap alone): their count is not among the
-    /// words.
-    pub fn to_words(&self) -> PathWords<'static> {
-        let (mut vs, mut rs, mut counts) = (Vec::new(), Vec::new(), Vec::new());
-        let (mut verts, mut recs) = (Vec::new(), Vec::new());
-        for row in &self.rows {
-            vs.extend_from_slice(&row.vert_start);
-            rs.extend_from_slice(&row.rec_start);
-            counts.push(row.vertices.len() as u32);
-            counts.push(row.records.len() as u32);
-            for v in &row.vertices {
-                verts.push(v.q);
-                verts.push(v.n_env as u32 | (v.flags as u32) << 16);
-            }
-            for r in &row.records {
-                recs.push(r.geo.q[0] as u32 | (r.geo.q[1] as u32) << 16);
-                recs.push(r.geo.q[2] as u32 | (r.geo.q[3] as u32) << 16);
-                recs.push(r.w.to_bits());
-                recs.push(r.cell as u32 | (r.fx as u32) << 16);
-                recs.push(r.fy as u32 | (r._pad as u32) << 16);
-            }
-        }
-        PathWords {
-            meta: [
-                self.width as u32,
-                self.height as u32,
-                self.spp,
-                self.max_depth,
-                self.env_width as u32,
-                self.env_height as u32,
-            ],
-            vert_start: vs.into(),
-            rec_start: rs.into(),
-            row_counts: counts.into(),
-            vertices: verts.into(),
-            records: recs.into(),
-        }
-    }
-
-    /// Paths from flat words, with every offset checked (a damaged store
-    /// is an error, never a panic or an out-of-range read later).
-    pub fn from_words(words: &PathWords<'_>) -> Result<PathCache, CacheError> {
-        let [w, h, spp, max_depth, ew, eh] = words.meta;
-        let (w, h) = (w as usize, h as usize);
-        let (vs, rs, counts) = (&words.vert_start, &words.rec_start, &words.row_counts);
-        let (verts, recs) = (&words.vertices, &words.records);
-        let row_len = w.checked_add(1).ok_or(CacheError::Layout("width"))?;
-        let starts = h.checked_mul(row_len).ok_or(CacheError::Layout("height"))?;
-        if vs.len() != starts || rs.len() != starts || counts.len() != 2 * h {
-            return Err(CacheError::Layout("row tables do not match the size"));
-        }
-        if verts.len() % 2 != 0 || recs.len() % 5 != 0 {
-            return Err(CacheError::Layout("vertex or record words are cut short"));
-        }
-        let mut rows = Vec::with_capacity(h);
-        let (mut vo, mut ro) = (0usize, 0usize);
-        for y in 0..h {
-            let (nv, nr) = (counts[2 * y] as usize, counts[2 * y + 1] as usize);
-            if 2 * (vo + nv) > verts.len() || 5 * (ro + nr) > recs.len() {
-                return Err(CacheError::Layout("a row runs past the stored paths"));
-            }
-            let vst = vs[y * row_len..(y + 1) * row_len].to_vec();
-            let rst = rs[y * row_len..(y + 1) * row_len].to_vec();
-            let monotone = |s: &[u32], n: usize| {
-                s.first() == Some(&0)
-                    && s.last().copied() == Some(n as u32)
-                    && s.windows(2).all(|p| p[0] <= p[1])
-            };
-            if !monotone(&vst, nv) || !monotone(&rst, nr) {
-                return Err(CacheError::Layout("a row's pixel offsets are inconsistent"));
-            }
-            let vertices: Vec<Vertex> = verts[2 * vo..2 * (vo + nv)]
-                .chunks_exact(2)
-                .map(|c| Vertex {
-                    q: c[0],
-                    n_env: (c[1] & 0xffff) as u16,
-                    flags: (c[1] >> 16) as u16,
-                })
-                .collect();
-            let records: Vec<Record> = recs[5 * ro..5 * (ro + nr)]
-                .chunks_exact(5)
-                .map(|c| Record {
-                    geo: Geo {
-                        q: [
-                            (c[0] & 0xffff) as u16,
-                            (c[0] >> 16) as u16,
-                            (c[1] & 0xffff) as u16,
-                            (c[1] >> 16) as u16,
-                        ],
-                    },
-                    w: f32::from_bits(c[2]),
-                    cell: (c[3] & 0xffff) as u16,
-                    fx: (c[3] >> 16) as u16,
-                    fy: (c[4] & 0xffff) as u16,
-                    _pad: (c[4] >> 16) as u16,
-                })
-                .collect();
-            rows.push(RowPaths {
-                vert_start: vst,
-                rec_start: rst,
-                vertices,
-                records,
-            });
-            vo += nv;
-            ro += nr;
-        }
-        Ok(PathCache {
-            width: w,
-            height: h,
-            spp,
-            max_depth,
-            env_width: ew as usize,
-            env_height: eh as usize,
-            lamps: 0,
-            lamp_scale: 1.0,
-            distant: Vec::new(),
-            rows,
-            stats: CacheStats::default(),
-        })
     }
 }
 

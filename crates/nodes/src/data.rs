@@ -151,8 +151,8 @@ pub fn encode_mesh(width: usize, height: usize, m: &TriMesh) -> Vec<u8> {
     // reading it do not build it again.
     if let Some(w) = matflow_geom::Bvh::build(m).to_words() {
         a.put_u32("bvh", 2, 1, vec![w.root, w.triangle_count]);
-        a.put_u32("bvh_nodes", w.nodes.len() as u32, 1, w.nodes);
-        a.put_u32("bvh_prims", w.prims.len() as u32, 1, w.prims);
+        a.put_u32("bvh_nodes", w.nodes.len() as u32, 1, w.nodes.into_owned());
+        a.put_u32("bvh_prims", w.prims.len() as u32, 1, w.prims.into_owned());
     }
     // And only closed rooms with windows have portals.
     if !m.portals.is_empty() {
@@ -186,8 +186,8 @@ fn stored_bvh(a: &Artifact, mesh: &TriMesh) -> Result<Option<matflow_geom::Bvh>,
     let words = matflow_geom::BvhWords {
         root,
         triangle_count,
-        nodes: a.u32_list("bvh_nodes", 1)?.to_vec(),
-        prims: a.u32_list("bvh_prims", 1)?.to_vec(),
+        nodes: a.u32_list("bvh_nodes", 1)?.into(),
+        prims: a.u32_list("bvh_prims", 1)?.into(),
     };
     matflow_geom::Bvh::from_words(&words, mesh)
         .map(Some)
