@@ -187,7 +187,7 @@ pub fn sample(m: &Material, n: Vec3, v: Vec3, u_lobe: f32, u1: f32, u2: f32) -> 
         F([u1]),
         F([u2]),
     );
-    s.valid.0[0].then(|| BsdfSample {
+    s.valid.lane(0).then(|| BsdfSample {
         dir: s.dir.lane(0),
         weight: s.weight.lane(0),
         pdf: s.pdf.0[0],

@@ -101,7 +101,7 @@ impl FilterWeights {
     /// as `wx` and `wy` hold). A footprint of up to 4×4 (the default
     /// Gaussian's) takes one 8-lane evaluation: columns in lanes 0–3,
     /// rows in 4–7.
-    #[inline]
+    #[inline(always)]
     pub fn footprint(&self, at: glam::Vec2, first: (i64, i64), wx: &mut [f32], wy: &mut [f32]) {
         if wx.len() > 4 || wy.len() > 4 {
             self.weights_from(first.0, at.x, wx);

@@ -19,7 +19,7 @@ use matflow_geom::{Hit, PACKET};
 
 use crate::bsdf;
 use crate::dielectric;
-use crate::filter::PixelFilter;
+use crate::filter::{FilterWeights, PixelFilter};
 use crate::fmath;
 use crate::lanes::{F, V3};
 use crate::rng::{draws_1d, draws_2d, Keys1d, Keys2d, Sampler};
@@ -904,7 +904,7 @@ fn sample_screen_bsdfs<const W: usize>(
         let positive = s.weight.max_element().gt(0.0);
         for (lane, &i) in group.iter().enumerate() {
             let path = &mut paths[i as usize];
-            if !(s.valid.0[lane] && positive.0[lane]) {
+            if !(s.valid.lane(lane) && positive.lane(lane)) {
                 path.next = None;
                 continue;
             }
@@ -1273,11 +1273,111 @@ fn prefetch<T>(v: &[T], i: usize) {
     }
 }
 
+#[derive(Clone, Copy)]
 struct Tile {
     x0: usize,
     y0: usize,
     x1: usize,
     y1: usize,
+}
+
+/// Where a tile's samples land: its buffer (the tile and a border of the
+/// filter's reach, `bw` wide), the window rendered and the filter.
+struct SplatFilm {
+    tile: Tile,
+    border: usize,
+    bw: usize,
+    window: (usize, usize, usize, usize),
+    filter: PixelFilter,
+    radius: f32,
+    weights: FilterWeights,
+}
+
+/// A batch of a tile row: `spp` samples of each pixel from column `x0` on
+/// in row `y`.
+#[derive(Clone, Copy)]
+struct SplatAt {
+    x0: usize,
+    y: usize,
+    spp: usize,
+}
+
+crate::lane_kernel!(fn splat_wave_now = splat_wave(
+    wave: &Wavefront,
+    film: &SplatFilm,
+    at: SplatAt,
+    buf: &mut [Vec4],
+    st: &mut RenderStats,
+));
+
+/// Adds each finite sample of the batch just traced to the pixels of its
+/// footprint: (radiance, 1) times the filter's weight, in the buffer. A
+/// Gaussian's 1-D weights of a footprint of up to 4×4 are one 8-lane
+/// evaluation at every `W` (columns in lanes 0–3, rows in 4–7), so `W`
+/// only picks the instructions it is compiled for.
+#[inline(always)]
+fn splat_wave<const W: usize>(
+    wave: &Wavefront,
+    film: &SplatFilm,
+    at: SplatAt,
+    buf: &mut [Vec4],
+    st: &mut RenderStats,
+) {
+    let (t, border, bw, r) = (film.tile, film.border, film.bw, film.radius);
+    let (wx0, wy0, wx1, wy1) = film.window;
+    let mut wx = [0f32; 8];
+    let mut wy = [0f32; 8];
+    let mut wide_x = Vec::new();
+    let mut wide_y = Vec::new();
+    for i in 0..wave.len() {
+        let (pos, li) = wave.result(i);
+        if !li.is_finite() {
+            st.discarded_samples += 1;
+            continue;
+        }
+        let x = at.x0 + i / at.spp;
+        // (radiance, 1) · weight, lane by lane.
+        let li1 = li.extend(1.0);
+        match film.filter {
+            PixelFilter::Box => {
+                let k = (at.y - t.y0 + border) * bw + (x - t.x0 + border);
+                buf[k] += li1;
+            }
+            PixelFilter::Gaussian { .. } => {
+                let lo_x = (fmath::ceil(pos.x - 0.5 - r) as i64).max(wx0 as i64);
+                let hi_x = (fmath::floor(pos.x - 0.5 + r) as i64).min(wx1 as i64 - 1);
+                let lo_y = (fmath::ceil(pos.y - 0.5 - r) as i64).max(wy0 as i64);
+                let hi_y = (fmath::floor(pos.y - 0.5 + r) as i64).min(wy1 as i64 - 1);
+                // Separable: the 1-D weights of the footprint's columns
+                // and rows, once per sample, in lanes.
+                let nx = (hi_x - lo_x + 1).max(0) as usize;
+                let ny = (hi_y - lo_y + 1).max(0) as usize;
+                if nx == 0 || ny == 0 {
+                    continue;
+                }
+                let (wx, wy) = if nx <= wx.len() && ny <= wy.len() {
+                    (&mut wx[..nx], &mut wy[..ny])
+                } else {
+                    wide_x.resize(nx, 0.0);
+                    wide_y.resize(ny, 0.0);
+                    (&mut wide_x[..], &mut wide_y[..])
+                };
+                film.weights.footprint(pos, (lo_x, lo_y), wx, wy);
+                // The footprint's first buffer row and column (the border
+                // keeps them inside it). Zero weights are added too: the
+                // sums start at +0 and li is finite, so adding li·0 leaves
+                // every sum's bits as they are.
+                let bx0 = (lo_x - t.x0 as i64 + border as i64).max(0) as usize;
+                let by0 = (lo_y - t.y0 as i64 + border as i64).max(0) as usize;
+                for (j, &wy) in wy.iter().enumerate() {
+                    let row = &mut buf[(by0 + j) * bw + bx0..][..wx.len()];
+                    for (b, &wx) in row.iter_mut().zip(wx.iter()) {
+                        *b += li1 * (wy * wx);
+                    }
+                }
+            }
+        }
+    }
 }
 
 /// Renders the scene. `progress(done, total)` is called after each tile.
@@ -1346,9 +1446,15 @@ pub fn render_until(
             let bh = t.y1 - t.y0 + 2 * border;
             let mut buf = vec![Vec4::ZERO; bw * bh];
             let mut st = RenderStats::default();
-            // 1-D filter weights of a sample's footprint columns and rows.
-            let mut wx = vec![0f32; 2 * border + 2];
-            let mut wy = vec![0f32; 2 * border + 2];
+            let film = SplatFilm {
+                tile: *t,
+                border,
+                bw,
+                window: (wx0, wy0, wx1, wy1),
+                filter: opts.filter,
+                radius: r,
+                weights,
+            };
             let mut wave = Wavefront::default();
             let mut sinks = Vec::new();
             let mut pixels = Vec::with_capacity(BATCH_PIXELS);
@@ -1358,51 +1464,12 @@ pub fn render_until(
                     pixels.extend((x0..(x0 + BATCH_PIXELS).min(t.x1)).map(|x| (y * w + x) as u32));
                     sinks.resize(pixels.len() * spp as usize, ());
                     wave.trace_pixels(scene, opts, &pixels, spp, &mut st, &mut sinks);
-                    for i in 0..wave.len() {
-                        let (film, li) = wave.result(i);
-                        if !li.is_finite() {
-                            st.discarded_samples += 1;
-                            continue;
-                        }
-                        let x = x0 + i / spp as usize;
-                        // (radiance, 1) · weight, lane by lane.
-                        let li1 = li.extend(1.0);
-                        match opts.filter {
-                            PixelFilter::Box => {
-                                let k = (y - t.y0 + border) * bw + (x - t.x0 + border);
-                                buf[k] += li1;
-                            }
-                            PixelFilter::Gaussian { .. } => {
-                                let lo_x = (fmath::ceil(film.x - 0.5 - r) as i64).max(wx0 as i64);
-                                let hi_x =
-                                    (fmath::floor(film.x - 0.5 + r) as i64).min(wx1 as i64 - 1);
-                                let lo_y = (fmath::ceil(film.y - 0.5 - r) as i64).max(wy0 as i64);
-                                let hi_y =
-                                    (fmath::floor(film.y - 0.5 + r) as i64).min(wy1 as i64 - 1);
-                                // Separable: the 1-D weights of the
-                                // footprint's columns and rows, once per
-                                // sample, in lanes.
-                                let nx = (hi_x - lo_x + 1).max(0) as usize;
-                                let ny = (hi_y - lo_y + 1).max(0) as usize;
-                                weights.footprint(film, (lo_x, lo_y), &mut wx[..nx], &mut wy[..ny]);
-                                for (j, py) in (lo_y..=hi_y).enumerate() {
-                                    let wy = wy[j];
-                                    if wy <= 0.0 {
-                                        continue;
-                                    }
-                                    let by = (py - t.y0 as i64 + border as i64) as usize;
-                                    for (i, px) in (lo_x..=hi_x).enumerate() {
-                                        let wgt = wy * wx[i];
-                                        if wgt <= 0.0 {
-                                            continue;
-                                        }
-                                        let bx = (px - t.x0 as i64 + border as i64) as usize;
-                                        buf[by * bw + bx] += li1 * wgt;
-                                    }
-                                }
-                            }
-                        }
-                    }
+                    let at = SplatAt {
+                        x0,
+                        y,
+                        spp: spp as usize,
+                    };
+                    splat_wave_now(&wave, &film, at, &mut buf, &mut st);
                 }
             }
             let d = done.fetch_add(1, Ordering::Relaxed) + 1;

@@ -30,9 +30,12 @@ use std::sync::OnceLock;
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct F<const W: usize>(pub [f32; W]);
 
-/// `W` lane conditions.
+/// `W` lane conditions, each all ones (true) or all zeros (false), as a
+/// vector compare leaves them: a select is then bitwise, which LLVM keeps
+/// in vector registers (a `bool` per lane made it extract and re-insert
+/// lanes one at a time).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct M<const W: usize>(pub [bool; W]);
+pub struct M<const W: usize>([i32; W]);
 
 /// `W` 3-vectors, one component per array.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -120,6 +123,25 @@ impl<const W: usize> Not for M<W> {
     }
 }
 
+impl<const W: usize> M<W> {
+    /// Lane `i`'s condition.
+    #[inline(always)]
+    pub fn lane(&self, i: usize) -> bool {
+        self.0[i] != 0
+    }
+    /// The mask of `f(i)` for lanes `0..W`.
+    #[inline(always)]
+    pub fn from_fn(f: impl Fn(usize) -> bool) -> M<W> {
+        M(std::array::from_fn(|i| mask(f(i))))
+    }
+}
+
+/// All ones for true, zeros for false.
+#[inline(always)]
+fn mask(b: bool) -> i32 {
+    -(b as i32)
+}
+
 impl<const W: usize> F<W> {
     #[inline(always)]
     pub fn splat(x: f32) -> F<W> {
@@ -134,39 +156,25 @@ impl<const W: usize> F<W> {
     #[inline(always)]
     pub fn max(self, o: impl Into<F<W>>) -> F<W> {
         let o = o.into();
-        F(std::array::from_fn(|i| {
-            let (a, b) = (self.0[i], o.0[i]);
-            if (a < b) | a.is_nan() {
-                b
-            } else {
-                a
-            }
-        }))
+        F::select(self.lt(o) | self.is_nan(), o, self)
     }
     /// The smaller of the two, as [`F::max`].
     #[inline(always)]
     pub fn min(self, o: impl Into<F<W>>) -> F<W> {
         let o = o.into();
-        F(std::array::from_fn(|i| {
-            let (a, b) = (self.0[i], o.0[i]);
-            if (b < a) | a.is_nan() {
-                b
-            } else {
-                a
-            }
-        }))
+        F::select(o.lt(self) | self.is_nan(), o, self)
     }
     /// `f32::clamp` per lane (NaN stays NaN); `lo` ≤ `hi`.
     #[inline(always)]
     pub fn clamp(self, lo: f32, hi: f32) -> F<W> {
-        self.map(|x| {
-            let x = if x < lo { lo } else { x };
-            if x > hi {
-                hi
-            } else {
-                x
-            }
-        })
+        let x = F::select(self.lt(lo), F::splat(lo), self);
+        F::select(x.gt(hi), F::splat(hi), x)
+    }
+    /// Whether each lane is NaN.
+    #[inline(always)]
+    pub fn is_nan(self) -> M<W> {
+        #[allow(clippy::eq_op)]
+        M(std::array::from_fn(|i| mask(self.0[i] != self.0[i])))
     }
     #[inline(always)]
     pub fn sqrt(self) -> F<W> {
@@ -184,22 +192,22 @@ impl<const W: usize> F<W> {
     #[inline(always)]
     pub fn lt(self, o: impl Into<F<W>>) -> M<W> {
         let o = o.into();
-        M(std::array::from_fn(|i| self.0[i] < o.0[i]))
+        M(std::array::from_fn(|i| mask(self.0[i] < o.0[i])))
     }
     #[inline(always)]
     pub fn gt(self, o: impl Into<F<W>>) -> M<W> {
         let o = o.into();
-        M(std::array::from_fn(|i| self.0[i] > o.0[i]))
+        M(std::array::from_fn(|i| mask(self.0[i] > o.0[i])))
     }
     #[inline(always)]
     pub fn le(self, o: impl Into<F<W>>) -> M<W> {
         let o = o.into();
-        M(std::array::from_fn(|i| self.0[i] <= o.0[i]))
+        M(std::array::from_fn(|i| mask(self.0[i] <= o.0[i])))
     }
     #[inline(always)]
     pub fn eq(self, o: impl Into<F<W>>) -> M<W> {
         let o = o.into();
-        M(std::array::from_fn(|i| self.0[i] == o.0[i]))
+        M(std::array::from_fn(|i| mask(self.0[i] == o.0[i])))
     }
     #[inline(always)]
     pub fn is_finite(self) -> M<W> {
@@ -208,14 +216,15 @@ impl<const W: usize> F<W> {
         // an integer class test that LLVM does not vectorize.
         #[allow(clippy::eq_op)]
         let z = self - self;
-        M(std::array::from_fn(|i| z.0[i] == 0.0))
+        M(std::array::from_fn(|i| mask(z.0[i] == 0.0)))
     }
     /// `a` where `m`, else `b`.
     #[inline(always)]
     pub fn select(m: M<W>, a: F<W>, b: F<W>) -> F<W> {
-        F(std::array::from_fn(
-            |i| if m.0[i] { a.0[i] } else { b.0[i] },
-        ))
+        F(std::array::from_fn(|i| {
+            let m = m.0[i] as u32;
+            f32::from_bits((a.0[i].to_bits() & m) | (b.0[i].to_bits() & !m))
+        }))
     }
     /// The nearest integer (ties to even) for |x| < 2²², as the f32
     /// `x + 1.5·2²³`, whose low mantissa bits hold it in two's complement
@@ -331,9 +340,9 @@ pub fn sin_cos<const W: usize>(x: F<W>) -> (F<W>, F<W>) {
             * (1.0 / 24.0
                 + r2 * (-1.0 / 720.0 + r2 * (1.0 / 40_320.0 + r2 * (-1.0 / 3_628_800.0))));
     let qi = F::rounded_int(shifted);
-    let swap = M(std::array::from_fn(|i| qi[i] & 1 == 1));
-    let sin_neg = M(std::array::from_fn(|i| qi[i] & 2 == 2));
-    let cos_neg = M(std::array::from_fn(|i| (qi[i] + 1) & 2 == 2));
+    let swap = M(std::array::from_fn(|i| mask(qi[i] & 1 == 1)));
+    let sin_neg = M(std::array::from_fn(|i| mask(qi[i] & 2 == 2)));
+    let cos_neg = M(std::array::from_fn(|i| mask((qi[i] + 1) & 2 == 2)));
     let sn = F::select(swap, c, s);
     let cs = F::select(swap, s, c);
     (F::select(sin_neg, -sn, sn), F::select(cos_neg, -cs, cs))
@@ -369,7 +378,7 @@ pub fn exp<const W: usize>(x: F<W>) -> F<W> {
         p.0[i] * e1 * e2
     }));
     let big = x.gt(88.722_84);
-    let nan = M(std::array::from_fn(|i| x.0[i].is_nan()));
+    let nan = x.is_nan();
     F::select(nan, x, F::select(big, F::splat(f32::INFINITY), scaled))
 }
 
@@ -423,7 +432,7 @@ pub fn atan2<const W: usize>(y: F<W>, x: F<W>) -> F<W> {
     let at = F::select(x.lt(0.0), PI - at, at);
     // x = −0 counts as negative (atan2(±0, −0) = ±π).
     let negx0 = M(std::array::from_fn(|i| {
-        x.0[i] == 0.0 && x.0[i].is_sign_negative()
+        mask((x.0[i] == 0.0) & ((x.0[i].to_bits() as i32) < 0))
     }));
     let at = F::select(negx0 & y.eq(0.0), F::splat(PI), at);
     at.copysign(y)
