@@ -485,6 +485,8 @@ impl Bvh {
             added: None,
         };
         out.root = out.collapse(&bvh2, 0, &tris, &orig);
+        out.nodes = crate::huge::huge(out.nodes);
+        out.tris = crate::huge::huge(out.tris);
         out
     }
 
@@ -663,8 +665,8 @@ impl Bvh {
             tris.push(t);
         }
         Ok(Bvh {
-            nodes,
-            tris,
+            nodes: crate::huge::huge(nodes),
+            tris: crate::huge::huge(tris),
             triangle_count: w.triangle_count as usize,
             root: w.root,
             added: None,

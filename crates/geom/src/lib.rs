@@ -7,6 +7,7 @@
 pub mod bvh;
 pub mod complete;
 pub mod depth_mesh;
+pub mod huge;
 pub mod mesh;
 pub mod planes;
 

@@ -426,9 +426,11 @@ impl RenderScene {
             Hierarchy::Given(b) => b,
             Hierarchy::Build => Bvh::build(&mesh),
         });
-        let face_normals = (0..mesh.triangle_count())
-            .map(|i| mesh.face_normal(i))
-            .collect();
+        let face_normals = matflow_geom::huge::huge(
+            (0..mesh.triangle_count())
+                .map(|i| mesh.face_normal(i))
+                .collect(),
+        );
         let mut vertex_normals = vertex_normals(&mesh);
         let mut at = screen_vertices;
         for o in objects {
@@ -440,7 +442,7 @@ impl RenderScene {
             }
             at += n;
         }
-        let materials = materials_from_maps(maps);
+        let materials = matflow_geom::huge::huge(materials_from_maps(maps));
         let mut uvs = Vec::new();
         for o in objects {
             let n = o.mesh.vertex_count();
