@@ -129,11 +129,6 @@ impl<const W: usize> M<W> {
     pub fn lane(&self, i: usize) -> bool {
         self.0[i] != 0
     }
-    /// The mask of `f(i)` for lanes `0..W`.
-    #[inline(always)]
-    pub fn from_fn(f: impl Fn(usize) -> bool) -> M<W> {
-        M(std::array::from_fn(|i| mask(f(i))))
-    }
 }
 
 /// All ones for true, zeros for false.
@@ -644,6 +639,33 @@ mod tests {
                 (got - want).abs() < 3e-7 && got.is_sign_negative() == want.is_sign_negative(),
                 "atan2({y}, {x}) = {got}, libm {want}"
             );
+        }
+    }
+
+    /// max, min and clamp follow the scalar rules lane by lane: the other
+    /// operand where one is NaN (max/min), NaN kept (clamp), and `self`
+    /// for equal values, so ±0 has one answer at every width; selects
+    /// and masks combine as booleans.
+    #[test]
+    fn blends_follow_the_scalar_rules() {
+        let xs = [0.0f32, -0.0, 1.0, -1.0, 0.5, f32::NAN, f32::INFINITY, -3.0];
+        let ys = [-0.0f32, 0.0, f32::NAN, -1.0, 2.0, 1.0, 0.25, -f32::INFINITY];
+        let (x, y) = (F::<8>(xs), F::<8>(ys));
+        let (mx, mn, cl) = (x.max(y), x.min(y), x.clamp(-0.75, 0.75));
+        let same = |a: f32, b: f32| a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan());
+        for i in 0..8 {
+            let (a, b) = (xs[i], ys[i]);
+            let want_max = if a < b || a.is_nan() { b } else { a };
+            let want_min = if b < a || a.is_nan() { b } else { a };
+            assert!(same(mx.0[i], want_max), "max lane {i}: {}", mx.0[i]);
+            assert!(same(mn.0[i], want_min), "min lane {i}: {}", mn.0[i]);
+            assert!(same(cl.0[i], a.clamp(-0.75, 0.75)), "clamp lane {i}");
+            let m = x.lt(y) | y.is_nan();
+            assert_eq!(m.lane(i), a < b || b.is_nan());
+            assert_eq!((!m).lane(i), !(a < b || b.is_nan()));
+            assert_eq!((x.le(y) & x.is_finite()).lane(i), a <= b && a.is_finite());
+            let s = F::select(m, x, y).0[i];
+            assert!(same(s, if m.lane(i) { a } else { b }));
         }
     }
 
