@@ -76,6 +76,11 @@ pub struct FilterWeights {
 }
 
 impl FilterWeights {
+    /// The filter these weights are of.
+    pub fn filter(&self) -> PixelFilter {
+        self.filter
+    }
+
     /// 1-D weight at offset `x` (pixels) from a pixel centre:
     /// [`FilterWeights::weight_lanes`] at width 1.
     #[inline]

@@ -1288,8 +1288,6 @@ struct SplatFilm {
     border: usize,
     bw: usize,
     window: (usize, usize, usize, usize),
-    filter: PixelFilter,
-    radius: f32,
     weights: FilterWeights,
 }
 
@@ -1323,7 +1321,8 @@ fn splat_wave<const W: usize>(
     buf: &mut [Vec4],
     st: &mut RenderStats,
 ) {
-    let (t, border, bw, r) = (film.tile, film.border, film.bw, film.radius);
+    let (t, border, bw) = (film.tile, film.border, film.bw);
+    let r = film.weights.filter().radius();
     let (wx0, wy0, wx1, wy1) = film.window;
     let mut wx = [0f32; 8];
     let mut wy = [0f32; 8];
@@ -1338,7 +1337,7 @@ fn splat_wave<const W: usize>(
         let x = at.x0 + i / at.spp;
         // (radiance, 1) · weight, lane by lane.
         let li1 = li.extend(1.0);
-        match film.filter {
+        match film.weights.filter() {
             PixelFilter::Box => {
                 let k = (at.y - t.y0 + border) * bw + (x - t.x0 + border);
                 buf[k] += li1;
@@ -1451,8 +1450,6 @@ pub fn render_until(
                 border,
                 bw,
                 window: (wx0, wy0, wx1, wy1),
-                filter: opts.filter,
-                radius: r,
                 weights,
             };
             let mut wave = Wavefront::default();

@@ -129,6 +129,11 @@ impl<const W: usize> M<W> {
     pub fn lane(&self, i: usize) -> bool {
         self.0[i] != 0
     }
+    /// The mask of `f(i)` for lanes `0..W`.
+    #[inline(always)]
+    fn from_fn(f: impl Fn(usize) -> bool) -> M<W> {
+        M(std::array::from_fn(|i| mask(f(i))))
+    }
 }
 
 /// All ones for true, zeros for false.
@@ -169,7 +174,7 @@ impl<const W: usize> F<W> {
     #[inline(always)]
     pub fn is_nan(self) -> M<W> {
         #[allow(clippy::eq_op)]
-        M(std::array::from_fn(|i| mask(self.0[i] != self.0[i])))
+        M::from_fn(|i| self.0[i] != self.0[i])
     }
     #[inline(always)]
     pub fn sqrt(self) -> F<W> {
@@ -187,22 +192,22 @@ impl<const W: usize> F<W> {
     #[inline(always)]
     pub fn lt(self, o: impl Into<F<W>>) -> M<W> {
         let o = o.into();
-        M(std::array::from_fn(|i| mask(self.0[i] < o.0[i])))
+        M::from_fn(|i| self.0[i] < o.0[i])
     }
     #[inline(always)]
     pub fn gt(self, o: impl Into<F<W>>) -> M<W> {
         let o = o.into();
-        M(std::array::from_fn(|i| mask(self.0[i] > o.0[i])))
+        M::from_fn(|i| self.0[i] > o.0[i])
     }
     #[inline(always)]
     pub fn le(self, o: impl Into<F<W>>) -> M<W> {
         let o = o.into();
-        M(std::array::from_fn(|i| mask(self.0[i] <= o.0[i])))
+        M::from_fn(|i| self.0[i] <= o.0[i])
     }
     #[inline(always)]
     pub fn eq(self, o: impl Into<F<W>>) -> M<W> {
         let o = o.into();
-        M(std::array::from_fn(|i| mask(self.0[i] == o.0[i])))
+        M::from_fn(|i| self.0[i] == o.0[i])
     }
     #[inline(always)]
     pub fn is_finite(self) -> M<W> {
@@ -211,7 +216,7 @@ impl<const W: usize> F<W> {
         // an integer class test that LLVM does not vectorize.
         #[allow(clippy::eq_op)]
         let z = self - self;
-        M(std::array::from_fn(|i| mask(z.0[i] == 0.0)))
+        M::from_fn(|i| z.0[i] == 0.0)
     }
     /// `a` where `m`, else `b`.
     #[inline(always)]
@@ -335,9 +340,9 @@ pub fn sin_cos<const W: usize>(x: F<W>) -> (F<W>, F<W>) {
             * (1.0 / 24.0
                 + r2 * (-1.0 / 720.0 + r2 * (1.0 / 40_320.0 + r2 * (-1.0 / 3_628_800.0))));
     let qi = F::rounded_int(shifted);
-    let swap = M(std::array::from_fn(|i| mask(qi[i] & 1 == 1)));
-    let sin_neg = M(std::array::from_fn(|i| mask(qi[i] & 2 == 2)));
-    let cos_neg = M(std::array::from_fn(|i| mask((qi[i] + 1) & 2 == 2)));
+    let swap = M::from_fn(|i| qi[i] & 1 == 1);
+    let sin_neg = M::from_fn(|i| qi[i] & 2 == 2);
+    let cos_neg = M::from_fn(|i| (qi[i] + 1) & 2 == 2);
     let sn = F::select(swap, c, s);
     let cs = F::select(swap, s, c);
     (F::select(sin_neg, -sn, sn), F::select(cos_neg, -cs, cs))
@@ -426,9 +431,7 @@ pub fn atan2<const W: usize>(y: F<W>, x: F<W>) -> F<W> {
     let at = F::select(swap, FRAC_PI_2 - at, at);
     let at = F::select(x.lt(0.0), PI - at, at);
     // x = −0 counts as negative (atan2(±0, −0) = ±π).
-    let negx0 = M(std::array::from_fn(|i| {
-        mask((x.0[i] == 0.0) & ((x.0[i].to_bits() as i32) < 0))
-    }));
+    let negx0 = M::from_fn(|i| (x.0[i] == 0.0) & ((x.0[i].to_bits() as i32) < 0));
     let at = F::select(negx0 & y.eq(0.0), F::splat(PI), at);
     at.copysign(y)
 }
