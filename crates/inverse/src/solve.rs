@@ -23,9 +23,10 @@ use matflow_render::Material;
 use rayon::prelude::*;
 
 use crate::envfit::FitTrace;
-use crate::loss::{exposure_ratio, gamma, gamma_inv, pixel_loss, Target};
+use crate::loss::{exposure_ratio, gamma, gamma_inv, gamma_toe, gamma_value, pixel_loss, Target};
 use crate::matfit::{MatFit, Parts};
 use crate::tables::PixelTable;
+use matflow_render::lanes::{F, M};
 
 #[derive(Clone, Copy, Debug)]
 pub struct SolveOptions {
@@ -110,56 +111,272 @@ pub(crate) fn golden(mut a: f32, mut b: f32, iters: usize, f: impl Fn(f32) -> f3
     best.0
 }
 
-/// Albedo of one pixel with R, M fixed.
-fn solve_albedo(
-    t: &PixelTable,
-    m: &Material,
-    pred: &Material,
+/// One pixel's inputs to its solve.
+struct PixelProblem<'a> {
+    t: &'a PixelTable,
+    /// The current materials (the start of the search).
+    m: Material,
+    pred: Material,
     tg: Vec3,
     sat: [bool; 3],
     k: f32,
     c2: f32,
-    o: &SolveOptions,
-) -> Vec3 {
-    let e = t.eval(m);
-    let q = e.da;
-    let p = e.i - m.albedo * q;
-    let mut out = m.albedo;
+    /// [`gamma_toe`], hoisted.
+    toe: f32,
+}
+
+matflow_render::lane_kernel!(fn solve_pixel_now = solve_pixel(p: &PixelProblem, o: &SolveOptions, out: &mut Material));
+
+/// One pixel's solve: R and M (with A at its exact fit per candidate when
+/// the stage solves A too), then A.
+#[inline(always)]
+fn solve_pixel<const W: usize>(p: &PixelProblem, o: &SolveOptions, out: &mut Material) {
+    let mut m = p.m;
+    if o.parts.roughness || o.parts.metallic {
+        let (r, mm) = solve_rm::<W>(p, o);
+        m.roughness = r;
+        m.metallic = mm;
+    }
+    if o.parts.albedo {
+        m.albedo = solve_albedo(p, &m, o);
+    }
+    *out = m.sanitized();
+}
+
+/// [`channel_loss`] in lanes, bit for bit.
+#[inline(always)]
+fn channel_loss_lanes<const W: usize>(i: F<W>, t: f32, sat: bool, c2: f32, toe: f32) -> F<W> {
+    let e = gamma_value(i, toe) - t;
+    let e = if sat {
+        F::select(e.gt(0.0), F::splat(0.0), e)
+    } else {
+        e
+    };
+    e.abs() + c2 * e * e
+}
+
+/// Albedo of one pixel with R, M fixed: per channel, a golden-section
+/// search between the exact fit and the prediction, the three channels
+/// side by side in lanes (each lane the scalar search's steps, bit for
+/// bit).
+#[inline(always)]
+fn solve_albedo(p: &PixelProblem, m: &Material, o: &SolveOptions) -> Vec3 {
+    let (i, q) = p.t.eval_value(m);
+    let pv = i - m.albedo * q;
+    let k = p.k;
+    let (mut lo, mut hi, mut pa, mut fixed) = ([0f32; 4], [0f32; 4], [0f32; 4], [true; 4]);
+    let mut ends = [(0f32, 0f32); 4];
     for c in 0..3 {
-        let (lo, hi) = bounds(pred.albedo[c], o.zeta, 0.0);
-        let pa = pred.albedo[c].clamp(lo, hi);
+        (lo[c], hi[c]) = bounds(p.pred.albedo[c], o.zeta, 0.0);
+        pa[c] = p.pred.albedo[c].clamp(lo[c], hi[c]);
         if !(q[c] > 0.0) || !(k > 0.0) {
-            out[c] = pa;
+            ends[c] = (pa[c], pa[c]);
             continue;
         }
         // Exact fit: k(P + aQ) = γ⁻¹(T).
-        let a0 = ((gamma_inv(tg[c]) / k - p[c]) / q[c]).clamp(lo, hi);
-        let f = |a: f32| {
-            channel_loss(k * (p[c] + a * q[c]), tg[c], sat[c], c2) + o.delta * (a - pa).abs()
-        };
-        let (s0, s1) = if a0 <= pa { (a0, pa) } else { (pa, a0) };
-        out[c] = if s1 - s0 < 1e-6 {
-            s0
+        let a0 = ((gamma_inv(p.tg[c]) / k - pv[c]) / q[c]).clamp(lo[c], hi[c]);
+        ends[c] = if a0 <= pa[c] {
+            (a0, pa[c])
         } else {
-            golden(s0, s1, 16, f)
+            (pa[c], a0)
         };
+        fixed[c] = ends[c].1 - ends[c].0 < 1e-6;
     }
-    out
+    if fixed[..3].iter().all(|&f| f) {
+        return Vec3::new(ends[0].0, ends[1].0, ends[2].0);
+    }
+    // Lane 3 repeats channel 2.
+    let lane = |v: [f32; 3]| F::<4>([v[0], v[1], v[2], v[2]]);
+    let ch = AlbedoChannels {
+        p: lane(pv.to_array()),
+        q: lane(q.to_array()),
+        pa: lane([pa[0], pa[1], pa[2]]),
+        tg: lane(p.tg.to_array()),
+        sat: M::from_array([p.sat[0], p.sat[1], p.sat[2], p.sat[2]]),
+        k,
+        toe: p.toe,
+        c2: p.c2,
+        delta: o.delta,
+    };
+    let best = golden_lanes(
+        lane([ends[0].0, ends[1].0, ends[2].0]),
+        lane([ends[0].1, ends[1].1, ends[2].1]),
+        16,
+        &ch,
+    );
+    Vec3::new(
+        if fixed[0] { ends[0].0 } else { best.0[0] },
+        if fixed[1] { ends[1].0 } else { best.0[1] },
+        if fixed[2] { ends[2].0 } else { best.0[2] },
+    )
+}
+
+/// The albedo objective of a pixel's channels, one per lane.
+struct AlbedoChannels {
+    p: F<4>,
+    q: F<4>,
+    pa: F<4>,
+    tg: F<4>,
+    sat: M<4>,
+    k: f32,
+    toe: f32,
+    c2: f32,
+    delta: f32,
+}
+
+impl AlbedoChannels {
+    /// h(γ(k(P + aQ)) − γ(T)) + δ·|a − â| per lane: [`channel_loss`] plus
+    /// consistency, bit for bit.
+    #[inline(always)]
+    fn loss(&self, a: F<4>) -> F<4> {
+        let e = gamma_value(self.k * (self.p + a * self.q), self.toe) - self.tg;
+        let e = F::select(self.sat & e.gt(0.0), F::splat(0.0), e);
+        (e.abs() + self.c2 * e * e) + self.delta * (a - self.pa).abs()
+    }
+}
+
+/// [`golden`] in lanes: each lane its own interval and search, the steps
+/// of the scalar one, bit for bit.
+#[inline(always)]
+fn golden_lanes(mut a: F<4>, mut b: F<4>, iters: usize, f: &AlbedoChannels) -> F<4> {
+    let (a0, b0) = (a, b);
+    let mut c = b - GOLDEN * (b - a);
+    let mut d = a + GOLDEN * (b - a);
+    let (mut fc, mut fd) = (f.loss(c), f.loss(d));
+    for _ in 0..iters {
+        let left = fc.le(fd);
+        // Left: the minimum is in [a, d]; else in [c, b].
+        b = F::select(left, d, b);
+        a = F::select(left, a, c);
+        let x = F::select(left, b - GOLDEN * (b - a), a + GOLDEN * (b - a));
+        let fx = f.loss(x);
+        let (oc, ofc, od, ofd) = (c, fc, d, fd);
+        c = F::select(left, x, od);
+        fc = F::select(left, fx, ofd);
+        d = F::select(left, oc, x);
+        fd = F::select(left, ofc, fx);
+    }
+    let left = fc.le(fd);
+    let mut best = F::select(left, c, d);
+    let mut bv = fc.min(fd);
+    for x in [a0, b0] {
+        let v = f.loss(x);
+        let better = v.lt(bv);
+        best = F::select(better, x, best);
+        bv = F::select(better, v, bv);
+    }
+    best
+}
+
+/// A pixel's search of R and M: its bounds and what every candidate
+/// shares.
+struct RmSearch<'a> {
+    p: &'a PixelProblem<'a>,
+    parts: Parts,
+    delta: f32,
+    /// γ⁻¹ of the target.
+    tl: Vec3,
+    abounds: [(f32, f32); 3],
+}
+
+impl RmSearch<'_> {
+    /// The objective (re-rendering loss plus δ·consistency) at `W`
+    /// candidates (R, M) at once; per lane the same bits as one at a
+    /// time.
+    #[inline(always)]
+    fn losses<const W: usize>(&self, r: F<W>, mm: F<W>) -> F<W> {
+        let p = self.p;
+        let t = p.t;
+        let a = p.m.albedo;
+        // The table at the clamped roughness (PixelTable::eval_value).
+        let rr = F::select(
+            r.lt(MIN_ROUGHNESS),
+            F::splat(MIN_ROUGHNESS),
+            F::select(r.gt(1.0), F::splat(1.0), r),
+        );
+        let idx: [usize; W] = std::array::from_fn(|l| crate::tables::interval(rr.0[l]));
+        let r0 = F(std::array::from_fn(|l| crate::tables::node(idx[l])));
+        let r1 = F(std::array::from_fn(|l| crate::tables::node(idx[l] + 1)));
+        let h = r1 - r0;
+        let tt = ((rr - r0) / h).clamp(0.0, 1.0);
+        let (t2, t3) = (tt * tt, tt * tt * tt);
+        let h00 = 2.0 * t3 - 3.0 * t2 + 1.0;
+        let h10 = t3 - 2.0 * t2 + tt;
+        let h01 = -2.0 * t3 + 3.0 * t2;
+        let h11 = t3 - t2;
+        let (h10h, h11h) = (h10 * h, h11 * h);
+        let one_m = 1.0 - mm;
+        let mut cons = F::splat(0.0);
+        let mut l = F::splat(0.0);
+        let mut x = [F::splat(0.0); 3];
+        let mut pc = [F::splat(0.0); 3];
+        let mut qc = [F::splat(0.0); 3];
+        for c in 0..3 {
+            let node = |j: usize, e: usize| F(std::array::from_fn(|l| t.spec[idx[l] + j][e][c]));
+            let s1 = node(0, 0) * h00 + node(0, 1) * h10h + node(1, 0) * h01 + node(1, 1) * h11h;
+            let s2 = node(0, 2) * h00 + node(0, 3) * h10h + node(1, 2) * h01 + node(1, 3) * h11h;
+            let d = t.c[0][c] + t.c[1][c] * rr + t.c[2][c] * (rr * rr);
+            let f0 = 0.04 * one_m + a[c] * mm;
+            let i = t.base[c] + a[c] * d * one_m + f0 * s1 + s2;
+            let q = d * one_m + s1 * mm;
+            pc[c] = i - a[c] * q;
+            qc[c] = q;
+            x[c] = F::splat(a[c]);
+        }
+        if self.parts.albedo {
+            for c in 0..3 {
+                let (lo, hi) = self.abounds[c];
+                let fit = ((self.tl[c] / p.k - pc[c]) / qc[c]).clamp(lo, hi);
+                let fallback = F::splat(p.pred.albedo[c].clamp(lo, hi));
+                let ok = if p.k > 0.0 {
+                    qc[c].gt(0.0)
+                } else {
+                    M::from_array([false; W])
+                };
+                x[c] = F::select(ok, fit, fallback);
+                cons = cons + (x[c] - p.pred.albedo[c]).abs();
+            }
+        }
+        for c in 0..3 {
+            let i = (pc[c] + x[c] * qc[c]) * p.k;
+            l = l + channel_loss_lanes(i, p.tg[c], p.sat[c], p.c2, p.toe);
+        }
+        if self.parts.roughness {
+            cons = cons + 3.0 * (r - p.pred.roughness).abs();
+        }
+        if self.parts.metallic {
+            cons = cons + 3.0 * (mm - p.pred.metallic).abs();
+        }
+        l + self.delta * cons
+    }
+
+    /// The objective at every candidate of `cands`, `W` at a time.
+    #[inline(always)]
+    fn all<const W: usize>(&self, cands: &[(f32, f32)], out: &mut [f32]) {
+        let n = cands.len();
+        for s in (0..n).step_by(W) {
+            let at = |l: usize| cands[(s + l).min(n - 1)];
+            let v = self.losses::<W>(
+                F(std::array::from_fn(|l| at(l).0)),
+                F(std::array::from_fn(|l| at(l).1)),
+            );
+            let k = W.min(n - s);
+            out[s..s + k].copy_from_slice(&v.0[..k]);
+        }
+    }
 }
 
 /// Roughness and metallic of one pixel; with A fixed, or, when the stage
 /// also solves albedo, with A at its exact-fit value for each candidate
 /// (R, M) (clamped to its bounds), so that the search is over all three.
-fn solve_rm(
-    t: &PixelTable,
-    m: &Material,
-    pred: &Material,
-    tg: Vec3,
-    sat: [bool; 3],
-    k: f32,
-    c2: f32,
-    o: &SolveOptions,
-) -> (f32, f32) {
+///
+/// Cold: a 10 × 8 grid over the feasible box (denser at low roughness),
+/// `W` candidates at a time. Then a compass search from the best point:
+/// its four neighbours are evaluated together and the best improving one
+/// is taken (the first in order on ties); without one the steps halve.
+#[inline(always)]
+fn solve_rm<const W: usize>(p: &PixelProblem, o: &SolveOptions) -> (f32, f32) {
+    let (pred, m) = (&p.pred, &p.m);
     let (rlo, rhi) = if o.parts.roughness {
         bounds(
             pred.roughness,
@@ -174,85 +391,62 @@ fn solve_rm(
     } else {
         (m.metallic, m.metallic)
     };
-    let tl = Vec3::new(gamma_inv(tg.x), gamma_inv(tg.y), gamma_inv(tg.z));
-    let abounds: [(f32, f32); 3] = std::array::from_fn(|c| bounds(pred.albedo[c], o.zeta, 0.0));
-    let f = |r: f32, mm: f32| -> f32 {
-        let mut x = Material {
-            albedo: m.albedo,
-            roughness: r,
-            metallic: mm,
-        };
-        let mut cons = 0.0;
-        // The pixel is affine in A for fixed R, M: I = P + A ⊙ Q.
-        let e = t.eval(&x);
-        let q = e.da;
-        let p = e.i - x.albedo * q;
-        if o.parts.albedo {
-            for c in 0..3 {
-                let (lo, hi) = abounds[c];
-                x.albedo[c] = if q[c] > 0.0 && k > 0.0 {
-                    ((tl[c] / k - p[c]) / q[c]).clamp(lo, hi)
-                } else {
-                    pred.albedo[c].clamp(lo, hi)
-                };
-                cons += (x.albedo[c] - pred.albedo[c]).abs();
-            }
-        }
-        let i = (p + x.albedo * q) * k;
-        let mut l = 0.0;
-        for c in 0..3 {
-            l += channel_loss(i[c], tg[c], sat[c], c2);
-        }
-        if o.parts.roughness {
-            cons += 3.0 * (r - pred.roughness).abs();
-        }
-        if o.parts.metallic {
-            cons += 3.0 * (mm - pred.metallic).abs();
-        }
-        l + o.delta * cons
+    let search = RmSearch {
+        p,
+        parts: o.parts,
+        delta: o.delta,
+        tl: Vec3::new(gamma_inv(p.tg.x), gamma_inv(p.tg.y), gamma_inv(p.tg.z)),
+        abounds: std::array::from_fn(|c| bounds(pred.albedo[c], o.zeta, 0.0)),
     };
     const GR: usize = 10;
     const GM: usize = 8;
     let lerp = |a: f32, b: f32, i: usize, n: usize| a + (b - a) * i as f32 / (n - 1) as f32;
-    let mut best = (
-        m.roughness.clamp(rlo, rhi),
-        m.metallic.clamp(mlo, mhi),
-        f32::INFINITY,
-    );
-    best.2 = f(best.0, best.1);
+    let start = (m.roughness.clamp(rlo, rhi), m.metallic.clamp(mlo, mhi));
+    let mut v = [0f32; GR * GM];
+    search.all::<1>(&[start], &mut v[..1]);
+    let mut best = (start.0, start.1, v[0]);
     let mut sr = (rhi - rlo) / (GR - 1) as f32;
     let mut sm = (mhi - mlo) / (GM - 1) as f32;
     if o.warm {
         sr *= 0.25;
         sm *= 0.25;
     } else {
+        let mut grid = [(0f32, 0f32); GR * GM];
         for i in 0..GR {
             // Denser grid at low roughness, where the lobe changes fastest.
             let u = i as f32 / (GR - 1) as f32;
             let r = rlo + (rhi - rlo) * u * u;
             for j in 0..GM {
-                let mm = lerp(mlo, mhi, j, GM);
-                let v = f(r, mm);
-                if v < best.2 {
-                    best = (r, mm, v);
-                }
+                grid[i * GM + j] = (r, lerp(mlo, mhi, j, GM));
+            }
+        }
+        search.all::<W>(&grid, &mut v);
+        for (g, &x) in grid.iter().zip(&v) {
+            if x < best.2 {
+                best = (g.0, g.1, x);
             }
         }
     }
+    let mut cands = [(0f32, 0f32); 4];
+    let mut vals = [0f32; 4];
     for _ in 0..14 {
         if sr.max(sm) < 2e-4 {
             break;
         }
-        let mut moved = false;
+        let mut n = 0;
         for (dr, dm) in [(sr, 0.0), (-sr, 0.0), (0.0, sm), (0.0, -sm)] {
             if dr == 0.0 && dm == 0.0 {
                 continue;
             }
-            let r = (best.0 + dr).clamp(rlo, rhi);
-            let mm = (best.1 + dm).clamp(mlo, mhi);
-            let v = f(r, mm);
-            if v < best.2 {
-                best = (r, mm, v);
+            cands[n] = ((best.0 + dr).clamp(rlo, rhi), (best.1 + dm).clamp(mlo, mhi));
+            n += 1;
+        }
+        // Four candidates: four lanes at any width.
+        search.all::<4>(&cands[..n], &mut vals[..n]);
+        let mut moved = false;
+        for j in 0..n {
+            if vals[j] < best.2 {
+                best = (cands[j].0, cands[j].1, vals[j]);
                 moved = true;
             }
         }
@@ -280,6 +474,7 @@ pub fn solve_pixels(
     let mut mats: Vec<Material> = start.iter().map(|m| m.sanitized()).collect();
     let mut trace = FitTrace::default();
     let rounds = o.rounds.max(1);
+    let toe = gamma_toe();
     // (L1 + L2 mean, Σ unscaled render, L1 sum, L2 sum)
     let measure = |mats: &[Material], k: f32| -> (f64, f64, f64, f64) {
         let parts: Vec<(f64, f64, f64)> = mats
@@ -289,7 +484,7 @@ pub fn solve_pixels(
                 let (mut a, mut b, mut s) = (0f64, 0f64, 0f64);
                 for (j, m) in ms.iter().enumerate() {
                     let p = c * 4096 + j;
-                    let i = tables[p].eval(m).i;
+                    let i = tables[p].eval_value(m).0;
                     s += target.exposure_part(p, i);
                     let (l1, l2, _) = pixel_loss(i * k, target.gamma[p], target.saturated[p]);
                     a += l1 as f64;
@@ -333,17 +528,19 @@ pub fn solve_pixels(
             .enumerate()
             .with_min_len(512)
             .map(|(p, m)| {
-                let (tg, sat) = (target.gamma[p], target.saturated[p]);
-                let mut m = *m;
-                if o.parts.roughness || o.parts.metallic {
-                    let (r, mm) = solve_rm(&tables[p], &m, &pred[p], tg, sat, k, c2, o);
-                    m.roughness = r;
-                    m.metallic = mm;
-                }
-                if o.parts.albedo {
-                    m.albedo = solve_albedo(&tables[p], &m, &pred[p], tg, sat, k, c2, o);
-                }
-                m.sanitized()
+                let problem = PixelProblem {
+                    t: &tables[p],
+                    m: *m,
+                    pred: pred[p],
+                    tg: target.gamma[p],
+                    sat: target.saturated[p],
+                    k,
+                    c2,
+                    toe,
+                };
+                let mut out = *m;
+                solve_pixel_now(&problem, o, &mut out);
+                out
             })
             .collect();
         let (l, s, l1, l2) = measure(&mats, k);
