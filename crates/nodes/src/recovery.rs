@@ -283,6 +283,38 @@ pub(crate) fn on_event(ctx: &RunContext, e: Event) {
     }
 }
 
+/// Logs each stage's wall time (`MATFLOW_LOG=info`): where a recovery's
+/// time goes, for tuning the budget plan's cost model. The clock is read
+/// for the log only; nothing computed depends on it.
+fn stage_clock(clock: &std::sync::Mutex<Option<(String, std::time::Instant)>>, e: &Event) {
+    let mut c = clock.lock().unwrap_or_else(|p| p.into_inner());
+    match e {
+        Event::Stage { name, steps } => {
+            tracing::debug!(target: "matflow::stages", "{name}: {steps} steps");
+            *c = Some((name.to_string(), std::time::Instant::now()));
+        }
+        Event::Step { step, .. } => {
+            if let Some((name, t0)) = c.as_ref() {
+                tracing::trace!(
+                    target: "matflow::stages",
+                    "{name}: step {step} at {:.3} s",
+                    t0.elapsed().as_secs_f64()
+                );
+            }
+        }
+        Event::StageDone => {
+            if let Some((name, t0)) = c.take() {
+                tracing::info!(
+                    target: "matflow::stages",
+                    "{name}: {:.3} s",
+                    t0.elapsed().as_secs_f64()
+                );
+            }
+        }
+        _ => {}
+    }
+}
+
 /// The recovery for a stage: [`invert_until`] with the stage's progress
 /// ([`on_event`]), stopped when its run no longer wants it.
 pub(crate) fn run_invert(
@@ -292,12 +324,16 @@ pub(crate) fn run_invert(
     start: &[matflow_render::Material],
     opts: &InvertOptions,
 ) -> Result<InvertResult, NodeError> {
+    let clock = std::sync::Mutex::new(None);
     invert_until(
         scene,
         target,
         start,
         opts,
-        &|e| on_event(ctx, e),
+        &|e| {
+            stage_clock(&clock, &e);
+            on_event(ctx, e)
+        },
         ctx.cancelled,
     )
     .map_err(|e| match e {
