@@ -400,24 +400,33 @@ impl Bundle {
     /// Writes maps in the `best_results/` (or `ground_truth/`) layout.
     pub fn write_materials(&self, folder: &str, maps: &MaterialMaps) -> Result<()> {
         let d = self.dir.join(folder);
-        io::write_exr_rgb(&d.join("albedo.exr"), &maps.albedo)?;
-        io::write_exr_rgb(&d.join("roughness.exr"), &maps.roughness.to_rgb())?;
-        io::write_exr_rgb(&d.join("metallic.exr"), &maps.metallic.to_rgb())?;
+        let d = &d;
+        let mut jobs: Vec<Job> = vec![
+            Box::new(move || io::write_exr_rgb(&d.join("albedo.exr"), &maps.albedo)),
+            Box::new(move || io::write_exr_rgb(&d.join("roughness.exr"), &maps.roughness.to_rgb())),
+            Box::new(move || io::write_exr_rgb(&d.join("metallic.exr"), &maps.metallic.to_rgb())),
+        ];
         if let Some(n) = &maps.normal {
-            io::write_exr_rgb(&d.join("normal.exr"), n)?;
+            jobs.push(Box::new(move || {
+                io::write_exr_rgb(&d.join("normal.exr"), n)
+            }));
         }
-        Ok(())
+        write_all(jobs)
     }
 
     /// Writes maps as MatNet-style predictions (`*Pred.*`).
     pub fn write_predictions(&self, maps: &MaterialMaps) -> Result<()> {
-        io::write_exr_rgb(&self.path("albedoPred.exr"), &maps.albedo)?;
-        io::write_png_srgb_map(&self.path("roughnessPred.png"), &maps.roughness)?;
-        io::write_png_srgb_map(&self.path("metallicPred.png"), &maps.metallic)?;
+        let mut jobs: Vec<Job> = vec![
+            Box::new(|| io::write_exr_rgb(&self.path("albedoPred.exr"), &maps.albedo)),
+            Box::new(|| io::write_png_srgb_map(&self.path("roughnessPred.png"), &maps.roughness)),
+            Box::new(|| io::write_png_srgb_map(&self.path("metallicPred.png"), &maps.metallic)),
+        ];
         if let Some(n) = &maps.normal {
-            io::write_exr_rgb(&self.path("normalPred.exr"), n)?;
+            jobs.push(Box::new(|| {
+                io::write_exr_rgb(&self.path("normalPred.exr"), n)
+            }));
         }
-        Ok(())
+        write_all(jobs)
     }
 
     /// Writes camera-space z as `depth.exr` (channel Y).
@@ -428,8 +437,10 @@ impl Bundle {
     /// Writes the input photograph as `gt_image.exr` (linear) and
     /// `gt_image.png` (sRGB).
     pub fn write_gt_image(&self, image: &RgbImage) -> Result<()> {
-        io::write_exr_rgb(&self.path("gt_image.exr"), image)?;
-        io::write_png_gamma(&self.path("gt_image.png"), image)
+        write_all(vec![
+            Box::new(|| io::write_exr_rgb(&self.path("gt_image.exr"), image)),
+            Box::new(|| io::write_png_gamma(&self.path("gt_image.png"), image)),
+        ])
     }
 
     /// Writes a recovery's `best_results/`: the maps, `envmap.hdr`,
@@ -440,23 +451,31 @@ impl Bundle {
     /// writes nothing is removed, so the folder never mixes two runs.
     pub fn write_best_results(&self, r: &BestResults) -> Result<()> {
         self.write_materials("best_results", r.maps)?;
-        io::write_hdr(&self.path("best_results/envmap.hdr"), r.envmap)?;
-        let lamps = self.path(crate::lamps::LAMPS_FILE);
-        if r.lamps.is_empty() {
-            remove_stale(&lamps)?;
-        } else {
-            crate::lamps::write_lamps(&lamps, r.lamps)?;
-        }
-        io::write_exr_rgb(&self.path("best_results/rendered_img.exr"), r.rendered)?;
-        io::write_png_gamma(&self.path("best_results/rendered_img.png"), r.rendered)?;
-        let raw = self.path("best_results/rendered_raw.exr");
-        match r.rendered_raw {
-            Some(im) => io::write_exr_rgb(&raw, im)?,
-            None => remove_stale(&raw)?,
-        }
-        io::write_exr_rgb(&self.path("best_results/fit_img.exr"), r.fit_image)?;
-        io::write_png_gamma(&self.path("best_results/fit_img.png"), r.fit_image)?;
-        io::write_png_gamma(&self.path("best_results/albedo.png"), &r.maps.albedo)
+        write_all(vec![
+            Box::new(|| io::write_hdr(&self.path("best_results/envmap.hdr"), r.envmap)),
+            Box::new(|| {
+                let lamps = self.path(crate::lamps::LAMPS_FILE);
+                if r.lamps.is_empty() {
+                    remove_stale(&lamps)
+                } else {
+                    crate::lamps::write_lamps(&lamps, r.lamps)
+                }
+            }),
+            Box::new(|| io::write_exr_rgb(&self.path("best_results/rendered_img.exr"), r.rendered)),
+            Box::new(|| {
+                io::write_png_gamma(&self.path("best_results/rendered_img.png"), r.rendered)
+            }),
+            Box::new(|| {
+                let raw = self.path("best_results/rendered_raw.exr");
+                match r.rendered_raw {
+                    Some(im) => io::write_exr_rgb(&raw, im),
+                    None => remove_stale(&raw),
+                }
+            }),
+            Box::new(|| io::write_exr_rgb(&self.path("best_results/fit_img.exr"), r.fit_image)),
+            Box::new(|| io::write_png_gamma(&self.path("best_results/fit_img.png"), r.fit_image)),
+            Box::new(|| io::write_png_gamma(&self.path("best_results/albedo.png"), &r.maps.albedo)),
+        ])
     }
 }
 
@@ -472,6 +491,18 @@ pub struct BestResults<'a> {
     pub rendered_raw: Option<&'a RgbImage>,
     /// What the optimiser fitted: the frozen paths' image of the result.
     pub fit_image: &'a RgbImage,
+}
+
+/// One file's write, for [`write_all`].
+pub type Job<'a> = Box<dyn FnOnce() -> Result<()> + Send + 'a>;
+
+/// Runs independent file writes side by side (EXR compression is most of
+/// a bundle's writing, one core per file); of several failures, the first
+/// in the order given is the one reported.
+pub fn write_all(jobs: Vec<Job<'_>>) -> Result<()> {
+    use rayon::prelude::*;
+    let done: Vec<Result<()>> = jobs.into_par_iter().map(|job| job()).collect();
+    done.into_iter().collect()
 }
 
 /// Removes `path`, left by an earlier run, where this run writes nothing.

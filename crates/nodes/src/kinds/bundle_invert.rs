@@ -308,12 +308,19 @@ impl Node for BundleInvertNode {
         let portals = if opts.portals { scene.portals.len() } else { 0 };
         let pred = matflow_render::scene::materials_from_maps(&maps);
         let res = run_invert(ctx, scene, &target, &pred, &opts)?;
-        let rerender = image_metrics(&res.rendered, &target);
-        let fit = image_metrics(&res.fit_image, &target);
-        let rerender_raw = res
-            .rendered_raw
-            .as_ref()
-            .map(|im| image_metrics(im, &target));
+        let (rerender, (fit, rerender_raw)) = rayon::join(
+            || image_metrics(&res.rendered, &target),
+            || {
+                rayon::join(
+                    || image_metrics(&res.fit_image, &target),
+                    || {
+                        res.rendered_raw
+                            .as_ref()
+                            .map(|im| image_metrics(im, &target))
+                    },
+                )
+            },
+        );
         let summary = serde_json::json!({
             "options": {
                 "budget_seconds": opts.budget_seconds,
@@ -565,19 +572,25 @@ fn bundle_files(
         .map_err(|e| NodeError::machine(format!("making a scratch folder: {e}")))?;
     let out = scratch.path().join("bundle");
     let b = Bundle::create(&out).node_err()?;
-    b.write_depth(depth).node_err()?;
-    b.write_predictions(pred).node_err()?;
-    b.write_gt_image(target).node_err()?;
     let mut maps = materials_to_maps(target.width, target.height, &res.materials);
     maps.normal = pred.normal.clone();
-    b.write_best_results(&matflow_scene::BestResults {
-        maps: &maps,
-        envmap: &res.envmap,
-        lamps: &res.lamps,
-        rendered: &res.rendered,
-        rendered_raw: res.rendered_raw.as_ref(),
-        fit_image: &res.fit_image,
-    })
+    let b = &b;
+    let maps = &maps;
+    matflow_scene::bundle::write_all(vec![
+        Box::new(|| b.write_depth(depth)),
+        Box::new(|| b.write_predictions(pred)),
+        Box::new(|| b.write_gt_image(target)),
+        Box::new(|| {
+            b.write_best_results(&matflow_scene::BestResults {
+                maps,
+                envmap: &res.envmap,
+                lamps: &res.lamps,
+                rendered: &res.rendered,
+                rendered_raw: res.rendered_raw.as_ref(),
+                fit_image: &res.fit_image,
+            })
+        }),
+    ])
     .node_err()?;
     // The result holds the input's depth and was recovered on one
     // completion of it: geometry.json declares that one (and, when the
