@@ -53,7 +53,7 @@ pub const SYNTHETIC_SMOOTH: f32 = 0.01;
 
 /// One envmap stage per pixel (it stops early after a few dozen steps);
 /// the orchestration's fixed cost includes two such stages.
-pub const STAGE_PER_PIXEL: f64 = 1.9e-6;
+pub const STAGE_PER_PIXEL: f64 = 1.7e-6;
 
 pub struct Texel {
     smooth: Option<f32>,

@@ -27,9 +27,9 @@ const OPTIONS: &[RouteOption] = &[RouteOption {
 }];
 
 /// One round per pixel from a grid over (R, M).
-pub const COLD_ROUND: f64 = 6.5e-6;
+pub const COLD_ROUND: f64 = 3.6e-6;
 /// One round per pixel from the previous answer (compass search only).
-pub const WARM_ROUND: f64 = 2.9e-6;
+pub const WARM_ROUND: f64 = 1.6e-6;
 
 pub struct Solve {
     rounds: Option<usize>,
