@@ -40,6 +40,12 @@ pub struct BenchInvertArgs {
     /// stopping.
     #[arg(long)]
     pub skips: bool,
+    /// Also re-render each result independently at this many samples per
+    /// pixel (`matflow render --bundle OUT --spp N`, fresh random numbers,
+    /// no denoising) and report its PSNR against the input: the recovered
+    /// scene's error without the final re-render's noise. 0: off.
+    #[arg(long, default_value_t = 0)]
+    pub rerender_spp: u32,
     /// Where the child runs write their bundles.
     #[arg(long, default_value = "target/bench-invert")]
     pub work: PathBuf,
@@ -102,6 +108,32 @@ struct Row {
     ssim: f64,
     fit_psnr: f64,
     peak_mb: f64,
+    /// PSNR of the independent `--rerender-spp` render (NaN: not run).
+    independent: f64,
+}
+
+/// PSNR against the input of an independent `spp`-sample render of the
+/// recovered bundle `out` (its `matflow render` report's `photo_psnr`).
+fn independent_rerender(exe: &Path, out: &Path, spp: u32) -> Result<f64> {
+    let exr = out.join(format!("rerender-{spp}spp.exr"));
+    let args: Vec<String> = vec![
+        "render".into(),
+        "--bundle".into(),
+        crate::harness::path_arg(out),
+        "--spp".into(),
+        spp.to_string(),
+        "--out".into(),
+        crate::harness::path_arg(&exr),
+        "--quiet".into(),
+    ];
+    crate::harness::stage_child(exe, &args, false)
+        .with_context(|| format!("matflow render of {}", out.display()))?;
+    let p = exr.with_extension("json");
+    let text = std::fs::read(&p).with_context(|| format!("reading {}", p.display()))?;
+    let v: serde_json::Value = serde_json::from_slice(&text)?;
+    v["photo_psnr"]
+        .as_f64()
+        .with_context(|| format!("{}: no photo_psnr", p.display()))
 }
 
 fn run_one(
@@ -196,6 +228,11 @@ pub fn bench_invert(a: BenchInvertArgs) -> Result<()> {
             ));
             let (s, timing) = run_one(exe, bundle, &out, c.budget, &c.route, &c.flags)?;
             let f = |k: &str, m: &str| s[k][m].as_f64().unwrap_or(f64::NAN);
+            let independent = if a.rerender_spp > 0 {
+                independent_rerender(exe, &out, a.rerender_spp)?
+            } else {
+                f64::NAN
+            };
             let row = Row {
                 scene: scene.clone(),
                 budget: c.budget,
@@ -206,17 +243,25 @@ pub fn bench_invert(a: BenchInvertArgs) -> Result<()> {
                 ssim: f("rerender", "ssim"),
                 fit_psnr: f("fit", "psnr"),
                 peak_mb: timing.peak_bytes / 1e6,
+                independent,
             };
             outln!(
                 "  {:<8} budget {:>5.0} s  {:<6} {:<28} {:>6.1} s  rerender {:>6.2} dB  SSIM {:.3}  fit {:>6.2} dB  peak {:>5.0} MB",
                 row.scene, row.budget, row.route, row.variant, row.seconds, row.psnr, row.ssim,
                 row.fit_psnr, row.peak_mb
             );
+            if a.rerender_spp > 0 {
+                outln!(
+                    "           independent {}-spp re-render {:>6.2} dB",
+                    a.rerender_spp,
+                    row.independent
+                );
+            }
             rows.push(row);
         }
     }
     if exe.is_some() {
-        print_table(&rows);
+        print_table(&rows, a.rerender_spp);
     }
     Ok(())
 }
@@ -335,13 +380,26 @@ fn configurations(a: &BenchInvertArgs) -> Vec<Config> {
     configs
 }
 
-fn print_table(rows: &[Row]) {
+fn print_table(rows: &[Row], rerender_spp: u32) {
+    let (head, rule) = if rerender_spp > 0 {
+        (
+            format!(" independent {rerender_spp}-spp re-render (dB) |"),
+            "---|",
+        )
+    } else {
+        (String::new(), "")
+    };
     outln!();
-    outln!("| scene | budget (s) | material route | variant | wall (s) | rerender PSNR (dB) | SSIM | fit PSNR (dB) | peak memory (MB) |");
-    outln!("|---|---|---|---|---|---|---|---|---|");
+    outln!("| scene | budget (s) | material route | variant | wall (s) | rerender PSNR (dB) | SSIM | fit PSNR (dB) | peak memory (MB) |{head}");
+    outln!("|---|---|---|---|---|---|---|---|---|{rule}");
     for r in rows {
+        let extra = if rerender_spp > 0 {
+            format!(" {:.2} |", r.independent)
+        } else {
+            String::new()
+        };
         outln!(
-            "| {} | {:.0} | {} | {} | {:.1} | {:.2} | {:.3} | {:.2} | {:.0} |",
+            "| {} | {:.0} | {} | {} | {:.1} | {:.2} | {:.3} | {:.2} | {:.0} |{extra}",
             r.scene,
             r.budget,
             r.route,
