@@ -115,7 +115,9 @@ struct Row {
 /// PSNR against the input of an independent `spp`-sample render of the
 /// recovered bundle `out` (its `matflow render` report's `photo_psnr`).
 fn independent_rerender(exe: &Path, out: &Path, spp: u32) -> Result<f64> {
-    let exr = out.join(format!("rerender-{spp}spp.exr"));
+    // Beside the bundle: a render may not write into the folder it reads.
+    let name = out.file_name().unwrap_or_default().to_string_lossy();
+    let exr = out.with_file_name(format!("{name}-rerender-{spp}spp.exr"));
     let args: Vec<String> = vec![
         "render".into(),
         "--bundle".into(),
