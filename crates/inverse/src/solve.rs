@@ -294,17 +294,12 @@ impl RmSearch<'_> {
             F::splat(MIN_ROUGHNESS),
             F::select(r.gt(1.0), F::splat(1.0), r),
         );
-        let idx: [usize; W] = std::array::from_fn(|l| crate::tables::interval(rr.0[l]));
-        let r0 = F(std::array::from_fn(|l| crate::tables::node(idx[l])));
-        let r1 = F(std::array::from_fn(|l| crate::tables::node(idx[l] + 1)));
-        let h = r1 - r0;
-        let tt = ((rr - r0) / h).clamp(0.0, 1.0);
-        let (t2, t3) = (tt * tt, tt * tt * tt);
-        let h00 = 2.0 * t3 - 3.0 * t2 + 1.0;
-        let h10 = t3 - 2.0 * t2 + tt;
-        let h01 = -2.0 * t3 + 3.0 * t2;
-        let h11 = t3 - t2;
-        let (h10h, h11h) = (h10 * h, h11 * h);
+        // The spline's interval and basis per lane (the scalar ones).
+        let hs: [(usize, f32, f32, [f32; 4]); W] =
+            std::array::from_fn(|l| crate::tables::hermite(rr.0[l]));
+        let idx: [usize; W] = std::array::from_fn(|l| hs[l].0);
+        let basis = |k: usize| F(std::array::from_fn(|l| hs[l].3[k]));
+        let (h00, h10h, h01, h11h) = (basis(0), basis(1), basis(2), basis(3));
         let one_m = 1.0 - mm;
         let mut cons = F::splat(0.0);
         let mut l = F::splat(0.0);
@@ -677,6 +672,87 @@ mod tests {
             .materials
             .iter()
             .all(|m| m.albedo.is_finite() && m.roughness >= 0.07 && m.metallic <= 1.0));
+    }
+
+    /// Every lane width solves every pixel to the same bits (cold and
+    /// warm, all three parts), and the albedo's lane-wide golden sections
+    /// are the scalar search's, channel by channel.
+    #[test]
+    fn lane_widths_give_the_same_bits_and_lanes_the_scalar_search() {
+        let TableProblem {
+            tables,
+            truth,
+            target,
+            ..
+        } = table_problem(13, 16);
+        let toe = gamma_toe();
+        for warm in [false, true] {
+            let o = SolveOptions {
+                warm,
+                ..one_round(Parts::ARM, 0.1)
+            };
+            for p in 0..truth.len() {
+                let pred = Material {
+                    albedo: truth[p].albedo * 0.7 + Vec3::splat(0.1),
+                    roughness: (truth[p].roughness + 0.2).min(1.0),
+                    metallic: 0.3 * hash01(p as u64),
+                };
+                let problem = PixelProblem {
+                    t: &tables[p],
+                    m: pred,
+                    pred,
+                    tg: target.gamma[p],
+                    sat: target.saturated[p],
+                    k: 0.9,
+                    c2: 1.5,
+                    toe,
+                };
+                let mut outs = [pred; 4];
+                solve_pixel::<1>(&problem, &o, &mut outs[0]);
+                solve_pixel::<4>(&problem, &o, &mut outs[1]);
+                solve_pixel::<8>(&problem, &o, &mut outs[2]);
+                solve_pixel::<16>(&problem, &o, &mut outs[3]);
+                let bits = |m: &Material| {
+                    (
+                        m.albedo.to_array().map(f32::to_bits),
+                        m.roughness.to_bits(),
+                        m.metallic.to_bits(),
+                    )
+                };
+                for out in &outs[1..] {
+                    assert_eq!(bits(out), bits(&outs[0]), "pixel {p}, warm {warm}");
+                }
+                // The albedo search against the scalar golden section.
+                let m = outs[0];
+                let lanes = solve_albedo(&problem, &m, &o);
+                let (i, q) = tables[p].eval_value(&m);
+                let pv = i - m.albedo * q;
+                for c in 0..3 {
+                    let (lo, hi) = bounds(pred.albedo[c], o.zeta, 0.0);
+                    let pa = pred.albedo[c].clamp(lo, hi);
+                    let want = if !(q[c] > 0.0) {
+                        pa
+                    } else {
+                        let a0 = ((gamma_inv(problem.tg[c]) / 0.9 - pv[c]) / q[c]).clamp(lo, hi);
+                        let (s0, s1) = if a0 <= pa { (a0, pa) } else { (pa, a0) };
+                        let f = |a: f32| {
+                            channel_loss(
+                                0.9 * (pv[c] + a * q[c]),
+                                problem.tg[c],
+                                problem.sat[c],
+                                1.5,
+                            ) + o.delta * (a - pa).abs()
+                        };
+                        if s1 - s0 < 1e-6 {
+                            s0
+                        } else {
+                            golden(s0, s1, 16, f)
+                        }
+                    };
+                    assert_eq!(lanes[c].to_bits(), want.to_bits(), "pixel {p} channel {c}");
+                }
+            }
+        }
     }
 
     #[test]

@@ -35,11 +35,30 @@ pub fn node(i: usize) -> f32 {
 }
 
 #[inline]
-pub(crate) fn interval(r: f32) -> usize {
+fn interval(r: f32) -> usize {
     let t = ((r - MIN_ROUGHNESS) / (1.0 - MIN_ROUGHNESS))
         .max(0.0)
         .sqrt();
     ((t * (NODES - 1) as f32) as usize).min(NODES - 2)
+}
+
+/// The roughness interval of `r` (clamped to the nodes' range), its width
+/// h, the position t in it, and the cubic Hermite basis at t with the
+/// tangent terms scaled by h: (h00, h10·h, h01, h11·h).
+#[inline]
+pub(crate) fn hermite(r: f32) -> (usize, f32, f32, [f32; 4]) {
+    let i = interval(r);
+    let (r0, r1) = (node(i), node(i + 1));
+    let h = r1 - r0;
+    let t = ((r - r0) / h).clamp(0.0, 1.0);
+    let (t2, t3) = (t * t, t * t * t);
+    let basis = [
+        2.0 * t3 - 3.0 * t2 + 1.0,
+        (t3 - 2.0 * t2 + t) * h,
+        -2.0 * t3 + 3.0 * t2,
+        (t3 - t2) * h,
+    ];
+    (i, h, t, basis)
 }
 
 /// One pixel's model: 4 + 4·NODES RGB values.
@@ -74,45 +93,26 @@ pub struct PixelEval {
 impl PixelTable {
     #[inline]
     fn spec_at(&self, r: f32) -> (Vec3, Vec3, Vec3, Vec3) {
-        let i = interval(r);
-        let (r0, r1) = (node(i), node(i + 1));
-        let h = r1 - r0;
-        let t = ((r - r0) / h).clamp(0.0, 1.0);
-        let (t2, t3) = (t * t, t * t * t);
-        let h00 = 2.0 * t3 - 3.0 * t2 + 1.0;
-        let h10 = t3 - 2.0 * t2 + t;
-        let h01 = -2.0 * t3 + 3.0 * t2;
-        let h11 = t3 - t2;
+        let (i, h, t, _) = hermite(r);
+        let t2 = t * t;
         let d00 = (6.0 * t2 - 6.0 * t) / h;
         let d10 = 3.0 * t2 - 4.0 * t + 1.0;
         let d01 = (-6.0 * t2 + 6.0 * t) / h;
         let d11 = 3.0 * t2 - 2.0 * t;
-        let a = &self.spec[i];
-        let b = &self.spec[i + 1];
-        let s1 = a[0] * h00 + a[1] * (h10 * h) + b[0] * h01 + b[1] * (h11 * h);
+        let (a, b) = (&self.spec[i], &self.spec[i + 1]);
+        let (s1, s2) = self.spec_value_at(r);
         let ds1 = a[0] * d00 + a[1] * d10 + b[0] * d01 + b[1] * d11;
-        let s2 = a[2] * h00 + a[3] * (h10 * h) + b[2] * h01 + b[3] * (h11 * h);
         let ds2 = a[2] * d00 + a[3] * d10 + b[2] * d01 + b[3] * d11;
         (s1, ds1, s2, ds2)
     }
 
-    /// [`Self::spec_at`] without the R-derivatives (the same bits for
-    /// S1 and S2).
+    /// [`Self::spec_at`] without the R-derivatives.
     #[inline]
     fn spec_value_at(&self, r: f32) -> (Vec3, Vec3) {
-        let i = interval(r);
-        let (r0, r1) = (node(i), node(i + 1));
-        let h = r1 - r0;
-        let t = ((r - r0) / h).clamp(0.0, 1.0);
-        let (t2, t3) = (t * t, t * t * t);
-        let h00 = 2.0 * t3 - 3.0 * t2 + 1.0;
-        let h10 = t3 - 2.0 * t2 + t;
-        let h01 = -2.0 * t3 + 3.0 * t2;
-        let h11 = t3 - t2;
-        let a = &self.spec[i];
-        let b = &self.spec[i + 1];
-        let s1 = a[0] * h00 + a[1] * (h10 * h) + b[0] * h01 + b[1] * (h11 * h);
-        let s2 = a[2] * h00 + a[3] * (h10 * h) + b[2] * h01 + b[3] * (h11 * h);
+        let (i, _, _, [h00, h10h, h01, h11h]) = hermite(r);
+        let (a, b) = (&self.spec[i], &self.spec[i + 1]);
+        let s1 = a[0] * h00 + a[1] * h10h + b[0] * h01 + b[1] * h11h;
+        let s2 = a[2] * h00 + a[3] * h10h + b[2] * h01 + b[3] * h11h;
         (s1, s2)
     }
 

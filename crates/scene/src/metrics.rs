@@ -66,38 +66,14 @@ pub fn ssim_channel(a: &[f32], b: &[f32], w: usize, h: usize) -> f64 {
     let mut tmp = vec![[0f64; 5]; w * h];
     tmp.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
         for (x, out) in row.iter_mut().enumerate() {
-            let (mut s, mut n) = ([0f64; 5], 0.0);
-            for k in -r..=r {
-                let xx = x as i64 + k;
-                if xx >= 0 && (xx as usize) < w {
-                    let gk = g[(k + r) as usize];
-                    let v = signals(y * w + xx as usize);
-                    for j in 0..5 {
-                        s[j] += gk * v[j];
-                    }
-                    n += gk;
-                }
-            }
-            *out = s.map(|v| v / n);
+            *out = window(&g, x, w, |xx| signals(y * w + xx));
         }
     });
     let (c1, c2) = (0.01f64 * 0.01, 0.03f64 * 0.03);
     let mut terms = vec![0f64; w * h];
     terms.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
         for (x, term) in row.iter_mut().enumerate() {
-            let (mut s, mut n) = ([0f64; 5], 0.0);
-            for k in -r..=r {
-                let yy = y as i64 + k;
-                if yy >= 0 && (yy as usize) < h {
-                    let gk = g[(k + r) as usize];
-                    let v = &tmp[yy as usize * w + x];
-                    for j in 0..5 {
-                        s[j] += gk * v[j];
-                    }
-                    n += gk;
-                }
-            }
-            let [ma, mb, saa, sbb, sab] = s.map(|v| v / n);
+            let [ma, mb, saa, sbb, sab] = window(&g, y, h, |yy| tmp[yy * w + x]);
             let va = (saa - ma * ma).max(0.0);
             let vb = (sbb - mb * mb).max(0.0);
             let cov = sab - ma * mb;
@@ -111,6 +87,27 @@ pub fn ssim_channel(a: &[f32], b: &[f32], w: usize, h: usize) -> f64 {
         sum += t;
     }
     sum / (w * h) as f64
+}
+
+/// The Gaussian window `g` (taps −r..=r) at `p` along a line of `len`
+/// values `v`: the weighted mean of the five signals over the taps inside
+/// the line (renormalised at its ends), summed in tap order.
+#[inline]
+fn window(g: &[f64], p: usize, len: usize, v: impl Fn(usize) -> [f64; 5]) -> [f64; 5] {
+    let r = (g.len() / 2) as i64;
+    let (mut s, mut n) = ([0f64; 5], 0.0);
+    for k in -r..=r {
+        let q = p as i64 + k;
+        if q >= 0 && (q as usize) < len {
+            let gk = g[(k + r) as usize];
+            let x = v(q as usize);
+            for j in 0..5 {
+                s[j] += gk * x[j];
+            }
+            n += gk;
+        }
+    }
+    s.map(|x| x / n)
 }
 
 /// SSIM after clipping to [0, 1] and gamma encoding, mean over channels.
