@@ -118,11 +118,20 @@ struct PixelProblem<'a> {
     m: Material,
     pred: Material,
     tg: Vec3,
+    /// γ⁻¹ of the target, for the exact albedo fits.
+    tl: Vec3,
     sat: [bool; 3],
     k: f32,
     c2: f32,
     /// [`gamma_toe`], hoisted.
     toe: f32,
+}
+
+impl PixelProblem<'_> {
+    /// γ⁻¹ of a target in γ space, per channel.
+    fn linear(tg: Vec3) -> Vec3 {
+        Vec3::new(gamma_inv(tg.x), gamma_inv(tg.y), gamma_inv(tg.z))
+    }
 }
 
 matflow_render::lane_kernel!(fn solve_pixel_now = solve_pixel(p: &PixelProblem, o: &SolveOptions, out: &mut Material));
@@ -174,7 +183,7 @@ fn solve_albedo(p: &PixelProblem, m: &Material, o: &SolveOptions) -> Vec3 {
             continue;
         }
         // Exact fit: k(P + aQ) = γ⁻¹(T).
-        let a0 = ((gamma_inv(p.tg[c]) / k - pv[c]) / q[c]).clamp(lo[c], hi[c]);
+        let a0 = ((p.tl[c] / k - pv[c]) / q[c]).clamp(lo[c], hi[c]);
         ends[c] = if a0 <= pa[c] {
             (a0, pa[c])
         } else {
@@ -274,8 +283,6 @@ struct RmSearch<'a> {
     p: &'a PixelProblem<'a>,
     parts: Parts,
     delta: f32,
-    /// γ⁻¹ of the target.
-    tl: Vec3,
     abounds: [(f32, f32); 3],
 }
 
@@ -321,7 +328,7 @@ impl RmSearch<'_> {
         if self.parts.albedo {
             for c in 0..3 {
                 let (lo, hi) = self.abounds[c];
-                let fit = ((self.tl[c] / p.k - pc[c]) / qc[c]).clamp(lo, hi);
+                let fit = ((p.tl[c] / p.k - pc[c]) / qc[c]).clamp(lo, hi);
                 let fallback = F::splat(p.pred.albedo[c].clamp(lo, hi));
                 let ok = if p.k > 0.0 {
                     qc[c].gt(0.0)
@@ -390,7 +397,6 @@ fn solve_rm<const W: usize>(p: &PixelProblem, o: &SolveOptions) -> (f32, f32) {
         p,
         parts: o.parts,
         delta: o.delta,
-        tl: Vec3::new(gamma_inv(p.tg.x), gamma_inv(p.tg.y), gamma_inv(p.tg.z)),
         abounds: std::array::from_fn(|c| bounds(pred.albedo[c], o.zeta, 0.0)),
     };
     const GR: usize = 10;
@@ -528,6 +534,7 @@ pub fn solve_pixels(
                     m: *m,
                     pred: pred[p],
                     tg: target.gamma[p],
+                    tl: PixelProblem::linear(target.gamma[p]),
                     sat: target.saturated[p],
                     k,
                     c2,
@@ -702,6 +709,7 @@ mod tests {
                     m: pred,
                     pred,
                     tg: target.gamma[p],
+                    tl: PixelProblem::linear(target.gamma[p]),
                     sat: target.saturated[p],
                     k: 0.9,
                     c2: 1.5,

@@ -93,23 +93,22 @@ pub struct PixelEval {
 impl PixelTable {
     #[inline]
     fn spec_at(&self, r: f32) -> (Vec3, Vec3, Vec3, Vec3) {
-        let (i, h, t, _) = hermite(r);
+        let (i, h, t, basis) = hermite(r);
         let t2 = t * t;
         let d00 = (6.0 * t2 - 6.0 * t) / h;
         let d10 = 3.0 * t2 - 4.0 * t + 1.0;
         let d01 = (-6.0 * t2 + 6.0 * t) / h;
         let d11 = 3.0 * t2 - 2.0 * t;
         let (a, b) = (&self.spec[i], &self.spec[i + 1]);
-        let (s1, s2) = self.spec_value_at(r);
+        let (s1, s2) = self.spec_values(i, basis);
         let ds1 = a[0] * d00 + a[1] * d10 + b[0] * d01 + b[1] * d11;
         let ds2 = a[2] * d00 + a[3] * d10 + b[2] * d01 + b[3] * d11;
         (s1, ds1, s2, ds2)
     }
 
-    /// [`Self::spec_at`] without the R-derivatives.
+    /// S1 and S2 on interval `i` with [`hermite`]'s basis.
     #[inline]
-    fn spec_value_at(&self, r: f32) -> (Vec3, Vec3) {
-        let (i, _, _, [h00, h10h, h01, h11h]) = hermite(r);
+    fn spec_values(&self, i: usize, [h00, h10h, h01, h11h]: [f32; 4]) -> (Vec3, Vec3) {
         let (a, b) = (&self.spec[i], &self.spec[i + 1]);
         let s1 = a[0] * h00 + a[1] * h10h + b[0] * h01 + b[1] * h11h;
         let s2 = a[2] * h00 + a[3] * h10h + b[2] * h01 + b[3] * h11h;
@@ -125,7 +124,8 @@ impl PixelTable {
         let mm = m.metallic;
         let a = m.albedo;
         let d = self.c[0] + self.c[1] * r + self.c[2] * (r * r);
-        let (s1, s2) = self.spec_value_at(r);
+        let (i, _, _, basis) = hermite(r);
+        let (s1, s2) = self.spec_values(i, basis);
         let f0 = Vec3::splat(0.04 * (1.0 - mm)) + a * mm;
         let i = self.base + a * d * (1.0 - mm) + f0 * s1 + s2;
         (i, d * (1.0 - mm) + s1 * mm)

@@ -398,21 +398,16 @@ pub fn ln<const W: usize>(x: F<W>) -> F<W> {
     const LN2_LO: f32 = 1.428_606_8e-6;
     let sub = x.lt(f32::MIN_POSITIVE);
     let xs = F::select(sub, x * 16_777_216.0, x);
-    let mut e = [0f32; W];
-    let m = F(std::array::from_fn(|i| {
-        let b = xs.0[i].to_bits();
-        let m = f32::from_bits((b & 0x007f_ffff) | 0x3f80_0000);
-        let ex = ((b >> 23) & 0xff) as i32 - 127 - if sub.lane(i) { 24 } else { 0 };
-        // Centre the mantissa on 1: [√½, √2).
-        let (m, ex) = if m > std::f32::consts::SQRT_2 {
-            (m * 0.5, ex + 1)
-        } else {
-            (m, ex)
-        };
-        e[i] = ex as f32;
-        m
+    // Mantissa in [1, 2) and exponent, then centred on 1: [√½, √2).
+    let m1 = F(std::array::from_fn(|i| {
+        f32::from_bits((xs.0[i].to_bits() & 0x007f_ffff) | 0x3f80_0000)
     }));
-    let e = F(e);
+    let high = m1.gt(std::f32::consts::SQRT_2);
+    let m = F::select(high, m1 * 0.5, m1);
+    let e = F(std::array::from_fn(|i| {
+        let ex = ((xs.0[i].to_bits() >> 23) & 0xff) as i32 - 127;
+        (ex - if sub.lane(i) { 24 } else { 0 } + high.lane(i) as i32) as f32
+    }));
     let t = (m - 1.0) / (m + 1.0);
     let t2 = t * t;
     let s = t2
