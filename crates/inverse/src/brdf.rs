@@ -16,6 +16,7 @@ use std::f32::consts::PI;
 
 use glam::Vec3;
 use matflow_render::bsdf::MIN_ROUGHNESS;
+use matflow_render::lanes::F;
 use matflow_render::Material;
 
 const QMAX: f32 = 65535.0;
@@ -133,9 +134,18 @@ pub fn kd_poly(g: &GeoF) -> (f32, f32, f32) {
     (av * al * c, (av * bl + bv * al) * c, bv * bl * c)
 }
 
-/// Specular factor Ks(R) = D·Vis·(n·l)/4 and dKs/dR (R already clamped).
+/// Specular factor Ks(R) = D·Vis·(n·l)/4 and dKs/dR (R already clamped):
+/// [`ks_lanes`] at width 1.
 #[inline]
 pub fn ks(g: &GeoF, r: f32) -> (f32, f32) {
+    let (k, dk) = ks_lanes(g, F([r]));
+    (k.0[0], dk.0[0])
+}
+
+/// [`ks`] for `W` roughnesses at once, the same operations in the same
+/// order (so the same bits) in every lane.
+#[inline(always)]
+pub fn ks_lanes<const W: usize>(g: &GeoF, r: F<W>) -> (F<W>, F<W>) {
     let r2 = r * r;
     let a2 = r2 * r2;
     let c = 1.0 - g.s2;

@@ -119,8 +119,11 @@ pub mod cost {
     pub const RENDER_PER_RAY: f64 = 1.9e-7;
     /// Rays per sample assumed before the scout has counted them (indoor).
     pub const RAYS_PER_SAMPLE: f64 = 2.6;
-    /// Building a pixel's table, per cached path.
-    pub const TABLE_PER_SAMPLE: f64 = 1.0e-7;
+    /// Building a pixel's table, per cached path: 1.0e-7 before the
+    /// specular sums ran in lanes, which took the tables' build 0.75×
+    /// (the trace log's "step 0" of each material stage, old and new
+    /// binaries alternated three times on both photos).
+    pub const TABLE_PER_SAMPLE: f64 = 0.75e-7;
     /// One à-trous pass over a pixel's table.
     pub const DENOISE_PER_PASS: f64 = 1.35e-6;
     /// A ray's cost when light samples are guided by visibility, relative
