@@ -107,10 +107,9 @@ impl SceneCost {
 /// model's on both photos (32.4 and 33.2 s for 18 planned), so the model
 /// stays in the reference machine's seconds. Per ray the two photos
 /// differ (jinjya 0.65× indoor's): the constants are their geometric
-/// means. Tracing
-/// costs scale with the rays a sample needs, which the scout trace counts
-/// (a deterministic number: sky pixels end at once, interiors bounce), so
-/// the plan fits the scene without a clock. Each route prices its own
+/// means. Tracing costs scale with the rays a sample needs, which the
+/// scout trace counts (a deterministic number: sky pixels end at once,
+/// interiors bounce), so the plan fits the scene without a clock. Each route prices its own
 /// stages (`routes/*.rs`).
 pub mod cost {
     /// Tracing and recording one ray of the frozen cache.
