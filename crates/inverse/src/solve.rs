@@ -121,10 +121,6 @@ struct PixelProblem<'a> {
     /// γ⁻¹ of the target, for the exact albedo fits.
     tl: Vec3,
     sat: [bool; 3],
-    k: f32,
-    c2: f32,
-    /// [`gamma_toe`], hoisted.
-    toe: f32,
 }
 
 impl PixelProblem<'_> {
@@ -134,110 +130,197 @@ impl PixelProblem<'_> {
     }
 }
 
-matflow_render::lane_kernel!(fn solve_pixel_now = solve_pixel(p: &PixelProblem, o: &SolveOptions, out: &mut Material));
-
-/// One pixel's solve: R and M (with A at its exact fit per candidate when
-/// the stage solves A too), then A.
-#[inline(always)]
-fn solve_pixel<const W: usize>(p: &PixelProblem, o: &SolveOptions, out: &mut Material) {
-    let mut m = p.m;
-    if o.parts.roughness || o.parts.metallic {
-        let (r, mm) = solve_rm::<W>(p, o);
-        m.roughness = r;
-        m.metallic = mm;
-    }
-    if o.parts.albedo {
-        m.albedo = solve_albedo(p, &m, o);
-    }
-    *out = m.sanitized();
+/// What every pixel of a round shares.
+#[derive(Clone, Copy, Debug)]
+struct Round {
+    /// The exposure factor.
+    k: f32,
+    /// The squared term's weight.
+    c2: f32,
+    /// [`gamma_toe`], hoisted.
+    toe: f32,
 }
 
-/// [`channel_loss`] in lanes, bit for bit.
+/// Pixels solved side by side. Each search is a chain of dependent steps
+/// (a compass move waits for the losses before it, a golden-section step
+/// for the one before), which leaves the vector units idle while one
+/// pixel's step finishes; `BATCH` pixels' searches share a vector of
+/// 4·`BATCH` lanes instead, each lane the one-pixel search's operations,
+/// bit for bit (a pixel's answer does not depend on its neighbour). Two
+/// pixels took a cold round 0.80× and a warm one 0.89× (jinjya and indoor
+/// at 20 s); four, in two AVX2 registers, were slower than two.
+const BATCH: usize = 2;
+/// Four lanes per pixel: a compass search's four neighbours, or the
+/// albedo's three channels (the fourth repeating the third).
+const LANES: usize = 4 * BATCH;
+
+matflow_render::lane_kernel!(fn solve_batch_now = solve_batch(ps: &[PixelProblem], round: &Round, o: &SolveOptions, out: &mut [Material]));
+
+/// The solves of 1 to [`BATCH`] pixels (`out` as long as `ps`): R and M
+/// (with A at its exact fit per candidate when the stage solves A too),
+/// then A. `W` is the width of the cold search's grid.
 #[inline(always)]
-fn channel_loss_lanes<const W: usize>(i: F<W>, t: f32, sat: bool, c2: f32, toe: f32) -> F<W> {
+fn solve_batch<const W: usize>(
+    ps: &[PixelProblem],
+    round: &Round,
+    o: &SolveOptions,
+    out: &mut [Material],
+) {
+    let n = ps.len().min(out.len()).min(BATCH);
+    if n == 0 {
+        return;
+    }
+    // Empty slots repeat the last pixel; their answers are dropped.
+    let slot: [&PixelProblem; BATCH] = std::array::from_fn(|i| &ps[i.min(n - 1)]);
+    let mut ms: [Material; BATCH] = slot.map(|p| p.m);
+    if o.parts.roughness || o.parts.metallic {
+        for (m, (r, mm)) in ms.iter_mut().zip(solve_rm::<W>(&slot, round, o)) {
+            m.roughness = r;
+            m.metallic = mm;
+        }
+    }
+    if o.parts.albedo {
+        let albedo = solve_albedo(&slot, &ms, round, o);
+        for (m, a) in ms.iter_mut().zip(albedo) {
+            m.albedo = a;
+        }
+    }
+    for (o, m) in out.iter_mut().zip(&ms[..n]) {
+        *o = m.sanitized();
+    }
+}
+
+/// [`channel_loss`] in lanes, bit for bit; each lane its own target.
+#[inline(always)]
+fn channel_loss_lanes<const W: usize>(i: F<W>, t: F<W>, sat: M<W>, c2: f32, toe: f32) -> F<W> {
     let e = gamma_value(i, toe) - t;
-    let e = if sat {
-        F::select(e.gt(0.0), F::splat(0.0), e)
-    } else {
-        e
-    };
+    let e = F::select(sat & e.gt(0.0), F::splat(0.0), e);
     e.abs() + c2 * e * e
 }
 
-/// Albedo of one pixel with R, M fixed: per channel, a golden-section
-/// search between the exact fit and the prediction, the three channels
-/// side by side in lanes (each lane the scalar search's steps, bit for
-/// bit).
+/// `f32::clamp` per lane with per-lane bounds ([`F::clamp`]'s steps).
 #[inline(always)]
-fn solve_albedo(p: &PixelProblem, m: &Material, o: &SolveOptions) -> Vec3 {
-    let (i, q) = p.t.eval_value(m);
-    let pv = i - m.albedo * q;
-    let k = p.k;
-    let (mut lo, mut hi, mut pa, mut fixed) = ([0f32; 4], [0f32; 4], [0f32; 4], [true; 4]);
-    let mut ends = [(0f32, 0f32); 4];
-    for c in 0..3 {
-        (lo[c], hi[c]) = bounds(p.pred.albedo[c], o.zeta, 0.0);
-        pa[c] = p.pred.albedo[c].clamp(lo[c], hi[c]);
-        if !(q[c] > 0.0) || !(k > 0.0) {
-            ends[c] = (pa[c], pa[c]);
-            continue;
-        }
-        // Exact fit: k(P + aQ) = γ⁻¹(T).
-        let a0 = ((p.tl[c] / k - pv[c]) / q[c]).clamp(lo[c], hi[c]);
-        ends[c] = if a0 <= pa[c] {
-            (a0, pa[c])
-        } else {
-            (pa[c], a0)
+fn clamp_lanes<const W: usize>(x: F<W>, lo: F<W>, hi: F<W>) -> F<W> {
+    let x = F::select(x.lt(lo), lo, x);
+    F::select(x.gt(hi), hi, x)
+}
+
+/// One pixel's albedo search with R, M fixed: per channel, the interval
+/// between the exact fit and the prediction, and whether it is a point.
+struct AlbedoStart {
+    /// The render without the albedo's term, and that term's factor.
+    p: Vec3,
+    q: Vec3,
+    /// The prediction clamped to its bounds.
+    pa: [f32; 3],
+    ends: [(f32, f32); 3],
+    fixed: [bool; 3],
+}
+
+impl AlbedoStart {
+    fn new(p: &PixelProblem, m: &Material, round: &Round, o: &SolveOptions) -> AlbedoStart {
+        let (i, q) = p.t.eval_value(m);
+        let pv = i - m.albedo * q;
+        let k = round.k;
+        let mut st = AlbedoStart {
+            p: pv,
+            q,
+            pa: [0.0; 3],
+            ends: [(0.0, 0.0); 3],
+            fixed: [true; 3],
         };
-        fixed[c] = ends[c].1 - ends[c].0 < 1e-6;
+        for c in 0..3 {
+            let (lo, hi) = bounds(p.pred.albedo[c], o.zeta, 0.0);
+            let pa = p.pred.albedo[c].clamp(lo, hi);
+            st.pa[c] = pa;
+            if !(q[c] > 0.0) || !(k > 0.0) {
+                st.ends[c] = (pa, pa);
+                continue;
+            }
+            // Exact fit: k(P + aQ) = γ⁻¹(T).
+            let a0 = ((p.tl[c] / k - pv[c]) / q[c]).clamp(lo, hi);
+            st.ends[c] = if a0 <= pa { (a0, pa) } else { (pa, a0) };
+            st.fixed[c] = st.ends[c].1 - st.ends[c].0 < 1e-6;
+        }
+        st
     }
-    if fixed[..3].iter().all(|&f| f) {
-        return Vec3::new(ends[0].0, ends[1].0, ends[2].0);
+}
+
+/// Albedo of each pixel with its R, M fixed: per channel, a
+/// golden-section search between the exact fit and the prediction, all
+/// pixels' channels side by side in lanes (each lane the scalar search's
+/// steps, bit for bit).
+#[inline(always)]
+fn solve_albedo(
+    ps: &[&PixelProblem; BATCH],
+    ms: &[Material; BATCH],
+    round: &Round,
+    o: &SolveOptions,
+) -> [Vec3; BATCH] {
+    let st: [AlbedoStart; BATCH] =
+        std::array::from_fn(|i| AlbedoStart::new(ps[i], &ms[i], round, o));
+    let ends = |i: usize| Vec3::new(st[i].ends[0].0, st[i].ends[1].0, st[i].ends[2].0);
+    if st.iter().all(|s| s.fixed.iter().all(|&f| f)) {
+        return std::array::from_fn(ends);
     }
-    // Lane 3 repeats channel 2.
-    let lane = |v: [f32; 3]| F::<4>([v[0], v[1], v[2], v[2]]);
+    // Lane 4i + c is pixel i's channel c; lane 4i + 3 repeats channel 2.
+    let at = |l: usize| (l / 4, (l % 4).min(2));
+    let lane = |f: &dyn Fn(usize, usize) -> f32| {
+        F::<LANES>(std::array::from_fn(|l| {
+            let (i, c) = at(l);
+            f(i, c)
+        }))
+    };
     let ch = AlbedoChannels {
-        p: lane(pv.to_array()),
-        q: lane(q.to_array()),
-        pa: lane([pa[0], pa[1], pa[2]]),
-        tg: lane(p.tg.to_array()),
-        sat: M::from_array([p.sat[0], p.sat[1], p.sat[2], p.sat[2]]),
-        k,
-        toe: p.toe,
-        c2: p.c2,
+        p: lane(&|i, c| st[i].p[c]),
+        q: lane(&|i, c| st[i].q[c]),
+        pa: lane(&|i, c| st[i].pa[c]),
+        tg: lane(&|i, c| ps[i].tg[c]),
+        sat: M::from_array(std::array::from_fn(|l| {
+            let (i, c) = at(l);
+            ps[i].sat[c]
+        })),
+        k: round.k,
+        toe: round.toe,
+        c2: round.c2,
         delta: o.delta,
     };
     let best = golden_lanes(
-        lane([ends[0].0, ends[1].0, ends[2].0]),
-        lane([ends[0].1, ends[1].1, ends[2].1]),
+        lane(&|i, c| st[i].ends[c].0),
+        lane(&|i, c| st[i].ends[c].1),
         16,
         &ch,
     );
-    Vec3::new(
-        if fixed[0] { ends[0].0 } else { best.0[0] },
-        if fixed[1] { ends[1].0 } else { best.0[1] },
-        if fixed[2] { ends[2].0 } else { best.0[2] },
-    )
+    std::array::from_fn(|i| {
+        let pick = |c: usize| {
+            if st[i].fixed[c] {
+                st[i].ends[c].0
+            } else {
+                best.0[4 * i + c]
+            }
+        };
+        Vec3::new(pick(0), pick(1), pick(2))
+    })
 }
 
-/// The albedo objective of a pixel's channels, one per lane.
-struct AlbedoChannels {
-    p: F<4>,
-    q: F<4>,
-    pa: F<4>,
-    tg: F<4>,
-    sat: M<4>,
+/// The albedo objective of pixels' channels, one per lane.
+struct AlbedoChannels<const L: usize> {
+    p: F<L>,
+    q: F<L>,
+    pa: F<L>,
+    tg: F<L>,
+    sat: M<L>,
     k: f32,
     toe: f32,
     c2: f32,
     delta: f32,
 }
 
-impl AlbedoChannels {
+impl<const L: usize> AlbedoChannels<L> {
     /// h(γ(k(P + aQ)) − γ(T)) + δ·|a − â| per lane: [`channel_loss`] plus
     /// consistency, bit for bit.
     #[inline(always)]
-    fn loss(&self, a: F<4>) -> F<4> {
+    fn loss(&self, a: F<L>) -> F<L> {
         let e = gamma_value(self.k * (self.p + a * self.q), self.toe) - self.tg;
         let e = F::select(self.sat & e.gt(0.0), F::splat(0.0), e);
         (e.abs() + self.c2 * e * e) + self.delta * (a - self.pa).abs()
@@ -247,7 +330,12 @@ impl AlbedoChannels {
 /// [`golden`] in lanes: each lane its own interval and search, the steps
 /// of the scalar one, bit for bit.
 #[inline(always)]
-fn golden_lanes(mut a: F<4>, mut b: F<4>, iters: usize, f: &AlbedoChannels) -> F<4> {
+fn golden_lanes<const L: usize>(
+    mut a: F<L>,
+    mut b: F<L>,
+    iters: usize,
+    f: &AlbedoChannels<L>,
+) -> F<L> {
     let (a0, b0) = (a, b);
     let mut c = b - GOLDEN * (b - a);
     let mut d = a + GOLDEN * (b - a);
@@ -277,36 +365,112 @@ fn golden_lanes(mut a: F<4>, mut b: F<4>, iters: usize, f: &AlbedoChannels) -> F
     best
 }
 
-/// A pixel's search of R and M: its bounds and what every candidate
-/// shares.
-struct RmSearch<'a> {
-    p: &'a PixelProblem<'a>,
-    parts: Parts,
-    delta: f32,
-    abounds: [(f32, f32); 3],
+/// What a pixel's table gives at one roughness, per channel: S1, S2 and
+/// the diffuse factor. It depends on R alone, so candidates that share
+/// R share it.
+#[derive(Clone, Copy, Debug, Default)]
+struct AtR {
+    s1: [f32; 3],
+    s2: [f32; 3],
+    d: [f32; 3],
 }
 
-impl RmSearch<'_> {
-    /// The objective (re-rendering loss plus δ·consistency) at `W`
-    /// candidates (R, M) at once; per lane the same bits as one at a
-    /// time.
+/// Each lane's table at its roughness ([`PixelTable::eval_value`]'s
+/// operations, per lane the same bits as one at a time).
+#[inline(always)]
+fn at_r<const L: usize>(t: &[&PixelTable; L], r: F<L>) -> [AtR; L] {
+    let rr = F::select(
+        r.lt(MIN_ROUGHNESS),
+        F::splat(MIN_ROUGHNESS),
+        F::select(r.gt(1.0), F::splat(1.0), r),
+    );
+    // The spline's interval and basis per lane (the scalar ones).
+    let hs: [(usize, f32, f32, [f32; 4]); L] =
+        std::array::from_fn(|l| crate::tables::hermite(rr.0[l]));
+    let idx: [usize; L] = std::array::from_fn(|l| hs[l].0);
+    let basis = |k: usize| F::<L>(std::array::from_fn(|l| hs[l].3[k]));
+    let (h00, h10h, h01, h11h) = (basis(0), basis(1), basis(2), basis(3));
+    let mut out = [AtR::default(); L];
+    for c in 0..3 {
+        let node =
+            |j: usize, e: usize| F::<L>(std::array::from_fn(|l| t[l].spec[idx[l] + j][e][c]));
+        let coef = |k: usize| F::<L>(std::array::from_fn(|l| t[l].c[k][c]));
+        let s1 = node(0, 0) * h00 + node(0, 1) * h10h + node(1, 0) * h01 + node(1, 1) * h11h;
+        let s2 = node(0, 2) * h00 + node(0, 3) * h10h + node(1, 2) * h01 + node(1, 3) * h11h;
+        let d = coef(0) + coef(1) * rr + coef(2) * (rr * rr);
+        for (l, o) in out.iter_mut().enumerate() {
+            o.s1[c] = s1.0[l];
+            o.s2[c] = s2.0[l];
+            o.d[c] = d.0[l];
+        }
+    }
+    out
+}
+
+/// The search of R and M of the pixel in each lane: what its objective
+/// needs of the pixel.
+struct RmLanes<'a, const L: usize> {
+    t: [&'a PixelTable; L],
+    base: [F<L>; 3],
+    /// The current albedo.
+    a: [F<L>; 3],
+    /// γ⁻¹(T)/k, the exact fit's.
+    tl_k: [F<L>; 3],
+    pred_a: [F<L>; 3],
+    /// The albedo's bounds, and the prediction clamped to them.
+    alo: [F<L>; 3],
+    ahi: [F<L>; 3],
+    pa: [F<L>; 3],
+    pred_r: F<L>,
+    pred_m: F<L>,
+    tg: [F<L>; 3],
+    sat: [M<L>; 3],
+    round: Round,
+    parts: Parts,
+    delta: f32,
+}
+
+impl<'a, const L: usize> RmLanes<'a, L> {
+    /// Lane `l` is pixel `ps[at(l)]`.
+    fn new(
+        ps: &[&'a PixelProblem<'a>; BATCH],
+        at: impl Fn(usize) -> usize,
+        round: &Round,
+        o: &SolveOptions,
+    ) -> RmLanes<'a, L> {
+        let p: [&PixelProblem; L] = std::array::from_fn(|l| ps[at(l)]);
+        let per = |f: &dyn Fn(&PixelProblem) -> f32| F::<L>(std::array::from_fn(|l| f(p[l])));
+        let ab = |p: &PixelProblem, c: usize| bounds(p.pred.albedo[c], o.zeta, 0.0);
+        RmLanes {
+            t: p.map(|p| p.t),
+            base: std::array::from_fn(|c| per(&|p| p.t.base[c])),
+            a: std::array::from_fn(|c| per(&|p| p.m.albedo[c])),
+            tl_k: std::array::from_fn(|c| per(&|p| p.tl[c] / round.k)),
+            pred_a: std::array::from_fn(|c| per(&|p| p.pred.albedo[c])),
+            alo: std::array::from_fn(|c| per(&|p| ab(p, c).0)),
+            ahi: std::array::from_fn(|c| per(&|p| ab(p, c).1)),
+            pa: std::array::from_fn(|c| {
+                per(&|p| {
+                    let (lo, hi) = ab(p, c);
+                    p.pred.albedo[c].clamp(lo, hi)
+                })
+            }),
+            pred_r: per(&|p| p.pred.roughness),
+            pred_m: per(&|p| p.pred.metallic),
+            tg: std::array::from_fn(|c| per(&|p| p.tg[c])),
+            sat: std::array::from_fn(|c| M::from_array(std::array::from_fn(|l| p[l].sat[c]))),
+            round: *round,
+            parts: o.parts,
+            delta: o.delta,
+        }
+    }
+
+    /// The objective (re-rendering loss plus δ·consistency) at each
+    /// lane's candidate (R, M), with its roughness's [`AtR`]; per lane the
+    /// same bits as one at a time.
     #[inline(always)]
-    fn losses<const W: usize>(&self, r: F<W>, mm: F<W>) -> F<W> {
-        let p = self.p;
-        let t = p.t;
-        let a = p.m.albedo;
-        // The table at the clamped roughness (PixelTable::eval_value).
-        let rr = F::select(
-            r.lt(MIN_ROUGHNESS),
-            F::splat(MIN_ROUGHNESS),
-            F::select(r.gt(1.0), F::splat(1.0), r),
-        );
-        // The spline's interval and basis per lane (the scalar ones).
-        let hs: [(usize, f32, f32, [f32; 4]); W] =
-            std::array::from_fn(|l| crate::tables::hermite(rr.0[l]));
-        let idx: [usize; W] = std::array::from_fn(|l| hs[l].0);
-        let basis = |k: usize| F(std::array::from_fn(|l| hs[l].3[k]));
-        let (h00, h10h, h01, h11h) = (basis(0), basis(1), basis(2), basis(3));
+    fn losses_at(&self, at: &[AtR; L], r: F<L>, mm: F<L>) -> F<L> {
+        let k = self.round.k;
         let one_m = 1.0 - mm;
         let mut cons = F::splat(0.0);
         let mut l = F::splat(0.0);
@@ -314,61 +478,82 @@ impl RmSearch<'_> {
         let mut pc = [F::splat(0.0); 3];
         let mut qc = [F::splat(0.0); 3];
         for c in 0..3 {
-            let node = |j: usize, e: usize| F(std::array::from_fn(|l| t.spec[idx[l] + j][e][c]));
-            let s1 = node(0, 0) * h00 + node(0, 1) * h10h + node(1, 0) * h01 + node(1, 1) * h11h;
-            let s2 = node(0, 2) * h00 + node(0, 3) * h10h + node(1, 2) * h01 + node(1, 3) * h11h;
-            let d = t.c[0][c] + t.c[1][c] * rr + t.c[2][c] * (rr * rr);
-            let f0 = 0.04 * one_m + a[c] * mm;
-            let i = t.base[c] + a[c] * d * one_m + f0 * s1 + s2;
+            let s1 = F::<L>(std::array::from_fn(|l| at[l].s1[c]));
+            let s2 = F::<L>(std::array::from_fn(|l| at[l].s2[c]));
+            let d = F::<L>(std::array::from_fn(|l| at[l].d[c]));
+            let a = self.a[c];
+            let f0 = 0.04 * one_m + a * mm;
+            let i = self.base[c] + a * d * one_m + f0 * s1 + s2;
             let q = d * one_m + s1 * mm;
-            pc[c] = i - a[c] * q;
+            pc[c] = i - a * q;
             qc[c] = q;
-            x[c] = F::splat(a[c]);
+            x[c] = a;
         }
         if self.parts.albedo {
             for c in 0..3 {
-                let (lo, hi) = self.abounds[c];
-                let fit = ((p.tl[c] / p.k - pc[c]) / qc[c]).clamp(lo, hi);
-                let fallback = F::splat(p.pred.albedo[c].clamp(lo, hi));
-                let ok = if p.k > 0.0 {
+                let fit = clamp_lanes((self.tl_k[c] - pc[c]) / qc[c], self.alo[c], self.ahi[c]);
+                let ok = if k > 0.0 {
                     qc[c].gt(0.0)
                 } else {
-                    M::from_array([false; W])
+                    M::from_array([false; L])
                 };
-                x[c] = F::select(ok, fit, fallback);
-                cons = cons + (x[c] - p.pred.albedo[c]).abs();
+                x[c] = F::select(ok, fit, self.pa[c]);
+                cons = cons + (x[c] - self.pred_a[c]).abs();
             }
         }
         for c in 0..3 {
-            let i = (pc[c] + x[c] * qc[c]) * p.k;
-            l = l + channel_loss_lanes(i, p.tg[c], p.sat[c], p.c2, p.toe);
+            let i = (pc[c] + x[c] * qc[c]) * k;
+            l = l + channel_loss_lanes(i, self.tg[c], self.sat[c], self.round.c2, self.round.toe);
         }
         if self.parts.roughness {
-            cons = cons + 3.0 * (r - p.pred.roughness).abs();
+            cons = cons + 3.0 * (r - self.pred_r).abs();
         }
         if self.parts.metallic {
-            cons = cons + 3.0 * (mm - p.pred.metallic).abs();
+            cons = cons + 3.0 * (mm - self.pred_m).abs();
         }
         l + self.delta * cons
     }
 
-    /// The objective at every candidate of `cands`, `W` at a time.
+    /// The objective at every candidate of a grid of `rs.len()` (≤ 16)
+    /// roughnesses by `ms.len()` metallics (row-major), `L` at a time,
+    /// the table evaluated once per roughness (every lane one pixel).
     #[inline(always)]
-    fn all<const W: usize>(&self, cands: &[(f32, f32)], out: &mut [f32]) {
-        let n = cands.len();
-        for s in (0..n).step_by(W) {
-            let at = |l: usize| cands[(s + l).min(n - 1)];
-            let v = self.losses::<W>(
-                F(std::array::from_fn(|l| at(l).0)),
-                F(std::array::from_fn(|l| at(l).1)),
+    fn grid(&self, rs: &[f32], ms: &[f32], out: &mut [f32]) {
+        let mut at = [AtR::default(); 16];
+        let nr = rs.len().min(at.len());
+        for s in (0..nr).step_by(L) {
+            let v = at_r::<L>(&self.t, F(std::array::from_fn(|l| rs[(s + l).min(nr - 1)])));
+            let k = L.min(nr - s);
+            at[s..s + k].copy_from_slice(&v[..k]);
+        }
+        let n = nr * ms.len();
+        for s in (0..n).step_by(L) {
+            let c = |l: usize| (s + l).min(n - 1);
+            let v = self.losses_at(
+                &std::array::from_fn(|l| at[c(l) / ms.len()]),
+                F(std::array::from_fn(|l| rs[c(l) / ms.len()])),
+                F(std::array::from_fn(|l| ms[c(l) % ms.len()])),
             );
-            let k = W.min(n - s);
+            let k = L.min(n - s);
             out[s..s + k].copy_from_slice(&v.0[..k]);
         }
     }
 }
 
-/// Roughness and metallic of one pixel; with A fixed, or, when the stage
+/// One pixel's compass search: its box, its best point and the table at
+/// that point's roughness (kept while the best moves in M), its steps.
+#[derive(Clone, Copy)]
+struct Compass {
+    rb: (f32, f32),
+    mb: (f32, f32),
+    best: (f32, f32, f32),
+    at_best: (f32, AtR),
+    sr: f32,
+    sm: f32,
+    active: bool,
+}
+
+/// Roughness and metallic of each pixel; with A fixed, or, when the stage
 /// also solves albedo, with A at its exact-fit value for each candidate
 /// (R, M) (clamped to its bounds), so that the search is over all three.
 ///
@@ -376,87 +561,162 @@ impl RmSearch<'_> {
 /// `W` candidates at a time. Then a compass search from the best point:
 /// its four neighbours are evaluated together and the best improving one
 /// is taken (the first in order on ties); without one the steps halve.
+/// The pixels' compass searches run in lockstep, four lanes each.
 #[inline(always)]
-fn solve_rm<const W: usize>(p: &PixelProblem, o: &SolveOptions) -> (f32, f32) {
-    let (pred, m) = (&p.pred, &p.m);
-    let (rlo, rhi) = if o.parts.roughness {
-        bounds(
-            pred.roughness,
-            o.zeta,
-            o.min_roughness.min(pred.roughness).max(MIN_ROUGHNESS),
-        )
-    } else {
-        (m.roughness, m.roughness)
-    };
-    let (mlo, mhi) = if o.parts.metallic {
-        bounds(pred.metallic, o.zeta, 0.0)
-    } else {
-        (m.metallic, m.metallic)
-    };
-    let search = RmSearch {
-        p,
-        parts: o.parts,
-        delta: o.delta,
-        abounds: std::array::from_fn(|c| bounds(pred.albedo[c], o.zeta, 0.0)),
-    };
+fn solve_rm<const W: usize>(
+    ps: &[&PixelProblem; BATCH],
+    round: &Round,
+    o: &SolveOptions,
+) -> [(f32, f32); BATCH] {
     const GR: usize = 10;
     const GM: usize = 8;
     let lerp = |a: f32, b: f32, i: usize, n: usize| a + (b - a) * i as f32 / (n - 1) as f32;
-    let start = (m.roughness.clamp(rlo, rhi), m.metallic.clamp(mlo, mhi));
-    let mut v = [0f32; GR * GM];
-    search.all::<1>(&[start], &mut v[..1]);
-    let mut best = (start.0, start.1, v[0]);
-    let mut sr = (rhi - rlo) / (GR - 1) as f32;
-    let mut sm = (mhi - mlo) / (GM - 1) as f32;
-    if o.warm {
-        sr *= 0.25;
-        sm *= 0.25;
-    } else {
-        let mut grid = [(0f32, 0f32); GR * GM];
-        for i in 0..GR {
-            // Denser grid at low roughness, where the lobe changes fastest.
+    let tables: [&PixelTable; BATCH] = ps.map(|p| p.t);
+    let boxes: [((f32, f32), (f32, f32)); BATCH] = ps.map(|p| {
+        let (pred, m) = (&p.pred, &p.m);
+        let rb = if o.parts.roughness {
+            bounds(
+                pred.roughness,
+                o.zeta,
+                o.min_roughness.min(pred.roughness).max(MIN_ROUGHNESS),
+            )
+        } else {
+            (m.roughness, m.roughness)
+        };
+        let mb = if o.parts.metallic {
+            bounds(pred.metallic, o.zeta, 0.0)
+        } else {
+            (m.metallic, m.metallic)
+        };
+        (rb, mb)
+    });
+    // The start points, evaluated together.
+    let starts: [(f32, f32); BATCH] = std::array::from_fn(|i| {
+        let ((rlo, rhi), (mlo, mhi)) = boxes[i];
+        (
+            ps[i].m.roughness.clamp(rlo, rhi),
+            ps[i].m.metallic.clamp(mlo, mhi),
+        )
+    });
+    let one = RmLanes::<BATCH>::new(ps, |l| l, round, o);
+    let r0 = F(starts.map(|s| s.0));
+    let at0 = at_r(&tables, r0);
+    let v0 = one.losses_at(&at0, r0, F(starts.map(|s| s.1)));
+    let mut walks: [Compass; BATCH] = std::array::from_fn(|i| {
+        let ((rlo, rhi), (mlo, mhi)) = boxes[i];
+        Compass {
+            rb: (rlo, rhi),
+            mb: (mlo, mhi),
+            best: (starts[i].0, starts[i].1, v0.0[i]),
+            at_best: (starts[i].0, at0[i]),
+            sr: (rhi - rlo) / (GR - 1) as f32,
+            sm: (mhi - mlo) / (GM - 1) as f32,
+            active: true,
+        }
+    });
+    for (i, w) in walks.iter_mut().enumerate() {
+        if o.warm {
+            w.sr *= 0.25;
+            w.sm *= 0.25;
+            continue;
+        }
+        let ((rlo, rhi), (mlo, mhi)) = (w.rb, w.mb);
+        // Denser grid at low roughness, where the lobe changes fastest.
+        let rs: [f32; GR] = std::array::from_fn(|i| {
             let u = i as f32 / (GR - 1) as f32;
-            let r = rlo + (rhi - rlo) * u * u;
-            for j in 0..GM {
-                grid[i * GM + j] = (r, lerp(mlo, mhi, j, GM));
+            rlo + (rhi - rlo) * u * u
+        });
+        let ms: [f32; GM] = std::array::from_fn(|j| lerp(mlo, mhi, j, GM));
+        let mut v = [0f32; GR * GM];
+        RmLanes::<W>::new(ps, |_| i, round, o).grid(&rs, &ms, &mut v);
+        for (g, &x) in v.iter().enumerate() {
+            if x < w.best.2 {
+                w.best = (rs[g / GM], ms[g % GM], x);
             }
         }
-        search.all::<W>(&grid, &mut v);
-        for (g, &x) in grid.iter().zip(&v) {
-            if x < best.2 {
-                best = (g.0, g.1, x);
-            }
+        if w.best.0.to_bits() != w.at_best.0.to_bits() {
+            w.at_best = (w.best.0, at_r::<1>(&[tables[i]], F([w.best.0]))[0]);
         }
     }
-    let mut cands = [(0f32, 0f32); 4];
-    let mut vals = [0f32; 4];
+    let lanes = RmLanes::<LANES>::new(ps, |l| l / 4, round, o);
+    let lane_tables: [&PixelTable; 2 * BATCH] = std::array::from_fn(|l| tables[l / 2]);
+    let mut cands = [(0f32, 0f32); LANES];
+    let mut at = [AtR::default(); LANES];
     for _ in 0..14 {
-        if sr.max(sm) < 2e-4 {
+        for w in walks.iter_mut() {
+            w.active &= w.sr.max(w.sm) >= 2e-4;
+        }
+        if !walks.iter().any(|w| w.active) {
             break;
         }
-        let mut n = 0;
-        for (dr, dm) in [(sr, 0.0), (-sr, 0.0), (0.0, sm), (0.0, -sm)] {
-            if dr == 0.0 && dm == 0.0 {
+        // Each pixel's four neighbours, as (best + step) clamped: two new
+        // roughnesses, whose tables are evaluated together, and two new
+        // metallics at the best's roughness, whose table is kept.
+        let next: [[(f32, f32); 4]; BATCH] = walks.map(|w| {
+            [(w.sr, 0.0), (-w.sr, 0.0), (0.0, w.sm), (0.0, -w.sm)].map(|(dr, dm)| {
+                (
+                    (w.best.0 + dr).clamp(w.rb.0, w.rb.1),
+                    (w.best.1 + dm).clamp(w.mb.0, w.mb.1),
+                )
+            })
+        });
+        let at_rn = at_r(
+            &lane_tables,
+            F(std::array::from_fn(|l| next[l / 2][l % 2].0)),
+        );
+        let mut n = [0usize; BATCH];
+        for (i, w) in walks.iter().enumerate() {
+            let (cs, ats) = (&mut cands[4 * i..4 * i + 4], &mut at[4 * i..4 * i + 4]);
+            if !w.active {
+                // Idle lanes: the pixel's best, whose losses are dropped.
+                cs.fill((w.best.0, w.best.1));
+                ats.fill(w.at_best.1);
                 continue;
             }
-            cands[n] = ((best.0 + dr).clamp(rlo, rhi), (best.1 + dm).clamp(mlo, mhi));
-            n += 1;
-        }
-        // Four candidates: four lanes at any width.
-        search.all::<4>(&cands[..n], &mut vals[..n]);
-        let mut moved = false;
-        for j in 0..n {
-            if vals[j] < best.2 {
-                best = (cands[j].0, cands[j].1, vals[j]);
-                moved = true;
+            let steps = [(w.sr, 0.0), (-w.sr, 0.0), (0.0, w.sm), (0.0, -w.sm)];
+            for (j, &(dr, dm)) in steps.iter().enumerate() {
+                if dr == 0.0 && dm == 0.0 {
+                    continue;
+                }
+                cs[n[i]] = next[i][j];
+                ats[n[i]] = if j < 2 {
+                    at_rn[2 * i + j]
+                } else if next[i][j].0.to_bits() == w.at_best.0.to_bits() {
+                    w.at_best.1
+                } else {
+                    at_r::<1>(&[tables[i]], F([next[i][j].0]))[0]
+                };
+                n[i] += 1;
+            }
+            // Unused lanes repeat the last candidate.
+            for j in n[i]..4 {
+                (cs[j], ats[j]) = (cs[n[i] - 1], ats[n[i] - 1]);
             }
         }
-        if !moved {
-            sr *= 0.5;
-            sm *= 0.5;
+        let vals = lanes.losses_at(
+            &at,
+            F(std::array::from_fn(|l| cands[l].0)),
+            F(std::array::from_fn(|l| cands[l].1)),
+        );
+        for (i, w) in walks.iter_mut().enumerate() {
+            if !w.active {
+                continue;
+            }
+            let mut moved = false;
+            for j in 4 * i..4 * i + n[i] {
+                if vals.0[j] < w.best.2 {
+                    w.best = (cands[j].0, cands[j].1, vals.0[j]);
+                    w.at_best = (cands[j].0, at[j]);
+                    moved = true;
+                }
+            }
+            if !moved {
+                w.sr *= 0.5;
+                w.sm *= 0.5;
+            }
         }
     }
-    (best.0, best.1)
+    walks.map(|w| (w.best.0, w.best.1))
 }
 
 /// Solves the stage's parts for every pixel; `start` holds the current
@@ -524,27 +784,25 @@ pub fn solve_pixels(
             warm: o.warm || round > 0,
             ..*o
         };
-        mats = mats
-            .par_iter()
+        let shared = Round { k, c2, toe };
+        let problem = |p: usize| PixelProblem {
+            t: &tables[p],
+            m: mats[p],
+            pred: pred[p],
+            tg: target.gamma[p],
+            tl: PixelProblem::linear(target.gamma[p]),
+            sat: target.saturated[p],
+        };
+        let mut next = mats.clone();
+        next.par_chunks_mut(BATCH)
             .enumerate()
-            .with_min_len(512)
-            .map(|(p, m)| {
-                let problem = PixelProblem {
-                    t: &tables[p],
-                    m: *m,
-                    pred: pred[p],
-                    tg: target.gamma[p],
-                    tl: PixelProblem::linear(target.gamma[p]),
-                    sat: target.saturated[p],
-                    k,
-                    c2,
-                    toe,
-                };
-                let mut out = *m;
-                solve_pixel_now(&problem, o, &mut out);
-                out
-            })
-            .collect();
+            .with_min_len(256)
+            .for_each(|(b, out)| {
+                let ps: [PixelProblem; BATCH] =
+                    std::array::from_fn(|i| problem(b * BATCH + i.min(out.len() - 1)));
+                solve_batch_now(&ps[..out.len()], &shared, o, out);
+            });
+        mats = next;
         let (l, s, l1, l2) = measure(&mats, k);
         trace.losses.push(l);
         trace.steps = round + 1;
@@ -682,74 +940,98 @@ mod tests {
     }
 
     /// Every lane width solves every pixel to the same bits (cold and
-    /// warm, all three parts), and the albedo's lane-wide golden sections
-    /// are the scalar search's, channel by channel.
+    /// warm, all three parts), alone or beside another pixel in either
+    /// slot of a batch, and the albedo's lane-wide golden sections are
+    /// the scalar search's, channel by channel.
     #[test]
-    fn lane_widths_give_the_same_bits_and_lanes_the_scalar_search() {
+    fn lane_widths_and_batches_give_the_same_bits_and_lanes_the_scalar_search() {
         let TableProblem {
             tables,
             truth,
             target,
             ..
         } = table_problem(13, 16);
-        let toe = gamma_toe();
+        let round = Round {
+            k: 0.9,
+            c2: 1.5,
+            toe: gamma_toe(),
+        };
+        let bits = |m: &Material| {
+            (
+                m.albedo.to_array().map(f32::to_bits),
+                m.roughness.to_bits(),
+                m.metallic.to_bits(),
+            )
+        };
+        let n = truth.len();
         for warm in [false, true] {
             let o = SolveOptions {
                 warm,
                 ..one_round(Parts::ARM, 0.1)
             };
-            for p in 0..truth.len() {
+            let problem = |p: usize| {
                 let pred = Material {
                     albedo: truth[p].albedo * 0.7 + Vec3::splat(0.1),
                     roughness: (truth[p].roughness + 0.2).min(1.0),
                     metallic: 0.3 * hash01(p as u64),
                 };
-                let problem = PixelProblem {
+                PixelProblem {
                     t: &tables[p],
                     m: pred,
                     pred,
                     tg: target.gamma[p],
                     tl: PixelProblem::linear(target.gamma[p]),
                     sat: target.saturated[p],
-                    k: 0.9,
-                    c2: 1.5,
-                    toe,
-                };
-                let mut outs = [pred; 4];
-                solve_pixel::<1>(&problem, &o, &mut outs[0]);
-                solve_pixel::<4>(&problem, &o, &mut outs[1]);
-                solve_pixel::<8>(&problem, &o, &mut outs[2]);
-                solve_pixel::<16>(&problem, &o, &mut outs[3]);
-                let bits = |m: &Material| {
-                    (
-                        m.albedo.to_array().map(f32::to_bits),
-                        m.roughness.to_bits(),
-                        m.metallic.to_bits(),
-                    )
-                };
+                }
+            };
+            for p in 0..n {
+                let one = [problem(p)];
+                let mut outs = [one[0].m; 4];
+                solve_batch::<1>(&one, &round, &o, &mut outs[0..1]);
+                solve_batch::<4>(&one, &round, &o, &mut outs[1..2]);
+                solve_batch::<8>(&one, &round, &o, &mut outs[2..3]);
+                solve_batch::<16>(&one, &round, &o, &mut outs[3..4]);
                 for out in &outs[1..] {
                     assert_eq!(bits(out), bits(&outs[0]), "pixel {p}, warm {warm}");
                 }
+                // Beside another pixel (one that stops at another step),
+                // first and last in the batch.
+                let q = (p * 7 + 3) % n;
+                let mut pair = [one[0].m; BATCH];
+                let ps: [PixelProblem; BATCH] =
+                    std::array::from_fn(|i| problem(if i == 0 { p } else { q }));
+                solve_batch::<8>(&ps, &round, &o, &mut pair);
+                assert_eq!(
+                    bits(&pair[0]),
+                    bits(&outs[0]),
+                    "pixel {p} first, warm {warm}"
+                );
+                let ps: [PixelProblem; BATCH] =
+                    std::array::from_fn(|i| problem(if i + 1 == BATCH { p } else { q }));
+                solve_batch::<4>(&ps, &round, &o, &mut pair);
+                assert_eq!(
+                    bits(&pair[BATCH - 1]),
+                    bits(&outs[0]),
+                    "pixel {p} last, warm {warm}"
+                );
                 // The albedo search against the scalar golden section.
                 let m = outs[0];
-                let lanes = solve_albedo(&problem, &m, &o);
+                let slot = [&one[0]; BATCH];
+                let lanes = solve_albedo(&slot, &[m; BATCH], &round, &o)[0];
                 let (i, q) = tables[p].eval_value(&m);
                 let pv = i - m.albedo * q;
+                let pred = one[0].pred;
                 for c in 0..3 {
                     let (lo, hi) = bounds(pred.albedo[c], o.zeta, 0.0);
                     let pa = pred.albedo[c].clamp(lo, hi);
                     let want = if !(q[c] > 0.0) {
                         pa
                     } else {
-                        let a0 = ((gamma_inv(problem.tg[c]) / 0.9 - pv[c]) / q[c]).clamp(lo, hi);
+                        let a0 = ((gamma_inv(one[0].tg[c]) / 0.9 - pv[c]) / q[c]).clamp(lo, hi);
                         let (s0, s1) = if a0 <= pa { (a0, pa) } else { (pa, a0) };
                         let f = |a: f32| {
-                            channel_loss(
-                                0.9 * (pv[c] + a * q[c]),
-                                problem.tg[c],
-                                problem.sat[c],
-                                1.5,
-                            ) + o.delta * (a - pa).abs()
+                            channel_loss(0.9 * (pv[c] + a * q[c]), one[0].tg[c], one[0].sat[c], 1.5)
+                                + o.delta * (a - pa).abs()
                         };
                         if s1 - s0 < 1e-6 {
                             s0

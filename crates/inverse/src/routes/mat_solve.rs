@@ -26,10 +26,15 @@ const OPTIONS: &[RouteOption] = &[RouteOption {
           (1 below 12 s, 2 below 30 s, else 3)",
 }];
 
-/// One round per pixel from a grid over (R, M).
-pub const COLD_ROUND: f64 = 3.6e-6;
-/// One round per pixel from the previous answer (compass search only).
-pub const WARM_ROUND: f64 = 1.6e-6;
+/// One round per pixel from a grid over (R, M): 3.6e-6 before pixels
+/// were solved two at a time in one vector, which took a cold round
+/// 0.80× and a warm one 0.89× (geometric means over jinjya and indoor at
+/// 20 s of the trace log's round times, old and new binaries alternated
+/// three times: jinjya 0.74× / 0.85×, indoor 0.87× / 0.94×).
+pub const COLD_ROUND: f64 = 2.9e-6;
+/// One round per pixel from the previous answer (compass search only):
+/// 1.6e-6 before, see [`COLD_ROUND`].
+pub const WARM_ROUND: f64 = 1.42e-6;
 
 pub struct Solve {
     rounds: Option<usize>,
