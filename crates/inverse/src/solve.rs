@@ -198,6 +198,14 @@ fn channel_loss_lanes<const W: usize>(i: F<W>, t: F<W>, sat: M<W>, c2: f32, toe:
     e.abs() + c2 * e * e
 }
 
+/// A pixel's albedo bounds in channel `c` (within ζ of the prediction)
+/// and the prediction clamped to them.
+#[inline]
+fn albedo_bounds(p: &PixelProblem, c: usize, o: &SolveOptions) -> (f32, f32, f32) {
+    let (lo, hi) = bounds(p.pred.albedo[c], o.zeta, 0.0);
+    (lo, hi, p.pred.albedo[c].clamp(lo, hi))
+}
+
 /// `f32::clamp` per lane with per-lane bounds ([`F::clamp`]'s steps).
 #[inline(always)]
 fn clamp_lanes<const W: usize>(x: F<W>, lo: F<W>, hi: F<W>) -> F<W> {
@@ -230,8 +238,7 @@ impl AlbedoStart {
             fixed: [true; 3],
         };
         for c in 0..3 {
-            let (lo, hi) = bounds(p.pred.albedo[c], o.zeta, 0.0);
-            let pa = p.pred.albedo[c].clamp(lo, hi);
+            let (lo, hi, pa) = albedo_bounds(p, c, o);
             st.pa[c] = pa;
             if !(q[c] > 0.0) || !(k > 0.0) {
                 st.ends[c] = (pa, pa);
@@ -440,21 +447,15 @@ impl<'a, const L: usize> RmLanes<'a, L> {
     ) -> RmLanes<'a, L> {
         let p: [&PixelProblem; L] = std::array::from_fn(|l| ps[at(l)]);
         let per = |f: &dyn Fn(&PixelProblem) -> f32| F::<L>(std::array::from_fn(|l| f(p[l])));
-        let ab = |p: &PixelProblem, c: usize| bounds(p.pred.albedo[c], o.zeta, 0.0);
         RmLanes {
             t: p.map(|p| p.t),
             base: std::array::from_fn(|c| per(&|p| p.t.base[c])),
             a: std::array::from_fn(|c| per(&|p| p.m.albedo[c])),
             tl_k: std::array::from_fn(|c| per(&|p| p.tl[c] / round.k)),
             pred_a: std::array::from_fn(|c| per(&|p| p.pred.albedo[c])),
-            alo: std::array::from_fn(|c| per(&|p| ab(p, c).0)),
-            ahi: std::array::from_fn(|c| per(&|p| ab(p, c).1)),
-            pa: std::array::from_fn(|c| {
-                per(&|p| {
-                    let (lo, hi) = ab(p, c);
-                    p.pred.albedo[c].clamp(lo, hi)
-                })
-            }),
+            alo: std::array::from_fn(|c| per(&|p| albedo_bounds(p, c, o).0)),
+            ahi: std::array::from_fn(|c| per(&|p| albedo_bounds(p, c, o).1)),
+            pa: std::array::from_fn(|c| per(&|p| albedo_bounds(p, c, o).2)),
             pred_r: per(&|p| p.pred.roughness),
             pred_m: per(&|p| p.pred.metallic),
             tg: std::array::from_fn(|c| per(&|p| p.tg[c])),
@@ -514,19 +515,13 @@ impl<'a, const L: usize> RmLanes<'a, L> {
         l + self.delta * cons
     }
 
-    /// The objective at every candidate of a grid of `rs.len()` (≤ 16)
-    /// roughnesses by `ms.len()` metallics (row-major), `L` at a time,
-    /// the table evaluated once per roughness (every lane one pixel).
+    /// The objective at every candidate of a grid of `GR` roughnesses by
+    /// `ms.len()` metallics (row-major), `L` at a time, the table
+    /// evaluated once per roughness (every lane lane 0's pixel).
     #[inline(always)]
-    fn grid(&self, rs: &[f32], ms: &[f32], out: &mut [f32]) {
-        let mut at = [AtR::default(); 16];
-        let nr = rs.len().min(at.len());
-        for s in (0..nr).step_by(L) {
-            let v = at_r::<L>(&self.t, F(std::array::from_fn(|l| rs[(s + l).min(nr - 1)])));
-            let k = L.min(nr - s);
-            at[s..s + k].copy_from_slice(&v[..k]);
-        }
-        let n = nr * ms.len();
+    fn grid<const GR: usize>(&self, rs: &[f32; GR], ms: &[f32], out: &mut [f32]) {
+        let at = at_r(&[self.t[0]; GR], F(*rs));
+        let n = GR * ms.len();
         for s in (0..n).step_by(L) {
             let c = |l: usize| (s + l).min(n - 1);
             let v = self.losses_at(
@@ -551,6 +546,18 @@ struct Compass {
     sr: f32,
     sm: f32,
     active: bool,
+}
+
+impl Compass {
+    /// The four moves, in the order ties are broken: ±R, then ±M.
+    fn steps(&self) -> [(f32, f32); 4] {
+        [
+            (self.sr, 0.0),
+            (-self.sr, 0.0),
+            (0.0, self.sm),
+            (0.0, -self.sm),
+        ]
+    }
 }
 
 /// Roughness and metallic of each pixel; with A fixed, or, when the stage
@@ -653,7 +660,7 @@ fn solve_rm<const W: usize>(
         // roughnesses, whose tables are evaluated together, and two new
         // metallics at the best's roughness, whose table is kept.
         let next: [[(f32, f32); 4]; BATCH] = walks.map(|w| {
-            [(w.sr, 0.0), (-w.sr, 0.0), (0.0, w.sm), (0.0, -w.sm)].map(|(dr, dm)| {
+            w.steps().map(|(dr, dm)| {
                 (
                     (w.best.0 + dr).clamp(w.rb.0, w.rb.1),
                     (w.best.1 + dm).clamp(w.mb.0, w.mb.1),
@@ -673,8 +680,7 @@ fn solve_rm<const W: usize>(
                 ats.fill(w.at_best.1);
                 continue;
             }
-            let steps = [(w.sr, 0.0), (-w.sr, 0.0), (0.0, w.sm), (0.0, -w.sm)];
-            for (j, &(dr, dm)) in steps.iter().enumerate() {
+            for (j, (dr, dm)) in w.steps().into_iter().enumerate() {
                 if dr == 0.0 && dm == 0.0 {
                     continue;
                 }
