@@ -1,12 +1,17 @@
 #!/usr/bin/env python3
 """Train matflow's own prediction network on its synthetic `rooms` dataset
-and export it to ONNX under MatNet's contract (crates/onnx/src/matnet.rs).
+(closed and open rooms, stages, outdoor scenes) and export it to ONNX under
+MatNet's contract (crates/onnx/src/matnet.rs).
 
-The network is a small U-Net. It takes what MatNet takes (the photo,
-centre-cropped, /255, raised to 2.2; no mean or std) at 256 x 256 and gives
-MatNet's five outputs, named as the official network's dict:
+The network is a U-Net of six levels with the pixel's position as two extra
+input channels and the image's mean features added at the bottom (the
+layout of a scene is a strong cue to its depth and normals). It takes what
+MatNet takes (the photo, centre-cropped, /255, raised to 2.2; no mean or
+std) at 256 x 256 and gives MatNet's five outputs, named as the official
+network's dict:
 
-  depth      [N, 1, 256, 256]  camera-space z in scene units (metadata
+  depth      [N, 1, 256, 256]  camera-space z in scene units, e^-4 to e^6
+                               (metadata
                                matflow.depth = "z"; MatNet's own depth is
                                disparity-like, and a model without that key
                                is read as disparity)
@@ -16,15 +21,31 @@ MatNet's five outputs, named as the official network's dict:
   normal     [N, 3, 256, 256]  camera space, +z towards the camera; tanh,
                                then L2-normalised per pixel
 
-Data: `matflow dataset train/matnet/rooms.yaml --out out/matnet/train` and
-`matflow dataset train/matnet/rooms-heldout.yaml --out out/matnet/heldout`
+Training (losses fit to what a photo cannot tell; augmentation for real
+cameras):
+
+  depth      L1 of log z less its mean over the image (scale-invariant),
+             the same residual's gradients at 3 scales (edges), and a
+             small weight on the mean itself (the scale)
+  albedo     L1 after the best single gain (gain-invariant), and a small
+             weight on plain L1 (the level)
+  normals    the angle between prediction and truth
+  roughness, metallic  L1
+  photos     exposure (x0.5-2), white balance (+-15 % a channel), zoom
+             crops (75-100 %), mirror, blur, sensor noise, JPEG
+  schedule   most steps on whole images halved to 128 x 128, the rest at
+             256 x 256 (the contract's size)
+
+Data: `matflow dataset train/matnet/kinds.yaml --out out/matnet/train` and
+`matflow dataset train/matnet/kinds-heldout.yaml --out out/matnet/heldout`
 (WebDataset tar shards; this script reads them with tarfile, the EXR
 members with the `OpenEXR` package and the PNGs with Pillow). The decoded
 arrays are cached next to the shards (`decoded.npz`).
 
 Usage:
   python3 train/matnet/train.py --train out/matnet/train \
-      --heldout out/matnet/heldout --out models/matnet_rooms.onnx
+      --heldout out/matnet/heldout --out models/matnet_rooms.onnx \
+      --minutes 50
 
 Besides the model it writes <out>.json (steps, time, held-out errors) and a
 fixture for matflow's Rust test: a small photo the test pre-processes itself
@@ -46,7 +67,7 @@ import OpenEXR
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
-from PIL import Image
+from PIL import Image, ImageFilter
 
 SIZE = 256
 NAMES = ["depth", "albedo", "roughness", "metallic", "normal"]
@@ -63,15 +84,28 @@ def exr(data):
 
 
 def load(folder):
-    """Every sample of the rooms dataset in `folder`, decoded (cached)."""
+    """Every sample of the rooms dataset in `folder`, decoded (cached), with
+    each sample's kind of scene. A dataset still being made gives its
+    finished shards (those whose index is written)."""
     cache = os.path.join(folder, "decoded.npz")
     desc = json.load(open(os.path.join(folder, "dataset.json")))
+    kinds, shards = {}, []
+    for k in range(desc["shards"]):
+        index = os.path.join(folder, f"{desc['name']}-{k:06d}.jsonl")
+        if not os.path.exists(index):
+            break
+        with open(index) as f:
+            for line in f:
+                v = json.loads(line)
+                kinds[v["key"]] = v.get("params", {}).get("kind", "open")
+        shards.append(k)
     if os.path.exists(cache):
         z = np.load(cache)
-        if int(z["samples"]) == desc["samples"]:
+        if int(z["samples"]) == len(kinds):
             return {k: z[k] for k in z.files if k != "samples"}
-    out = {k: [] for k in ["photo", "depth", "albedo", "roughness", "metallic", "normal", "valid"]}
-    for k in range(desc["shards"]):
+    keys = ["photo", "depth", "albedo", "roughness", "metallic", "normal", "valid", "kind"]
+    out = {k: [] for k in keys}
+    for k in shards:
         path = os.path.join(folder, f"{desc['name']}-{k:06d}.tar")
         cur = {}
 
@@ -85,6 +119,7 @@ def load(folder):
             out["metallic"].append(cur["metallic.exr"][..., 0].astype(np.float16))
             out["normal"].append(cur["normal.exr"].astype(np.float16))
             out["valid"].append(cur["mesh_mask.png"] <= 127)
+            out["kind"].append(kinds.get(cur["key"], "open"))
 
         with tarfile.open(path) as t:
             for m in t.getmembers():
@@ -93,8 +128,10 @@ def load(folder):
                     flush()
                     cur = {}
                 cur["key"] = key
+                if member in ("gt_image.exr", "envmap.hdr", "meta.json"):
+                    continue
                 data = t.extractfile(m).read()
-                if member.endswith(".exr") and member != "gt_image.exr":
+                if member.endswith(".exr"):
                     cur[member] = exr(data)
                 elif member.endswith(".png"):
                     a = np.asarray(Image.open(io.BytesIO(data)))
@@ -102,7 +139,7 @@ def load(folder):
         flush()
         print(f"  decoded {path}", flush=True)
     arrays = {k: np.stack(v) for k, v in out.items()}
-    np.savez(cache, samples=desc["samples"], **arrays)
+    np.savez(cache, samples=len(kinds), **arrays)
     return arrays
 
 
@@ -123,24 +160,37 @@ def block(cin, cout):
 
 
 class UNet(nn.Module):
+    """Six levels (c, 2c, 4c, 8c, 8c, 8c channels), max-pool down, bilinear
+    up; the pixel's position (x, y in [-1, 1]) as two more input channels;
+    at the bottom, the image's mean features through a 1x1 convolution
+    added to every position."""
+
+    LEVELS = 6
+
     def __init__(self, c=16):
         super().__init__()
-        w = [c, 2 * c, 4 * c, 8 * c, 8 * c]
-        self.enc = nn.ModuleList([block(3, w[0])] + [block(w[i], w[i + 1]) for i in range(4)])
-        self.dec = nn.ModuleList([block(w[i + 1] + w[i], w[i]) for i in reversed(range(4))])
+        w = [c, 2 * c, 4 * c, 8 * c, 8 * c, 8 * c][: self.LEVELS]
+        self.enc = nn.ModuleList([block(5, w[0])] + [block(w[i], w[i + 1]) for i in range(len(w) - 1)])
+        self.context = nn.Conv2d(w[-1], w[-1], 1)
+        self.dec = nn.ModuleList([block(w[i + 1] + w[i], w[i]) for i in reversed(range(len(w) - 1))])
         self.head = nn.Conv2d(w[0], sum(CHANNELS), 1)
 
     def forward(self, x):
+        n, _, h, w = x.shape
+        ys = torch.linspace(-1.0, 1.0, h).view(1, 1, h, 1).expand(n, 1, h, w)
+        xs = torch.linspace(-1.0, 1.0, w).view(1, 1, 1, w).expand(n, 1, h, w)
+        x = torch.cat([x, xs, ys], 1)
         skips = []
         for i, e in enumerate(self.enc):
             x = e(x if i == 0 else F.max_pool2d(x, 2))
             skips.append(x)
         x = skips.pop()
+        x = x + self.context(x.mean((2, 3), keepdim=True))
         for d in self.dec:
             s = skips.pop()
             x = d(torch.cat([F.interpolate(x, scale_factor=2.0, mode="bilinear", align_corners=False), s], 1))
         o = self.head(x)
-        depth = torch.exp(torch.clamp(o[:, 0:1], -4.0, 4.0))
+        depth = torch.exp(torch.clamp(o[:, 0:1], -4.0, 6.0))
         albedo = torch.sigmoid(o[:, 1:4])
         rough = torch.sigmoid(o[:, 4:5])
         metal = torch.sigmoid(o[:, 5:6])
@@ -149,81 +199,157 @@ class UNet(nn.Module):
         return depth, albedo, rough, metal, n
 
 
-def batch_tensors(d, idx, crop, rng, augment, exposure=(0.6, 1.6)):
-    """Inputs and targets for samples `idx` (random crops and flips when
-    training)."""
-    n = len(idx)
-    h = w = SIZE
+def camera(photo_u8, rng, a):
+    """A photo as another camera might have taken it: exposure and white
+    balance (on linear values, clipped as a sensor clips), blur, noise
+    and JPEG. 8-bit sRGB in and out."""
+    lin = linearise(photo_u8)
+    gain = 2.0 ** rng.uniform(-a.exposure, a.exposure)
+    wb = rng.uniform(1.0 - a.white_balance, 1.0 + a.white_balance, size=3).astype(np.float32)
+    wb /= wb.mean()
+    lin = np.clip(lin * gain * wb, 0.0, 1.0)
+    out = lin ** (1.0 / 2.2)
+    img = Image.fromarray((out * 255.0 + 0.5).astype(np.uint8))
+    if rng.random() < 0.25:
+        img = img.filter(ImageFilter.GaussianBlur(float(rng.uniform(0.3, 1.2))))
+    out = np.asarray(img).astype(np.float32) / 255.0
+    if rng.random() < 0.6:
+        sigma = rng.uniform(0.0, 0.03)
+        shot = rng.uniform(0.0, 0.03)
+        noise = rng.standard_normal(out.shape).astype(np.float32)
+        out = out + noise * (sigma + shot * np.sqrt(out))
+    u8 = (np.clip(out, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    if rng.random() < 0.4:
+        buf = io.BytesIO()
+        Image.fromarray(u8).save(buf, format="JPEG", quality=int(rng.integers(35, 96)))
+        u8 = np.asarray(Image.open(io.BytesIO(buf.getvalue())).convert("RGB"))
+    return u8
+
+
+def batch_tensors(d, idx, size, rng, a):
+    """Inputs and targets for samples `idx` at `size` x `size` (whole
+    images; halved by averaging 2 x 2 photo pixels and taking one target
+    pixel of each 2 x 2). With `a` (training), the photo goes through
+    `camera`, and now and then a zoom crop and a mirror."""
     xs, ys = [], []
     for i in idx:
-        y0 = rng.integers(0, h - crop + 1) if crop < h else 0
-        x0 = rng.integers(0, w - crop + 1) if crop < w else 0
-        sl = (slice(y0, y0 + crop), slice(x0, x0 + crop))
-        photo = linearise(d["photo"][i][sl])
+        photo = d["photo"][i]
         t = {
-            "depth": d["depth"][i][sl][..., None].astype(np.float32),
-            "albedo": d["albedo"][i][sl].astype(np.float32),
-            "roughness": d["roughness"][i][sl][..., None].astype(np.float32),
-            "metallic": d["metallic"][i][sl][..., None].astype(np.float32),
-            "normal": d["normal"][i][sl].astype(np.float32),
-            "valid": d["valid"][i][sl][..., None].astype(np.float32),
+            "depth": d["depth"][i][..., None].astype(np.float32),
+            "albedo": d["albedo"][i].astype(np.float32),
+            "roughness": d["roughness"][i][..., None].astype(np.float32),
+            "metallic": d["metallic"][i][..., None].astype(np.float32),
+            "normal": d["normal"][i].astype(np.float32),
+            "valid": d["valid"][i][..., None].astype(np.float32),
         }
-        if augment:
-            photo = photo * float(rng.uniform(*exposure))
+        if a is not None:
+            if rng.random() < a.zoom_share:
+                s = int(SIZE * rng.uniform(0.75, 1.0))
+                y0, x0 = rng.integers(0, SIZE - s + 1), rng.integers(0, SIZE - s + 1)
+                src = y0 + (np.arange(SIZE) * s) // SIZE, x0 + (np.arange(SIZE) * s) // SIZE
+                crop = Image.fromarray(photo[y0 : y0 + s, x0 : x0 + s])
+                photo = np.asarray(crop.resize((SIZE, SIZE), Image.BICUBIC))
+                t = {k: v[src[0]][:, src[1]] for k, v in t.items()}
+            photo = camera(photo, rng, a)
             if rng.random() < 0.5:
                 photo = photo[:, ::-1]
                 t = {k: v[:, ::-1].copy() for k, v in t.items()}
                 t["normal"][..., 0] *= -1.0
-        xs.append(np.ascontiguousarray(photo.transpose(2, 0, 1)))
+        x = linearise(photo)
+        if size != SIZE:
+            f = SIZE // size
+            x = x.reshape(size, f, size, f, 3).mean((1, 3))
+            t = {k: v[::f, ::f] for k, v in t.items()}
+        xs.append(np.ascontiguousarray(x.transpose(2, 0, 1)))
         ys.append({k: np.ascontiguousarray(v.transpose(2, 0, 1)) for k, v in t.items()})
     x = torch.from_numpy(np.stack(xs))
     y = {k: torch.from_numpy(np.stack([s[k] for s in ys])) for k in ys[0]}
     return x, y
 
 
-def losses(pred, y):
+def masked_mean(e, v):
+    """Mean of `e` [N, C, H, W] over the pixels where `v` [N, 1, H, W] is
+    set, per image: [N, C]."""
+    return (e * v).sum((2, 3)) / v.sum((2, 3)).clamp(min=1.0)
+
+
+def losses(pred, y, w_level):
     depth, albedo, rough, metal, normal = pred
     v = y["valid"]
-    nv = v.sum().clamp(min=1.0)
-    mean = lambda e: (e * v).sum() / nv / e.shape[1]  # noqa: E731
-    l_depth = mean((torch.log(depth) - torch.log(y["depth"].clamp(min=1e-3))).abs())
-    l_albedo = mean((albedo - y["albedo"]).abs())
-    l_rough = mean((rough - y["roughness"]).abs())
-    l_metal = mean((metal - y["metallic"]).abs())
-    l_normal = ((1.0 - (normal * y["normal"]).sum(1, keepdim=True)) * v).sum() / nv
-    return {"depth": l_depth, "albedo": l_albedo, "roughness": l_rough, "metallic": l_metal, "normal": l_normal}
+    has = (v.sum((1, 2, 3)) > 0).float()
+    per_image = lambda e: (e * has).sum() / has.sum().clamp(min=1.0)  # noqa: E731
+    # Depth: log residual less its mean, its gradients, and the mean.
+    r = torch.log(depth) - torch.log(y["depth"].clamp(min=1e-3))
+    shift = masked_mean(r, v)[:, :, None, None]
+    ri = r - shift
+    l_depth = per_image(masked_mean(ri.abs(), v)[:, 0]) + w_level * per_image(shift[:, 0, 0, 0].abs())
+    l_grad = 0.0
+    rr, vv = ri, v
+    for _ in range(3):
+        gx = (rr[..., :, 1:] - rr[..., :, :-1]).abs() * vv[..., :, 1:] * vv[..., :, :-1]
+        gy = (rr[..., 1:, :] - rr[..., :-1, :]).abs() * vv[..., 1:, :] * vv[..., :-1, :]
+        nv = vv.sum().clamp(min=1.0)
+        l_grad = l_grad + (gx.sum() + gy.sum()) / nv
+        rr, vv = F.avg_pool2d(rr * vv, 2) / F.avg_pool2d(vv, 2).clamp(min=1e-6), (F.avg_pool2d(vv, 2) > 0.99).float()
+    # Albedo: after the best single gain per image, and plainly.
+    t = y["albedo"].clamp(0.0, 1.0)
+    pt = masked_mean(albedo * t, v).sum(1)
+    pp = masked_mean(albedo * albedo, v).sum(1).clamp(min=1e-6)
+    g = (pt / pp).detach().clamp(0.25, 4.0)[:, None, None, None]
+    l_albedo = per_image(masked_mean((albedo * g - t).abs(), v).mean(1))
+    l_albedo = l_albedo + w_level * per_image(masked_mean((albedo - t).abs(), v).mean(1))
+    l_rough = per_image(masked_mean((rough - y["roughness"]).abs(), v)[:, 0])
+    l_metal = per_image(masked_mean((metal - y["metallic"]).abs(), v)[:, 0])
+    cos = (normal * y["normal"]).sum(1, keepdim=True).clamp(-0.9999, 0.9999)
+    l_normal = per_image(masked_mean(torch.acos(cos), v)[:, 0])
+    return {
+        "depth": l_depth,
+        "depth_grad": l_grad,
+        "albedo": l_albedo,
+        "roughness": l_rough,
+        "metallic": l_metal,
+        "normal": l_normal,
+    }
 
 
 @torch.no_grad()
 def evaluate(model, d, bs=8):
-    """Held-out errors over the valid pixels, as the model card states them."""
+    """Held-out scores per kind of scene (medians over scenes): albedo PSNR
+    after the best gain, normal angle, R^2 of an affine fit of z."""
     model.eval()
-    acc = {k: 0.0 for k in ["albedo", "roughness", "metallic", "normal_deg", "depth_absrel", "depth_absrel_aligned"]}
-    count = 0.0
-    rng = np.random.default_rng(0)
+    scores = {}
     n = len(d["photo"])
     for s in range(0, n, bs):
         idx = list(range(s, min(n, s + bs)))
-        x, y = batch_tensors(d, idx, SIZE, rng, False)
+        x, y = batch_tensors(d, idx, SIZE, None, None)
         depth, albedo, rough, metal, normal = model(x)
-        v = y["valid"].bool()[:, 0]
-        for j in range(len(idx)):
-            m = v[j]
-            k = float(m.sum())
-            if k == 0:
+        for j, i in enumerate(idx):
+            m = y["valid"][j, 0].bool()
+            if int(m.sum()) < 16:
                 continue
-            acc["albedo"] += float((albedo[j] - y["albedo"][j]).abs().mean(0)[m].sum())
-            acc["roughness"] += float((rough[j, 0] - y["roughness"][j, 0]).abs()[m].sum())
-            acc["metallic"] += float((metal[j, 0] - y["metallic"][j, 0]).abs()[m].sum())
-            cos = (normal[j] * y["normal"][j]).sum(0).clamp(-1.0, 1.0)
-            acc["normal_deg"] += float(torch.rad2deg(torch.acos(cos))[m].sum())
-            zp, zt = depth[j, 0][m], y["depth"][j, 0][m]
-            acc["depth_absrel"] += float(((zp - zt).abs() / zt).sum())
-            scale = torch.median(zt) / torch.median(zp)
-            acc["depth_absrel_aligned"] += float(((zp * scale - zt).abs() / zt).sum())
-            count += k
+            t = y["albedo"][j].clamp(0, 1)[:, m]
+            p = albedo[j][:, m]
+            g = float((p * t).sum() / (p * p).sum().clamp(min=1e-9))
+            psnr = -10.0 * math.log10(max(float(((p * g - t) ** 2).mean()), 1e-12))
+            cos = (normal[j] * y["normal"][j]).sum(0).clamp(-1.0, 1.0)[m]
+            angle = float(torch.rad2deg(torch.acos(cos)).mean())
+            zp, zt = depth[j, 0][m].double(), y["depth"][j, 0][m].double()
+            a = torch.stack([zp, torch.ones_like(zp)], 1)
+            sol = torch.linalg.lstsq(a, zt[:, None]).solution
+            res = ((a @ sol)[:, 0] - zt).pow(2).sum()
+            r2 = float(1.0 - res / (zt - zt.mean()).pow(2).sum().clamp(min=1e-12))
+            scores.setdefault(str(d["kind"][i]), []).append((psnr, angle, r2))
     model.train()
-    return {k: v / max(count, 1.0) for k, v in acc.items()}
+    out = {}
+    for k, v in sorted(scores.items()):
+        a = np.array(v)
+        out[k] = {
+            "scenes": len(v),
+            "albedo_psnr": round(float(np.median(a[:, 0])), 2),
+            "normal_deg": round(float(np.median(a[:, 1])), 1),
+            "depth_r2": round(float(np.median(a[:, 2])), 3),
+        }
+    return out
 
 
 def torch_preprocess(photo_u8, size):
@@ -290,15 +416,19 @@ def main():
     ap.add_argument("--train", required=True)
     ap.add_argument("--heldout", required=True)
     ap.add_argument("--out", required=True)
-    ap.add_argument("--steps", type=int, default=3000)
-    ap.add_argument("--full-steps", type=int, default=300, help="final steps on whole 256 x 256 images")
-    ap.add_argument("--batch", type=int, default=8)
-    ap.add_argument("--crop", type=int, default=128)
+    ap.add_argument("--minutes", type=float, default=50.0, help="training time; the steps follow from it")
+    ap.add_argument("--steps", type=int, default=0, help="a fixed number of steps instead of --minutes")
+    ap.add_argument("--full-share", type=float, default=0.2, help="share of the time at 256 x 256 (the rest at 128)")
+    ap.add_argument("--batch", type=int, default=8, help="images a step at 128 x 128 (a quarter of that at 256)")
     ap.add_argument("--width", type=int, default=16)
     ap.add_argument("--lr", type=float, default=2e-3)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--exposure", type=float, nargs=2, default=[0.6, 1.6], help="range of the photo's random exposure scale")
+    ap.add_argument("--exposure", type=float, default=1.0, help="photo exposure: +- this many stops")
+    ap.add_argument("--white-balance", type=float, default=0.15, help="photo white balance: +- this share a channel")
+    ap.add_argument("--zoom-share", type=float, default=0.3, help="share of photos zoom-cropped (75-100 %%)")
+    ap.add_argument("--level-weight", type=float, default=0.2, help="weight of the depth scale and albedo level")
+    ap.add_argument("--data", default="matflow dataset train/matnet/kinds.yaml", help="what the data is, for the record")
     args = ap.parse_args()
 
     torch.manual_seed(args.seed)
@@ -307,56 +437,73 @@ def main():
     t0 = time.time()
     train = load(args.train)
     heldout = load(args.heldout)
-    print(f"data: {len(train['photo'])} train, {len(heldout['photo'])} held out ({time.time() - t0:.0f} s)", flush=True)
+    kinds, counts = np.unique(train["kind"], return_counts=True)
+    print(f"data: {len(train['photo'])} train ({dict(zip(kinds.tolist(), counts.tolist()))}), "
+          f"{len(heldout['photo'])} held out ({time.time() - t0:.0f} s)", flush=True)
 
-    model = UNet(args.width)
+    model = UNet(args.width).to(memory_format=torch.channels_last)
     params = sum(p.numel() for p in model.parameters())
     print(f"U-Net width {args.width}: {params} parameters", flush=True)
-    total = args.steps + args.full_steps
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
-    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=args.lr, total_steps=total, pct_start=0.05)
+    budget = args.minutes * 60.0
     n = len(train["photo"])
     t_train = time.time()
     run = None
-    for step in range(total):
-        crop = args.crop if step < args.steps else SIZE
-        bs = args.batch if step < args.steps else max(1, args.batch * args.crop * args.crop // (SIZE * SIZE))
+    step = 0
+    # The learning rate follows a one-cycle shape over the time budget
+    # (or the steps): warm up over 5 %, then cosine down to 1 %.
+    while True:
+        el = time.time() - t_train
+        frac = step / args.steps if args.steps else el / budget
+        if frac >= 1.0:
+            break
+        lr = args.lr * (frac / 0.05 if frac < 0.05 else 0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * (frac - 0.05) / 0.95)))
+        for gr in opt.param_groups:
+            gr["lr"] = lr
+        full = frac >= 1.0 - args.full_share
+        size = SIZE if full else SIZE // 2
+        bs = max(1, args.batch // 4) if full else args.batch
         idx = rng.integers(0, n, size=bs)
-        x, y = batch_tensors(train, idx, crop, rng, True, tuple(args.exposure))
-        parts = losses(model(x), y)
-        loss = parts["depth"] + parts["albedo"] + parts["roughness"] + parts["metallic"] + parts["normal"]
+        x, y = batch_tensors(train, idx, size, rng, args)
+        x = x.contiguous(memory_format=torch.channels_last)
+        parts = losses(model(x), y, args.level_weight)
+        loss = sum(parts.values())
         opt.zero_grad()
         loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
         opt.step()
-        sched.step()
         cur = {k: float(v.detach()) for k, v in parts.items()}
         run = cur if run is None else {k: 0.98 * run[k] + 0.02 * cur[k] for k in cur}
-        if step % 100 == 0 or step == total - 1:
-            el = time.time() - t_train
+        if step % 100 == 0:
             print(
-                f"step {step:5d} {el:6.0f} s  " + " ".join(f"{k} {v:.4f}" for k, v in run.items()),
+                f"step {step:5d} {el:6.0f} s {size}px lr {lr:.2e} " + " ".join(f"{k} {v:.4f}" for k, v in run.items()),
                 flush=True,
             )
+        step += 1
     train_s = time.time() - t_train
     errs = evaluate(model, heldout)
     print("held out:", json.dumps(errs), flush=True)
     info = {
-        "data": "matflow dataset train/matnet/rooms.yaml (rooms, 2000 samples, seed 1, 256 x 256, 32 spp)",
-        "heldout": "train/matnet/rooms-heldout.yaml (100 samples, seed 2)",
+        "data": f"{args.data} ({n} samples: {dict(zip(kinds.tolist(), counts.tolist()))})",
+        "heldout": f"{len(heldout['photo'])} samples",
         "parameters": params,
         "width": args.width,
-        "steps": args.steps,
-        "full_steps": args.full_steps,
+        "steps": step,
+        "minutes": args.minutes,
+        "full_share": args.full_share,
         "batch": args.batch,
-        "crop": args.crop,
         "lr": args.lr,
         "seed": args.seed,
-        "exposure": args.exposure,
+        "exposure_stops": args.exposure,
+        "white_balance": args.white_balance,
+        "zoom_share": args.zoom_share,
+        "level_weight": args.level_weight,
         "threads": args.threads,
         "train_seconds": round(train_s, 1),
-        "heldout_errors": errs,
+        "heldout_medians_per_kind": errs,
         "torch": torch.__version__,
     }
+    model = model.to(memory_format=torch.contiguous_format)
     worst = export(model, args.out, info, heldout)
     info["onnxruntime_vs_torch_max_abs"] = worst
     stem = args.out[: -len(".onnx")] if args.out.endswith(".onnx") else args.out

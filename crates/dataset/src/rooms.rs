@@ -1,7 +1,9 @@
-//! Generator `rooms`: synthetic interiors with ground truth, for training
+//! Generator `rooms`: synthetic scenes with ground truth, for training
 //! and validating the prediction stage (MatNet's contract). Sample i is a
-//! room drawn from (seed, i): its shape, furniture, materials (matte,
-//! glossy, metal), camera and lighting (`matflow_procgen::rooms`),
+//! scene drawn from (seed, i): of the kind asked for (`scenes`) (open or closed
+//! rooms, stages, outdoor scenes; `all` takes the four in turn), its
+//! shape, furniture, materials (matte, glossy, metal), camera and
+//! lighting (`matflow_procgen::rooms`, `matflow_procgen::kinds`),
 //! path-traced by matflow's renderer; its members are the files of a
 //! reference bundle (the photograph, depth, sky mask, true albedo,
 //! roughness, metallic, normals and lighting).
@@ -9,12 +11,26 @@
 use matflow_engine::spec::SpecError;
 use matflow_engine::{ParamSpec, ParamType, Value};
 
+use matflow_procgen::rooms::SceneKind;
+
 use crate::generator::{Generator, Plan, Rng, Sample, SampleStage};
 use crate::spec::DatasetSpec;
 
 pub struct RoomsGenerator;
 
+/// The kinds a dataset may ask for: one of the scene kinds, or all four
+/// in turn (sample i is of kind i mod 4, in [`SceneKind::ALL`]'s order).
+const KINDS: &[&str] = &["open", "closed", "stage", "outdoor", "all"];
+
 const PARAMS: &[ParamSpec] = &[
+    ParamSpec {
+        name: "scenes",
+        ty: ParamType::Choice(KINDS),
+        default: Some("open"),
+        unit: "",
+        doc: "the kind of scene: open (rooms open to the sky), closed, stage, outdoor, or all \
+              four in turn",
+    },
     ParamSpec {
         name: "size",
         ty: ParamType::Int { min: 8, max: 4096 },
@@ -28,6 +44,14 @@ const PARAMS: &[ParamSpec] = &[
         default: Some("64"),
         unit: "samples/px",
         doc: "samples per pixel of the photographs",
+    },
+    ParamSpec {
+        name: "denoise",
+        ty: ParamType::Bool,
+        default: Some("true"),
+        unit: "",
+        doc: "denoise the photographs (two halves of their samples, filtered); false keeps the \
+              raw path-traced render",
     },
     ParamSpec {
         name: "envmap_width",
@@ -52,6 +76,8 @@ pub const MEMBERS: &[&str] = &[
 ];
 
 struct RoomsPlan {
+    kind: String,
+    denoise: bool,
     seed: u64,
     size: i64,
     spp: i64,
@@ -63,9 +89,10 @@ impl Generator for RoomsGenerator {
         "rooms"
     }
     fn doc(&self) -> &'static str {
-        "Synthetic interiors (room shapes, furniture, matte/glossy/metal materials, camera \
-         placement, sky or room lighting) path-traced by matflow, with ground-truth albedo, \
-         roughness, metallic, normals and depth as a reference bundle's files."
+        "Synthetic scenes (open or closed rooms, stages, outdoor scenes; furniture, \
+         matte/glossy/metal materials, camera placement, skies, room lighting, windows and \
+         lamps) path-traced by matflow, with ground-truth albedo, roughness, metallic, normals \
+         and depth as a reference bundle's files."
     }
     fn params(&self) -> &'static [ParamSpec] {
         PARAMS
@@ -75,7 +102,13 @@ impl Generator for RoomsGenerator {
             Value::Int(i) => *i,
             _ => 0,
         };
+        let kind = match spec.param("scenes") {
+            Value::Str(s) => s.clone(),
+            _ => "open".to_string(),
+        };
         Ok(Box::new(RoomsPlan {
+            kind,
+            denoise: !matches!(spec.param("denoise"), Value::Bool(false)),
             seed: spec.seed,
             size: int("size"),
             spp: int("spp"),
@@ -87,7 +120,13 @@ impl Generator for RoomsGenerator {
 impl Plan for RoomsPlan {
     fn sample(&self, i: u64) -> Sample {
         let room_seed = Rng::for_sample(self.seed, i, 0x200).next_u64() >> 1;
+        let kind = if self.kind == "all" {
+            SceneKind::ALL[(i % 4) as usize].name()
+        } else {
+            self.kind.as_str()
+        };
         let mut meta = serde_json::Map::new();
+        meta.insert("kind".into(), kind.into());
         meta.insert("room_seed".into(), room_seed.into());
         meta.insert("size".into(), self.size.into());
         meta.insert("spp".into(), self.spp.into());
@@ -96,10 +135,12 @@ impl Plan for RoomsPlan {
                 role: "room",
                 kind: "room_sample",
                 params: vec![
+                    ("scene".into(), Value::Str(kind.to_string())),
                     ("seed".into(), Value::Int(room_seed as i64)),
                     ("size".into(), Value::Int(self.size)),
                     ("spp".into(), Value::Int(self.spp)),
                     ("envmap_width".into(), Value::Int(self.envmap_width)),
+                    ("denoise".into(), Value::Bool(self.denoise)),
                 ],
             }],
             meta,
@@ -125,5 +166,54 @@ impl Plan for RoomsPlan {
             ("normal.exr", "ground_truth/normal.exr"),
             ("envmap.hdr", "ground_truth/envmap.hdr"),
         ]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn plan(kind: &str) -> RoomsPlan {
+        RoomsPlan {
+            kind: kind.to_string(),
+            denoise: true,
+            seed: 3,
+            size: 32,
+            spp: 4,
+            envmap_width: 16,
+        }
+    }
+
+    fn scene_of(s: &Sample) -> String {
+        s.stages[0]
+            .params
+            .iter()
+            .find(|(k, _)| k == "scene")
+            .map(|(_, v)| match v {
+                Value::Str(s) => s.clone(),
+                _ => String::new(),
+            })
+            .unwrap_or_default()
+    }
+
+    #[test]
+    fn all_kinds_come_in_turn_and_one_kind_alone() {
+        let all = plan("all");
+        let kinds: Vec<String> = (0..8).map(|i| scene_of(&all.sample(i))).collect();
+        assert_eq!(
+            kinds,
+            ["closed", "open", "stage", "outdoor", "closed", "open", "stage", "outdoor"]
+        );
+        // Each sample records its kind, and its seed does not depend on
+        // the kinds asked for.
+        let s = all.sample(2);
+        assert_eq!(s.meta["kind"], "stage");
+        let open = plan("open");
+        assert_eq!(
+            open.sample(2).meta["room_seed"],
+            s.meta["room_seed"],
+            "seeds follow the sample, not the kind"
+        );
+        assert!((0..4).all(|i| scene_of(&open.sample(i)) == "open"));
     }
 }

@@ -17,8 +17,9 @@ pub use kinds::insert::composite_differential;
 pub use kinds::matnet::MIN_PHOTO_SIDE;
 pub use kinds::matnet::{
     linear_square as matnet_linear_square, load_model as load_matnet_model,
-    predict as matnet_predict, read_photo as read_matnet_photo,
-    BUNDLED_MODEL as BUNDLED_MATNET_MODEL, BUNDLED_MODEL_BLAKE3 as BUNDLED_MATNET_MODEL_BLAKE3,
+    predict as matnet_predict, read_photo as read_matnet_photo, Loaded as MatnetModel,
+    Prediction as MatnetPrediction, BUNDLED_MODEL as BUNDLED_MATNET_MODEL,
+    BUNDLED_MODEL_BLAKE3 as BUNDLED_MATNET_MODEL_BLAKE3,
 };
 pub use kinds::refraction::OBJECT_NAMES as REFRACTION_OBJECTS;
 pub use kinds::refraction_length::{

@@ -4,7 +4,8 @@
 //! - [`synthetic`]: a room seen as a depth map with known materials and a
 //!   sky (`matflow synth`, the demo's scene, the inverse tests);
 //! - [`envgen`]: procedural skies and rooms as environment maps;
-//! - [`rooms`]: whole furnished interiors with ground truth (the `rooms`
+//! - [`rooms`]: whole scenes with ground truth — open rooms there,
+//!   closed rooms, stages and outdoor scenes in [`kinds`] (the `rooms`
 //!   dataset, the prediction network's training data);
 //! - [`shapes`]: meshes for insertion and for the refraction dataset (jug,
 //!   torus, sphere, cup, …);
@@ -14,6 +15,7 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord, clippy::needless_range_loop)]
 
 pub mod envgen;
+pub mod kinds;
 pub mod refraction;
 pub mod rooms;
 pub mod shapes;

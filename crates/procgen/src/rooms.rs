@@ -15,28 +15,74 @@ use crate::envgen::EnvKind;
 use crate::shapes::{cuboid, jug, revolve, sphere, torus, Shape};
 use crate::synthetic::{hsv, Rng};
 use glam::{Mat3, Vec2, Vec3};
-use matflow_geom::TriMesh;
+use matflow_geom::{Portal, TriMesh};
+use matflow_scene::lamps::Lamp;
 use matflow_scene::{Camera, GrayImage, Image, RgbImage};
 
 use matflow_render::bsdf::Material;
 use matflow_render::scene::{RenderScene, SceneObject, Surface};
 
-/// A generated room: objects in the camera's frame (the camera at the
+/// A generated scene: objects in the camera's frame (the camera at the
 /// origin looking down −z), the environment map's kind and seed, how the
-/// camera is turned (camera frame → world, for turning the map) and the
-/// exposure (EV) a photograph of it should get.
+/// camera is turned (camera frame → world, for turning the map), the
+/// exposure (EV) a photograph of it should get, and, for the kinds that
+/// have them, lamps and the windows light comes in through (both in the
+/// camera's frame).
 pub struct Room {
+    pub kind: SceneKind,
     pub objects: Vec<SceneObject>,
     pub env_kind: EnvKind,
     pub env_seed: u64,
     pub to_world: Mat3,
     pub exposure: f32,
+    pub lamps: Vec<Lamp>,
+    pub portals: Vec<Portal>,
+}
+
+/// The kinds of scene the generator draws (`crate::kinds` has all but
+/// the open room, this module's own).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum SceneKind {
+    /// A room open to the sky: a back wall, side walls and a ceiling
+    /// present or not, nothing behind the camera.
+    Open,
+    /// A room closed on every side, the camera inside: windows onto the
+    /// sky and lamps light it.
+    Closed,
+    /// A raised platform with a backdrop, seen from the lower ground in
+    /// front, the sky beyond and above.
+    Stage,
+    /// Objects on a wide ground under the sky, buildings far off.
+    Outdoor,
+}
+
+impl SceneKind {
+    pub const ALL: [SceneKind; 4] = [
+        SceneKind::Closed,
+        SceneKind::Open,
+        SceneKind::Stage,
+        SceneKind::Outdoor,
+    ];
+    pub const NAMES: &'static [&'static str] = &["closed", "open", "stage", "outdoor"];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            SceneKind::Closed => "closed",
+            SceneKind::Open => "open",
+            SceneKind::Stage => "stage",
+            SceneKind::Outdoor => "outdoor",
+        }
+    }
+
+    pub fn from_name(s: &str) -> Option<SceneKind> {
+        SceneKind::ALL.into_iter().find(|k| k.name() == s)
+    }
 }
 
 /// A material for furniture and objects: a quarter metal (gold, silver,
 /// copper-like, rough or polished), the rest dielectric of any colour,
 /// from matte to glossy.
-fn object_material(r: &mut Rng) -> Material {
+pub(crate) fn object_material(r: &mut Rng) -> Material {
     if r.chance(0.25) {
         let tints = [
             Vec3::new(1.0, 0.78, 0.34),
@@ -71,7 +117,7 @@ fn quad(p: [Vec3; 4], uv: [Vec2; 4]) -> (TriMesh, Vec<Vec2>) {
 
 /// A pattern texture: tiles (a grid of `n`×`n` squares with grout),
 /// planks (stripes of varied shade) or none.
-fn floor_texture(r: &mut Rng) -> Option<RgbImage> {
+pub(crate) fn floor_texture(r: &mut Rng) -> Option<RgbImage> {
     match r.below(3) {
         0 => None,
         1 => {
@@ -154,15 +200,15 @@ fn shell(r: &mut Rng) -> Shell {
 }
 
 /// A room's objects in the camera's frame, added one by one.
-struct Objects {
+pub(crate) struct Objects {
     /// World → camera.
-    turn: Mat3,
-    list: Vec<SceneObject>,
+    pub turn: Mat3,
+    pub list: Vec<SceneObject>,
 }
 
 impl Objects {
     /// A textured quad given in world space.
-    fn plane(&mut self, corners: [Vec3; 4], uv_scale: f32, m: Material, tex: Option<RgbImage>) {
+    pub fn plane(&mut self, corners: [Vec3; 4], uv_scale: f32, m: Material, tex: Option<RgbImage>) {
         let uv = corners.map(|c| {
             // Texture coordinates from the plane's two long axes.
             let n = (corners[1] - corners[0]).cross(corners[2] - corners[0]);
@@ -187,7 +233,7 @@ impl Objects {
     }
 
     /// A shape standing at `at` (world space).
-    fn shape(&mut self, s: Shape, at: Vec3, m: Material) {
+    pub fn shape(&mut self, s: Shape, at: Vec3, m: Material) {
         let turn = self.turn;
         self.list
             .push(shape_object(s, &|p| turn * (p + at), turn, m));
@@ -280,8 +326,22 @@ fn floor_and_walls(r: &mut Rng, s: &Shell, o: &mut Objects) {
 /// Furniture and objects on the floor, in front of the camera, apart: two
 /// to six, each at the first of 12 tries that keeps clear of the others.
 fn furniture(r: &mut Rng, s: &Shell, o: &mut Objects) {
-    let mut taken: Vec<(Vec2, f32)> = Vec::new();
     let n_items = 2 + r.below(5);
+    scatter(r, n_items, (s.x0, s.x1), (s.z0, -1.5), s.floor, o);
+}
+
+/// `n_items` pieces of furniture or objects standing at height `y` within
+/// x ∈ `xs`, z ∈ `zs` (world space), apart: each at the first of 12 tries
+/// that keeps clear of the others, or left out.
+pub(crate) fn scatter(
+    r: &mut Rng,
+    n_items: u64,
+    xs: (f32, f32),
+    zs: (f32, f32),
+    y: f32,
+    o: &mut Objects,
+) {
+    let mut taken: Vec<(Vec2, f32)> = Vec::new();
     for _ in 0..n_items {
         let kind = r.below(7);
         let radius = match kind {
@@ -293,8 +353,8 @@ fn furniture(r: &mut Rng, s: &Shell, o: &mut Objects) {
         let mut spot = None;
         for _ in 0..12 {
             let c = Vec2::new(
-                r.range(s.x0 + radius, s.x1 - radius),
-                r.range(s.z0 + radius, -1.5 - radius),
+                r.range(xs.0 + radius, xs.1 - radius),
+                r.range(zs.0 + radius, zs.1 - radius),
             );
             if taken.iter().all(|(p, q)| (*p - c).length() > q + radius) {
                 spot = Some(c);
@@ -306,13 +366,13 @@ fn furniture(r: &mut Rng, s: &Shell, o: &mut Objects) {
         };
         taken.push((c, radius));
         let m = object_material(r);
-        item(r, kind, radius, Vec3::new(c.x, s.floor, c.y), m, o);
+        item(r, kind, radius, Vec3::new(c.x, y, c.y), m, o);
     }
 }
 
 /// One piece of furniture or object of `kind` and size `radius`, standing
 /// at `at`.
-fn item(r: &mut Rng, kind: u64, radius: f32, at: Vec3, m: Material, o: &mut Objects) {
+pub(crate) fn item(r: &mut Rng, kind: u64, radius: f32, at: Vec3, m: Material, o: &mut Objects) {
     match kind {
         0 => {
             // A table: a top on four legs, sometimes with a thing on it.
@@ -399,8 +459,19 @@ fn item(r: &mut Rng, kind: u64, radius: f32, at: Vec3, m: Material, o: &mut Obje
     }
 }
 
-/// The room of `seed`: its shell, the camera's yaw and tilt, floor and
-/// walls, furniture, then the lighting's kind and seed and the exposure.
+/// The scene of `kind` and `seed`.
+pub fn scene(kind: SceneKind, seed: u64) -> Room {
+    match kind {
+        SceneKind::Open => room(seed),
+        SceneKind::Closed => crate::kinds::closed(seed),
+        SceneKind::Stage => crate::kinds::stage(seed),
+        SceneKind::Outdoor => crate::kinds::outdoor(seed),
+    }
+}
+
+/// The open room of `seed`: its shell, the camera's yaw and tilt, floor
+/// and walls, furniture, then the lighting's kind and seed and the
+/// exposure.
 pub fn room(seed: u64) -> Room {
     let mut r = Rng(seed.wrapping_mul(0x2545_f491_4f6c_dd1d) ^ 0x0005_eed0_0f00);
     let shell = shell(&mut r);
@@ -420,11 +491,14 @@ pub fn room(seed: u64) -> Room {
         EnvKind::Room
     };
     Room {
+        kind: SceneKind::Open,
         objects: objects.list,
         env_kind,
         env_seed: r.next_u64() >> 1,
         to_world,
         exposure: r.range(-0.7, 0.7),
+        lamps: Vec::new(),
+        portals: Vec::new(),
     }
 }
 

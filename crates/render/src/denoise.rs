@@ -321,20 +321,61 @@ pub fn denoise_render(
     passes: usize,
 ) -> RgbImage {
     let (w, h) = (guide.width, guide.height);
+    if scene.materials.len() != w * h {
+        return mean_of_halves(a, na, b, nb);
+    }
+    let albedo: Vec<Vec3> = scene.materials.iter().map(|m| m.albedo).collect();
+    denoise_halves(guide, &guide.screen, &albedo, a, na, b, nb, passes)
+}
+
+/// [`denoise_render`] for a scene of objects: every pixel whose centre
+/// ray meets geometry is filtered, divided by `albedo` (the albedo seen
+/// through each pixel's centre, textures included, at least
+/// [`DEMODULATE_FLOOR`]); the sky is kept as rendered.
+pub fn denoise_objects(
+    guide: &Guide,
+    albedo: &RgbImage,
+    a: &RgbImage,
+    na: u32,
+    b: &RgbImage,
+    nb: u32,
+    passes: usize,
+) -> RgbImage {
+    let (w, h) = (guide.width, guide.height);
+    if albedo.width != w || albedo.height != h {
+        return mean_of_halves(a, na, b, nb);
+    }
+    let hit: Vec<bool> = guide.hits.iter().map(|h| h.is_some()).collect();
+    denoise_halves(guide, &hit, &albedo.data, a, na, b, nb, passes)
+}
+
+/// The halves' mean, demodulated by `albedo` where `filter` is set,
+/// filtered there by [`atrous`] and multiplied back; elsewhere the mean.
+#[allow(clippy::too_many_arguments)]
+fn denoise_halves(
+    guide: &Guide,
+    filter: &[bool],
+    albedo: &[Vec3],
+    a: &RgbImage,
+    na: u32,
+    b: &RgbImage,
+    nb: u32,
+    passes: usize,
+) -> RgbImage {
+    let (w, h) = (guide.width, guide.height);
     let mean = mean_of_halves(a, na, b, nb);
     let sized = |im: &RgbImage| im.width == w && im.height == h;
-    if !sized(a) || !sized(b) || scene.materials.len() != w * h || na == 0 || nb == 0 {
+    if !sized(a) || !sized(b) || albedo.len() != w * h || na == 0 || nb == 0 {
         return mean;
     }
     let total = (na + nb) as f32;
     let mean = mean.data;
-    let demod: Vec<Vec3> = scene
-        .materials
+    let demod: Vec<Vec3> = albedo
         .iter()
-        .map(|m| m.albedo.max(Vec3::splat(DEMODULATE_FLOOR)))
+        .map(|a| a.max(Vec3::splat(DEMODULATE_FLOOR)))
         .collect();
     let valid: Vec<bool> = (0..w * h)
-        .map(|i| guide.screen[i] && mean[i].is_finite())
+        .map(|i| filter[i] && mean[i].is_finite())
         .collect();
     let mut light: Vec<Vec3> = (0..w * h)
         .map(|i| {
@@ -483,6 +524,30 @@ mod tests {
         assert!(
             d_edge < 0.8 * r_edge,
             "edges: raw {r_edge}, denoised {d_edge}"
+        );
+    }
+
+    /// Denoising a scene of objects is the same filter: given the albedo
+    /// each pixel sees, it gives exactly what the screen-space path gives
+    /// where every hit is the view's mesh (and leaves the sky as it is).
+    #[test]
+    fn objects_denoise_as_the_screen_space_path_does() {
+        let n = 32;
+        let (scene, guide, a, b) = halves(n, 3, 3);
+        let albedo = RgbImage {
+            width: n,
+            height: n,
+            data: scene.materials.iter().map(|m| m.albedo).collect(),
+        };
+        let screen = denoise_render(&scene, &guide, &a, 3, &b, 3, RENDER_PASSES);
+        let objects = denoise_objects(&guide, &albedo, &a, 3, &b, 3, RENDER_PASSES);
+        assert_eq!(screen.data, objects.data);
+        // A wrongly sized albedo is refused: the plain mean comes back.
+        let small = RgbImage::new(4, 4, Vec3::ONE);
+        let mean = mean_of_halves(&a, 3, &b, 3);
+        assert_eq!(
+            denoise_objects(&guide, &small, &a, 3, &b, 3, 2).data,
+            mean.data
         );
     }
 

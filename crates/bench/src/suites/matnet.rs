@@ -5,9 +5,10 @@
 //!   randomly initialised MatNet-architecture one), on each backend; each
 //!   (model, backend) in its own process (a process has one backend, and
 //!   its peak resident memory is then that model's).
-//! - Accuracy of the bundled model on the held-out synthetic rooms (albedo,
-//!   roughness and metallic mean absolute error, normal angle, depth
-//!   AbsRel raw and median-aligned), next to a constant predictor.
+//! - Accuracy of the bundled model (or `--model`) per scene and per kind
+//!   of scene, on held-out generated scenes and on another renderer's,
+//!   against the predictors that need no network
+//!   ([`super::matnet_eval`]).
 //! - On the reference bundles: the bundled model's maps against the
 //!   official MatNet's stored predictions, and (`--e2e-budget`) the
 //!   re-render PSNR of `pipelines/photo.yaml` started from each.
@@ -22,16 +23,27 @@ use glam::Vec3;
 use matflow_nodes::{load_matnet_model, matnet_linear_square, matnet_predict, read_matnet_photo};
 use matflow_onnx::matnet::network_input;
 use matflow_onnx::Backend;
-use matflow_scene::{Bundle, GrayImage, Image, MaterialMaps, MaterialSource, RgbImage};
+use matflow_scene::{Bundle, GrayImage, MaterialMaps, MaterialSource, RgbImage};
 
 use crate::harness::{bench_exe, matflow_exe, median, peak_rss_mib};
 
 #[derive(Args)]
 pub struct BenchMatnetArgs {
-    /// Held-out `rooms` dataset (train/matnet/rooms-heldout.yaml) for the
-    /// accuracy table; skipped when absent.
+    /// Held-out `rooms` dataset (train/matnet/kinds-heldout.yaml) for the
+    /// accuracy tables; skipped when absent.
     #[arg(long, default_value = "out/matnet/heldout")]
     pub heldout: PathBuf,
+    /// Bundles of another renderer with ground truth and their kinds
+    /// (crates/bench/scripts/relight_scenes.py --kinds ...) for the
+    /// accuracy tables; skipped when absent.
+    #[arg(long, default_value = "out/kinds")]
+    pub scenes: PathBuf,
+    /// The model the accuracy tables evaluate (default: the bundled one).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Only the accuracy tables (no timing, no reference bundles).
+    #[arg(long)]
+    pub accuracy_only: bool,
     /// The reference's data (bundles `indoor` and `jinjya`); skipped when
     /// absent.
     #[arg(long, default_value = "../shared/data/materialist")]
@@ -168,32 +180,9 @@ struct Errors {
     normal_deg: f64,
     depth_absrel: f64,
     depth_aligned: f64,
-    pixels: f64,
 }
 
 impl Errors {
-    fn add(&mut self, o: &Errors) {
-        let w = o.pixels;
-        self.albedo += o.albedo * w;
-        self.roughness += o.roughness * w;
-        self.metallic += o.metallic * w;
-        self.normal_deg += o.normal_deg * w;
-        self.depth_absrel += o.depth_absrel * w;
-        self.depth_aligned += o.depth_aligned * w;
-        self.pixels += w;
-    }
-    fn mean(&self) -> Errors {
-        let n = self.pixels.max(1.0);
-        Errors {
-            albedo: self.albedo / n,
-            roughness: self.roughness / n,
-            metallic: self.metallic / n,
-            normal_deg: self.normal_deg / n,
-            depth_absrel: self.depth_absrel / n,
-            depth_aligned: self.depth_aligned / n,
-            pixels: self.pixels,
-        }
-    }
     fn row(&self, name: &str) -> String {
         format!(
             "| {name} | {:.3} | {:.3} | {:.3} | {:.1}° | {:.3} | {:.3} |",
@@ -225,10 +214,7 @@ fn compare(pred: &MaterialMaps, z: &GrayImage, truth: &MaterialMaps, tz: &GrayIm
     let zt: Vec<f64> = valid.iter().map(|&i| tz.data[i] as f64).collect();
     let zq: Vec<f64> = valid.iter().map(|&i| zp.data[i].x as f64).collect();
     let scale = median(zt.clone()) / median(zq.clone()).max(1e-12);
-    let mut e = Errors {
-        pixels: n,
-        ..Errors::default()
-    };
+    let mut e = Errors::default();
     let tn = truth.normal.as_ref();
     for (k, &i) in valid.iter().enumerate() {
         let ta = truth.albedo.data[i].clamp(Vec3::ZERO, Vec3::ONE);
@@ -253,67 +239,51 @@ fn compare(pred: &MaterialMaps, z: &GrayImage, truth: &MaterialMaps, tz: &GrayIm
     e
 }
 
-/// A constant prediction: the truth's own means (albedo, roughness,
-/// metallic), normals facing the camera, depth the truth's median — what
-/// an oracle that sees nothing of the photo would score.
-fn constant_of(truth: &MaterialMaps, tz: &GrayImage) -> (MaterialMaps, GrayImage) {
-    let (w, h) = (tz.width, tz.height);
-    let valid: Vec<usize> = (0..w * h).filter(|&i| tz.data[i] > 0.0).collect();
-    let n = valid.len().max(1) as f32;
-    let a = valid.iter().map(|&i| truth.albedo.data[i]).sum::<Vec3>() / n;
-    let r = valid.iter().map(|&i| truth.roughness.data[i]).sum::<f32>() / n;
-    let m = valid.iter().map(|&i| truth.metallic.data[i]).sum::<f32>() / n;
-    let zs: Vec<f64> = valid.iter().map(|&i| tz.data[i] as f64).collect();
-    let z = if zs.is_empty() {
-        1.0
-    } else {
-        median(zs) as f32
+/// The accuracy tables ([`super::matnet_eval`]): the held-out `rooms`
+/// scenes and the other renderer's scenes, each per scene and per kind.
+fn kinds_tables(a: &BenchMatnetArgs) -> Result<()> {
+    use super::matnet_eval::{bundle_scenes, dataset_scenes, print_tables, score};
+    let m = load_matnet_model(a.model.as_deref(), Backend::Tract).map_err(anyhow::Error::msg)?;
+    let what = match &a.model {
+        Some(p) => p.display().to_string(),
+        None => "the bundled model".to_string(),
     };
-    let mut maps = MaterialMaps::uniform(w, h, a, r, m);
-    maps.normal = Some(Image::new(w, h, Vec3::Z));
-    (maps, Image::new(w, h, z))
-}
-
-fn heldout_table(a: &BenchMatnetArgs) -> Result<()> {
-    let desc = a.heldout.join("dataset.json");
-    if !desc.is_file() {
-        println!(
-            "\n(no held-out set at {}: `matflow dataset train/matnet/rooms-heldout.yaml --out {}` makes it)",
-            a.heldout.display(),
-            a.heldout.display()
-        );
-        return Ok(());
-    }
-    let d: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&desc)?)?;
-    let samples = d["samples"].as_u64().unwrap_or(0);
-    let m = load_matnet_model(None, Backend::Tract).map_err(anyhow::Error::msg)?;
     let tmp = std::env::temp_dir().join(format!("matflow-bench-matnet-{}", std::process::id()));
-    let (mut ours, mut constant) = (Errors::default(), Errors::default());
-    for i in 0..samples {
-        let key = matflow_dataset::shards::key(i);
-        let dir = tmp.join(&key);
-        matflow_dataset::shards::unpack(&a.heldout, &key, &dir)?;
-        let b = Bundle::open(&dir)?;
-        let truth = b.load_materials(MaterialSource::GroundTruth)?;
-        let tz = b.load_depth()?;
-        let photo = read_matnet_photo(&dir.join("gt_image.png")).map_err(anyhow::Error::msg)?;
-        let p = matnet_predict(&photo, &m).map_err(anyhow::Error::msg)?;
-        ours.add(&compare(&p.materials(), &p.z, &truth, &tz));
-        let (cm, cz) = constant_of(&truth, &tz);
-        constant.add(&compare(&cm, &cz, &truth, &tz));
-        let _ = std::fs::remove_dir_all(&dir);
+    let sets = [
+        (
+            format!("held-out generated scenes ({})", a.heldout.display()),
+            dataset_scenes(&a.heldout, &tmp)?,
+            format!(
+                "`matflow dataset train/matnet/kinds-heldout.yaml --out {}` makes them",
+                a.heldout.display()
+            ),
+        ),
+        (
+            format!("scenes of another renderer ({})", a.scenes.display()),
+            bundle_scenes(&a.scenes)?,
+            format!(
+                "`python3 crates/bench/scripts/relight_scenes.py --out {} --scenes 24 --kinds \
+                 closed open stage outdoor --size 256 --spp 256` makes them (Mitsuba 3)",
+                a.scenes.display()
+            ),
+        ),
+    ];
+    for (title, scenes, how) in sets {
+        if scenes.is_empty() {
+            println!(
+                "
+(no {title}: {how})"
+            );
+            continue;
+        }
+        let mut rows = vec![];
+        for sc in scenes {
+            let s = score(&sc.dir, &m).with_context(|| sc.dir.display().to_string())?;
+            rows.push((sc, s));
+        }
+        print_tables(&format!("{what} on {title}"), &rows);
     }
     let _ = std::fs::remove_dir_all(&tmp);
-    println!(
-        "\nheld-out rooms ({samples} samples of {}; mean over pixels with geometry)",
-        a.heldout.display()
-    );
-    println!("| predictor | albedo MAE | roughness MAE | metallic MAE | normal angle | depth AbsRel | AbsRel, median-aligned |\n|---|---|---|---|---|---|---|");
-    println!("{}", ours.mean().row("bundled model"));
-    println!(
-        "{}",
-        constant.mean().row("constant (the truth's own means)")
-    );
     Ok(())
 }
 
@@ -425,8 +395,12 @@ pub fn bench_matnet(a: BenchMatnetArgs) -> Result<()> {
             .map(|n| n.get())
             .unwrap_or(1)
     );
-    timing_table(&a)?;
-    heldout_table(&a)?;
-    reference_table(&a)?;
+    if !a.accuracy_only {
+        timing_table(&a)?;
+    }
+    kinds_tables(&a)?;
+    if !a.accuracy_only {
+        reference_table(&a)?;
+    }
     Ok(())
 }

@@ -8,6 +8,7 @@ pub mod insert;
 pub mod invert;
 pub mod lanes;
 pub mod matnet;
+pub mod matnet_eval;
 pub mod pipeline;
 pub mod relight;
 pub mod render;

@@ -289,6 +289,12 @@ impl Prediction {
             transparency: None,
         }
     }
+
+    /// The network's depth output as it gave it (z or disparity: see
+    /// [`Prediction::depth_kind`]), at the maps' size.
+    pub fn depth_raw(&self) -> GrayImage {
+        gray(&self.maps.depth)
+    }
 }
 
 impl Node for MatnetNode {

@@ -11,7 +11,8 @@ use matflow_engine::node::Params;
 use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
 use matflow_geom::TriMesh;
 use matflow_procgen::envgen::procedural_envmap;
-use matflow_procgen::rooms::{ground_truth, room};
+use matflow_procgen::rooms::{ground_truth, scene, SceneKind};
+use matflow_render::denoise::{denoise_objects, Guide, RENDER_PASSES, SECOND_HALF_SEED};
 use matflow_render::envmap::rotated;
 use matflow_render::{render, EnvMap, RenderOptions, RenderScene};
 use matflow_scene::{io, Camera, MaterialMaps};
@@ -23,11 +24,19 @@ pub struct RoomSampleNode;
 
 const ROOM_INFO: NodeInfo = NodeInfo {
     kind: "room_sample",
-    version: 2,
-    doc: "One synthetic interior of the `rooms` dataset (varied room shapes, furniture, matte, \
-         glossy and metal materials, camera placement, sky or room lighting), path-traced, with \
-         its ground truth in the reference bundle's files (`matflow dataset` makes these).",
+    version: 3,
+    doc: "One synthetic scene of the `rooms` dataset (an open or closed room, a stage or an \
+         outdoor scene; furniture, matte, glossy and metal materials, camera placement, sky, \
+         room lighting, windows and lamps), path-traced, with its ground truth in the reference \
+         bundle's files (`matflow dataset` makes these).",
     params: &[
+        ParamSpec {
+            name: "scene",
+            ty: ParamType::Choice(SceneKind::NAMES),
+            default: Some("open"),
+            unit: "",
+            doc: "the kind of scene: a room open to the sky, a closed room, a stage, outdoors",
+        },
         ParamSpec {
             name: "seed",
             ty: ParamType::Int {
@@ -51,6 +60,14 @@ const ROOM_INFO: NodeInfo = NodeInfo {
             default: Some("64"),
             unit: "samples/px",
             doc: "samples per pixel of the photograph",
+        },
+        ParamSpec {
+            name: "denoise",
+            ty: ParamType::Bool,
+            default: Some("true"),
+            unit: "",
+            doc: "render the photograph as two halves of its samples and filter them (à-trous, \
+                  guided by the true albedo, normals and depth), as a clean photo looks",
         },
         ParamSpec {
             name: "envmap_width",
@@ -123,21 +140,39 @@ impl Node for RoomSampleNode {
     fn run(&self, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
         let p = ctx.params;
         let n = p.i64("size") as usize;
-        let r = room(p.i64("seed") as u64);
+        let kind = SceneKind::from_name(p.str("scene")).unwrap_or(SceneKind::Open);
+        let r = scene(kind, p.i64("seed") as u64);
         let ew = p.i64("envmap_width") as usize;
         let world = procedural_envmap(r.env_kind, r.env_seed, ew, (ew / 2).max(2));
         let env_img = rotated(&world, r.to_world);
         let camera = Camera::new(n, n);
         let maps = MaterialMaps::uniform(n, n, Vec3::splat(0.5), 0.5, 0.0);
         let env = EnvMap::new(&env_img).map_err(failed)?;
-        let scene = RenderScene::with_objects(camera, TriMesh::default(), &maps, env, &r.objects)
-            .map_err(failed)?;
+        let mut scene =
+            RenderScene::with_objects(camera, TriMesh::default(), &maps, env, &r.objects)
+                .map_err(failed)?;
+        scene.set_lamps(r.lamps.clone()).map_err(failed)?;
+        scene.set_portals(&r.portals).map_err(failed)?;
         let opts = RenderOptions {
             spp: p.i64("spp") as u32,
             seed: ctx.seed,
             ..RenderOptions::default()
         };
-        let raw = render(&scene, &opts, &|d, t| (ctx.progress)(d as u64, t as u64)).image;
+        let progress = |d: usize, t: usize| (ctx.progress)(d as u64, t as u64);
+        let gt = ground_truth(&scene, &camera);
+        let raw = if p.bool("denoise") && opts.spp >= 2 {
+            let (na, nb) = (opts.spp.div_ceil(2), opts.spp / 2);
+            let half = |k: usize, spp: u32, seed: u64| {
+                let o = RenderOptions { spp, seed, ..opts };
+                render(&scene, &o, &|d, t| progress(k * t + d, 2 * t)).image
+            };
+            let a = half(0, na, opts.seed);
+            let b = half(1, nb, opts.seed ^ SECOND_HALF_SEED);
+            let guide = Guide::build(&scene);
+            denoise_objects(&guide, &gt.albedo, &a, na, &b, nb, RENDER_PASSES + 1)
+        } else {
+            render(&scene, &opts, &progress).image
+        };
         // Exposed like a photograph (the image is linear in the lighting,
         // so the lighting is scaled alike): the log-average to 0.18, then
         // the room's own exposure.
@@ -145,7 +180,6 @@ impl Node for RoomSampleNode {
             as f32;
         let img = raw.map(|c| c * k);
         let env_img = env_img.map(|c| c * k);
-        let gt = ground_truth(&scene, &camera);
         let mut out = BTreeMap::new();
         put_file(&mut out, "gt_image.exr", |p| io::encode_exr_rgb(p, &img))?;
         put_file(&mut out, "gt_image.png", |_| io::png_srgb_bytes(&img))?;

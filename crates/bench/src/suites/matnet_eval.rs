@@ -1,0 +1,367 @@
+//! `matflow-bench matnet`'s accuracy tables: a MatNet-contract model on
+//! scenes with ground truth, per scene and per kind of scene, against the
+//! predictors that need no network.
+//!
+//! Scenes come from two places, each skipped when absent:
+//!
+//! - a held-out `rooms` dataset (`train/matnet/kinds-heldout.yaml`: seeds
+//!   training never sees, every kind), its kind read from each sample's
+//!   parameters;
+//! - a folder of bundles made by another renderer
+//!   (`crates/bench/scripts/relight_scenes.py --kinds …`, Mitsuba 3), its
+//!   kinds in `validation.json`.
+//!
+//! Each photo goes in as a new user's would: 8-bit sRGB. Per scene:
+//!
+//! - albedo: PSNR after the best single gain (least squares over the
+//!   pixels with geometry; albedo's scale is what a photo cannot tell),
+//!   for the model, the linear photo itself as albedo, a constant grey,
+//!   and an oracle constant (the truth's own mean colour);
+//! - normals: mean angle, for the model and for every normal facing the
+//!   camera;
+//! - depth: R² of the best affine map from the prediction to the true z
+//!   (to 1/z for a disparity model), and of the pixel row's (the layout
+//!   prior "lower is nearer");
+//! - roughness and metallic: mean absolute error, model and oracle
+//!   constant (the truth's means).
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result};
+use glam::Vec3;
+use matflow_nodes::{matnet_predict, read_matnet_photo, MatnetModel, MatnetPrediction};
+use matflow_onnx::matnet::DepthKind;
+use matflow_scene::io::{Photo, PhotoPixels};
+use matflow_scene::{Bundle, GrayImage, MaterialMaps, MaterialSource, RgbImage};
+
+use crate::harness::median;
+
+/// One scene to evaluate: its name, kind and bundle folder.
+pub struct Scene {
+    pub name: String,
+    pub kind: String,
+    pub dir: PathBuf,
+}
+
+/// A scene's scores (see the module's documentation).
+#[derive(Clone, Debug, Default)]
+pub struct Scores {
+    pub albedo_model: f64,
+    pub albedo_photo: f64,
+    pub albedo_grey: f64,
+    pub albedo_oracle: f64,
+    pub normal_model: f64,
+    pub normal_facing: f64,
+    pub depth_model: f64,
+    pub depth_row: f64,
+    pub rough_model: f64,
+    pub rough_oracle: f64,
+    pub metal_model: f64,
+    pub metal_oracle: f64,
+}
+
+impl Scores {
+    pub fn normal_ratio(&self) -> f64 {
+        self.normal_model / self.normal_facing.max(1e-9)
+    }
+}
+
+/// PSNR of `gain · p` against `t` (clamped to [0, 1]) over `valid`, the
+/// gain fitted by least squares.
+fn gain_fitted_psnr(p: &[Vec3], t: &[Vec3], valid: &[usize]) -> f64 {
+    let (mut pt, mut pp) = (0.0f64, 0.0f64);
+    for &i in valid {
+        let (a, b) = (
+            p[i].as_dvec3(),
+            t[i].clamp(Vec3::ZERO, Vec3::ONE).as_dvec3(),
+        );
+        pt += a.dot(b);
+        pp += a.dot(a);
+    }
+    let g = if pp > 1e-12 { pt / pp } else { 0.0 };
+    let mut se = 0.0f64;
+    for &i in valid {
+        let d = p[i].as_dvec3() * g - t[i].clamp(Vec3::ZERO, Vec3::ONE).as_dvec3();
+        se += d.length_squared();
+    }
+    let mse = se / (3.0 * valid.len().max(1) as f64);
+    matflow_scene::metrics::psnr_from_mse(mse.max(1e-12))
+}
+
+/// R² of the least-squares affine fit of `y` from `x`.
+fn affine_r2(x: &[f64], y: &[f64]) -> f64 {
+    let n = x.len().max(1) as f64;
+    let (mx, my) = (x.iter().sum::<f64>() / n, y.iter().sum::<f64>() / n);
+    let (mut sxx, mut sxy, mut syy) = (0.0, 0.0, 0.0);
+    for (a, b) in x.iter().zip(y) {
+        sxx += (a - mx) * (a - mx);
+        sxy += (a - mx) * (b - my);
+        syy += (b - my) * (b - my);
+    }
+    if syy <= 0.0 {
+        return 0.0;
+    }
+    if sxx <= 0.0 {
+        return 0.0;
+    }
+    // The fitted line's residual: syy − sxy²/sxx.
+    1.0 - (syy - sxy * sxy / sxx) / syy
+}
+
+/// The 8-bit sRGB photo a camera would have written of a linear image.
+fn srgb_photo(img: &RgbImage) -> Photo {
+    let f = |c: f32| {
+        matflow_scene::color::to_u8(matflow_scene::color::linear_to_srgb(c.clamp(0.0, 1.0)))
+    };
+    let data = img
+        .data
+        .iter()
+        .flat_map(|v| [f(v.x), f(v.y), f(v.z)])
+        .collect();
+    Photo {
+        width: img.width,
+        height: img.height,
+        pixels: PhotoPixels::U8 { channels: 3, data },
+    }
+}
+
+/// A scene's photo: its `gt_image.png` when it has one, else its linear
+/// `gt_image.exr` written as 8-bit sRGB.
+fn photo_of(dir: &Path, b: &Bundle) -> Result<Photo> {
+    let png = dir.join("gt_image.png");
+    if png.is_file() {
+        return read_matnet_photo(&png).map_err(anyhow::Error::msg);
+    }
+    Ok(srgb_photo(&b.load_gt_image()?))
+}
+
+/// Scores of `m` on the scene in `dir`.
+pub fn score(dir: &Path, m: &MatnetModel) -> Result<Scores> {
+    let b = Bundle::open(dir)?;
+    let truth = b.load_materials(MaterialSource::GroundTruth)?;
+    let tz = b.load_depth()?;
+    let photo = photo_of(dir, &b)?;
+    let p = matnet_predict(&photo, m).map_err(anyhow::Error::msg)?;
+    Ok(scores_of(&p, &truth, &tz))
+}
+
+fn scores_of(p: &MatnetPrediction, truth: &MaterialMaps, tz: &GrayImage) -> Scores {
+    let (w, h) = (tz.width, tz.height);
+    let valid: Vec<usize> = (0..w * h).filter(|&i| tz.data[i] > 0.0).collect();
+    let resize = |img: &RgbImage| matflow_scene::io::resize_bilinear(img, w, h);
+    let pm = p.materials();
+    let albedo = resize(&pm.albedo);
+    let rough = resize(&pm.roughness.to_rgb());
+    let metal = resize(&pm.metallic.to_rgb());
+    let normal = resize(pm.normal.as_ref().expect("predictions carry normals"));
+    let photo = resize(&p.photo);
+    let n = valid.len().max(1) as f64;
+    let ta = &truth.albedo.data;
+    let mean_a = valid.iter().map(|&i| ta[i]).sum::<Vec3>() / n as f32;
+    let grey = vec![Vec3::splat(0.5); w * h];
+    let oracle = vec![mean_a; w * h];
+    let mut s = Scores {
+        albedo_model: gain_fitted_psnr(&albedo.data, ta, &valid),
+        albedo_photo: gain_fitted_psnr(&photo.data, ta, &valid),
+        albedo_grey: gain_fitted_psnr(&grey, ta, &valid),
+        albedo_oracle: gain_fitted_psnr(&oracle, ta, &valid),
+        ..Scores::default()
+    };
+    let tn = truth.normal.as_ref();
+    let (mr, mm) = (
+        valid
+            .iter()
+            .map(|&i| truth.roughness.data[i] as f64)
+            .sum::<f64>()
+            / n,
+        valid
+            .iter()
+            .map(|&i| truth.metallic.data[i] as f64)
+            .sum::<f64>()
+            / n,
+    );
+    for &i in &valid {
+        if let Some(tn) = tn {
+            let t = tn.data[i].normalize_or_zero();
+            let a = normal.data[i].normalize_or_zero();
+            s.normal_model += (a.dot(t).clamp(-1.0, 1.0) as f64).acos().to_degrees();
+            s.normal_facing += (t.z.clamp(-1.0, 1.0) as f64).acos().to_degrees();
+        }
+        let (r, m) = (
+            truth.roughness.data[i] as f64,
+            truth.metallic.data[i] as f64,
+        );
+        s.rough_model += (rough.data[i].x as f64 - r).abs();
+        s.metal_model += (metal.data[i].x as f64 - m).abs();
+        s.rough_oracle += (mr - r).abs();
+        s.metal_oracle += (mm - m).abs();
+    }
+    for v in [
+        &mut s.normal_model,
+        &mut s.normal_facing,
+        &mut s.rough_model,
+        &mut s.metal_model,
+        &mut s.rough_oracle,
+        &mut s.metal_oracle,
+    ] {
+        *v /= n;
+    }
+    // Depth: the raw output (z or disparity), resized, against z or 1/z.
+    let raw = resize(&p.depth_raw().to_rgb());
+    let t: Vec<f64> = valid
+        .iter()
+        .map(|&i| match p.depth_kind {
+            DepthKind::Z => tz.data[i] as f64,
+            DepthKind::Disparity => 1.0 / tz.data[i] as f64,
+        })
+        .collect();
+    let x: Vec<f64> = valid.iter().map(|&i| raw.data[i].x as f64).collect();
+    s.depth_model = affine_r2(&x, &t);
+    let rows: Vec<f64> = valid.iter().map(|&i| (i / w) as f64).collect();
+    let tzv: Vec<f64> = valid.iter().map(|&i| tz.data[i] as f64).collect();
+    s.depth_row = affine_r2(&rows, &tzv);
+    s
+}
+
+/// The held-out `rooms` dataset's samples (unpacked under `tmp`) with
+/// their kinds; empty when `dir` holds none.
+pub fn dataset_scenes(dir: &Path, tmp: &Path) -> Result<Vec<Scene>> {
+    let desc = dir.join("dataset.json");
+    if !desc.is_file() {
+        return Ok(vec![]);
+    }
+    let d: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&desc)?)?;
+    let name = d["name"].as_str().unwrap_or("");
+    let mut kinds = BTreeMap::new();
+    let manifest = dir.join("manifest.jsonl");
+    for line in std::fs::read_to_string(&manifest)
+        .with_context(|| manifest.display().to_string())?
+        .lines()
+    {
+        let v: serde_json::Value = serde_json::from_str(line)?;
+        let key = v["key"].as_str().unwrap_or("").to_string();
+        let kind = v["params"]["kind"].as_str().unwrap_or("open").to_string();
+        kinds.insert(key, kind);
+    }
+    let mut out = vec![];
+    for i in 0..d["samples"].as_u64().unwrap_or(0) {
+        let key = matflow_dataset::shards::key(i);
+        let to = tmp.join(&key);
+        matflow_dataset::shards::unpack(dir, &key, &to)?;
+        out.push(Scene {
+            name: format!("{name}/{key}"),
+            kind: kinds.get(&key).cloned().unwrap_or_else(|| "open".into()),
+            dir: to,
+        });
+    }
+    Ok(out)
+}
+
+/// The bundles of a `relight_scenes.py` folder with their kinds (every
+/// scene, both halves); empty when `dir` holds none.
+pub fn bundle_scenes(dir: &Path) -> Result<Vec<Scene>> {
+    let index = dir.join("validation.json");
+    if !index.is_file() {
+        return Ok(vec![]);
+    }
+    let v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&index)?)
+        .with_context(|| index.display().to_string())?;
+    let mut out = vec![];
+    if let Some(kinds) = v["kinds"].as_object() {
+        for (name, kind) in kinds {
+            let d = dir.join(name);
+            if d.join("gt_image.exr").is_file() {
+                out.push(Scene {
+                    name: name.clone(),
+                    kind: kind.as_str().unwrap_or("closed").to_string(),
+                    dir: d,
+                });
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// Prints the per-scene table, the per-kind medians and the targets.
+pub fn print_tables(title: &str, rows: &[(Scene, Scores)]) {
+    println!("\n{title}: per scene");
+    println!(
+        "| scene | kind | albedo PSNR: model / photo / grey / oracle | normals: model / facing | \
+         depth R²: model / row | roughness MAE: model / oracle | metallic MAE: model / oracle |\n\
+         |---|---|---|---|---|---|---|"
+    );
+    for (sc, s) in rows {
+        println!(
+            "| {} | {} | {:.2} / {:.2} / {:.2} / {:.2} dB | {:.1}° / {:.1}° | {:.2} / {:.2} | {:.3} / {:.3} | {:.3} / {:.3} |",
+            sc.name,
+            sc.kind,
+            s.albedo_model,
+            s.albedo_photo,
+            s.albedo_grey,
+            s.albedo_oracle,
+            s.normal_model,
+            s.normal_facing,
+            s.depth_model,
+            s.depth_row,
+            s.rough_model,
+            s.rough_oracle,
+            s.metal_model,
+            s.metal_oracle
+        );
+    }
+    let mut kinds: BTreeMap<&str, Vec<&Scores>> = BTreeMap::new();
+    for (sc, s) in rows {
+        kinds.entry(sc.kind.as_str()).or_default().push(s);
+        kinds.entry("all").or_default().push(s);
+    }
+    println!("\n{title}: medians per kind, and the scenes that meet each target");
+    println!(
+        "| kind | scenes | albedo PSNR: model / photo / oracle | ≥ photo + 2 dB | normals: model / facing | ≤ 0.7× facing | depth R² model | ≥ 0.7 |\n\
+         |---|---|---|---|---|---|---|---|"
+    );
+    for (k, v) in &kinds {
+        let med = |f: &dyn Fn(&Scores) -> f64| median(v.iter().map(|s| f(s)).collect());
+        let count = |f: &dyn Fn(&Scores) -> bool| v.iter().filter(|s| f(s)).count();
+        println!(
+            "| {k} | {} | {:.2} / {:.2} / {:.2} dB | {} | {:.1}° / {:.1}° | {} | {:.2} | {} |",
+            v.len(),
+            med(&|s| s.albedo_model),
+            med(&|s| s.albedo_photo),
+            med(&|s| s.albedo_oracle),
+            count(&|s| s.albedo_model >= s.albedo_photo + 2.0),
+            med(&|s| s.normal_model),
+            med(&|s| s.normal_facing),
+            count(&|s| s.normal_ratio() <= 0.7),
+            med(&|s| s.depth_model),
+            count(&|s| s.depth_model >= 0.7),
+        );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn affine_r2_is_one_for_an_affine_map_and_small_for_noise() {
+        let x: Vec<f64> = (0..50).map(|i| i as f64).collect();
+        let y: Vec<f64> = x.iter().map(|v| 3.0 - 0.5 * v).collect();
+        assert!((affine_r2(&x, &y) - 1.0).abs() < 1e-12);
+        let z: Vec<f64> = (0..50).map(|i| ((i * 37) % 11) as f64).collect();
+        assert!(affine_r2(&x, &z) < 0.2);
+        assert_eq!(affine_r2(&[1.0, 1.0], &[2.0, 3.0]), 0.0);
+    }
+
+    #[test]
+    fn gain_fitted_psnr_ignores_a_gain_and_not_a_pattern() {
+        let t: Vec<Vec3> = (0..64)
+            .map(|i| Vec3::splat(0.2 + 0.01 * i as f32))
+            .collect();
+        let valid: Vec<usize> = (0..64).collect();
+        let scaled: Vec<Vec3> = t.iter().map(|v| *v * 1.7).collect();
+        assert!(gain_fitted_psnr(&scaled, &t, &valid) >= 100.0);
+        let flat = vec![Vec3::splat(0.5); 64];
+        assert!(gain_fitted_psnr(&flat, &t, &valid) < 25.0);
+    }
+}
