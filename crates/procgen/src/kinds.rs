@@ -14,7 +14,9 @@ use matflow_scene::lamps::Lamp;
 use matflow_scene::{Image, RgbImage};
 
 use crate::envgen::EnvKind;
-use crate::rooms::{floor_texture, object_material, scatter, Objects, Room, SceneKind};
+use crate::rooms::{
+    floor_material, floor_quad, floor_texture, object_material, scatter, Objects, Room, SceneKind,
+};
 use crate::synthetic::{hsv, Rng};
 
 /// A texture for walls and façades: none, wallpaper stripes, bricks,
@@ -86,19 +88,6 @@ fn wall_material(r: &mut Rng) -> Material {
     Material {
         albedo: hsv(r.f(), r.range(0.0, 0.45), r.range(0.3, 0.9)),
         roughness: r.range(0.5, 1.0),
-        metallic: 0.0,
-    }
-}
-
-/// A floor material: warm and muted, glossy now and then.
-fn floor_material(r: &mut Rng) -> Material {
-    Material {
-        albedo: hsv(r.range(0.0, 0.15), r.range(0.05, 0.6), r.range(0.2, 0.85)),
-        roughness: if r.chance(0.4) {
-            r.range(0.07, 0.25)
-        } else {
-            r.range(0.35, 0.9)
-        },
         metallic: 0.0,
     }
 }
@@ -180,9 +169,27 @@ fn camera_turn(r: &mut Rng, yaw: f32, pitch: (f32, f32)) -> Mat3 {
     Mat3::from_rotation_y(yaw) * Mat3::from_rotation_x(pitch)
 }
 
-/// The exposure a photograph gets (EV about the log-average).
-fn exposure(r: &mut Rng) -> f32 {
-    r.range(-0.7, 0.7)
+/// A scene of `kind` made of `o`'s objects, lit by a sky (its seed drawn
+/// here, then the photograph's exposure in EV about the log-average), the
+/// lamps and the portals.
+fn under_the_sky(
+    kind: SceneKind,
+    o: Objects,
+    r: &mut Rng,
+    to_world: Mat3,
+    lamps: Vec<Lamp>,
+    portals: Vec<Portal>,
+) -> Room {
+    Room {
+        kind,
+        objects: o.list,
+        env_kind: EnvKind::Sky,
+        env_seed: r.next_u64() >> 1,
+        to_world,
+        exposure: r.range(-0.7, 0.7),
+        lamps,
+        portals,
+    }
 }
 
 /// A closed room: floor, four walls (one behind the camera) and a
@@ -196,18 +203,10 @@ pub fn closed(seed: u64) -> Room {
     let (x0, x1) = (-r.range(1.6, 4.0), r.range(1.6, 4.0));
     let (z0, z1) = (-r.range(3.5, 9.0), r.range(0.4, 2.5));
     let to_world = camera_turn(&mut r, 30.0, (-20.0, 5.0));
-    let mut o = Objects {
-        turn: to_world.transpose(),
-        list: Vec::new(),
-    };
+    let mut o = Objects::new(to_world);
     let tile = r.range(0.3, 0.9);
     o.plane(
-        [
-            Vec3::new(x0, floor, z1),
-            Vec3::new(x1, floor, z1),
-            Vec3::new(x1, floor, z0),
-            Vec3::new(x0, floor, z0),
-        ],
+        floor_quad((x0, x1), (z0, z1), floor),
         1.0 / tile,
         floor_material(&mut r),
         floor_texture(&mut r),
@@ -307,16 +306,7 @@ pub fn closed(seed: u64) -> Room {
         let power = r.range(0.6, 3.0) * h * h / 9.0;
         lamps.push(Lamp::point(o.turn * p, lamp_colour(&mut r, 0.1) * power));
     }
-    Room {
-        kind: SceneKind::Closed,
-        objects: o.list,
-        env_kind: EnvKind::Sky,
-        env_seed: r.next_u64() >> 1,
-        to_world,
-        exposure: exposure(&mut r),
-        lamps,
-        portals,
-    }
+    under_the_sky(SceneKind::Closed, o, &mut r, to_world, lamps, portals)
 }
 
 /// A ground material for outdoor scenes and the ground before a stage:
@@ -343,6 +333,18 @@ fn ground(r: &mut Rng) -> (Material, Option<RgbImage>, f32) {
         metallic: 0.0,
     };
     (m, tex, r.range(0.2, 0.6))
+}
+
+/// A ground ([`ground`]'s) at height `y`, `half_width` to either side and
+/// over z ∈ `zs`.
+fn ground_plane(r: &mut Rng, o: &mut Objects, y: f32, half_width: f32, zs: (f32, f32)) {
+    let (m, tex, tile) = ground(r);
+    o.plane(
+        floor_quad((-half_width, half_width), zs, y),
+        1.0 / tile,
+        m,
+        tex,
+    );
 }
 
 /// A box of size `size` (x, y, z) standing at `at` with its faces as
@@ -410,33 +412,14 @@ pub fn stage(seed: u64) -> Room {
     let zb = zf - r.range(3.0, 6.0);
     let (cx, wx) = (r.range(-1.0, 1.0), r.range(2.5, 5.5));
     let to_world = camera_turn(&mut r, 20.0, (-12.0, 8.0));
-    let mut o = Objects {
-        turn: to_world.transpose(),
-        list: Vec::new(),
-    };
-    let (gm, gtex, gtile) = ground(&mut r);
-    o.plane(
-        [
-            Vec3::new(-60.0, g, 6.0),
-            Vec3::new(60.0, g, 6.0),
-            Vec3::new(60.0, g, -120.0),
-            Vec3::new(-60.0, g, -120.0),
-        ],
-        1.0 / gtile,
-        gm,
-        gtex,
-    );
+    let mut o = Objects::new(to_world);
+    ground_plane(&mut r, &mut o, g, 60.0, (-120.0, 6.0));
     // The platform: its top (planked or plain), its front and sides.
     let deck = floor_material(&mut r);
     let deck_tex = floor_texture(&mut r);
     let (x0, x1) = (cx - wx, cx + wx);
     o.plane(
-        [
-            Vec3::new(x0, top, zf),
-            Vec3::new(x1, top, zf),
-            Vec3::new(x1, top, zb),
-            Vec3::new(x0, top, zb),
-        ],
+        floor_quad((x0, x1), (zb, zf), top),
         1.0 / r.range(0.3, 0.9),
         deck,
         deck_tex,
@@ -512,16 +495,7 @@ pub fn stage(seed: u64) -> Room {
         let power = r.range(1.0, 6.0);
         lamps.push(Lamp::point(o.turn * p, lamp_colour(&mut r, 0.3) * power));
     }
-    Room {
-        kind: SceneKind::Stage,
-        objects: o.list,
-        env_kind: EnvKind::Sky,
-        env_seed: r.next_u64() >> 1,
-        to_world,
-        exposure: exposure(&mut r),
-        lamps,
-        portals: Vec::new(),
-    }
+    under_the_sky(SceneKind::Stage, o, &mut r, to_world, lamps, Vec::new())
 }
 
 /// An outdoor scene: a wide ground (grass, asphalt, sand or paving),
@@ -531,22 +505,8 @@ pub fn outdoor(seed: u64) -> Room {
     let mut r = Rng(seed.wrapping_mul(0xa076_1d64_78bd_642f) ^ 0x0000_0d00_0000);
     let g = -r.range(1.2, 1.9);
     let to_world = camera_turn(&mut r, 30.0, (-25.0, 6.0));
-    let mut o = Objects {
-        turn: to_world.transpose(),
-        list: Vec::new(),
-    };
-    let (gm, gtex, gtile) = ground(&mut r);
-    o.plane(
-        [
-            Vec3::new(-150.0, g, 10.0),
-            Vec3::new(150.0, g, 10.0),
-            Vec3::new(150.0, g, -250.0),
-            Vec3::new(-150.0, g, -250.0),
-        ],
-        1.0 / gtile,
-        gm,
-        gtex,
-    );
+    let mut o = Objects::new(to_world);
+    ground_plane(&mut r, &mut o, g, 150.0, (-250.0, 10.0));
     // Objects near the camera, then blocks (walls, planters, crates)
     // further off.
     let near = 2 + r.below(5);
@@ -573,16 +533,14 @@ pub fn outdoor(seed: u64) -> Room {
         let tex = facade(&mut r);
         textured_box(&mut o, at, size, m, Some(&tex), 1.0 / r.range(2.5, 4.0));
     }
-    Room {
-        kind: SceneKind::Outdoor,
-        objects: o.list,
-        env_kind: EnvKind::Sky,
-        env_seed: r.next_u64() >> 1,
+    under_the_sky(
+        SceneKind::Outdoor,
+        o,
+        &mut r,
         to_world,
-        exposure: exposure(&mut r),
-        lamps: Vec::new(),
-        portals: Vec::new(),
-    }
+        Vec::new(),
+        Vec::new(),
+    )
 }
 
 #[cfg(test)]

@@ -207,6 +207,14 @@ pub(crate) struct Objects {
 }
 
 impl Objects {
+    /// No objects yet, for a camera turned by `to_world` (camera → world).
+    pub fn new(to_world: Mat3) -> Objects {
+        Objects {
+            turn: to_world.transpose(),
+            list: Vec::new(),
+        }
+    }
+
     /// A textured quad given in world space.
     pub fn plane(&mut self, corners: [Vec3; 4], uv_scale: f32, m: Material, tex: Option<RgbImage>) {
         let uv = corners.map(|c| {
@@ -240,10 +248,9 @@ impl Objects {
     }
 }
 
-/// The floor (plain, tiled or planked; a glossy finish now and then), the
-/// walls there are and the ceiling if there is one.
-fn floor_and_walls(r: &mut Rng, s: &Shell, o: &mut Objects) {
-    let floor_mat = Material {
+/// A floor material: warm and muted, glossy now and then.
+pub(crate) fn floor_material(r: &mut Rng) -> Material {
+    Material {
         albedo: hsv(r.range(0.0, 0.15), r.range(0.05, 0.6), r.range(0.2, 0.85)),
         roughness: if r.chance(0.4) {
             r.range(0.07, 0.25)
@@ -251,7 +258,24 @@ fn floor_and_walls(r: &mut Rng, s: &Shell, o: &mut Objects) {
             r.range(0.35, 0.9)
         },
         metallic: 0.0,
-    };
+    }
+}
+
+/// A horizontal quad at height `y` over x ∈ `xs`, z ∈ `zs` (world space),
+/// facing up.
+pub(crate) fn floor_quad(xs: (f32, f32), zs: (f32, f32), y: f32) -> [Vec3; 4] {
+    [
+        Vec3::new(xs.0, y, zs.1),
+        Vec3::new(xs.1, y, zs.1),
+        Vec3::new(xs.1, y, zs.0),
+        Vec3::new(xs.0, y, zs.0),
+    ]
+}
+
+/// The floor (plain, tiled or planked; a glossy finish now and then), the
+/// walls there are and the ceiling if there is one.
+fn floor_and_walls(r: &mut Rng, s: &Shell, o: &mut Objects) {
+    let floor_mat = floor_material(r);
     let tex = floor_texture(r);
     let tile = r.range(0.3, 0.9);
     let (x0, x1, z0, z1, floor, ceil) = (s.x0, s.x1, s.z0, s.z1, s.floor, s.ceil);
@@ -261,12 +285,7 @@ fn floor_and_walls(r: &mut Rng, s: &Shell, o: &mut Objects) {
         if s.has_right { x1 } else { x1 + 20.0 },
     );
     o.plane(
-        [
-            Vec3::new(fx0, floor, z1),
-            Vec3::new(fx1, floor, z1),
-            Vec3::new(fx1, floor, z0),
-            Vec3::new(fx0, floor, z0),
-        ],
+        floor_quad((fx0, fx1), (z0, z1), floor),
         1.0 / tile,
         floor_mat,
         tex,
@@ -479,10 +498,7 @@ pub fn room(seed: u64) -> Room {
     let yaw = r.range(-25.0, 25.0).to_radians();
     let pitch = r.range(-22.0, 4.0).to_radians();
     let to_world = Mat3::from_rotation_y(yaw) * Mat3::from_rotation_x(pitch);
-    let mut objects = Objects {
-        turn: to_world.transpose(),
-        list: Vec::new(),
-    };
+    let mut objects = Objects::new(to_world);
     floor_and_walls(&mut r, &shell, &mut objects);
     furniture(&mut r, &shell, &mut objects);
     let env_kind = if r.chance(0.5) {
