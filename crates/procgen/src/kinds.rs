@@ -347,6 +347,44 @@ fn ground_plane(r: &mut Rng, o: &mut Objects, y: f32, half_width: f32, zs: (f32,
     );
 }
 
+/// The faces of the box `lo`..`hi` but its bottom, each counter-clockwise
+/// seen from outside: front (+z), back, left (−x), right, top.
+fn box_faces(lo: Vec3, hi: Vec3) -> [[Vec3; 4]; 5] {
+    let c = |x: f32, y: f32, z: f32| Vec3::new(x, y, z);
+    [
+        [
+            c(lo.x, lo.y, hi.z),
+            c(hi.x, lo.y, hi.z),
+            c(hi.x, hi.y, hi.z),
+            c(lo.x, hi.y, hi.z),
+        ],
+        [
+            c(hi.x, lo.y, lo.z),
+            c(lo.x, lo.y, lo.z),
+            c(lo.x, hi.y, lo.z),
+            c(hi.x, hi.y, lo.z),
+        ],
+        [
+            c(lo.x, lo.y, lo.z),
+            c(lo.x, lo.y, hi.z),
+            c(lo.x, hi.y, hi.z),
+            c(lo.x, hi.y, lo.z),
+        ],
+        [
+            c(hi.x, lo.y, hi.z),
+            c(hi.x, lo.y, lo.z),
+            c(hi.x, hi.y, lo.z),
+            c(hi.x, hi.y, hi.z),
+        ],
+        [
+            c(lo.x, hi.y, hi.z),
+            c(hi.x, hi.y, hi.z),
+            c(hi.x, hi.y, lo.z),
+            c(lo.x, hi.y, lo.z),
+        ],
+    ]
+}
+
 /// A box of size `size` (x, y, z) standing at `at` with its faces as
 /// textured planes (the texture's repeat is `uv_scale` per unit), its
 /// bottom left out.
@@ -362,40 +400,7 @@ fn textured_box(
         at - Vec3::new(size.x, 0.0, size.z) * 0.5,
         at + Vec3::new(size.x * 0.5, size.y, size.z * 0.5),
     );
-    let c = |x: f32, y: f32, z: f32| Vec3::new(x, y, z);
-    let faces = [
-        [
-            c(lo.x, lo.y, hi.z),
-            c(hi.x, lo.y, hi.z),
-            c(hi.x, hi.y, hi.z),
-            c(lo.x, hi.y, hi.z),
-        ],
-        [
-            c(hi.x, lo.y, lo.z),
-            c(lo.x, lo.y, lo.z),
-            c(lo.x, hi.y, lo.z),
-            c(hi.x, hi.y, lo.z),
-        ],
-        [
-            c(lo.x, lo.y, lo.z),
-            c(lo.x, lo.y, hi.z),
-            c(lo.x, hi.y, hi.z),
-            c(lo.x, hi.y, lo.z),
-        ],
-        [
-            c(hi.x, lo.y, hi.z),
-            c(hi.x, lo.y, lo.z),
-            c(hi.x, hi.y, lo.z),
-            c(hi.x, hi.y, hi.z),
-        ],
-        [
-            c(lo.x, hi.y, hi.z),
-            c(hi.x, hi.y, hi.z),
-            c(hi.x, hi.y, lo.z),
-            c(lo.x, hi.y, lo.z),
-        ],
-    ];
-    for f in faces {
+    for f in box_faces(lo, hi) {
         o.plane(f, uv, m, tex.cloned());
     }
 }
@@ -425,26 +430,8 @@ pub fn stage(seed: u64) -> Room {
         deck_tex,
     );
     let skirt = wall_material(&mut r);
-    for f in [
-        [
-            Vec3::new(x0, g, zf),
-            Vec3::new(x1, g, zf),
-            Vec3::new(x1, top, zf),
-            Vec3::new(x0, top, zf),
-        ],
-        [
-            Vec3::new(x0, g, zb),
-            Vec3::new(x0, g, zf),
-            Vec3::new(x0, top, zf),
-            Vec3::new(x0, top, zb),
-        ],
-        [
-            Vec3::new(x1, g, zf),
-            Vec3::new(x1, g, zb),
-            Vec3::new(x1, top, zb),
-            Vec3::new(x1, top, zf),
-        ],
-    ] {
+    let [front, _, left, right, _] = box_faces(Vec3::new(x0, g, zb), Vec3::new(x1, top, zf));
+    for f in [front, left, right] {
         o.plane(f, 1.0, skirt, None);
     }
     // The backdrop (a curtain, a painted wall or bricks) and the wings.

@@ -99,10 +99,7 @@ fn affine_r2(x: &[f64], y: &[f64]) -> f64 {
         sxy += (a - mx) * (b - my);
         syy += (b - my) * (b - my);
     }
-    if syy <= 0.0 {
-        return 0.0;
-    }
-    if sxx <= 0.0 {
+    if syy <= 0.0 || sxx <= 0.0 {
         return 0.0;
     }
     // The fitted line's residual: syy − sxy²/sxx.
