@@ -3,7 +3,8 @@
 //! the backend and the model's digest, a second run is served from the
 //! cache; bad photos and bad models are clear errors that leave no bundle
 //! behind; the two backends agree; `pipelines/photo.yaml` runs end to end
-//! and an edit downstream of the prediction does not re-run it.
+//! and an edit downstream of the prediction does not re-run it; the
+//! export tool maps official MatNet checkpoints.
 
 use std::path::Path;
 use std::process::{Command, Output};
@@ -461,4 +462,21 @@ fn the_photo_pipeline_runs_and_an_edit_does_not_rerun_the_prediction() {
     assert_eq!(second["paint"], "executed");
     assert_eq!(second["edited"], "executed");
     assert_eq!(second["relit"], "cached");
+}
+
+/// The export tool's checkpoint handling (`train/matnet/checkpoint.py`,
+/// plain Python): the official 303-entry layout, the released state dict
+/// loading as it is, a training checkpoint needing `--rename matnet.=
+/// --drop criterion_lpips.` and being told so, bad keys named. The
+/// PyTorch half of the path is `train/matnet/test_export_matnet.py`.
+#[test]
+fn the_export_tool_maps_official_checkpoints() {
+    let o = Command::new("python3")
+        .arg(repo().join("train/matnet/test_checkpoint.py"))
+        .env("PYTHONDONTWRITEBYTECODE", "1")
+        .output()
+        .expect("python3");
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    assert!(t.contains("Ran 11 tests"), "{t}");
 }

@@ -2,17 +2,23 @@
 """Export a MatNet-architecture PyTorch checkpoint to ONNX for matflow's
 `matnet` stage (and `matflow predict --model`).
 
-The architecture is MatNet's as its paper and code describe it: a DINOv2
-ViT-B/14 encoder (patch 14, 768 channels, 12 blocks, features taken after
-blocks 2, 5, 8 and 11 and layer-normed) and two DPT decoder heads on it
-(features 128, out_channels 96/192/384/768, as Depth Anything V2's vitb):
-a depth head (1 channel, ReLU) and a material head (8 channels: albedo 0-2,
-roughness 3, metallic 4 with ReLU; normal 5-7 with tanh, then L2-normalised
-per pixel). It is written here from that description; parameter names
-follow the Depth Anything V2 layout (`pretrained.*` for the encoder,
-`depth_head.*`, and `material_head.*` for the second head). A checkpoint
-whose names differ can be mapped with --rename OLD=NEW (prefixes); the
-load is strict, and missing or unexpected names are listed.
+The architecture is the official MatNet's (github.com/lez-s/Materialist,
+`Material_net/dpt.py` `MaterialNet`, read and re-written here, not
+copied): a DINOv2 ViT-B/14 encoder (patch 14, 768 channels, 12 blocks,
+features taken after blocks 2, 5, 8 and 11 and layer-normed) and two DPT
+heads on it (features 128, out_channels 96/192/384/768): a depth head (1
+channel, ReLU) and a material head (8 channels: albedo 0-2, roughness 3,
+metallic 4 with ReLU; normal 5-7 with tanh, then L2-normalised per pixel).
+Its state dict has the official 303 names and shapes in the official
+order (`checkpoint.official_layout()`, checked on every run).
+
+Checkpoints: the released weights (a flat state dict) load as they are. A
+training checkpoint of the official Lightning trainer needs
+`--rename matnet.= --drop criterion_lpips.` (its network keys carry a
+`matnet.` prefix, and it holds the LPIPS loss network's 20 keys too).
+Drops apply first, to the names as stored; then renames (prefixes). The
+load is strict: every missing, unexpected or mis-shaped key is listed,
+with the flags likely to fix it. `--check` stops after that check.
 
 The export is at the fixed 518 x 518 input (dynamic spatial axes break the
 position-embedding interpolation), opset 17, TorchScript-based exporter,
@@ -22,8 +28,10 @@ disparity-like output (no matflow.depth metadata). The script checks the
 export against PyTorch with onnxruntime on a random input and prints the
 file's BLAKE3.
 
-  # a user's checkpoint
-  python3 train/matnet/export_matnet.py --checkpoint matnet.pth --out matnet.onnx
+  # the released weights, or a training checkpoint
+  python3 train/matnet/export_matnet.py --checkpoint matnet_weights.pth --out matnet.onnx
+  python3 train/matnet/export_matnet.py --checkpoint run-latest.ckpt \
+      --rename matnet.= --drop criterion_lpips. --out matnet.onnx
   # a randomly initialised network of the same architecture (what
   # matflow's benchmarks and documented test use; never commit either)
   python3 train/matnet/export_matnet.py --random --seed 0 --out /tmp/matnet_random.onnx
@@ -42,6 +50,9 @@ import numpy as np
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import checkpoint  # noqa: E402
 
 PATCH = 14
 SIDE = 518  # 37 patches
@@ -84,7 +95,7 @@ class Attention(nn.Module):
 class LayerScale(nn.Module):
     def __init__(self):
         super().__init__()
-        self.gamma = nn.Parameter(torch.full((DIM,), 1e-5))
+        self.gamma = nn.Parameter(torch.full((DIM,), 1.0))  # the official init_values
 
     def forward(self, x):
         return x * self.gamma
@@ -155,9 +166,11 @@ class ResidualConvUnit(nn.Module):
 class FusionBlock(nn.Module):
     def __init__(self, f):
         super().__init__()
+        # Registered in the official order (out_conv first), so that code
+        # walking the parameters in order sees the official sequence.
+        self.out_conv = nn.Conv2d(f, f, 1)
         self.resConfUnit1 = ResidualConvUnit(f)
         self.resConfUnit2 = ResidualConvUnit(f)
-        self.out_conv = nn.Conv2d(f, f, 1)
 
     def forward(self, x, skip=None, size=None):
         if skip is not None:
@@ -272,37 +285,89 @@ def blake3_hex(path):
     return h.hexdigest()
 
 
+def load_checkpoint(path, renames, drops, trust):
+    """The checkpoint's state dict, mapped onto the architecture's names
+    (drops, then renames) and checked by name and shape; exits with every
+    problem listed (and the flags likely to fix them) when it does not
+    fit. A Lightning checkpoint's `state_dict` is unwrapped."""
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=not trust)
+    except FileNotFoundError:
+        sys.exit(f"{path}: no such file")
+    except Exception as e:  # noqa: BLE001 (pickle errors have many types)
+        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        hint = "" if trust else " (if you trust the file, --trust-checkpoint loads it with full unpickling)"
+        sys.exit(f"{path}: not a loadable PyTorch checkpoint: {msg}{hint}")
+    if isinstance(state, dict) and isinstance(state.get("state_dict"), dict):
+        print(f"{path}: a training checkpoint; using its state_dict ({len(state['state_dict'])} entries)")
+        state = state["state_dict"]
+    if not isinstance(state, dict) or not all(isinstance(k, str) for k in state):
+        sys.exit(f"{path}: expected a state dict (names to tensors), found {type(state).__name__}")
+    try:
+        renames = [checkpoint.parse_rename(r) for r in renames]
+    except ValueError as e:
+        sys.exit(str(e))
+    names, errors = checkpoint.map_names(list(state), renames, drops)
+    shapes = {}
+    for new, old in names.items():
+        v = state[old]
+        if not torch.is_tensor(v):
+            errors.append(f"{old}: not a tensor ({type(v).__name__})")
+            continue
+        shapes[new] = tuple(v.shape)
+    problems = errors + checkpoint.compare(checkpoint.official_layout(), shapes)
+    if problems:
+        hints = [p for p in problems if p.startswith("try: ")]
+        problems = [p for p in problems if not p.startswith("try: ")]
+        counts = {w: sum(p.startswith(w) for p in problems) for w in ("missing", "unexpected", "shape")}
+        print(
+            f"{path}: does not match the architecture ({len(state)} entries; it has 303): "
+            f"{counts['missing']} missing, {counts['unexpected']} unexpected, {counts['shape']} of another shape",
+            file=sys.stderr,
+        )
+        for h in hints:
+            print(h, file=sys.stderr)
+        for p in problems[:40]:
+            print(f"  {p}", file=sys.stderr)
+        if len(problems) > 40:
+            print(f"  ... and {len(problems) - 40} more", file=sys.stderr)
+        sys.exit(1)
+    dropped = len(state) - len(names)
+    print(f"{path}: 303 entries match by name and shape" + (f" ({dropped} dropped)" if dropped else ""))
+    return {new: state[old].float() for new, old in names.items()}
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     src = ap.add_mutually_exclusive_group(required=True)
-    src.add_argument("--checkpoint", help="a PyTorch state dict of the architecture")
+    src.add_argument("--checkpoint", help="a state dict (.pth) or a Lightning training checkpoint (.ckpt)")
     src.add_argument("--random", action="store_true", help="a randomly initialised network")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--rename", action="append", default=[], metavar="OLD=NEW", help="rename a key prefix")
-    ap.add_argument("--out", required=True)
+    ap.add_argument(
+        "--rename", action="append", default=[], metavar="OLD=NEW", help="rename a key prefix (after the drops)"
+    )
+    ap.add_argument("--drop", action="append", default=[], metavar="PREFIX", help="drop the keys with this prefix")
+    ap.add_argument(
+        "--trust-checkpoint", action="store_true", help="unpickle the whole file (only for files you trust)"
+    )
+    ap.add_argument("--check", action="store_true", help="check the checkpoint's names and shapes; do not export")
+    ap.add_argument("--out", help="the ONNX file to write")
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args()
+    if not args.check and not args.out:
+        ap.error("--out is required (or --check)")
     torch.set_num_threads(args.threads)
 
     model = MatNet()
+    have = [(k, tuple(v.shape)) for k, v in model.state_dict().items()]
+    assert have == checkpoint.official_layout(), "the module tree drifted from checkpoint.official_layout()"
     if args.random:
         randomise(model, args.seed)
     else:
-        state = torch.load(args.checkpoint, map_location="cpu", weights_only=True)
-        if isinstance(state, dict) and "state_dict" in state:
-            state = state["state_dict"]
-        for r in args.rename:
-            old, new = r.split("=", 1)
-            state = {(new + k[len(old):] if k.startswith(old) else k): v for k, v in state.items()}
-        res = model.load_state_dict(state, strict=False)
-        if res.missing_keys or res.unexpected_keys:
-            print(f"{args.checkpoint}: does not match the architecture", file=sys.stderr)
-            for k in res.missing_keys[:20]:
-                print(f"  missing:    {k}", file=sys.stderr)
-            for k in res.unexpected_keys[:20]:
-                print(f"  unexpected: {k}", file=sys.stderr)
-            print("(use --rename OLD=NEW to map key prefixes)", file=sys.stderr)
-            sys.exit(1)
+        state = load_checkpoint(args.checkpoint, args.rename, args.drop, args.trust_checkpoint)
+        model.load_state_dict(state, strict=True)
+        if args.check:
+            return
     model.eval()
     params = sum(p.numel() for p in model.parameters())
     print(f"parameters: {params / 1e6:.1f} M")

@@ -161,28 +161,42 @@ def block(cin, cout):
 
 class UNet(nn.Module):
     """Six levels (c, 2c, 4c, 8c, 8c, 8c channels), max-pool down, bilinear
-    up; the pixel's position (x, y in [-1, 1]) as two more input channels;
-    at the bottom, the image's mean features through a 1x1 convolution
-    added to every position."""
+    up; the pixel's position (x, y in [-1, 1]) through its own 3 x 3
+    convolution, added to the first convolution's output (the same as two
+    more input channels, but a constant once the size is fixed, so the
+    export holds no shape arithmetic for tract to run); at the bottom, the
+    image's mean features through a 1x1 convolution added to every
+    position."""
 
     LEVELS = 6
 
     def __init__(self, c=16):
         super().__init__()
         w = [c, 2 * c, 4 * c, 8 * c, 8 * c, 8 * c][: self.LEVELS]
-        self.enc = nn.ModuleList([block(5, w[0])] + [block(w[i], w[i + 1]) for i in range(len(w) - 1)])
+        self.enc = nn.ModuleList([block(3, w[0])] + [block(w[i], w[i + 1]) for i in range(len(w) - 1)])
+        self.position = nn.Conv2d(2, w[0], 3, padding=1, bias=False)
         self.context = nn.Conv2d(w[-1], w[-1], 1)
         self.dec = nn.ModuleList([block(w[i + 1] + w[i], w[i]) for i in reversed(range(len(w) - 1))])
         self.head = nn.Conv2d(w[0], sum(CHANNELS), 1)
+        self.fixed = None  # (h, w) to export at: the position term is then a constant
+
+    def position_term(self, h, w):
+        ys = torch.linspace(-1.0, 1.0, h).view(1, 1, h, 1).expand(1, 1, h, w)
+        xs = torch.linspace(-1.0, 1.0, w).view(1, 1, 1, w).expand(1, 1, h, w)
+        return self.position(torch.cat([xs, ys], 1))
 
     def forward(self, x):
-        n, _, h, w = x.shape
-        ys = torch.linspace(-1.0, 1.0, h).view(1, 1, h, 1).expand(n, 1, h, w)
-        xs = torch.linspace(-1.0, 1.0, w).view(1, 1, 1, w).expand(n, 1, h, w)
-        x = torch.cat([x, xs, ys], 1)
+        if self.fixed is not None:
+            with torch.no_grad():
+                pos = self.position_term(*self.fixed).detach()
+        else:
+            pos = self.position_term(x.shape[2], x.shape[3])
         skips = []
         for i, e in enumerate(self.enc):
-            x = e(x if i == 0 else F.max_pool2d(x, 2))
+            if i == 0:
+                x = e[1:](e[0](x) + pos)
+            else:
+                x = e(F.max_pool2d(x, 2))
             skips.append(x)
         x = skips.pop()
         x = x + self.context(x.mean((2, 3), keepdim=True))
@@ -366,6 +380,7 @@ def torch_preprocess(photo_u8, size):
 
 def export(model, path, info, heldout):
     model.eval()
+    model.fixed = (SIZE, SIZE)
     dummy = torch.zeros(1, 3, SIZE, SIZE)
     torch.onnx.export(
         model,
