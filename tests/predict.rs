@@ -417,6 +417,7 @@ fn the_photo_pipeline_runs_and_an_edit_does_not_rerun_the_prediction() {
             ("base.spp", "4"),
             ("base.path_spp", "1"),
             ("relit.spp", "4"),
+            ("rerender.spp", "4"),
             ("predict.output", s(&outs.join("bundle"))),
             ("rerender.output", s(&outs.join("rerender.exr"))),
             ("edited.output", s(&outs.join("edited.exr"))),
@@ -448,10 +449,14 @@ fn the_photo_pipeline_runs_and_an_edit_does_not_rerun_the_prediction() {
     };
     let first = run(&[]);
     assert!(first.values().all(|s| s == "executed"), "{first:?}");
+    // Denoised for viewing, with the samples as rendered beside them.
     for f in [
         "rerender.exr",
+        "rerender.png",
+        "rerender_raw.exr",
         "edited.exr",
         "relit.exr",
+        "relit_raw.exr",
         "bundle/albedoPred.exr",
     ] {
         assert!(outs.join(f).is_file(), "{f}");

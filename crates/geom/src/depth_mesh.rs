@@ -844,6 +844,7 @@ pub fn mesh_from_depth(
             material_pixel: Vec::new(),
             openness: Vec::new(),
             portals: Vec::new(),
+            normals: Vec::new(),
         },
         depth: GrayImage::from_vec(w, h, znew),
         stats,

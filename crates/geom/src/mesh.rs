@@ -50,6 +50,11 @@ pub struct TriMesh {
     /// geometry (the opening is a hole in the triangles); a portal larger
     /// than its hole only wastes samples. Empty for most meshes.
     pub portals: Vec<Portal>,
+    /// Per-vertex shading normals (unit, camera space, facing the viewer)
+    /// for the first `normals.len()` vertices, e.g. a predicted normal map
+    /// laid on the depth mesh; the other vertices' (all, when empty) are
+    /// the triangles' own, averaged.
+    pub normals: Vec<Vec3>,
 }
 
 /// A rectangular opening of a mesh that the scene's light comes in

@@ -243,6 +243,9 @@ impl Artifact {
         self.put_rgb(&format!("{prefix}albedo"), &m.albedo);
         self.put_gray(&format!("{prefix}roughness"), &m.roughness);
         self.put_gray(&format!("{prefix}metallic"), &m.metallic);
+        if let Some(n) = &m.normal {
+            self.put_rgb(&format!("{prefix}normal"), n);
+        }
         if let Some(t) = &m.transparency {
             self.put_gray(&format!("{prefix}glass_ior"), &t.ior);
             self.put_gray(&format!("{prefix}glass_transmission"), &t.transmission);
@@ -261,7 +264,11 @@ impl Artifact {
             albedo: self.rgb(&format!("{prefix}albedo"))?,
             roughness: self.gray(&format!("{prefix}roughness"))?,
             metallic: self.gray(&format!("{prefix}metallic"))?,
-            normal: None,
+            normal: if self.has(&format!("{prefix}normal")) {
+                Some(self.rgb(&format!("{prefix}normal"))?)
+            } else {
+                None
+            },
             transparency: if self.has(&format!("{prefix}glass_ior")) {
                 Some(matflow_scene::transparency::Transparency {
                     ior: self.gray(&format!("{prefix}glass_ior"))?,

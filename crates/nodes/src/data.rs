@@ -167,6 +167,15 @@ pub fn encode_mesh(width: usize, height: usize, m: &TriMesh) -> Vec<u8> {
                 .collect(),
         );
     }
+    // And only meshes shaded with given (e.g. predicted) normals.
+    if !m.normals.is_empty() {
+        a.put_f32(
+            "normals",
+            m.normals.len() as u32,
+            3,
+            m.normals.iter().flat_map(|v| v.to_array()).collect(),
+        );
+    }
     a.encode()
 }
 
@@ -243,6 +252,19 @@ fn mesh_of_artifact(a: &Artifact) -> Result<(Camera, TriMesh), NodeError> {
             "mesh artifact: portal {k} is not a rectangle (two perpendicular edges of positive length)"
         )));
     }
+    let normals: Vec<Vec3> = if a.has("normals") {
+        a.f32_list("normals", 3)?
+            .chunks_exact(3)
+            .map(|c| Vec3::new(c[0], c[1], c[2]))
+            .collect()
+    } else {
+        Vec::new()
+    };
+    if normals.len() > positions.len() || normals.iter().any(|n| !n.is_finite()) {
+        return Err(err(
+            "mesh artifact: more shading normals than vertices, or one not finite",
+        ));
+    }
     Ok((
         Camera::new(cam[0] as usize, cam[1] as usize),
         TriMesh {
@@ -252,6 +274,7 @@ fn mesh_of_artifact(a: &Artifact) -> Result<(Camera, TriMesh), NodeError> {
             material_pixel,
             openness,
             portals,
+            normals,
         },
     ))
 }

@@ -576,7 +576,7 @@ mod tests {
             c: 3,
             h: 12,
             w: 12,
-            data: lin.values.iter().map(|&v| v as f32).collect(),
+            data: lin.values.clone(),
         };
         close(
             &resize_bicubic(&lin, 7, 7, false),

@@ -238,6 +238,10 @@ pub struct RenderScene {
     /// Angle-weighted vertex normals (on the depth mesh used only by the
     /// reference-compatible sampling frame; the shading normals of objects).
     pub vertex_normals: Vec<Vec3>,
+    /// The depth mesh came with shading normals ([`TriMesh::normals`]):
+    /// its surfaces shade with the interpolated vertex normals instead of
+    /// the flat triangle normals.
+    pub given_normals: bool,
     /// Screen-space materials, row-major, sanitised.
     pub materials: Vec<Material>,
     /// Triangles of the depth mesh (screen-space materials); triangle
@@ -432,6 +436,19 @@ impl RenderScene {
                 .collect(),
         );
         let mut vertex_normals = vertex_normals(&mesh);
+        let given_normals = !mesh.normals.is_empty();
+        // Given shading normals (a predicted normal map laid on the depth
+        // mesh) replace the averaged ones where they face the same side.
+        for (d, s) in vertex_normals
+            .iter_mut()
+            .zip(&mesh.normals)
+            .take(screen_vertices)
+        {
+            let n = s.normalize_or_zero();
+            if n.dot(*d) > 0.0 {
+                *d = n;
+            }
+        }
         let mut at = screen_vertices;
         for o in objects {
             let n = o.mesh.vertex_count();
@@ -478,6 +495,7 @@ impl RenderScene {
             bvh,
             face_normals,
             vertex_normals,
+            given_normals,
             materials,
             env,
             light_visibility: None,
@@ -869,6 +887,23 @@ impl RenderScene {
         };
         let st = uv(tri[0]) * (1.0 - u - v) + uv(tri[1]) * u + uv(tri[2]) * v;
         texture_at(t, st)
+    }
+
+    /// The normal a depth-mesh hit shades with: the triangle's, or with
+    /// given shading normals the interpolated one, where it lies on the
+    /// triangle's side (by a margin; else the triangle's).
+    #[inline]
+    pub fn screen_shading_normal(&self, prim: u32, u: f32, v: f32) -> Vec3 {
+        let ng = self.face_normals[prim as usize];
+        if !self.given_normals {
+            return ng;
+        }
+        let n = self.shading_normal(prim, u, v);
+        if n.dot(ng) > 0.1 {
+            n
+        } else {
+            ng
+        }
     }
 
     /// Interpolated vertex normal at a hit.

@@ -73,11 +73,47 @@ pub fn grow_object(
     seed: (usize, usize),
     g: &Grow,
 ) -> Image<bool> {
+    grow(albedo, depth, normals, None, camera, seed, g)
+}
+
+/// [`grow_object`], and also stopped by the photo's own edges: a
+/// neighbour does not join where the photo (γ-encoded, 3×3 means)
+/// steps by more than `step` in any channel between the two. Shading
+/// varies slowly across a surface, an object's outline is a step, so
+/// this holds a region to its object where the predictions are too
+/// blurred to (a weak model's albedo and depth run smoothly from an
+/// object into what is behind it).
+#[allow(clippy::too_many_arguments)]
+pub fn grow_object_within_edges(
+    albedo: &RgbImage,
+    depth: &GrayImage,
+    normals: Option<&RgbImage>,
+    photo: &RgbImage,
+    step: f32,
+    camera: &Camera,
+    seed: (usize, usize),
+    g: &Grow,
+) -> Image<bool> {
+    grow(albedo, depth, normals, Some((photo, step)), camera, seed, g)
+}
+
+fn grow(
+    albedo: &RgbImage,
+    depth: &GrayImage,
+    normals: Option<&RgbImage>,
+    edges: Option<(&RgbImage, f32)>,
+    camera: &Camera,
+    seed: (usize, usize),
+    g: &Grow,
+) -> Image<bool> {
     let (w, h) = (albedo.width, albedo.height);
     let mut m = Image::new(w, h, false);
     if seed.0 >= w || seed.1 >= h || !depth.same_size(albedo) {
         return m;
     }
+    let edges = edges
+        .filter(|(photo, _)| photo.same_size(albedo))
+        .map(|(photo, step)| (smoothed_gamma(photo), gamma(photo), step));
     let estimated;
     let normals = match normals {
         Some(n) if n.same_size(albedo) => n,
@@ -92,7 +128,7 @@ pub fn grow_object(
     let sky = !seen(depth.get(seed.0, seed.1));
     let f = camera.focal().max(1e-6);
     let cos_crease = g.crease_deg.to_radians().cos();
-    let joins = |p: (usize, usize), q: (usize, usize)| -> bool {
+    let predicted = |p: (usize, usize), q: (usize, usize)| -> bool {
         if !((colour.get(q.0, q.1) - c0).abs().max_element() <= g.albedo_tol) {
             return false;
         }
@@ -123,6 +159,15 @@ pub fn grow_object(
         let (a, b) = (np.dot(pq - pp), nq.dot(pp - pq));
         a <= 0.0 && b <= 0.0 && a + b <= -0.5 * width
     };
+    let step_between = |img: &RgbImage, p: (usize, usize), q: (usize, usize)| {
+        (img.get(q.0, q.1) - img.get(p.0, p.1)).abs().max_element()
+    };
+    let joins = |p: (usize, usize), q: (usize, usize)| -> bool {
+        predicted(p, q)
+            && edges
+                .as_ref()
+                .is_none_or(|(smooth, _, step)| step_between(smooth, p, q) <= *step)
+    };
     let mut queue = VecDeque::from([seed]);
     m.set(seed.0, seed.1, true);
     while let Some((x, y)) = queue.pop_front() {
@@ -139,7 +184,51 @@ pub fn grow_object(
             }
         }
     }
+    // The 3×3 means spread an outline over three pixels, so the region
+    // stops a pixel inside it; the object's own outline pixels join when
+    // their own colour is within `step` of the region's (two rings: the
+    // second takes the corners).
+    for (_, raw, step) in edges.iter().chain(edges.iter()) {
+        let mut ring = vec![];
+        for y in 0..h {
+            for x in 0..w {
+                if m.get(x, y) {
+                    continue;
+                }
+                let nb = [
+                    (x.wrapping_sub(1), y),
+                    (x + 1, y),
+                    (x, y.wrapping_sub(1)),
+                    (x, y + 1),
+                ];
+                let q = (x, y);
+                if nb.iter().any(|&p| {
+                    p.0 < w
+                        && p.1 < h
+                        && m.get(p.0, p.1)
+                        && predicted(p, q)
+                        && step_between(raw, p, q) <= *step
+                }) {
+                    ring.push(q);
+                }
+            }
+        }
+        for (x, y) in ring {
+            m.set(x, y, true);
+        }
+    }
     m
+}
+
+/// The image γ-encoded, per channel.
+fn gamma(img: &RgbImage) -> RgbImage {
+    img.map(|v| {
+        Vec3::new(
+            linear_to_gamma(v.x),
+            linear_to_gamma(v.y),
+            linear_to_gamma(v.z),
+        )
+    })
 }
 
 /// The albedo γ-encoded and averaged over each pixel's 3×3 neighbourhood
@@ -148,13 +237,7 @@ pub fn grow_object(
 /// neighbourhood's colour.
 fn smoothed_gamma(albedo: &RgbImage) -> RgbImage {
     let (w, h) = (albedo.width, albedo.height);
-    let enc = albedo.map(|v| {
-        Vec3::new(
-            linear_to_gamma(v.x),
-            linear_to_gamma(v.y),
-            linear_to_gamma(v.z),
-        )
-    });
+    let enc = gamma(albedo);
     Image::from_fn(w, h, |x, y| {
         let (mut sum, mut n) = (Vec3::ZERO, 0.0);
         for yy in y.saturating_sub(1)..(y + 2).min(h) {
@@ -366,5 +449,40 @@ mod tests {
         let sky = grow_object(&albedo, &depth, None, &cam, (1, 0), &Grow::default());
         assert_eq!(sky.data.iter().filter(|&&b| b).count(), 4);
         assert!((0..4).all(|x| sky.get(x, 0)));
+    }
+
+    /// Blurred predictions (one albedo, one flat depth) cannot tell a
+    /// painted panel from the wall it is on; the photo can. Grown within
+    /// the photo's edges, the region is the panel, shading ramp and all;
+    /// by the predictions alone it is the whole wall.
+    #[test]
+    fn the_photo_s_edges_hold_a_region_to_its_object() {
+        let n = 48;
+        let cam = Camera::new(n, n);
+        let albedo = RgbImage::new(n, n, Vec3::splat(0.5));
+        let depth = GrayImage::new(n, n, 4.0);
+        let inside = |x: usize, y: usize| (12..30).contains(&x) && (16..36).contains(&y);
+        // The panel a step brighter than the wall; across both, a smooth
+        // shading ramp (0.3 over the image) and a little noise.
+        let photo = Image::from_fn(n, n, |x, y| {
+            let ramp = 0.2 + 0.3 * x as f32 / n as f32;
+            let noise = 0.004 * ((x * 7 + y * 13) % 5) as f32;
+            Vec3::splat(ramp + noise + if inside(x, y) { 0.25 } else { 0.0 })
+        });
+        let g = Grow::default();
+        let alone = grow_object(&albedo, &depth, None, &cam, (20, 25), &g);
+        assert_eq!(alone.data.iter().filter(|&&b| b).count(), n * n);
+        let held =
+            grow_object_within_edges(&albedo, &depth, None, &photo, 0.03, &cam, (20, 25), &g);
+        for y in 0..n {
+            for x in 0..n {
+                assert_eq!(held.get(x, y), inside(x, y), "({x}, {y})");
+            }
+        }
+        // A photo of another size is ignored (the predictions alone).
+        let small = RgbImage::new(4, 4, Vec3::ONE);
+        let ignored =
+            grow_object_within_edges(&albedo, &depth, None, &small, 0.03, &cam, (20, 25), &g);
+        assert_eq!(ignored.data, alone.data);
     }
 }

@@ -55,7 +55,7 @@ impl BundleNode {
 
 const BUNDLE_INFO: NodeInfo = NodeInfo {
     kind: "bundle",
-    version: 1,
+    version: 2,
     doc: "A folder in the reference's layout: depth (depth.exr or depthPred.exr), the input \
          image (gt_image.exr/.png, optional), predictions (albedoPred.exr, roughnessPred, \
          metallicPred) and/or results (best_results/).",

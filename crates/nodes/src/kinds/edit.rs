@@ -1,5 +1,7 @@
-//! `edit`: a material edit, a mask (a PNG, a rectangle, or a region grown
-//! from a seed pixel over the albedo) and operations on the masked pixels
+//! `edit`: a material edit, a mask (a PNG, a rectangle, a region grown
+//! from a seed pixel over the albedo, or the object under a pixel, grown
+//! over the scene's albedo, depth and normals as the studio's click
+//! selects it) and operations on the masked pixels
 //! ([`matflow_scene::edit`]).
 
 use std::collections::BTreeMap;
@@ -8,15 +10,17 @@ use glam::Vec3;
 use matflow_engine::node::Params;
 use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
 use matflow_scene::edit::{apply_ops, flood_mask, EditOps};
-use matflow_scene::{io, Image, MaterialMaps};
+use matflow_scene::select::{grow_object, grow_object_within_edges, Grow};
+use matflow_scene::{io, Camera, Image, MaterialMaps};
 
 use crate::artifact::Artifact;
-use crate::data::{encode_materials, materials_from};
+use crate::data::{encode_materials, materials_from, SceneData};
 use crate::err;
 
 pub struct EditNode;
 
-const MASKS: [&str; 3] = ["mask_png", "mask_rect", "mask_flood"];
+/// The masks of `edit`; the stages that share its masks offer the first three.
+pub(crate) const MASKS: [&str; 4] = ["mask_png", "mask_rect", "mask_flood", "mask_object"];
 const OPS: [&str; 8] = [
     "roughness",
     "roughness_scale",
@@ -44,7 +48,12 @@ impl EditNode {
         }
     }
 
-    pub(crate) fn mask(p: &Params, maps: &MaterialMaps) -> Result<Image<bool>, NodeError> {
+    /// The mask; `scene` is needed by `mask_object` alone.
+    pub(crate) fn mask(
+        p: &Params,
+        maps: &MaterialMaps,
+        scene: Option<&SceneData>,
+    ) -> Result<Image<bool>, NodeError> {
         let (w, h) = (maps.width(), maps.height());
         let m = if let Some(path) = p.path("mask_png") {
             let m = io::read_mask(&path).map_err(err)?;
@@ -61,6 +70,47 @@ impl EditNode {
             let (x0, y0) = (r[0].max(0.0) as usize, r[1].max(0.0) as usize);
             let (x1, y1) = ((r[2] as usize).min(w), (r[3] as usize).min(h));
             Image::from_fn(w, h, |x, y| x >= x0 && x < x1 && y >= y0 && y < y1)
+        } else if let Some(s) = p.floats("mask_object") {
+            let scene = scene.ok_or_else(|| err("mask_object needs `scene`"))?;
+            let (x, y) = (s[0] as usize, s[1] as usize);
+            if x >= w || y >= h {
+                return Err(err(format!(
+                    "mask_object: seed pixel ({x}, {y}) is outside the {w}x{h} image"
+                )));
+            }
+            let pred = &scene.pred;
+            if !scene.depth.same_size(&pred.albedo)
+                || (pred.albedo.width, pred.albedo.height) != (w, h)
+            {
+                return Err(err(format!(
+                    "mask_object: the scene is {}x{} but the materials are {w}x{h}",
+                    scene.depth.width, scene.depth.height
+                )));
+            }
+            let g = Grow {
+                albedo_tol: p.f32("object_tolerance"),
+                ..Grow::default()
+            };
+            // Normals from the depth: a weak model's predicted normal map
+            // breaks a curved object into patches at its blotches.
+            let normals = None;
+            let cam = Camera::new(w, h);
+            let step = p.f32("object_edges");
+            match &scene.target {
+                Some(photo) if step > 0.0 && photo.same_size(&pred.albedo) => {
+                    grow_object_within_edges(
+                        &pred.albedo,
+                        &scene.depth,
+                        normals,
+                        photo,
+                        step,
+                        &cam,
+                        (x, y),
+                        &g,
+                    )
+                }
+                _ => grow_object(&pred.albedo, &scene.depth, normals, &cam, (x, y), &g),
+            }
         } else {
             let s = p.floats("mask_flood").unwrap_or_default();
             let (x, y) = (s[0] as usize, s[1] as usize);
@@ -110,6 +160,41 @@ pub(crate) const MASK_FLOOD: ParamSpec = ParamSpec {
     doc: "[x, y] seed pixel; the region grows over similar albedo",
 };
 
+const MASK_OBJECT: ParamSpec = ParamSpec {
+    name: "mask_object",
+    ty: ParamType::Floats {
+        len: 2,
+        min: 0.0,
+        max: 65536.0,
+    },
+    default: Some("~"),
+    unit: "px",
+    doc: "[x, y] a pixel of the object to edit: the region grows from it over the scene's \
+          predicted albedo and depth (normals from the depth) and stops at occlusion edges, \
+          inward folds (where the object meets its support) and the photo's own edges \
+          (object_edges) (needs `scene`)",
+};
+
+const OBJECT_EDGES: ParamSpec = ParamSpec {
+    name: "object_edges",
+    ty: ParamType::Float { min: 0.0, max: 1.0 },
+    default: Some("0.03"),
+    unit: "γ-encoded",
+    doc: "with mask_object: the region also stops where the photo steps by more than this \
+          between neighbours (3×3 means, any channel): an object's outline, where blurred \
+          predictions run smoothly into what is behind it (0: the predictions alone, as \
+          the studio's click)",
+};
+
+const OBJECT_TOLERANCE: ParamSpec = ParamSpec {
+    name: "object_tolerance",
+    ty: ParamType::Float { min: 0.0, max: 1.0 },
+    default: Some("0.2"),
+    unit: "γ-encoded",
+    doc: "with mask_object: largest per-channel difference of the predicted albedo (3×3 mean) \
+          from the seed's that joins the region",
+};
+
 pub(crate) const FLOOD_TOLERANCE: ParamSpec = ParamSpec {
     name: "flood_tolerance",
     ty: ParamType::Float { min: 0.0, max: 1.0 },
@@ -120,11 +205,11 @@ pub(crate) const FLOOD_TOLERANCE: ParamSpec = ParamSpec {
 
 const EDIT_INFO: NodeInfo = NodeInfo {
     kind: "edit",
-    version: 1,
+    version: 2,
     doc: "Edits materials inside a mask: set or scale roughness and metallic, set the albedo \
          colour or shift its hue, saturation and value (on γ-encoded albedo, as a colour \
-         picker shows it). Exactly one of mask_png, mask_rect, mask_flood; order: set, \
-         then scale, then the HSV shift.",
+         picker shows it). Exactly one of mask_png, mask_rect, mask_flood, mask_object; \
+         order: set, then scale, then the HSV shift.",
     params: &[
         ParamSpec {
             name: "materials",
@@ -137,6 +222,16 @@ const EDIT_INFO: NodeInfo = NodeInfo {
         MASK_RECT,
         MASK_FLOOD,
         FLOOD_TOLERANCE,
+        MASK_OBJECT,
+        OBJECT_EDGES,
+        OBJECT_TOLERANCE,
+        ParamSpec {
+            name: "scene",
+            ty: ParamType::Ref(&["scene"]),
+            default: Some("~"),
+            unit: "",
+            doc: "the scene whose predicted albedo, depth and normals mask_object grows over",
+        },
         ParamSpec {
             name: "roughness",
             ty: ParamType::Float { min: 0.0, max: 1.0 },
@@ -240,7 +335,7 @@ impl Node for EditNode {
         preflight_mask(p)
     }
     fn check(&self, p: &Params) -> Result<(), String> {
-        check_mask_choice(p)?;
+        check_mask_choice(p, &MASKS)?;
         let changes = OPS.iter().any(|o| match *o {
             "roughness_scale" | "metallic_scale" | "saturation_scale" | "value_scale" => {
                 p.f64(o) != 1.0
@@ -259,7 +354,8 @@ impl Node for EditNode {
     }
     fn run(&self, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
         let maps = materials_from(ctx.input("materials")?)?;
-        let mask = Self::mask(ctx.params, &maps)?;
+        let scene = ctx.opt_input("scene").map(SceneData::decode).transpose()?;
+        let mask = Self::mask(ctx.params, &maps, scene.as_ref())?;
         let edited = apply_ops(&maps, &mask, &Self::ops(ctx.params));
         let mut m = Artifact::new("mask");
         m.put_gray("mask", &mask.map(|b| if b { 1.0 } else { 0.0 }));
@@ -285,6 +381,14 @@ pub(crate) fn check_mask_film(p: &Params, (w, h): (usize, usize)) -> Result<(), 
         if s[0] >= w as f64 || s[1] >= h as f64 {
             return Err(format!(
                 "mask_flood: seed pixel ({}, {}) is outside the {w}x{h} image",
+                s[0], s[1]
+            ));
+        }
+    }
+    if let Some(s) = p.floats("mask_object") {
+        if s[0] >= w as f64 || s[1] >= h as f64 {
+            return Err(format!(
+                "mask_object: seed pixel ({}, {}) is outside the {w}x{h} image",
                 s[0], s[1]
             ));
         }
@@ -318,8 +422,8 @@ pub(crate) fn preflight_mask(p: &Params) -> Result<(), String> {
     Ok(())
 }
 
-/// Exactly one mask, and a non-empty rectangle.
-pub(crate) fn check_mask_choice(p: &Params) -> Result<(), String> {
+/// Exactly one of the masks `offered`, and a non-empty rectangle.
+pub(crate) fn check_mask_choice(p: &Params, offered: &[&str]) -> Result<(), String> {
     if let Some(r) = p.floats("mask_rect") {
         if r[2] <= r[0] || r[3] <= r[1] {
             return Err(format!(
@@ -328,10 +432,18 @@ pub(crate) fn check_mask_choice(p: &Params) -> Result<(), String> {
             ));
         }
     }
-    let masks: Vec<&str> = MASKS.iter().copied().filter(|m| p.is_set(m)).collect();
+    if p.is_set("mask_object") && !p.is_set("scene") {
+        return Err(
+            "mask_object needs `scene`: the stage whose depth and predictions it \
+                    grows over"
+                .into(),
+        );
+    }
+    let masks: Vec<&str> = offered.iter().copied().filter(|m| p.is_set(m)).collect();
     if masks.len() != 1 {
         return Err(format!(
-            "give exactly one of mask_png, mask_rect, mask_flood (got {})",
+            "give exactly one of {} (got {})",
+            offered.join(", "),
             if masks.is_empty() {
                 "none".to_string()
             } else {

@@ -4,12 +4,17 @@
 use std::collections::BTreeMap;
 use std::sync::OnceLock;
 
-use matflow_engine::node::Params;
+use std::path::PathBuf;
+
+use matflow_engine::node::{Bytes, Params};
 use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
 use matflow_inverse::invert::{materials_to_maps, InvertOptions};
 use matflow_inverse::routes::Side;
+use matflow_scene::io;
 
-use crate::data::{encode_image, encode_materials, envmap_from, MESH, SCENE};
+use crate::artifact::Artifact;
+use crate::data::{encode_image, encode_materials, envmap_from, materials_from, MESH, SCENE};
+use crate::err;
 use crate::recovery::{
     base_options, mat_route, material_options, prepare, run_invert, summary, with_route_params,
 };
@@ -37,6 +42,23 @@ const PARAMS: &[ParamSpec] = &[
     LOOPS,
     ALBEDO_LEVEL,
     ALBEDO_LEVEL_BAND,
+    ParamSpec {
+        name: "output",
+        ty: ParamType::OutPath,
+        default: Some("~"),
+        unit: "",
+        doc: "a folder to write what was recovered to: albedo.exr (and albedo.png, γ-encoded), \
+              roughness.exr, metallic.exr (linear) and envmap.hdr",
+    },
+];
+
+/// The files `output` holds.
+const FILES: [&str; 5] = [
+    "albedo.exr",
+    "albedo.png",
+    "roughness.exr",
+    "metallic.exr",
+    "envmap.hdr",
 ];
 
 const OUTPUTS: &[OutputSpec] = &[
@@ -79,6 +101,52 @@ impl Node for MaterialOptNode {
     /// A bad route option fails validation, before anything runs.
     fn check(&self, p: &Params) -> Result<(), String> {
         crate::recovery::check_routes(p)
+    }
+    fn output_files(&self, p: &Params) -> Vec<PathBuf> {
+        p.path("output")
+            .map(|d| FILES.iter().map(|f| d.join(f)).collect())
+            .unwrap_or_default()
+    }
+    fn materialize(
+        &self,
+        params: &Params,
+        outputs: &BTreeMap<String, Bytes>,
+    ) -> Result<Vec<PathBuf>, NodeError> {
+        let Some(dir) = params.path("output") else {
+            return Ok(vec![]);
+        };
+        let get = |name: &str| {
+            outputs
+                .get(name)
+                .ok_or_else(|| err(format!("the stage made no {name}")))
+        };
+        let maps = materials_from(&get("materials")?[..])?;
+        let env = Artifact::decode(&get("envmap")?[..], "envmap")?.rgb("envmap")?;
+        std::fs::create_dir_all(&dir).map_err(|e| err(format!("{}: {e}", dir.display())))?;
+        let [albedo_exr, albedo_png, rough, metal, hdr] = FILES.map(|f| dir.join(f));
+        let files: [(&PathBuf, Vec<u8>); 5] = [
+            (
+                &albedo_exr,
+                io::encode_exr_rgb(&albedo_exr, &maps.albedo).map_err(err)?,
+            ),
+            (
+                &albedo_png,
+                io::encode_png_gamma(&albedo_png, &maps.albedo).map_err(err)?,
+            ),
+            (
+                &rough,
+                io::encode_exr_gray(&rough, &maps.roughness).map_err(err)?,
+            ),
+            (
+                &metal,
+                io::encode_exr_gray(&metal, &maps.metallic).map_err(err)?,
+            ),
+            (&hdr, io::encode_hdr(&hdr, &env).map_err(err)?),
+        ];
+        for (path, bytes) in &files {
+            io::write_if_changed(path, bytes).map_err(err)?;
+        }
+        Ok(files.into_iter().map(|(p, _)| p.clone()).collect())
     }
     fn run(&self, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
         let pr = prepare(ctx, None)?;

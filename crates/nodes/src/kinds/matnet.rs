@@ -62,7 +62,7 @@ const fn file(name: &'static str, doc: &'static str) -> OutputSpec {
 
 const INFO: NodeInfo = NodeInfo {
     kind: "matnet",
-    version: 1,
+    version: 2,
     doc: "MatNet's prediction stage: a photo (PNG/JPEG of 8 or 16 bits, grey or colour, or a \
          linear EXR; any size and aspect) is centre-cropped, resized to 512² and run through an \
          ONNX model under MatNet's contract (input size and output layout read from the model); \

@@ -36,6 +36,37 @@ fn auto_mode(s: &SceneData, mesh: MeshParams) -> Result<&'static str, NodeError>
     })
 }
 
+/// Shading normals for the first `seen` vertices of `tri` (the depth
+/// mesh's, before any completion): the normal map's at each vertex's film
+/// position (the pixel it was made from), unit length; a vertex with no
+/// film position, or a map value that is not a direction, gets a zero
+/// vector, which the renderer reads as "the mesh's own".
+fn predicted_normals(
+    tri: &matflow_geom::TriMesh,
+    seen: usize,
+    map: &matflow_scene::RgbImage,
+) -> Vec<glam::Vec3> {
+    let (w, h) = (map.width, map.height);
+    (0..seen.min(tri.positions.len()))
+        .map(|i| {
+            let Some(f) = tri.film.get(i) else {
+                return glam::Vec3::ZERO;
+            };
+            if !(f.x.is_finite() && f.y.is_finite()) {
+                return glam::Vec3::ZERO;
+            }
+            let x = (f.x.max(0.0) as usize).min(w.saturating_sub(1));
+            let y = (f.y.max(0.0) as usize).min(h.saturating_sub(1));
+            let n = map.get(x, y);
+            if n.is_finite() && n.length() > 0.5 {
+                n.normalize()
+            } else {
+                glam::Vec3::ZERO
+            }
+        })
+        .collect()
+}
+
 /// The boundary angle, as `mesh` and the commands on a bundle take it.
 pub(crate) const ANGLE: ParamSpec = ParamSpec {
     name: "angle",
@@ -91,6 +122,18 @@ const MESH_INFO: NodeInfo = NodeInfo {
                   through openings: under a lintel, or framed by one wall), or where the least \
                   assuming needs ten times the light of the sky it shows)",
         },
+        ParamSpec {
+            name: "normals",
+            ty: ParamType::Choice(&["mesh", "predicted"]),
+            default: Some("mesh"),
+            unit: "",
+            doc: "shading normals of the depth mesh: the triangles' own, averaged (mesh, as the \
+                  reference's default use_mesh_normal), or the scene's predicted normal map \
+                  (predicted: a depth map with waves the photo does not show shades them as \
+                  waves, and the recovered albedo takes them up as swirls; a predicted normal \
+                  map is usually smoother). Where a predicted normal faces away from the \
+                  triangles', the mesh's is kept",
+        },
     ],
     outputs: &[
         OutputSpec {
@@ -128,9 +171,16 @@ impl Node for MeshNode {
         } else {
             format!("past the frame: {mode}")
         };
+        let seen = tri.vertex_count();
         if let Some(p) = CompleteParams::for_mode(mode) {
             let cam = Camera::new(s.depth.width, s.depth.height);
             complete_beyond_frame(&mut tri, &s.depth, &cam, &p);
+        }
+        if ctx.params.str("normals") == "predicted" {
+            let n = s.pred.normal.as_ref().ok_or_else(|| {
+                crate::err("normals: predicted, but the scene has no predicted normal map")
+            })?;
+            tri.normals = predicted_normals(&tri, seen, n);
         }
         Ok([
             (

@@ -17,8 +17,8 @@ use matflow_scene::{Camera, Image};
 use crate::data::{backend_of, encode_image, SceneData, BACKEND};
 use crate::err;
 use crate::kinds::edit::{
-    check_mask_choice, check_mask_film, preflight_mask, EditNode, FLOOD_TOLERANCE, MASK_FLOOD,
-    MASK_PNG, MASK_RECT,
+    check_mask_choice, check_mask_film, preflight_mask, EditNode, FLOOD_TOLERANCE, MASKS,
+    MASK_FLOOD, MASK_PNG, MASK_RECT,
 };
 
 /// The network matflow ships: trained by `train/refraction/train.py` on
@@ -94,7 +94,7 @@ impl Node for RefractionLengthNode {
         &INFO
     }
     fn check(&self, p: &Params) -> Result<(), String> {
-        check_mask_choice(p)
+        check_mask_choice(p, &MASKS[..3])
     }
     fn check_film(&self, p: &Params, size: (usize, usize)) -> Result<(), String> {
         check_mask_film(p, size)
@@ -110,7 +110,7 @@ impl Node for RefractionLengthNode {
         let p = ctx.params;
         let scene = SceneData::decode(ctx.input("scene")?)?;
         let (w, h) = (scene.depth.width, scene.depth.height);
-        let mask = EditNode::mask(p, &scene.pred)?;
+        let mask = EditNode::mask(p, &scene.pred, None)?;
         let image = scene
             .target
             .as_ref()

@@ -64,7 +64,7 @@ pub(crate) const FILTER: ParamSpec = ParamSpec {
 
 const RENDER_INFO: NodeInfo = NodeInfo {
     kind: "render",
-    version: 3,
+    version: 4,
     doc: "Path-traces the mesh with the given materials under the given envmap (unidirectional, \
          next-event estimation with MIS, GGX + Lambert as the reference). Writes an EXR \
          (linear) and a PNG (γ 2.2) when `output` is set. With `paths` and `photo`, an edit \
@@ -115,6 +115,17 @@ const RENDER_INFO: NodeInfo = NodeInfo {
             doc: "EXR path to write (a PNG is written beside it)",
         },
         ParamSpec {
+            name: "denoise",
+            ty: ParamType::Bool,
+            default: Some("false"),
+            unit: "",
+            doc: "denoise the render for viewing (as `invert` does its re-render): two halves of \
+                  the samples, divided by the pixels' albedo, edge-aware à-trous filtered, \
+                  multiplied back; `output` and its PNG are the denoised image, and the same \
+                  samples unfiltered are written beside them (X_raw.exr) and output as `raw`. \
+                  Needs spp 2 or more; not with `paths`",
+        },
+        ParamSpec {
             name: "photo",
             ty: ParamType::Ref(&["image", "scene"]),
             default: Some("~"),
@@ -133,12 +144,29 @@ const RENDER_INFO: NodeInfo = NodeInfo {
                   differential)",
         },
     ],
-    outputs: &[OutputSpec {
-        name: "image",
-        ty: "image",
-        doc: "the render (or, with `photo`, the photo with the edit), linear RGB",
-    }],
+    outputs: &[
+        OutputSpec {
+            name: "image",
+            ty: "image",
+            doc: "the render (or, with `photo`, the photo with the edit), linear RGB; \
+                  denoised with `denoise`",
+        },
+        OutputSpec {
+            name: "raw",
+            ty: "image",
+            doc: "with `denoise`: the same samples unfiltered (otherwise the image again)",
+        },
+    ],
 };
+
+/// The raw render's file beside `output` (`X.exr` → `X_raw.exr`).
+fn raw_path(path: &Path) -> PathBuf {
+    let stem = path
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    path.with_file_name(format!("{stem}_raw.exr"))
+}
 
 /// `composite`'s values.
 const COMPOSITES: [&str; 3] = ["auto", "ratio", "differential"];
@@ -296,6 +324,13 @@ impl Node for RenderNode {
     }
     fn check(&self, p: &Params) -> Result<(), String> {
         check_exr_output(p)?;
+        if p.bool("denoise") && (p.is_set("paths") || p.i64("spp") < 2) {
+            return Err(
+                "`denoise` needs a plain render (not `paths`: an edit's re-trace keeps the \
+                 trace's samples) with spp 2 or more (two halves of the samples)"
+                    .into(),
+            );
+        }
         if p.is_set("photo") && !p.is_set("paths") {
             return Err(
                 "`photo` keeps the photo and adds the edit's change to it, which needs \
@@ -314,9 +349,14 @@ impl Node for RenderNode {
         }
     }
     fn output_files(&self, p: &Params) -> Vec<PathBuf> {
-        p.path("output")
-            .map(|o| pair(&o).to_vec())
-            .unwrap_or_default()
+        let Some(o) = p.path("output") else {
+            return vec![];
+        };
+        let mut files = pair(&o).to_vec();
+        if p.bool("denoise") {
+            files.push(raw_path(&o));
+        }
+        files
     }
     fn run(&self, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
         let p = ctx.params;
@@ -335,7 +375,12 @@ impl Node for RenderNode {
                 let how = composite_for(p.str("composite"), &kept.materials, &maps);
                 img = composite_edit(&photo, &img, &kept.image, how);
             }
-            return Ok([("image".to_string(), encode_image("image", "image", &img))].into());
+            let image = encode_image("image", "image", &img);
+            return Ok([
+                ("raw".to_string(), image.clone()),
+                ("image".to_string(), image),
+            ]
+            .into());
         }
         let env = envmap_from(ctx.input("envmap")?)?;
         let scene = crate::memo::scene(ctx.input("mesh")?, &maps, &env)?;
@@ -349,13 +394,22 @@ impl Node for RenderNode {
             filter: p.parse("filter").map_err(err)?,
             ..Default::default()
         };
-        let out = render_or_stop(ctx, &scene, &opts, &|d, t| {
-            (ctx.progress)(d as u64, t as u64)
-        })?;
-        Ok([(
-            "image".to_string(),
-            encode_image("image", "image", &out.image),
-        )]
+        let progress = |d: usize, t: usize| (ctx.progress)(d as u64, t as u64);
+        let (image, raw) = if p.bool("denoise") {
+            let guide = matflow_render::denoise::Guide::build(&scene);
+            let passes = matflow_render::denoise::RENDER_PASSES;
+            let d =
+                matflow_render::denoise::render_denoised(&scene, &guide, &opts, passes, &progress)
+                    .ok_or_else(|| err("denoising needs at least 2 samples per pixel"))?;
+            (d.image, d.raw)
+        } else {
+            let out = render_or_stop(ctx, &scene, &opts, &progress)?;
+            (out.image.clone(), out.image)
+        };
+        Ok([
+            ("image".to_string(), encode_image("image", "image", &image)),
+            ("raw".to_string(), encode_image("image", "image", &raw)),
+        ]
         .into())
     }
     fn materialize(
@@ -363,7 +417,18 @@ impl Node for RenderNode {
         params: &Params,
         outputs: &BTreeMap<String, Bytes>,
     ) -> Result<Vec<PathBuf>, NodeError> {
-        write_output_image(params, outputs)
+        let mut written = write_output_image(params, outputs)?;
+        if let (Some(path), true) = (params.path("output"), params.bool("denoise")) {
+            let b = outputs
+                .get("raw")
+                .ok_or_else(|| err("the stage made no raw image"))?;
+            let img = Artifact::decode(&b[..], "image")?.rgb("image")?;
+            let raw = raw_path(&path);
+            io::write_if_changed(&raw, &io::encode_exr_rgb(&raw, &img).map_err(err)?)
+                .map_err(err)?;
+            written.push(raw);
+        }
+        Ok(written)
     }
 }
 
@@ -461,5 +526,87 @@ mod tests {
             composite_for("differential", &before, &albedo),
             Composite::Differential
         );
+    }
+
+    /// `denoise`: the image is the two halves' samples filtered, `raw` the
+    /// same samples as they came; the filtered one is nearer a render of
+    /// many samples, and the stage refuses what it cannot denoise.
+    #[test]
+    fn a_denoised_render_is_nearer_the_converged_one_and_keeps_its_raw_samples() {
+        use crate::data::{encode_materials, encode_mesh};
+        use crate::testutil::{params_of, small_room};
+        use matflow_engine::Value;
+        use std::sync::Arc;
+        let n = 32;
+        let (s, _, tri) = small_room(n);
+        let inputs: BTreeMap<String, Arc<Vec<u8>>> = [
+            ("mesh".to_string(), Arc::new(encode_mesh(n, n, &tri))),
+            ("materials".to_string(), Arc::new(encode_materials(&s.maps))),
+            (
+                "envmap".to_string(),
+                Arc::new(encode_image("envmap", "envmap", &s.envmap)),
+            ),
+        ]
+        .into();
+        let run = |extra: &[(&str, Value)]| {
+            let mut given = vec![
+                ("mesh", Value::Str("m".into())),
+                ("materials", Value::Str("x".into())),
+                ("envmap", Value::Str("e".into())),
+            ];
+            given.extend(extra.iter().cloned());
+            let p = params_of(&RENDER_INFO, &given);
+            let out = RenderNode
+                .run(&RunContext {
+                    stage: "r",
+                    params: &p,
+                    inputs: inputs.clone(),
+                    seed: 3,
+                    progress: &|_, _| {},
+                    metric: &|_, _| {},
+                    cancelled: &matflow_engine::node::never_cancelled,
+                    image: None,
+                })
+                .unwrap();
+            let rgb = |k: &str| {
+                Artifact::decode(&out[k], "image")
+                    .unwrap()
+                    .rgb("image")
+                    .unwrap()
+            };
+            (rgb("image"), rgb("raw"))
+        };
+        let (truth, same) = run(&[("spp", Value::Int(512))]);
+        assert_eq!(truth.data, same.data, "without denoise, raw is the image");
+        let (image, raw) = run(&[("spp", Value::Int(8)), ("denoise", Value::Bool(true))]);
+        let err = |a: &RgbImage| {
+            a.data
+                .iter()
+                .zip(&truth.data)
+                .map(|(x, y)| (*x - *y).length_squared() as f64)
+                .sum::<f64>()
+        };
+        assert_ne!(image.data, raw.data);
+        assert!(image.data.iter().all(|v| v.is_finite()));
+        assert!(
+            err(&image) < 0.5 * err(&raw),
+            "{} vs {}",
+            err(&image),
+            err(&raw)
+        );
+        let check = |extra: &[(&str, Value)]| {
+            let mut given = vec![
+                ("mesh", Value::Str("m".into())),
+                ("materials", Value::Str("x".into())),
+                ("denoise", Value::Bool(true)),
+            ];
+            given.extend(extra.iter().cloned());
+            RenderNode.check(&params_of(&RENDER_INFO, &given))
+        };
+        assert!(check(&[("envmap", Value::Str("e".into()))]).is_ok());
+        let one = check(&[("envmap", Value::Str("e".into())), ("spp", Value::Int(1))]);
+        assert!(one.unwrap_err().contains("spp 2 or more"));
+        let kept = check(&[("paths", Value::Str("t".into()))]);
+        assert!(kept.unwrap_err().contains("not `paths`"));
     }
 }

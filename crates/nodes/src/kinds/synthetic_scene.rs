@@ -14,7 +14,7 @@ pub struct SyntheticSceneNode;
 
 const SYNTHETIC_SCENE_INFO: NodeInfo = NodeInfo {
     kind: "synthetic_scene",
-    version: 5,
+    version: 6,
     doc: "A procedural room (floor, walls, a few objects with varied albedo, roughness and \
          metallic) under a procedural sky, its input image rendered by matflow's path tracer \
          on its depth mesh alone (so its `mesh` stage takes `complete: none`), and predictions \

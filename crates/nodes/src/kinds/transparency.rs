@@ -32,8 +32,8 @@ use crate::artifact::Artifact;
 use crate::data::{decode_mesh, encode_materials, materials_from, MESH};
 use crate::err;
 use crate::kinds::edit::{
-    check_mask_choice, check_mask_film, preflight_mask, EditNode, FLOOD_TOLERANCE, MASK_FLOOD,
-    MASK_PNG, MASK_RECT,
+    check_mask_choice, check_mask_film, preflight_mask, EditNode, FLOOD_TOLERANCE, MASKS,
+    MASK_FLOOD, MASK_PNG, MASK_RECT,
 };
 
 pub struct TransparencyNode;
@@ -204,7 +204,7 @@ impl Node for TransparencyNode {
         &TRANSPARENCY_INFO
     }
     fn check(&self, p: &Params) -> Result<(), String> {
-        check_mask_choice(p)?;
+        check_mask_choice(p, &MASKS[..3])?;
         if p.is_set("refraction_map") && p.is_set("refraction") {
             return Err(
                 "give `refraction_map` (a file) or `refraction` (a stage), not both".into(),
@@ -257,7 +257,7 @@ impl Node for TransparencyNode {
     fn run(&self, ctx: &RunContext) -> Result<BTreeMap<String, Vec<u8>>, NodeError> {
         let p = ctx.params;
         let maps = materials_from(ctx.input("materials")?)?;
-        let mask = EditNode::mask(p, &maps)?;
+        let mask = EditNode::mask(p, &maps, None)?;
         let (w, h) = (maps.width(), maps.height());
         let f32p = |n: &str| p.f64(n) as f32;
         let tint = p
