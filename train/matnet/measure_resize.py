@@ -20,6 +20,18 @@ SHARED = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", ".
 DEFAULT = ["examples/indoor1.png", "examples/indoor2.png", "examples/99866.png", "indoor/gt_image.png", "jinjya/gt_image.png"]
 
 
+def official_512(path):
+    """The official inference's input up to its 518 resize: the photo's
+    centre square, /255, bilinear to 512² (align_corners), ^2.2; [1, 3,
+    512, 512] float32."""
+    img = np.asarray(Image.open(path).convert("RGB"))
+    h, w, _ = img.shape
+    s = min(h, w)
+    y0, x0 = (h - s) // 2, (w - s) // 2
+    t = torch.tensor(img[y0 : y0 + s, x0 : x0 + s]).permute(2, 0, 1)[None].float() / 255.0
+    return F.interpolate(t, size=(512, 512), mode="bilinear", align_corners=True) ** 2.2
+
+
 def main():
     photos = sys.argv[1:] or [os.path.join(SHARED, p) for p in DEFAULT]
     print(f"opencv {cv2.__version__}, torch {torch.__version__}")
@@ -27,12 +39,7 @@ def main():
     print("|---|---|---|---|---|---|")
     worst = 0.0
     for path in photos:
-        img = np.asarray(Image.open(path).convert("RGB"))
-        h, w, _ = img.shape
-        s = min(h, w)
-        y0, x0 = (h - s) // 2, (w - s) // 2
-        t = torch.tensor(img[y0 : y0 + s, x0 : x0 + s]).permute(2, 0, 1)[None].float() / 255.0
-        lin = F.interpolate(t, size=(512, 512), mode="bilinear", align_corners=True) ** 2.2
+        lin = official_512(path)
         hwc = np.ascontiguousarray(lin[0].permute(1, 2, 0).numpy())
         cv = cv2.resize(hwc, (518, 518), interpolation=cv2.INTER_CUBIC)
         pt = F.interpolate(lin, size=(518, 518), mode="bicubic", align_corners=False)[0].permute(1, 2, 0).numpy()

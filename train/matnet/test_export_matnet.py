@@ -105,14 +105,9 @@ def official_inference(model, photo):
     bilinear back to 512 (align_corners). Unclamped, as it writes them."""
     import cv2
     import torch.nn.functional as F
-    from PIL import Image
+    from measure_resize import official_512
 
-    img = np.asarray(Image.open(photo).convert("RGB"))
-    h, w, _ = img.shape
-    s = min(h, w)
-    y0, x0 = (h - s) // 2, (w - s) // 2
-    t = torch.tensor(img[y0 : y0 + s, x0 : x0 + s]).permute(2, 0, 1)[None].float() / 255.0
-    t = F.interpolate(t, size=(512, 512), mode="bilinear", align_corners=True) ** 2.2
+    t = official_512(photo)
     x = cv2.resize(np.ascontiguousarray(t[0].permute(1, 2, 0).numpy()), (518, 518), interpolation=cv2.INTER_CUBIC)
     with torch.no_grad():
         outs = model(torch.from_numpy(x).permute(2, 0, 1)[None])
