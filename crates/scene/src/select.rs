@@ -37,7 +37,7 @@ use std::collections::VecDeque;
 
 use glam::Vec3;
 
-use crate::color::linear_to_gamma;
+use crate::color::linear_to_gamma3;
 use crate::{Camera, GrayImage, Image, RgbImage};
 
 /// How far a region may grow; see the module's rule.
@@ -222,13 +222,7 @@ fn grow(
 
 /// The image γ-encoded, per channel.
 fn gamma(img: &RgbImage) -> RgbImage {
-    img.map(|v| {
-        Vec3::new(
-            linear_to_gamma(v.x),
-            linear_to_gamma(v.y),
-            linear_to_gamma(v.z),
-        )
-    })
+    img.map(linear_to_gamma3)
 }
 
 /// The albedo γ-encoded and averaged over each pixel's 3×3 neighbourhood

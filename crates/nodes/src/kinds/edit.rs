@@ -148,32 +148,33 @@ pub(crate) const MASK_RECT: ParamSpec = ParamSpec {
     doc: "[x0, y0, x1, y1], x1 and y1 exclusive, origin top left",
 };
 
-pub(crate) const MASK_FLOOD: ParamSpec = ParamSpec {
-    name: "mask_flood",
-    ty: ParamType::Floats {
-        len: 2,
-        min: 0.0,
-        max: 65536.0,
-    },
-    default: Some("~"),
-    unit: "px",
-    doc: "[x, y] seed pixel; the region grows over similar albedo",
-};
+/// A `[x, y]` pixel of the image, as the masks grown from a seed take it.
+const fn seed_pixel(name: &'static str, doc: &'static str) -> ParamSpec {
+    ParamSpec {
+        name,
+        ty: ParamType::Floats {
+            len: 2,
+            min: 0.0,
+            max: 65536.0,
+        },
+        default: Some("~"),
+        unit: "px",
+        doc,
+    }
+}
 
-const MASK_OBJECT: ParamSpec = ParamSpec {
-    name: "mask_object",
-    ty: ParamType::Floats {
-        len: 2,
-        min: 0.0,
-        max: 65536.0,
-    },
-    default: Some("~"),
-    unit: "px",
-    doc: "[x, y] a pixel of the object to edit: the region grows from it over the scene's \
-          predicted albedo and depth (normals from the depth) and stops at occlusion edges, \
-          inward folds (where the object meets its support) and the photo's own edges \
-          (object_edges) (needs `scene`)",
-};
+pub(crate) const MASK_FLOOD: ParamSpec = seed_pixel(
+    "mask_flood",
+    "[x, y] seed pixel; the region grows over similar albedo",
+);
+
+const MASK_OBJECT: ParamSpec = seed_pixel(
+    "mask_object",
+    "[x, y] a pixel of the object to edit: the region grows from it over the scene's \
+     predicted albedo and depth (normals from the depth) and stops at occlusion edges, \
+     inward folds (where the object meets its support) and the photo's own edges \
+     (object_edges) (needs `scene`)",
+);
 
 const OBJECT_EDGES: ParamSpec = ParamSpec {
     name: "object_edges",

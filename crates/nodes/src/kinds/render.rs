@@ -401,16 +401,14 @@ impl Node for RenderNode {
             let d =
                 matflow_render::denoise::render_denoised(&scene, &guide, &opts, passes, &progress)
                     .ok_or_else(|| err("denoising needs at least 2 samples per pixel"))?;
-            (d.image, d.raw)
+            let raw = encode_image("image", "image", &d.raw);
+            (encode_image("image", "image", &d.image), raw)
         } else {
             let out = render_or_stop(ctx, &scene, &opts, &progress)?;
-            (out.image.clone(), out.image)
+            let image = encode_image("image", "image", &out.image);
+            (image.clone(), image)
         };
-        Ok([
-            ("image".to_string(), encode_image("image", "image", &image)),
-            ("raw".to_string(), encode_image("image", "image", &raw)),
-        ]
-        .into())
+        Ok([("image".to_string(), image), ("raw".to_string(), raw)].into())
     }
     fn materialize(
         &self,
