@@ -79,7 +79,8 @@ def main():
     ap.add_argument("--data", default="out/albedo-rooms")
     ap.add_argument("--work", default="out/albedo-structure")
     ap.add_argument("--matflow", default="target/release/matflow")
-    ap.add_argument("--normals", nargs="+", default=["mesh", "predicted"])
+    ap.add_argument("--normals", nargs="+", default=["mesh"])
+    ap.add_argument("--structure", nargs="+", default=["photo", "free"], help="material_opt's albedo_structure")
     a = ap.parse_args()
     os.chdir(REPO)
     keys = []
@@ -97,12 +98,14 @@ def main():
         truth = exr(os.path.join(scene, "ground_truth", "albedo.exr"))
         m = np.asarray(Image.open(os.path.join(scene, "mesh_mask.png")).convert("L")) <= 127
         row = {"key": key, "kind": kind, "truth": bands(truth, m)}
-        for normals in a.normals:
-            out = os.path.join(a.work, f"{key}-{normals}")
+        for normals, structure in [(n, s) for n in a.normals for s in a.structure]:
+            col = f"{normals}-{structure}"
+            out = os.path.join(a.work, f"{key}-{col}")
             sets = {
                 "predict.photo": os.path.abspath(os.path.join(scene, "gt_image.png")),
                 "predict.output": os.path.abspath(os.path.join(out, "bundle")),
                 "mesh.normals": normals,
+                "recovered.albedo_structure": structure,
                 "recovered.output": os.path.abspath(os.path.join(out, "recovered")),
                 # The views are not measured here: as few samples as run.
                 "base.spp": "2",
@@ -120,7 +123,7 @@ def main():
             if p.returncode != 0:
                 sys.exit(f"{key} ({normals}): {p.stderr.strip()}")
             rec = half(exr(os.path.join(out, "recovered", "albedo.exr")))
-            row[normals] = bands(rec, m) + (psnr_gain(rec, truth, m),)
+            row[col] = bands(rec, m) + (psnr_gain(rec, truth, m),)
             if "pred" not in row:
                 pred = half(exr(os.path.join(out, "bundle", "albedoPred.exr")))
                 row["pred"] = bands(pred, m) + (psnr_gain(pred, truth, m),)
@@ -130,7 +133,7 @@ def main():
     def med(v):
         return float(np.median(v))
 
-    cols = ["pred"] + a.normals
+    cols = ["pred"] + [f"{n}-{s}" for n in a.normals for s in a.structure]
     print("\nrecovered albedo against the true albedo (medians per kind; energy as a ratio to the truth's)")
     print("| kind | scenes | " + " | ".join(f"{c}: fine / coarse / PSNR" for c in cols) + " |")
     print("|---|---|" + "---|" * len(cols))

@@ -115,6 +115,7 @@ mod tests {
             assert_eq!(a.loops, b.loops);
             assert_eq!(a.level_from_pred, b.level_from_pred);
             assert_eq!(a.level_band.to_bits(), b.level_band.to_bits());
+            assert_eq!(a.albedo_structure, b.albedo_structure);
         };
         same(&read(&cli(&[])), &read(&stage(&[])));
         same(
@@ -130,6 +131,8 @@ mod tests {
                 "free",
                 "--albedo-level-band",
                 "0.4",
+                "--albedo-structure",
+                "photo",
             ])),
             &read(&stage(&[
                 ("budget_seconds", "7.5"),
@@ -138,11 +141,13 @@ mod tests {
                 ("loops", "2"),
                 ("albedo_level", "free"),
                 ("albedo_level_band", "0.4"),
+                ("albedo_structure", "photo"),
             ])),
         );
         // And the defaults are the library's where it has one.
         let d = read(&cli(&[]));
         assert_eq!(d.level_band, matflow_inverse::invert::LEVEL_BAND);
         assert!(d.level_from_pred);
+        assert!(d.albedo_structure.is_none());
     }
 }

@@ -41,12 +41,14 @@ use crate::paths::{check_lamps, light_len, sun_scale, CacheError, CacheOptions, 
 /// it so that a re-render of the result uses it too.
 pub const FIT_FILTER: PixelFilter = PixelFilter::Box;
 
+use crate::matfit::Parts;
 pub use crate::plan::{Plan, SceneCost};
 use crate::routes::mat_solve::resolvable_roughness;
 use crate::routes::{
     self, Chosen, EnvFitter, EnvRoute, EnvStage, EnvStart, MatRoute, MatStage, MatStart,
 };
 use crate::segments::{apply, search_rm, segment, SearchParams, SegmentParams};
+use crate::structure::{photo_structured, rm_per_surface, StructureParams, Surfaces};
 use crate::sun::{self, SearchPixel, SunFit, SunParams};
 use crate::tables::{build_tables_with_variance, PixelTable};
 use crate::transport;
@@ -139,6 +141,12 @@ pub struct InvertOptions {
     pub sun: bool,
     /// How the sun is searched for, and when the best direction is one.
     pub sun_params: SunParams,
+    /// After each stage that fits albedo, rebuild it from the prediction's
+    /// coarse structure, the photo's fine detail and the solve's level per
+    /// surface ([`crate::structure`]), so that shading the frozen paths
+    /// get wrong does not stay in it. None: the solve's albedo as it is
+    /// (the paper's method).
+    pub albedo_structure: Option<StructureParams>,
 }
 
 impl InvertOptions {
@@ -248,6 +256,7 @@ impl Default for InvertOptions {
             lamp_sparsity: 0.003,
             sun: false,
             sun_params: SunParams::default(),
+            albedo_structure: None,
         }
     }
 }
@@ -758,6 +767,32 @@ fn hold_level(
     }
 }
 
+/// After a material stage fitting `parts`: the albedo of `mats` rebuilt
+/// by [`photo_structured`] from the prediction `pred` and the linear
+/// photo, and roughness and metallic moved per surface
+/// ([`rm_per_surface`]).
+fn restructure(
+    mats: &mut [Material],
+    pred: &[Material],
+    photo: &[Vec3],
+    (surfaces, p): (&Surfaces, &StructureParams),
+    parts: Parts,
+    (w, h): (usize, usize),
+    min_roughness: f32,
+) {
+    if parts.albedo {
+        let solved: Vec<Vec3> = mats.iter().map(|m| m.albedo).collect();
+        let predicted: Vec<Vec3> = pred.iter().map(|m| m.albedo).collect();
+        let rebuilt = photo_structured(&solved, &predicted, photo, surfaces, (w, h), p);
+        for (m, a) in mats.iter_mut().zip(rebuilt) {
+            m.albedo = a;
+        }
+    }
+    if parts.roughness || parts.metallic {
+        rm_per_surface(mats, pred, surfaces, min_roughness);
+    }
+}
+
 /// The independent re-render of the recovered scene (fresh random
 /// numbers), denoised when asked: the image and, denoised, the same
 /// samples unfiltered.
@@ -993,12 +1028,17 @@ pub fn invert_until(
     let mut level_total = (opts.level_from_pred && !opts.env_only).then_some(Vec3::ONE);
     // What each pixel sees first, for the segments and the level (traced
     // once, only when either runs).
-    let dist = if opts.searches_rm() || level_total.is_some() {
+    let structure = opts.albedo_structure.filter(|_| !opts.env_only);
+    let dist = if opts.searches_rm() || level_total.is_some() || structure.is_some() {
         run.scene.primary_distances()
     } else {
         Vec::new()
     };
     let mut pred = pred;
+    let structure = structure.map(|sp| {
+        let albedo: Vec<Vec3> = pred.iter().map(|m| m.albedo).collect();
+        (sp, Surfaces::new(&albedo, &dist, w, h, &sp))
+    });
     let rm_search = opts.searches_rm().then(|| {
         rm_per_segment(
             &mut run,
@@ -1053,6 +1093,19 @@ pub fn invert_until(
                 &|step, loss| events(Event::Step { step, loss }),
             );
             mats = fit.materials;
+            if let Some((sp, surfaces)) = structure.as_ref() {
+                let floor = matflow_render::bsdf::MIN_ROUGHNESS;
+                let given = (surfaces, sp);
+                restructure(
+                    &mut mats,
+                    &pred,
+                    &run.target.linear,
+                    given,
+                    parts,
+                    (w, h),
+                    floor,
+                );
+            }
             for e in env.iter_mut() {
                 *e *= fit.scale;
             }

@@ -29,6 +29,7 @@ pub mod plan;
 pub mod routes;
 pub mod segments;
 pub mod solve;
+pub mod structure;
 pub mod sun;
 pub mod tables;
 pub mod transport;

@@ -13,6 +13,7 @@ use matflow_inverse::routes::{
     self, all_options, Chosen, EnvRoute, MatRoute, OptionKind, Side, ENV_ROUTE_NAMES,
     MAT_ROUTE_NAMES,
 };
+use matflow_inverse::structure::StructureParams;
 use matflow_scene::metrics::{psnr_gamma, ssim_gamma};
 use matflow_scene::{Image, RgbImage};
 
@@ -95,6 +96,18 @@ pub(crate) const ALBEDO_LEVEL_BAND: ParamSpec = ParamSpec {
     unit: "share",
     doc: "with albedo_level pred: how far the albedo's mean per channel may move from the \
           prediction's before it is held (0: held exactly)",
+};
+
+pub(crate) const ALBEDO_STRUCTURE: ParamSpec = ParamSpec {
+    name: "albedo_structure",
+    ty: ParamType::Choice(&["photo", "free"]),
+    default: Some("free"),
+    unit: "",
+    doc: "where the recovered albedo's structure comes from: free (the per-pixel solve's \
+          albedo as it is, the paper's method) or photo (the prediction's coarse structure, \
+          the photo's fine detail, and the solve's level and colour per surface; roughness \
+          and metallic per surface too). photo keeps shading the geometry gets wrong out of \
+          the albedo, and so shows it in the re-render (docs/results/prediction.md)",
 };
 
 fn leak(s: String) -> &'static str {
@@ -196,7 +209,7 @@ pub fn budget_options(p: &Params, o: InvertOptions) -> InvertOptions {
 }
 
 /// What `material_opt`'s own numeric and choice parameters set (`delta`,
-/// `loops`, `albedo_level`, `albedo_level_band`), over `o`; shared with
+/// `loops`, `albedo_level`, `albedo_level_band`, `albedo_structure`), over `o`; shared with
 /// `matflow invert` as [`budget_options`] is.
 pub fn material_options(p: &Params, o: InvertOptions) -> InvertOptions {
     InvertOptions {
@@ -204,6 +217,7 @@ pub fn material_options(p: &Params, o: InvertOptions) -> InvertOptions {
         loops: p.opt_i64("loops").map(|l| l as usize),
         level_from_pred: p.str("albedo_level") == "pred",
         level_band: p.f32("albedo_level_band"),
+        albedo_structure: (p.str("albedo_structure") == "photo").then(StructureParams::default),
         ..o
     }
 }

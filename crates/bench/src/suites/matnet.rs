@@ -65,6 +65,11 @@ pub struct BenchMatnetArgs {
     /// material_opt budget (seconds), and report re-render PSNR; 0 skips.
     #[arg(long, default_value_t = 0.0)]
     pub e2e_budget: f64,
+    /// A parameter of pipelines/photo.yaml for both end-to-end runs
+    /// (`STAGE.PARAM=VALUE`, as `matflow run --set`; repeatable), e.g.
+    /// `mesh.normals=predicted`.
+    #[arg(long = "e2e-set", value_name = "STAGE.PARAM=VALUE")]
+    pub e2e_set: Vec<String>,
     /// Work folder for the end-to-end runs.
     #[arg(long, default_value = "target/bench-matnet")]
     pub work: PathBuf,
@@ -323,9 +328,10 @@ fn reference_table(a: &BenchMatnetArgs) -> Result<()> {
 /// stage), each against the photo.
 fn e2e(a: &BenchMatnetArgs, names: &[&str]) -> Result<()> {
     println!(
-        "\nend to end: pipelines/photo.yaml (lighting {:.0} s, material_opt {:.0} s budgets), re-render PSNR against the photo (sRGB)",
+        "\nend to end: pipelines/photo.yaml (lighting {:.0} s, material_opt {:.0} s budgets{}), re-render PSNR against the photo (sRGB)",
         (a.e2e_budget / 3.0).max(1.0),
-        a.e2e_budget
+        a.e2e_budget,
+        a.e2e_set.iter().map(|s| format!(", {s}")).collect::<String>()
     );
     println!(
         "| bundle | from the bundled model | from the official MatNet predictions |\n|---|---|---|"
@@ -354,6 +360,9 @@ fn e2e(a: &BenchMatnetArgs, names: &[&str]) -> Result<()> {
                 ))
                 .arg("--set")
                 .arg(format!("recovered.budget_seconds={}", a.e2e_budget));
+            for s in &a.e2e_set {
+                c.args(["--set", s]);
+            }
             if from == "ours" {
                 c.arg("--set")
                     .arg(format!(

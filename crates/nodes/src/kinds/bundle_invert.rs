@@ -24,7 +24,8 @@ use crate::completion::{
 use crate::kinds::bundle_mesh::{complete_arg, on_off, silhouettes, BUNDLE};
 use crate::recovery::{
     budget_options, env_route, mat_route, material_options, run_invert, with_route_params,
-    ALBEDO_LEVEL, ALBEDO_LEVEL_BAND, BUDGET, DELTA, ENV_ROUTE, LOOPS, MAT_ROUTE, TRUST,
+    ALBEDO_LEVEL, ALBEDO_LEVEL_BAND, ALBEDO_STRUCTURE, BUDGET, DELTA, ENV_ROUTE, LOOPS, MAT_ROUTE,
+    TRUST,
 };
 use crate::{err, Context};
 
@@ -59,6 +60,7 @@ const OWN: &[ParamSpec] = &[
     LOOPS,
     ALBEDO_LEVEL,
     ALBEDO_LEVEL_BAND,
+    ALBEDO_STRUCTURE,
     ParamSpec {
         name: "materials",
         ty: ParamType::Choice(&["pred", "ground_truth", "best_results"]),
@@ -241,7 +243,7 @@ impl Node for BundleInvertNode {
         static ALL_PARAMS: OnceLock<Vec<ParamSpec>> = OnceLock::new();
         INFO.get_or_init(|| NodeInfo {
             kind: "bundle_invert",
-            version: 1,
+            version: 3,
             doc: "`matflow invert` as a stage: the envmap and the albedo, roughness and \
                   metallic of a bundle folder recovered (the paper's alternation on frozen \
                   paths, on the bundle's depth completed past the frame), written as a bundle \

@@ -19,7 +19,8 @@ use crate::recovery::{
     base_options, mat_route, material_options, prepare, run_invert, summary, with_route_params,
 };
 use crate::recovery::{
-    ALBEDO_LEVEL, ALBEDO_LEVEL_BAND, BUDGET, DELTA, ENV_ROUTE, LOOPS, MAT_ROUTE, REPORT, TRUST,
+    ALBEDO_LEVEL, ALBEDO_LEVEL_BAND, ALBEDO_STRUCTURE, BUDGET, DELTA, ENV_ROUTE, LOOPS, MAT_ROUTE,
+    REPORT, TRUST,
 };
 
 pub struct MaterialOptNode;
@@ -42,6 +43,7 @@ const PARAMS: &[ParamSpec] = &[
     LOOPS,
     ALBEDO_LEVEL,
     ALBEDO_LEVEL_BAND,
+    ALBEDO_STRUCTURE,
     ParamSpec {
         name: "output",
         ty: ParamType::OutPath,
@@ -86,7 +88,7 @@ impl Node for MaterialOptNode {
         static ALL_PARAMS: OnceLock<Vec<ParamSpec>> = OnceLock::new();
         INFO.get_or_init(|| NodeInfo {
             kind: "material_opt",
-            version: 6,
+            version: 8,
             doc: "Recovers albedo, roughness and metallic together with the envmap: the \
                   reference's alternation of envmap and material stages (paper §3.2), on \
                   frozen paths. The albedo's mean per channel stays near the prediction's \
@@ -220,14 +222,16 @@ mod tests {
         ]
     }
 
-    /// The report of the stage on `inputs` with `albedo_level` set, or at
-    /// its default.
-    fn report_with(inputs: &[(String, Arc<Vec<u8>>); 2], level: Option<&str>) -> serde_json::Value {
-        // A 30 s budget: what the test was sized for at 24².
-        let mut given = vec![("budget_seconds", Value::Float(30.0))];
-        given.extend(level.map(|l| ("albedo_level", Value::Str(l.into()))));
-        let p = params_of(MaterialOptNode.info(), &given);
-        let out = MaterialOptNode
+    /// The stage's outputs on `inputs` with `given` parameters (a 30 s
+    /// budget: what the tests were sized for at 24²).
+    fn run_with(
+        inputs: &[(String, Arc<Vec<u8>>); 2],
+        given: &[(&str, Value)],
+    ) -> BTreeMap<String, Vec<u8>> {
+        let mut all = vec![("budget_seconds", Value::Float(30.0))];
+        all.extend(given.iter().cloned());
+        let p = params_of(MaterialOptNode.info(), &all);
+        MaterialOptNode
             .run(&RunContext {
                 stage: "opt",
                 params: &p,
@@ -238,7 +242,17 @@ mod tests {
                 cancelled: &matflow_engine::node::never_cancelled,
                 image: None,
             })
-            .unwrap();
+            .unwrap()
+    }
+
+    /// The report of the stage on `inputs` with `albedo_level` set, or at
+    /// its default.
+    fn report_with(inputs: &[(String, Arc<Vec<u8>>); 2], level: Option<&str>) -> serde_json::Value {
+        let given: Vec<_> = level
+            .map(|l| ("albedo_level", Value::Str(l.into())))
+            .into_iter()
+            .collect();
+        let out = run_with(inputs, &given);
         let a = Artifact::decode(&out["report"], "report").unwrap();
         serde_json::from_slice(a.bytes("json").unwrap()).unwrap()
     }
@@ -260,5 +274,47 @@ mod tests {
         );
         // Free: the fit settles the level alone.
         assert!(report_with(&inputs, Some("free"))["invert"]["level_gain"].is_null());
+    }
+
+    /// With `albedo_structure: photo` the recovered albedo is the
+    /// prediction's structure times one level per surface (at 24² the
+    /// photo's detail is below a pixel): its ratio to the prediction varies
+    /// far less than the free solve's (the default), which follows every
+    /// pixel's noise and shading error.
+    #[test]
+    fn the_albedo_takes_its_structure_from_the_prediction_and_photo() {
+        let inputs = inputs();
+        let pred = SceneData::decode(&inputs[0].1).unwrap().pred.albedo;
+        let spread = |structure: &str| {
+            let out = run_with(
+                &inputs,
+                &[("albedo_structure", Value::Str(structure.into()))],
+            );
+            let a = materials_from(&out["materials"]).unwrap().albedo;
+            // The spread of log(albedo / prediction) over the pixels, per
+            // channel, about its median (robust to the sky's pixels).
+            let mut worst = 0f64;
+            for c in 0..3 {
+                let mut v: Vec<f64> = a
+                    .data
+                    .iter()
+                    .zip(&pred.data)
+                    .map(|(x, p)| (f64::from(x[c].max(1e-4)) / f64::from(p[c].max(1e-4))).ln())
+                    .collect();
+                v.sort_by(f64::total_cmp);
+                let med = v[v.len() / 2];
+                let mut dev: Vec<f64> = v.iter().map(|x| (x - med).abs()).collect();
+                dev.sort_by(f64::total_cmp);
+                worst = worst.max(dev[dev.len() * 3 / 4]);
+            }
+            worst
+        };
+        let (photo, free) = (spread("photo"), spread("free"));
+        assert!(
+            photo < 0.5 * free,
+            "upper-quartile deviation of log(albedo / prediction): photo {photo}, free {free}"
+        );
+        let p = params_of(MaterialOptNode.info(), &[]);
+        assert_eq!(p.str("albedo_structure"), "free");
     }
 }
