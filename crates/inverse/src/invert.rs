@@ -770,7 +770,7 @@ fn hold_level(
 /// After a material stage fitting `parts`: the albedo of `mats` rebuilt
 /// by [`photo_structured`] from the prediction `pred` and the linear
 /// photo, and roughness and metallic moved per surface
-/// ([`rm_per_surface`]).
+/// ([`rm_per_surface`], down to the renderer's floor).
 fn restructure(
     mats: &mut [Material],
     pred: &[Material],
@@ -778,7 +778,6 @@ fn restructure(
     (surfaces, p): (&Surfaces, &StructureParams),
     parts: Parts,
     (w, h): (usize, usize),
-    min_roughness: f32,
 ) {
     if parts.albedo {
         let solved: Vec<Vec3> = mats.iter().map(|m| m.albedo).collect();
@@ -789,7 +788,7 @@ fn restructure(
         }
     }
     if parts.roughness || parts.metallic {
-        rm_per_surface(mats, pred, surfaces, min_roughness);
+        rm_per_surface(mats, pred, surfaces, matflow_render::bsdf::MIN_ROUGHNESS);
     }
 }
 
@@ -1026,8 +1025,8 @@ pub fn invert_until(
     // that one albedo under another (R, M) explains clearly better.
     // With the level held (below), the light takes the albedo's gain.
     let mut level_total = (opts.level_from_pred && !opts.env_only).then_some(Vec3::ONE);
-    // What each pixel sees first, for the segments and the level (traced
-    // once, only when either runs).
+    // What each pixel sees first, for the segments, the level and the
+    // albedo's structure (traced once, only when one of them runs).
     let structure = opts.albedo_structure.filter(|_| !opts.env_only);
     let dist = if opts.searches_rm() || level_total.is_some() || structure.is_some() {
         run.scene.primary_distances()
@@ -1094,17 +1093,8 @@ pub fn invert_until(
             );
             mats = fit.materials;
             if let Some((sp, surfaces)) = structure.as_ref() {
-                let floor = matflow_render::bsdf::MIN_ROUGHNESS;
-                let given = (surfaces, sp);
-                restructure(
-                    &mut mats,
-                    &pred,
-                    &run.target.linear,
-                    given,
-                    parts,
-                    (w, h),
-                    floor,
-                );
+                let photo = &run.target.linear;
+                restructure(&mut mats, &pred, photo, (surfaces, sp), parts, (w, h));
             }
             for e in env.iter_mut() {
                 *e *= fit.scale;

@@ -209,8 +209,8 @@ pub fn budget_options(p: &Params, o: InvertOptions) -> InvertOptions {
 }
 
 /// What `material_opt`'s own numeric and choice parameters set (`delta`,
-/// `loops`, `albedo_level`, `albedo_level_band`, `albedo_structure`), over `o`; shared with
-/// `matflow invert` as [`budget_options`] is.
+/// `loops`, `albedo_level`, `albedo_level_band`, `albedo_structure`),
+/// over `o`; shared with `matflow invert` as [`budget_options`] is.
 pub fn material_options(p: &Params, o: InvertOptions) -> InvertOptions {
     InvertOptions {
         delta: p.f32("delta"),
