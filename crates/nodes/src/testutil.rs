@@ -122,3 +122,23 @@ pub(crate) fn params_of(
     }
     matflow_engine::node::Params(m)
 }
+
+/// `node` run on `inputs` with parameters `params` and `seed`, its
+/// progress, metrics and images unobserved, never cancelled.
+pub(crate) fn run_node(
+    node: &dyn matflow_engine::Node,
+    params: &matflow_engine::node::Params,
+    inputs: std::collections::BTreeMap<String, matflow_engine::node::Bytes>,
+    seed: u64,
+) -> Result<std::collections::BTreeMap<String, Vec<u8>>, matflow_engine::NodeError> {
+    node.run(&matflow_engine::RunContext {
+        stage: "test",
+        params,
+        inputs,
+        seed,
+        progress: &|_, _| {},
+        metric: &|_, _| {},
+        cancelled: &matflow_engine::node::never_cancelled,
+        image: None,
+    })
+}

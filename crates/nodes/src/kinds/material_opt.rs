@@ -231,17 +231,7 @@ mod tests {
         let mut all = vec![("budget_seconds", Value::Float(30.0))];
         all.extend(given.iter().cloned());
         let p = params_of(MaterialOptNode.info(), &all);
-        MaterialOptNode
-            .run(&RunContext {
-                stage: "opt",
-                params: &p,
-                inputs: inputs.iter().cloned().collect(),
-                seed: 1,
-                progress: &|_, _| {},
-                metric: &|_, _| {},
-                cancelled: &matflow_engine::node::never_cancelled,
-                image: None,
-            })
+        crate::testutil::run_node(&MaterialOptNode, &p, inputs.iter().cloned().collect(), 1)
             .unwrap()
     }
 

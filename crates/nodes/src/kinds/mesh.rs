@@ -238,18 +238,8 @@ mod tests {
             .into_iter()
             .collect();
         let p = params_of(&MESH_INFO, &given);
-        let out = MeshNode
-            .run(&RunContext {
-                stage: "m",
-                params: &p,
-                inputs: [("scene".to_string(), std::sync::Arc::new(scene))].into(),
-                seed: 1,
-                progress: &|_, _| {},
-                metric: &|_, _| {},
-                cancelled: &matflow_engine::node::never_cancelled,
-                image: None,
-            })
-            .unwrap();
+        let inputs = [("scene".to_string(), std::sync::Arc::new(scene))].into();
+        let out = crate::testutil::run_node(&MeshNode, &p, inputs, 1).unwrap();
         let (cam, tri) = decode_mesh(&out["mesh"]).unwrap();
         assert_eq!((cam.width, cam.height), (48, 48));
         tri

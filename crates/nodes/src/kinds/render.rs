@@ -554,18 +554,7 @@ mod tests {
             ];
             given.extend(extra.iter().cloned());
             let p = params_of(&RENDER_INFO, &given);
-            let out = RenderNode
-                .run(&RunContext {
-                    stage: "r",
-                    params: &p,
-                    inputs: inputs.clone(),
-                    seed: 3,
-                    progress: &|_, _| {},
-                    metric: &|_, _| {},
-                    cancelled: &matflow_engine::node::never_cancelled,
-                    image: None,
-                })
-                .unwrap();
+            let out = crate::testutil::run_node(&RenderNode, &p, inputs.clone(), 3).unwrap();
             let rgb = |k: &str| {
                 Artifact::decode(&out[k], "image")
                     .unwrap()
