@@ -30,6 +30,10 @@ cameras):
   albedo     L1 after the best single gain (gain-invariant), and a small
              weight on plain L1 (the level)
   normals    the angle between prediction and truth
+  depth's own normals  the angle between the normals of the surface the
+             predicted depth makes (what the mesh stage shades with) and
+             the true depth's, on smooth surfaces; without it a depth
+             map can fit z well and still give a mesh of noisy facets
   roughness, metallic  L1
   photos     exposure (x0.5-2), white balance (+-15 % a channel), zoom
              crops (75-100 %), mirror, blur, sensor noise, JPEG
@@ -245,9 +249,10 @@ def batch_tensors(d, idx, size, rng, a):
     images; halved by averaging 2 x 2 photo pixels and taking one target
     pixel of each 2 x 2). With `a` (training), the photo goes through
     `camera`, and now and then a zoom crop and a mirror."""
-    xs, ys = [], []
+    xs, ys, zooms = [], [], []
     for i in idx:
         photo = d["photo"][i]
+        zoom = 1.0
         t = {
             "depth": d["depth"][i][..., None].astype(np.float32),
             "albedo": d["albedo"][i].astype(np.float32),
@@ -259,6 +264,7 @@ def batch_tensors(d, idx, size, rng, a):
         if a is not None:
             if rng.random() < a.zoom_share:
                 s = int(SIZE * rng.uniform(0.75, 1.0))
+                zoom = SIZE / s
                 y0, x0 = rng.integers(0, SIZE - s + 1), rng.integers(0, SIZE - s + 1)
                 src = y0 + (np.arange(SIZE) * s) // SIZE, x0 + (np.arange(SIZE) * s) // SIZE
                 crop = Image.fromarray(photo[y0 : y0 + s, x0 : x0 + s])
@@ -275,9 +281,11 @@ def batch_tensors(d, idx, size, rng, a):
             x = x.reshape(size, f, size, f, 3).mean((1, 3))
             t = {k: v[::f, ::f] for k, v in t.items()}
         xs.append(np.ascontiguousarray(x.transpose(2, 0, 1)))
+        zooms.append(zoom)
         ys.append({k: np.ascontiguousarray(v.transpose(2, 0, 1)) for k, v in t.items()})
     x = torch.from_numpy(np.stack(xs))
     y = {k: torch.from_numpy(np.stack([s[k] for s in ys])) for k in ys[0]}
+    y["zoom"] = torch.tensor(zooms, dtype=torch.float32)
     return x, y
 
 
@@ -287,7 +295,29 @@ def masked_mean(e, v):
     return (e * v).sum((2, 3)) / v.sum((2, 3)).clamp(min=1.0)
 
 
-def losses(pred, y, w_level):
+FOV_X_DEG = 35.0  # matflow's camera (crates/scene/src/camera.rs), the generator's too
+
+
+def depth_normals(z, zoom):
+    """Camera-space normals (+z towards the camera) of the surface that
+    depth `z` [N, 1, H, W] makes under matflow's camera (35 deg across,
+    centred; the focal length scaled by each image's `zoom` [N]): the
+    cross product of the back-projected point's forward differences, so
+    [N, 3, H-1, W-1]. This is the normal the mesh stage shades with, and
+    it does not change with the depth's scale."""
+    n, _, h, w = z.shape
+    f = (w * 0.5 / math.tan(math.radians(FOV_X_DEG * 0.5))) * zoom.view(n, 1, 1)
+    u = (torch.arange(w, dtype=z.dtype) - (w - 1) * 0.5).view(1, 1, w) / f
+    v = -(torch.arange(h, dtype=z.dtype) - (h - 1) * 0.5).view(1, h, 1) / f
+    zz = z[:, 0]
+    p = torch.stack([u * zz, v * zz, -zz], 1)
+    di = p[:, :, :-1, 1:] - p[:, :, :-1, :-1]
+    dj = p[:, :, 1:, :-1] - p[:, :, :-1, :-1]
+    c = torch.cross(dj, di, dim=1)
+    return c / torch.sqrt((c * c).sum(1, keepdim=True) + 1e-12)
+
+
+def losses(pred, y, w_level, w_dn=1.0):
     depth, albedo, rough, metal, normal = pred
     v = y["valid"]
     has = (v.sum((1, 2, 3)) > 0).float()
@@ -316,6 +346,15 @@ def losses(pred, y, w_level):
     l_metal = per_image(masked_mean((metal - y["metallic"]).abs(), v)[:, 0])
     cos = (normal * y["normal"]).sum(1, keepdim=True).clamp(-0.9999, 0.9999)
     l_normal = per_image(masked_mean(torch.acos(cos), v)[:, 0])
+    # The depth's own surface normals against the true depth's, where the
+    # true depth is a smooth surface (its normal within ~25 deg of the true
+    # normal map's: not across an edge). The mesh is shaded with these.
+    zoom = y.get("zoom", torch.ones(depth.shape[0]))
+    nt = depth_normals(y["depth"].clamp(min=1e-3), zoom)
+    vv = v[:, :, :-1, :-1] * v[:, :, 1:, :-1] * v[:, :, :-1, 1:]
+    vv = vv * ((nt * y["normal"][:, :, :-1, :-1]).sum(1, keepdim=True) > 0.9).float()
+    cos_d = (depth_normals(depth, zoom) * nt).sum(1, keepdim=True).clamp(-0.9999, 0.9999)
+    l_dn = w_dn * per_image(masked_mean(torch.acos(cos_d), vv)[:, 0])
     return {
         "depth": l_depth,
         "depth_grad": l_grad,
@@ -323,13 +362,16 @@ def losses(pred, y, w_level):
         "roughness": l_rough,
         "metallic": l_metal,
         "normal": l_normal,
+        "depth_normal": l_dn,
     }
 
 
 @torch.no_grad()
 def evaluate(model, d, bs=8):
     """Held-out scores per kind of scene (medians over scenes): albedo PSNR
-    after the best gain, normal angle, R^2 of an affine fit of z."""
+    after the best gain, normal angle, R^2 of an affine fit of z, and the
+    angle of the predicted depth's own surface normals (what the mesh
+    shades with) to the true depth's, on smooth surfaces."""
     model.eval()
     scores = {}
     n = len(d["photo"])
@@ -352,7 +394,14 @@ def evaluate(model, d, bs=8):
             sol = torch.linalg.lstsq(a, zt[:, None]).solution
             res = ((a @ sol)[:, 0] - zt).pow(2).sum()
             r2 = float(1.0 - res / (zt - zt.mean()).pow(2).sum().clamp(min=1e-12))
-            scores.setdefault(str(d["kind"][i]), []).append((psnr, angle, r2))
+            one = torch.ones(1)
+            nt = depth_normals(y["depth"][j : j + 1].clamp(min=1e-3), one)
+            v = y["valid"][j : j + 1]
+            vv = (v[:, :, :-1, :-1] * v[:, :, 1:, :-1] * v[:, :, :-1, 1:])[0, 0].bool()
+            vv &= (nt * y["normal"][j : j + 1, :, :-1, :-1]).sum(1)[0] > 0.9
+            cd = (depth_normals(depth[j : j + 1], one) * nt).sum(1)[0].clamp(-1.0, 1.0)[vv]
+            mesh = float(torch.rad2deg(torch.acos(cd)).mean()) if int(vv.sum()) > 0 else float("nan")
+            scores.setdefault(str(d["kind"][i]), []).append((psnr, angle, r2, mesh))
     model.train()
     out = {}
     for k, v in sorted(scores.items()):
@@ -362,6 +411,7 @@ def evaluate(model, d, bs=8):
             "albedo_psnr": round(float(np.median(a[:, 0])), 2),
             "normal_deg": round(float(np.median(a[:, 1])), 1),
             "depth_r2": round(float(np.median(a[:, 2])), 3),
+            "depth_normal_deg": round(float(np.nanmedian(a[:, 3])), 1),
         }
     return out
 
@@ -443,6 +493,7 @@ def main():
     ap.add_argument("--white-balance", type=float, default=0.15, help="photo white balance: +- this share a channel")
     ap.add_argument("--zoom-share", type=float, default=0.3, help="share of photos zoom-cropped (75-100 %%)")
     ap.add_argument("--level-weight", type=float, default=0.2, help="weight of the depth scale and albedo level")
+    ap.add_argument("--depth-normal-weight", type=float, default=1.0, help="weight of the depth's own normals")
     ap.add_argument("--data", default="matflow dataset train/matnet/kinds.yaml", help="what the data is, for the record")
     args = ap.parse_args()
 
@@ -481,7 +532,7 @@ def main():
         idx = rng.integers(0, n, size=bs)
         x, y = batch_tensors(train, idx, size, rng, args)
         x = x.contiguous(memory_format=torch.channels_last)
-        parts = losses(model(x), y, args.level_weight)
+        parts = losses(model(x), y, args.level_weight, args.depth_normal_weight)
         loss = sum(parts.values())
         opt.zero_grad()
         loss.backward()
@@ -513,6 +564,7 @@ def main():
         "white_balance": args.white_balance,
         "zoom_share": args.zoom_share,
         "level_weight": args.level_weight,
+        "depth_normal_weight": args.depth_normal_weight,
         "threads": args.threads,
         "train_seconds": round(train_s, 1),
         "heldout_medians_per_kind": errs,

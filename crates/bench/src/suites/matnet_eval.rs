@@ -22,6 +22,12 @@
 //! - depth: R² of the best affine map from the prediction to the true z
 //!   (to 1/z for a disparity model), and of the pixel row's (the layout
 //!   prior "lower is nearer");
+//! - the depth's own surface normals (what the mesh stage shades with: the
+//!   back-projected depth's facets under matflow's camera, the depth taken
+//!   as z as the mesh stage takes it) against the true depth's, mean
+//!   angle over smooth surfaces (where the true depth's facet is within
+//!   ~25° of the true normal map: not across an edge), for the model and
+//!   for a flat wall facing the camera;
 //! - roughness and metallic: mean absolute error, model and oracle
 //!   constant (the truth's means).
 
@@ -55,6 +61,8 @@ pub struct Scores {
     pub normal_facing: f64,
     pub depth_model: f64,
     pub depth_row: f64,
+    pub mesh_model: f64,
+    pub mesh_facing: f64,
     pub rough_model: f64,
     pub rough_oracle: f64,
     pub metal_model: f64,
@@ -104,6 +112,56 @@ fn affine_r2(x: &[f64], y: &[f64]) -> f64 {
     }
     // The fitted line's residual: syy − sxy²/sxx.
     1.0 - (syy - sxy * sxy / sxx) / syy
+}
+
+/// Unit camera-space normals (+z towards the camera) of the facets depth
+/// `z` makes under matflow's camera: at pixel (i, j) the cross product of
+/// the back-projected point's forward differences to (i+1, j) and
+/// (i, j+1); `None` where any of the three has no depth or the facet is
+/// degenerate, and on the last row and column.
+fn facet_normals(z: &GrayImage) -> Vec<Option<Vec3>> {
+    let (w, h) = (z.width, z.height);
+    let cam = matflow_scene::Camera::new(w, h);
+    let p = |i: usize, j: usize| {
+        let d = z.data[j * w + i];
+        (d > 0.0).then(|| cam.backproject(i as f32, j as f32, d))
+    };
+    (0..w * h)
+        .map(|k| {
+            let (i, j) = (k % w, k / w);
+            if i + 1 >= w || j + 1 >= h {
+                return None;
+            }
+            let (o, a, b) = (p(i, j)?, p(i + 1, j)?, p(i, j + 1)?);
+            let n = (b - o).cross(a - o);
+            let len = n.length();
+            (len.is_finite() && len > 1e-12).then(|| n / len)
+        })
+        .collect()
+}
+
+/// Mean angle (degrees) of the facets of `pred` to those of `truth` over
+/// the pixels where the true facet is within ~25° of `normal` (a smooth
+/// surface), and of a camera-facing wall's; `(NaN, NaN)` with no such
+/// pixel.
+fn mesh_normal_angles(pred: &GrayImage, truth: &GrayImage, normal: &RgbImage) -> (f64, f64) {
+    let (np, nt) = (facet_normals(pred), facet_normals(truth));
+    let (mut model, mut facing, mut n) = (0.0f64, 0.0f64, 0usize);
+    for k in 0..nt.len() {
+        let Some(t) = nt[k] else { continue };
+        if t.dot(normal.data[k].normalize_or_zero()) <= 0.9 {
+            continue;
+        }
+        let angle = |a: Vec3| (a.dot(t).clamp(-1.0, 1.0) as f64).acos().to_degrees();
+        // A prediction with no facet here (no depth) counts as facing.
+        model += angle(np[k].unwrap_or(Vec3::Z));
+        facing += angle(Vec3::Z);
+        n += 1;
+    }
+    if n == 0 {
+        return (f64::NAN, f64::NAN);
+    }
+    (model / n as f64, facing / n as f64)
 }
 
 /// The 8-bit sRGB photo a camera would have written of a linear image.
@@ -218,6 +276,18 @@ fn scores_of(p: &MatnetPrediction, truth: &MaterialMaps, tz: &GrayImage) -> Scor
     let rows: Vec<f64> = valid.iter().map(|&i| (i / w) as f64).collect();
     let tzv: Vec<f64> = valid.iter().map(|&i| tz.data[i] as f64).collect();
     s.depth_row = affine_r2(&rows, &tzv);
+    // The mesh's facets: the depth as the mesh stage takes it (z, or the
+    // reference's 2·max − d for disparity), at the truth's size.
+    if let Some(tn) = tn {
+        let raw = p.depth_raw();
+        let z = match p.depth_kind {
+            DepthKind::Z => raw,
+            DepthKind::Disparity => matflow_scene::bundle::disparity_to_depth(&raw),
+        };
+        let z = resize(&z.to_rgb());
+        let z = GrayImage::from_vec(w, h, z.data.iter().map(|v| v.x).collect());
+        (s.mesh_model, s.mesh_facing) = mesh_normal_angles(&z, tz, tn);
+    }
     s
 }
 
@@ -285,12 +355,13 @@ pub fn print_tables(title: &str, rows: &[(Scene, Scores)]) {
     println!("\n{title}: per scene");
     println!(
         "| scene | kind | albedo PSNR: model / photo / grey / oracle | normals: model / facing | \
-         depth R²: model / row | roughness MAE: model / oracle | metallic MAE: model / oracle |\n\
-         |---|---|---|---|---|---|---|"
+         depth R²: model / row | depth's normals: model / facing | roughness MAE: model / oracle | \
+         metallic MAE: model / oracle |\n\
+         |---|---|---|---|---|---|---|---|"
     );
     for (sc, s) in rows {
         println!(
-            "| {} | {} | {:.2} / {:.2} / {:.2} / {:.2} dB | {:.1}° / {:.1}° | {:.2} / {:.2} | {:.3} / {:.3} | {:.3} / {:.3} |",
+            "| {} | {} | {:.2} / {:.2} / {:.2} / {:.2} dB | {:.1}° / {:.1}° | {:.2} / {:.2} | {:.1}° / {:.1}° | {:.3} / {:.3} | {:.3} / {:.3} |",
             sc.name,
             sc.kind,
             s.albedo_model,
@@ -301,6 +372,8 @@ pub fn print_tables(title: &str, rows: &[(Scene, Scores)]) {
             s.normal_facing,
             s.depth_model,
             s.depth_row,
+            s.mesh_model,
+            s.mesh_facing,
             s.rough_model,
             s.rough_oracle,
             s.metal_model,
@@ -314,14 +387,14 @@ pub fn print_tables(title: &str, rows: &[(Scene, Scores)]) {
     }
     println!("\n{title}: medians per kind, and the scenes that meet each target");
     println!(
-        "| kind | scenes | albedo PSNR: model / photo / oracle | ≥ photo + 2 dB | normals: model / facing | ≤ 0.7× facing | depth R² model | ≥ 0.7 |\n\
-         |---|---|---|---|---|---|---|---|"
+        "| kind | scenes | albedo PSNR: model / photo / oracle | ≥ photo + 2 dB | normals: model / facing | ≤ 0.7× facing | depth R² model | ≥ 0.7 | depth's normals: model / facing |\n\
+         |---|---|---|---|---|---|---|---|---|"
     );
     for (k, v) in &kinds {
         let med = |f: &dyn Fn(&Scores) -> f64| median(v.iter().map(|s| f(s)).collect());
         let count = |f: &dyn Fn(&Scores) -> bool| v.iter().filter(|s| f(s)).count();
         println!(
-            "| {k} | {} | {:.2} / {:.2} / {:.2} dB | {} | {:.1}° / {:.1}° | {} | {:.2} | {} |",
+            "| {k} | {} | {:.2} / {:.2} / {:.2} dB | {} | {:.1}° / {:.1}° | {} | {:.2} | {} | {:.1}° / {:.1}° |",
             v.len(),
             med(&|s| s.albedo_model),
             med(&|s| s.albedo_photo),
@@ -332,6 +405,8 @@ pub fn print_tables(title: &str, rows: &[(Scene, Scores)]) {
             count(&|s| s.normal_ratio() <= 0.7),
             med(&|s| s.depth_model),
             count(&|s| s.depth_model >= 0.7),
+            med(&|s| s.mesh_model),
+            med(&|s| s.mesh_facing),
         );
     }
 }
@@ -348,6 +423,34 @@ mod tests {
         let z: Vec<f64> = (0..50).map(|i| ((i * 37) % 11) as f64).collect();
         assert!(affine_r2(&x, &z) < 0.2);
         assert_eq!(affine_r2(&[1.0, 1.0], &[2.0, 3.0]), 0.0);
+    }
+
+    #[test]
+    fn facets_of_a_tilted_plane_are_its_normal_whatever_the_depth_scale() {
+        // The plane m·p = d seen by matflow's camera: z = d / (m·dir).
+        let (w, h) = (24, 16);
+        let cam = matflow_scene::Camera::new(w, h);
+        let m = Vec3::new(0.3, 0.4, 0.75f32.sqrt());
+        let plane = |scale: f32| {
+            let z = (0..w * h).map(|k| {
+                let dir = cam.backproject((k % w) as f32, (k / w) as f32, 1.0);
+                scale * -3.0 / m.dot(dir)
+            });
+            GrayImage::from_vec(w, h, z.collect())
+        };
+        let normal = RgbImage::from_vec(w, h, vec![m; w * h]);
+        for n in facet_normals(&plane(1.0)).into_iter().flatten() {
+            assert!((n - m).length() < 1e-4, "{n} against {m}");
+        }
+        let (model, facing) = mesh_normal_angles(&plane(7.0), &plane(1.0), &normal);
+        assert!(model < 0.05, "{model}");
+        assert!((facing - 30.0).abs() < 0.05, "{facing}");
+        // Noise in depth tilts the facets.
+        let mut noisy = plane(1.0);
+        for (k, v) in noisy.data.iter_mut().enumerate() {
+            *v *= 1.0 + 0.02 * ((k * 37 % 11) as f32 / 10.0 - 0.5);
+        }
+        assert!(mesh_normal_angles(&noisy, &plane(1.0), &normal).0 > 5.0);
     }
 
     #[test]
