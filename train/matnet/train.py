@@ -317,6 +317,18 @@ def depth_normals(z, zoom):
     return c / torch.sqrt((c * c).sum(1, keepdim=True) + 1e-12)
 
 
+def true_facets(y, zoom):
+    """The true depth's facets (`depth_normals`) and where they count: all
+    three pixels have geometry and the facet is within ~25 deg of the true
+    normal map's (a smooth surface, not across an edge); [N, 3, H-1, W-1]
+    and [N, 1, H-1, W-1] (0/1)."""
+    nt = depth_normals(y["depth"].clamp(min=1e-3), zoom)
+    v = y["valid"]
+    m = v[:, :, :-1, :-1] * v[:, :, 1:, :-1] * v[:, :, :-1, 1:]
+    m = m * ((nt * y["normal"][:, :, :-1, :-1]).sum(1, keepdim=True) > 0.9).float()
+    return nt, m
+
+
 def losses(pred, y, w_level, w_dn=1.0):
     depth, albedo, rough, metal, normal = pred
     v = y["valid"]
@@ -346,13 +358,10 @@ def losses(pred, y, w_level, w_dn=1.0):
     l_metal = per_image(masked_mean((metal - y["metallic"]).abs(), v)[:, 0])
     cos = (normal * y["normal"]).sum(1, keepdim=True).clamp(-0.9999, 0.9999)
     l_normal = per_image(masked_mean(torch.acos(cos), v)[:, 0])
-    # The depth's own surface normals against the true depth's, where the
-    # true depth is a smooth surface (its normal within ~25 deg of the true
-    # normal map's: not across an edge). The mesh is shaded with these.
+    # The depth's own surface normals against the true depth's on smooth
+    # surfaces. The mesh is shaded with these.
     zoom = y.get("zoom", torch.ones(depth.shape[0]))
-    nt = depth_normals(y["depth"].clamp(min=1e-3), zoom)
-    vv = v[:, :, :-1, :-1] * v[:, :, 1:, :-1] * v[:, :, :-1, 1:]
-    vv = vv * ((nt * y["normal"][:, :, :-1, :-1]).sum(1, keepdim=True) > 0.9).float()
+    nt, vv = true_facets(y, zoom)
     cos_d = (depth_normals(depth, zoom) * nt).sum(1, keepdim=True).clamp(-0.9999, 0.9999)
     l_dn = w_dn * per_image(masked_mean(torch.acos(cos_d), vv)[:, 0])
     return {
@@ -379,6 +388,9 @@ def evaluate(model, d, bs=8):
         idx = list(range(s, min(n, s + bs)))
         x, y = batch_tensors(d, idx, SIZE, None, None)
         depth, albedo, rough, metal, normal = model(x)
+        zoom = torch.ones(len(idx))
+        facets, smooth = true_facets(y, zoom)
+        cos_f = (depth_normals(depth, zoom) * facets).sum(1).clamp(-1.0, 1.0)
         for j, i in enumerate(idx):
             m = y["valid"][j, 0].bool()
             if int(m.sum()) < 16:
@@ -394,13 +406,9 @@ def evaluate(model, d, bs=8):
             sol = torch.linalg.lstsq(a, zt[:, None]).solution
             res = ((a @ sol)[:, 0] - zt).pow(2).sum()
             r2 = float(1.0 - res / (zt - zt.mean()).pow(2).sum().clamp(min=1e-12))
-            one = torch.ones(1)
-            nt = depth_normals(y["depth"][j : j + 1].clamp(min=1e-3), one)
-            v = y["valid"][j : j + 1]
-            vv = (v[:, :, :-1, :-1] * v[:, :, 1:, :-1] * v[:, :, :-1, 1:])[0, 0].bool()
-            vv &= (nt * y["normal"][j : j + 1, :, :-1, :-1]).sum(1)[0] > 0.9
-            cd = (depth_normals(depth[j : j + 1], one) * nt).sum(1)[0].clamp(-1.0, 1.0)[vv]
-            mesh = float(torch.rad2deg(torch.acos(cd)).mean()) if int(vv.sum()) > 0 else float("nan")
+            sm = smooth[j, 0].bool()
+            cd = cos_f[j][sm]
+            mesh = float(torch.rad2deg(torch.acos(cd)).mean()) if int(sm.sum()) > 0 else float("nan")
             scores.setdefault(str(d["kind"][i]), []).append((psnr, angle, r2, mesh))
     model.train()
     out = {}

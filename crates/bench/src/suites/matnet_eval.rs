@@ -277,16 +277,17 @@ fn scores_of(p: &MatnetPrediction, truth: &MaterialMaps, tz: &GrayImage) -> Scor
     let tzv: Vec<f64> = valid.iter().map(|&i| tz.data[i] as f64).collect();
     s.depth_row = affine_r2(&rows, &tzv);
     // The mesh's facets: the depth as the mesh stage takes it (z, or the
-    // reference's 2·max − d for disparity), at the truth's size.
+    // reference's 2·max − d for disparity, which commutes with the
+    // resize above), at the truth's size.
     if let Some(tn) = tn {
-        let raw = p.depth_raw();
-        let z = match p.depth_kind {
-            DepthKind::Z => raw,
-            DepthKind::Disparity => matflow_scene::bundle::disparity_to_depth(&raw),
+        let z: Vec<f32> = match p.depth_kind {
+            DepthKind::Z => raw.data.iter().map(|v| v.x).collect(),
+            DepthKind::Disparity => {
+                let m = p.depth_raw().max_value();
+                raw.data.iter().map(|v| 2.0 * m - v.x).collect()
+            }
         };
-        let z = resize(&z.to_rgb());
-        let z = GrayImage::from_vec(w, h, z.data.iter().map(|v| v.x).collect());
-        (s.mesh_model, s.mesh_facing) = mesh_normal_angles(&z, tz, tn);
+        (s.mesh_model, s.mesh_facing) = mesh_normal_angles(&GrayImage::from_vec(w, h, z), tz, tn);
     }
     s
 }
