@@ -3,9 +3,11 @@
 (closed and open rooms, stages, outdoor scenes) and export it to ONNX under
 MatNet's contract (crates/onnx/src/matnet.rs).
 
-The network is a U-Net of six levels with the pixel's position as two extra
-input channels and the image's mean features added at the bottom (the
-layout of a scene is a strong cue to its depth and normals). It takes what
+The network is a U-Net of six levels with the image's mean features added
+at the bottom (the layout of a scene is a strong cue to its depth and
+normals). The pixel's position as an input (`--position`) is off by
+default: with it, the network learnt the average layout from where a
+pixel is and ignored what the photo shows (the objects vanished). It takes what
 MatNet takes (the photo, centre-cropped, /255, raised to 2.2; no mean or
 std) at 256 x 256 and gives MatNet's five outputs, named as the official
 network's dict:
@@ -165,20 +167,20 @@ def block(cin, cout):
 
 class UNet(nn.Module):
     """Six levels (c, 2c, 4c, 8c, 8c, 8c channels), max-pool down, bilinear
-    up; the pixel's position (x, y in [-1, 1]) through its own 3 x 3
-    convolution, added to the first convolution's output (the same as two
-    more input channels, but a constant once the size is fixed, so the
-    export holds no shape arithmetic for tract to run); at the bottom, the
-    image's mean features through a 1x1 convolution added to every
-    position."""
+    up; with `position`, the pixel's position (x, y in [-1, 1]) through its
+    own 3 x 3 convolution, added to the first convolution's output (the
+    same as two more input channels, but a constant once the size is
+    fixed, so the export holds no shape arithmetic for tract to run); at
+    the bottom, the image's mean features through a 1x1 convolution added
+    to every position."""
 
     LEVELS = 6
 
-    def __init__(self, c=16):
+    def __init__(self, c=16, position=False):
         super().__init__()
         w = [c, 2 * c, 4 * c, 8 * c, 8 * c, 8 * c][: self.LEVELS]
         self.enc = nn.ModuleList([block(3, w[0])] + [block(w[i], w[i + 1]) for i in range(len(w) - 1)])
-        self.position = nn.Conv2d(2, w[0], 3, padding=1, bias=False)
+        self.position = nn.Conv2d(2, w[0], 3, padding=1, bias=False) if position else None
         self.context = nn.Conv2d(w[-1], w[-1], 1)
         self.dec = nn.ModuleList([block(w[i + 1] + w[i], w[i]) for i in reversed(range(len(w) - 1))])
         self.head = nn.Conv2d(w[0], sum(CHANNELS), 1)
@@ -190,7 +192,9 @@ class UNet(nn.Module):
         return self.position(torch.cat([xs, ys], 1))
 
     def forward(self, x):
-        if self.fixed is not None:
+        if self.position is None:
+            pos = 0.0
+        elif self.fixed is not None:
             with torch.no_grad():
                 pos = self.position_term(*self.fixed).detach()
         else:
@@ -375,12 +379,35 @@ def losses(pred, y, w_level, w_dn=1.0):
     }
 
 
+def depth_steps(z, valid, step):
+    """Where log depth `z` [N, 1, H, W] steps by more than `step` to a
+    right or lower neighbour (both valid), [N, 1, H, W] (0/1): the
+    silhouettes of objects against what is behind them."""
+    lz = torch.log(z.clamp(min=1e-3))
+    e = torch.zeros_like(lz)
+    vx = valid[..., :, 1:] * valid[..., :, :-1]
+    vy = valid[..., 1:, :] * valid[..., :-1, :]
+    e[..., :, :-1] = torch.maximum(e[..., :, :-1], ((lz[..., :, 1:] - lz[..., :, :-1]).abs() > step).float() * vx)
+    e[..., :-1, :] = torch.maximum(e[..., :-1, :], ((lz[..., 1:, :] - lz[..., :-1, :]).abs() > step).float() * vy)
+    return e
+
+
+def silhouette_recall(pred, true, valid):
+    """Share of the true depth's steps (log z by > 0.1: silhouettes) where
+    the predicted depth also steps (by > 0.03, within 2 pixels). A map of
+    the average layout, with no objects, scores near 0."""
+    t = depth_steps(true, valid, 0.1)
+    p = F.max_pool2d(depth_steps(pred, valid, 0.03), 5, stride=1, padding=2)
+    return (t * p).sum((1, 2, 3)) / t.sum((1, 2, 3)).clamp(min=1.0), t.sum((1, 2, 3))
+
+
 @torch.no_grad()
 def evaluate(model, d, bs=8):
     """Held-out scores per kind of scene (medians over scenes): albedo PSNR
     after the best gain, normal angle, R^2 of an affine fit of z, and the
     angle of the predicted depth's own surface normals (what the mesh
-    shades with) to the true depth's, on smooth surfaces."""
+    shades with) to the true depth's, on smooth surfaces, and the share of
+    the true silhouettes the predicted depth has (`silhouette_recall`)."""
     model.eval()
     scores = {}
     n = len(d["photo"])
@@ -391,6 +418,7 @@ def evaluate(model, d, bs=8):
         zoom = torch.ones(len(idx))
         facets, smooth = true_facets(y, zoom)
         cos_f = (depth_normals(depth, zoom) * facets).sum(1).clamp(-1.0, 1.0)
+        recall, edges = silhouette_recall(depth, y["depth"], y["valid"])
         for j, i in enumerate(idx):
             m = y["valid"][j, 0].bool()
             if int(m.sum()) < 16:
@@ -409,7 +437,8 @@ def evaluate(model, d, bs=8):
             sm = smooth[j, 0].bool()
             cd = cos_f[j][sm]
             mesh = float(torch.rad2deg(torch.acos(cd)).mean()) if int(sm.sum()) > 0 else float("nan")
-            scores.setdefault(str(d["kind"][i]), []).append((psnr, angle, r2, mesh))
+            sil = float(recall[j]) if float(edges[j]) >= 16 else float("nan")
+            scores.setdefault(str(d["kind"][i]), []).append((psnr, angle, r2, mesh, sil))
     model.train()
     out = {}
     for k, v in sorted(scores.items()):
@@ -420,6 +449,7 @@ def evaluate(model, d, bs=8):
             "normal_deg": round(float(np.median(a[:, 1])), 1),
             "depth_r2": round(float(np.median(a[:, 2])), 3),
             "depth_normal_deg": round(float(np.nanmedian(a[:, 3])), 1),
+            "silhouette_recall": round(float(np.nanmedian(a[:, 4])), 3),
         }
     return out
 
@@ -494,6 +524,7 @@ def main():
     ap.add_argument("--full-share", type=float, default=0.2, help="share of the time at 256 x 256 (the rest at 128)")
     ap.add_argument("--batch", type=int, default=8, help="images a step at 128 x 128 (a quarter of that at 256)")
     ap.add_argument("--width", type=int, default=16)
+    ap.add_argument("--position", action="store_true", help="the pixel's position as an input (learns the layout, loses objects)")
     ap.add_argument("--lr", type=float, default=2e-3)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
@@ -515,7 +546,7 @@ def main():
     print(f"data: {len(train['photo'])} train ({dict(zip(kinds.tolist(), counts.tolist()))}), "
           f"{len(heldout['photo'])} held out ({time.time() - t0:.0f} s)", flush=True)
 
-    model = UNet(args.width).to(memory_format=torch.channels_last)
+    model = UNet(args.width, args.position).to(memory_format=torch.channels_last)
     params = sum(p.numel() for p in model.parameters())
     print(f"U-Net width {args.width}: {params} parameters", flush=True)
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
@@ -562,6 +593,7 @@ def main():
         "heldout": f"{len(heldout['photo'])} samples",
         "parameters": params,
         "width": args.width,
+        "position": args.position,
         "steps": step,
         "minutes": args.minutes,
         "full_share": args.full_share,

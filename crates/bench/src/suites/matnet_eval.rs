@@ -28,6 +28,11 @@
 //!   angle over smooth surfaces (where the true depth's facet is within
 //!   ~25° of the true normal map: not across an edge), for the model and
 //!   for a flat wall facing the camera;
+//! - silhouettes: the share of the true depth's steps (ln z changing by
+//!   more than 0.1 between neighbours: objects against what is behind
+//!   them) where the model's depth also steps (by more than 0.03, within
+//!   2 pixels); a depth of the average layout, with no objects, scores
+//!   near 0 (a noisy depth scores high here and badly on its normals);
 //! - roughness and metallic: mean absolute error, model and oracle
 //!   constant (the truth's means).
 
@@ -63,6 +68,8 @@ pub struct Scores {
     pub depth_row: f64,
     pub mesh_model: f64,
     pub mesh_facing: f64,
+    /// `None` where the truth has fewer than 16 steps.
+    pub silhouettes: Option<f64>,
     pub rough_model: f64,
     pub rough_oracle: f64,
     pub metal_model: f64,
@@ -73,6 +80,60 @@ impl Scores {
     pub fn normal_ratio(&self) -> f64 {
         self.normal_model / self.normal_facing.max(1e-9)
     }
+}
+
+/// Pixels where ln z steps by more than `step` to the right or lower
+/// neighbour (both with depth).
+fn depth_steps(z: &GrayImage, step: f32) -> Vec<bool> {
+    let (w, h) = (z.width, z.height);
+    let lz: Vec<Option<f32>> = z
+        .data
+        .iter()
+        .map(|&v| (v > 0.0 && v.is_finite()).then(|| v.ln()))
+        .collect();
+    let mut e = vec![false; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let i = y * w + x;
+            let Some(a) = lz[i] else { continue };
+            let mut near = |j: usize| {
+                if let Some(b) = lz[j] {
+                    if (a - b).abs() > step {
+                        e[i] = true;
+                    }
+                }
+            };
+            if x + 1 < w {
+                near(i + 1);
+            }
+            if y + 1 < h {
+                near(i + w);
+            }
+        }
+    }
+    e
+}
+
+/// Share of the true depth's silhouettes (ln z steps by > 0.1) where
+/// `pred` (the same size) also steps (by > 0.03) within 2 pixels; `None`
+/// where the truth has fewer than 16 such pixels.
+fn silhouette_recall(pred: &GrayImage, truth: &GrayImage) -> Option<f64> {
+    let (w, h) = (truth.width, truth.height);
+    let (t, p) = (depth_steps(truth, 0.1), depth_steps(pred, 0.03));
+    let near = |x: usize, y: usize| {
+        let (x0, y0) = (x.saturating_sub(2), y.saturating_sub(2));
+        (y0..(y + 3).min(h)).any(|yy| (x0..(x + 3).min(w)).any(|xx| p[yy * w + xx]))
+    };
+    let (mut hit, mut all) = (0usize, 0usize);
+    for y in 0..h {
+        for x in 0..w {
+            if t[y * w + x] {
+                all += 1;
+                hit += near(x, y) as usize;
+            }
+        }
+    }
+    (all >= 16).then(|| hit as f64 / all as f64)
 }
 
 /// PSNR of `gain · p` against `t` (clamped to [0, 1]) over `valid`, the
@@ -276,19 +337,21 @@ fn scores_of(p: &MatnetPrediction, truth: &MaterialMaps, tz: &GrayImage) -> Scor
     let rows: Vec<f64> = valid.iter().map(|&i| (i / w) as f64).collect();
     let tzv: Vec<f64> = valid.iter().map(|&i| tz.data[i] as f64).collect();
     s.depth_row = affine_r2(&rows, &tzv);
-    // The mesh's facets: the depth as the mesh stage takes it (z, or the
-    // reference's 2·max − d for disparity, which commutes with the
-    // resize above), at the truth's size.
+    // The depth as the mesh stage takes it (z, or the reference's
+    // 2·max − d for disparity, which commutes with the resize above), at
+    // the truth's size: its facets and its silhouettes.
+    let z: Vec<f32> = match p.depth_kind {
+        DepthKind::Z => raw.data.iter().map(|v| v.x).collect(),
+        DepthKind::Disparity => {
+            let m = p.depth_raw().max_value();
+            raw.data.iter().map(|v| 2.0 * m - v.x).collect()
+        }
+    };
+    let z = GrayImage::from_vec(w, h, z);
     if let Some(tn) = tn {
-        let z: Vec<f32> = match p.depth_kind {
-            DepthKind::Z => raw.data.iter().map(|v| v.x).collect(),
-            DepthKind::Disparity => {
-                let m = p.depth_raw().max_value();
-                raw.data.iter().map(|v| 2.0 * m - v.x).collect()
-            }
-        };
-        (s.mesh_model, s.mesh_facing) = mesh_normal_angles(&GrayImage::from_vec(w, h, z), tz, tn);
+        (s.mesh_model, s.mesh_facing) = mesh_normal_angles(&z, tz, tn);
     }
+    s.silhouettes = silhouette_recall(&z, tz);
     s
 }
 
@@ -352,17 +415,22 @@ pub fn bundle_scenes(dir: &Path) -> Result<Vec<Scene>> {
 }
 
 /// Prints the per-scene table, the per-kind medians and the targets.
+/// A share as a percentage, or "–" where there is none.
+fn share(v: Option<f64>) -> String {
+    v.map_or_else(|| "–".to_string(), |v| format!("{:.0} %", 100.0 * v))
+}
+
 pub fn print_tables(title: &str, rows: &[(Scene, Scores)]) {
     println!("\n{title}: per scene");
     println!(
         "| scene | kind | albedo PSNR: model / photo / grey / oracle | normals: model / facing | \
-         depth R²: model / row | depth's normals: model / facing | roughness MAE: model / oracle | \
+         depth R²: model / row | depth's normals: model / facing | silhouettes | roughness MAE: model / oracle | \
          metallic MAE: model / oracle |\n\
-         |---|---|---|---|---|---|---|---|"
+         |---|---|---|---|---|---|---|---|---|"
     );
     for (sc, s) in rows {
         println!(
-            "| {} | {} | {:.2} / {:.2} / {:.2} / {:.2} dB | {:.1}° / {:.1}° | {:.2} / {:.2} | {:.1}° / {:.1}° | {:.3} / {:.3} | {:.3} / {:.3} |",
+            "| {} | {} | {:.2} / {:.2} / {:.2} / {:.2} dB | {:.1}° / {:.1}° | {:.2} / {:.2} | {:.1}° / {:.1}° | {} | {:.3} / {:.3} | {:.3} / {:.3} |",
             sc.name,
             sc.kind,
             s.albedo_model,
@@ -375,6 +443,7 @@ pub fn print_tables(title: &str, rows: &[(Scene, Scores)]) {
             s.depth_row,
             s.mesh_model,
             s.mesh_facing,
+            share(s.silhouettes),
             s.rough_model,
             s.rough_oracle,
             s.metal_model,
@@ -388,14 +457,14 @@ pub fn print_tables(title: &str, rows: &[(Scene, Scores)]) {
     }
     println!("\n{title}: medians per kind, and the scenes that meet each target");
     println!(
-        "| kind | scenes | albedo PSNR: model / photo / oracle | ≥ photo + 2 dB | normals: model / facing | ≤ 0.7× facing | depth R² model | ≥ 0.7 | depth's normals: model / facing |\n\
-         |---|---|---|---|---|---|---|---|---|"
+        "| kind | scenes | albedo PSNR: model / photo / oracle | ≥ photo + 2 dB | normals: model / facing | ≤ 0.7× facing | depth R² model | ≥ 0.7 | depth's normals: model / facing | silhouettes |\n\
+         |---|---|---|---|---|---|---|---|---|---|"
     );
     for (k, v) in &kinds {
         let med = |f: &dyn Fn(&Scores) -> f64| median(v.iter().map(|s| f(s)).collect());
         let count = |f: &dyn Fn(&Scores) -> bool| v.iter().filter(|s| f(s)).count();
         println!(
-            "| {k} | {} | {:.2} / {:.2} / {:.2} dB | {} | {:.1}° / {:.1}° | {} | {:.2} | {} | {:.1}° / {:.1}° |",
+            "| {k} | {} | {:.2} / {:.2} / {:.2} dB | {} | {:.1}° / {:.1}° | {} | {:.2} | {} | {:.1}° / {:.1}° | {} |",
             v.len(),
             med(&|s| s.albedo_model),
             med(&|s| s.albedo_photo),
@@ -408,6 +477,10 @@ pub fn print_tables(title: &str, rows: &[(Scene, Scores)]) {
             count(&|s| s.depth_model >= 0.7),
             med(&|s| s.mesh_model),
             med(&|s| s.mesh_facing),
+            share({
+                let v: Vec<f64> = v.iter().filter_map(|s| s.silhouettes).collect();
+                (!v.is_empty()).then(|| median(v))
+            }),
         );
     }
 }
@@ -452,6 +525,32 @@ mod tests {
             *v *= 1.0 + 0.02 * ((k * 37 % 11) as f32 / 10.0 - 0.5);
         }
         assert!(mesh_normal_angles(&noisy, &plane(1.0), &normal).0 > 5.0);
+    }
+
+    #[test]
+    fn silhouettes_are_found_in_a_depth_with_the_object_and_not_in_one_without() {
+        // A box at z = 2 in front of a wall at z = 5.
+        let (w, h) = (32, 24);
+        let scene = |boxed: bool, scale: f32| {
+            let z = (0..w * h).map(|k| {
+                let (x, y) = (k % w, k / w);
+                let inside = boxed && (10..20).contains(&x) && (8..16).contains(&y);
+                scale * if inside { 2.0 } else { 5.0 + 0.01 * y as f32 }
+            });
+            GrayImage::from_vec(w, h, z.collect())
+        };
+        let truth = scene(true, 1.0);
+        assert_eq!(silhouette_recall(&scene(true, 3.0), &truth), Some(1.0));
+        assert_eq!(silhouette_recall(&scene(false, 1.0), &truth), Some(0.0));
+        // A box drawn 2 pixels off still counts; a wall alone has no silhouettes.
+        let mut moved = scene(false, 1.0);
+        for y in 10..18 {
+            for x in 12..22 {
+                moved.data[y * w + x] = 2.0;
+            }
+        }
+        assert_eq!(silhouette_recall(&moved, &truth), Some(1.0));
+        assert_eq!(silhouette_recall(&truth, &scene(false, 1.0)), None);
     }
 
     #[test]
