@@ -32,6 +32,9 @@ cameras):
   albedo     L1 after the best single gain (gain-invariant), and a small
              weight on plain L1 (the level)
   normals    the angle between prediction and truth
+  silhouettes  the predicted ln z step against the true one where the
+             true depth steps (objects against what is behind them),
+             averaged over those edges alone, so small objects count
   depth's own normals  the angle between the normals of the surface the
              predicted depth makes (what the mesh stage shades with) and
              the true depth's, on smooth surfaces; without it a depth
@@ -39,8 +42,9 @@ cameras):
   roughness, metallic  L1
   photos     exposure (x0.5-2), white balance (+-15 % a channel), zoom
              crops (75-100 %), mirror, blur, sensor noise, JPEG
-  schedule   most steps on whole images halved to 128 x 128, the rest at
-             256 x 256 (the contract's size)
+  schedule   most steps at 128 x 128: whole images halved, or (half of
+             them) full-resolution windows; the rest at 256 x 256 (the
+             contract's size)
 
 Data: `matflow dataset train/matnet/kinds.yaml --out out/matnet/train` and
 `matflow dataset train/matnet/kinds-heldout.yaml --out out/matnet/heldout`
@@ -252,7 +256,9 @@ def batch_tensors(d, idx, size, rng, a):
     """Inputs and targets for samples `idx` at `size` x `size` (whole
     images; halved by averaging 2 x 2 photo pixels and taking one target
     pixel of each 2 x 2). With `a` (training), the photo goes through
-    `camera`, and now and then a zoom crop and a mirror."""
+    `camera`, and now and then a zoom crop and a mirror; and a share
+    (`a.crop_share`) of the halved images is a full-resolution window
+    instead."""
     xs, ys, zooms = [], [], []
     for i in idx:
         photo = d["photo"][i]
@@ -280,7 +286,16 @@ def batch_tensors(d, idx, size, rng, a):
                 t = {k: v[:, ::-1].copy() for k, v in t.items()}
                 t["normal"][..., 0] *= -1.0
         x = linearise(photo)
-        if size != SIZE:
+        if size != SIZE and a is not None and rng.random() < a.crop_share:
+            # A window at full resolution: the photo's detail, and no
+            # whole layout to lean on. The focal length in the window's
+            # widths grows by SIZE / size (the principal point moves off
+            # centre; prediction and truth share the same rays).
+            y0, x0 = rng.integers(0, SIZE - size + 1), rng.integers(0, SIZE - size + 1)
+            x = x[y0 : y0 + size, x0 : x0 + size]
+            t = {k: v[y0 : y0 + size, x0 : x0 + size] for k, v in t.items()}
+            zoom *= SIZE / size
+        elif size != SIZE:
             f = SIZE // size
             x = x.reshape(size, f, size, f, 3).mean((1, 3))
             t = {k: v[::f, ::f] for k, v in t.items()}
@@ -333,7 +348,23 @@ def true_facets(y, zoom):
     return nt, m
 
 
-def losses(pred, y, w_level, w_dn=1.0):
+def silhouette_loss(depth, y):
+    """L1 of the predicted ln z step against the true one across the
+    true depth's silhouettes (neighbours whose ln z differs by > 0.1,
+    both with geometry), averaged over the silhouettes alone: an object
+    counts however few its edge pixels are against the layout's."""
+    lp, lt, v = torch.log(depth), torch.log(y["depth"].clamp(min=1e-3)), y["valid"]
+    total = 0.0
+    for dim in (3, 2):
+        n = lp.shape[dim] - 1
+        dp = lp.narrow(dim, 1, n) - lp.narrow(dim, 0, n)
+        dt = lt.narrow(dim, 1, n) - lt.narrow(dim, 0, n)
+        on = v.narrow(dim, 1, n) * v.narrow(dim, 0, n) * (dt.abs() > 0.1).float()
+        total = total + ((dp - dt).abs() * on).sum() / on.sum().clamp(min=1.0)
+    return total
+
+
+def losses(pred, y, w_level, w_dn=1.0, w_sil=1.0):
     depth, albedo, rough, metal, normal = pred
     v = y["valid"]
     has = (v.sum((1, 2, 3)) > 0).float()
@@ -368,6 +399,7 @@ def losses(pred, y, w_level, w_dn=1.0):
     nt, vv = true_facets(y, zoom)
     cos_d = (depth_normals(depth, zoom) * nt).sum(1, keepdim=True).clamp(-0.9999, 0.9999)
     l_dn = w_dn * per_image(masked_mean(torch.acos(cos_d), vv)[:, 0])
+    l_sil = w_sil * silhouette_loss(depth, y) if w_sil > 0 else torch.zeros(())
     return {
         "depth": l_depth,
         "depth_grad": l_grad,
@@ -376,6 +408,7 @@ def losses(pred, y, w_level, w_dn=1.0):
         "metallic": l_metal,
         "normal": l_normal,
         "depth_normal": l_dn,
+        "silhouette": l_sil,
     }
 
 
@@ -533,6 +566,8 @@ def main():
     ap.add_argument("--zoom-share", type=float, default=0.3, help="share of photos zoom-cropped (75-100 %%)")
     ap.add_argument("--level-weight", type=float, default=0.2, help="weight of the depth scale and albedo level")
     ap.add_argument("--depth-normal-weight", type=float, default=1.0, help="weight of the depth's own normals")
+    ap.add_argument("--silhouette-weight", type=float, default=1.0, help="weight of the depth's steps at true silhouettes")
+    ap.add_argument("--crop-share", type=float, default=0.5, help="share of the 128 x 128 images that are full-resolution windows")
     ap.add_argument("--data", default="matflow dataset train/matnet/kinds.yaml", help="what the data is, for the record")
     args = ap.parse_args()
 
@@ -571,7 +606,7 @@ def main():
         idx = rng.integers(0, n, size=bs)
         x, y = batch_tensors(train, idx, size, rng, args)
         x = x.contiguous(memory_format=torch.channels_last)
-        parts = losses(model(x), y, args.level_weight, args.depth_normal_weight)
+        parts = losses(model(x), y, args.level_weight, args.depth_normal_weight, args.silhouette_weight)
         loss = sum(parts.values())
         opt.zero_grad()
         loss.backward()
@@ -605,6 +640,8 @@ def main():
         "zoom_share": args.zoom_share,
         "level_weight": args.level_weight,
         "depth_normal_weight": args.depth_normal_weight,
+        "silhouette_weight": args.silhouette_weight,
+        "crop_share": args.crop_share,
         "threads": args.threads,
         "train_seconds": round(train_s, 1),
         "heldout_medians_per_kind": errs,
