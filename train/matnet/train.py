@@ -6,8 +6,8 @@ MatNet's contract (crates/onnx/src/matnet.rs).
 The network is a U-Net of six levels with the image's mean features added
 at the bottom (the layout of a scene is a strong cue to its depth and
 normals). The pixel's position as an input (`--position`) is off by
-default: with it, the network learnt the average layout from where a
-pixel is and ignored what the photo shows (the objects vanished). It takes what
+default: with it, the network learnt the average layout from where a pixel
+is and ignored what the photo shows (the objects vanished). It takes what
 MatNet takes (the photo, centre-cropped, /255, raised to 2.2; no mean or
 std) at 256 x 256 and gives MatNet's five outputs, named as the official
 network's dict:
