@@ -57,6 +57,9 @@ Usage:
       --heldout out/matnet/heldout --out models/matnet_rooms.onnx \
       --minutes 50
 
+It trains on the GPU when PyTorch sees one (`--device auto`), else on the
+CPU (`--threads`); the export, its check and the fixture run on the CPU.
+
 Besides the model it writes <out>.json (steps, time, held-out errors) and a
 fixture for matflow's Rust test: a small photo the test pre-processes itself
 (tests/data/matnet_photo.png, a held-out render cut to 256 x 192) and the
@@ -191,8 +194,9 @@ class UNet(nn.Module):
         self.fixed = None  # (h, w) to export at: the position term is then a constant
 
     def position_term(self, h, w):
-        ys = torch.linspace(-1.0, 1.0, h).view(1, 1, h, 1).expand(1, 1, h, w)
-        xs = torch.linspace(-1.0, 1.0, w).view(1, 1, 1, w).expand(1, 1, h, w)
+        dev = self.position.weight.device
+        ys = torch.linspace(-1.0, 1.0, h, device=dev).view(1, 1, h, 1).expand(1, 1, h, w)
+        xs = torch.linspace(-1.0, 1.0, w, device=dev).view(1, 1, 1, w).expand(1, 1, h, w)
         return self.position(torch.cat([xs, ys], 1))
 
     def forward(self, x):
@@ -326,8 +330,8 @@ def depth_normals(z, zoom):
     it does not change with the depth's scale."""
     n, _, h, w = z.shape
     f = (w * 0.5 / math.tan(math.radians(FOV_X_DEG * 0.5))) * zoom.view(n, 1, 1)
-    u = (torch.arange(w, dtype=z.dtype) - (w - 1) * 0.5).view(1, 1, w) / f
-    v = -(torch.arange(h, dtype=z.dtype) - (h - 1) * 0.5).view(1, h, 1) / f
+    u = (torch.arange(w, dtype=z.dtype, device=z.device) - (w - 1) * 0.5).view(1, 1, w) / f
+    v = -(torch.arange(h, dtype=z.dtype, device=z.device) - (h - 1) * 0.5).view(1, h, 1) / f
     zz = z[:, 0]
     p = torch.stack([u * zz, v * zz, -zz], 1)
     di = p[:, :, :-1, 1:] - p[:, :, :-1, :-1]
@@ -395,11 +399,11 @@ def losses(pred, y, w_level, w_dn=1.0, w_sil=1.0):
     l_normal = per_image(masked_mean(torch.acos(cos), v)[:, 0])
     # The depth's own surface normals against the true depth's on smooth
     # surfaces. The mesh is shaded with these.
-    zoom = y.get("zoom", torch.ones(depth.shape[0]))
+    zoom = y.get("zoom", torch.ones(depth.shape[0], device=depth.device))
     nt, vv = true_facets(y, zoom)
     cos_d = (depth_normals(depth, zoom) * nt).sum(1, keepdim=True).clamp(-0.9999, 0.9999)
     l_dn = w_dn * per_image(masked_mean(torch.acos(cos_d), vv)[:, 0])
-    l_sil = w_sil * silhouette_loss(depth, y) if w_sil > 0 else torch.zeros(())
+    l_sil = w_sil * silhouette_loss(depth, y) if w_sil > 0 else torch.zeros((), device=depth.device)
     return {
         "depth": l_depth,
         "depth_grad": l_grad,
@@ -435,7 +439,7 @@ def silhouette_recall(pred, true, valid):
 
 
 @torch.no_grad()
-def evaluate(model, d, bs=8):
+def evaluate(model, d, bs=8, device="cpu"):
     """Held-out scores per kind of scene (medians over scenes): albedo PSNR
     after the best gain, normal angle, R^2 of an affine fit of z, and the
     angle of the predicted depth's own surface normals (what the mesh
@@ -447,7 +451,7 @@ def evaluate(model, d, bs=8):
     for s in range(0, n, bs):
         idx = list(range(s, min(n, s + bs)))
         x, y = batch_tensors(d, idx, SIZE, None, None)
-        depth, albedo, rough, metal, normal = model(x)
+        depth, albedo, rough, metal, normal = (o.cpu() for o in model(x.to(device)))
         zoom = torch.ones(len(idx))
         facets, smooth = true_facets(y, zoom)
         cos_f = (depth_normals(depth, zoom) * facets).sum(1).clamp(-1.0, 1.0)
@@ -559,7 +563,8 @@ def main():
     ap.add_argument("--width", type=int, default=16)
     ap.add_argument("--position", action="store_true", help="the pixel's position as an input (learns the layout, loses objects)")
     ap.add_argument("--lr", type=float, default=2e-3)
-    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=2, help="CPU threads")
+    ap.add_argument("--device", default="auto", help="cpu, cuda, or auto (cuda when PyTorch sees one)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--exposure", type=float, default=1.0, help="photo exposure: +- this many stops")
     ap.add_argument("--white-balance", type=float, default=0.15, help="photo white balance: +- this share a channel")
@@ -581,7 +586,8 @@ def main():
     print(f"data: {len(train['photo'])} train ({dict(zip(kinds.tolist(), counts.tolist()))}), "
           f"{len(heldout['photo'])} held out ({time.time() - t0:.0f} s)", flush=True)
 
-    model = UNet(args.width, args.position).to(memory_format=torch.channels_last)
+    device = ("cuda" if torch.cuda.is_available() else "cpu") if args.device == "auto" else args.device
+    model = UNet(args.width, args.position).to(device, memory_format=torch.channels_last)
     params = sum(p.numel() for p in model.parameters())
     print(f"U-Net width {args.width}: {params} parameters", flush=True)
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
@@ -605,7 +611,8 @@ def main():
         bs = max(1, args.batch // 4) if full else args.batch
         idx = rng.integers(0, n, size=bs)
         x, y = batch_tensors(train, idx, size, rng, args)
-        x = x.contiguous(memory_format=torch.channels_last)
+        x = x.to(device).contiguous(memory_format=torch.channels_last)
+        y = {k: v.to(device) for k, v in y.items()}
         parts = losses(model(x), y, args.level_weight, args.depth_normal_weight, args.silhouette_weight)
         loss = sum(parts.values())
         opt.zero_grad()
@@ -621,7 +628,7 @@ def main():
             )
         step += 1
     train_s = time.time() - t_train
-    errs = evaluate(model, heldout)
+    errs = evaluate(model, heldout, device=device)
     print("held out:", json.dumps(errs), flush=True)
     info = {
         "data": f"{args.data} ({n} samples: {dict(zip(kinds.tolist(), counts.tolist()))})",
@@ -643,11 +650,12 @@ def main():
         "silhouette_weight": args.silhouette_weight,
         "crop_share": args.crop_share,
         "threads": args.threads,
+        "device": device,
         "train_seconds": round(train_s, 1),
         "heldout_medians_per_kind": errs,
         "torch": torch.__version__,
     }
-    model = model.to(memory_format=torch.contiguous_format)
+    model = model.to("cpu", memory_format=torch.contiguous_format)
     worst = export(model, args.out, info, heldout)
     info["onnxruntime_vs_torch_max_abs"] = worst
     stem = args.out[: -len(".onnx")] if args.out.endswith(".onnx") else args.out
