@@ -32,9 +32,10 @@ cameras):
   albedo     L1 after the best single gain (gain-invariant), and a small
              weight on plain L1 (the level)
   normals    the angle between prediction and truth
-  silhouettes  the predicted ln z step against the true one where the
-             true depth steps (objects against what is behind them),
-             averaged over those edges alone, so small objects count
+  silhouettes  (--silhouette-weight, off by default) the predicted ln z
+             step's size against the true one's where the true depth
+             steps (objects against what is behind them), averaged over
+             those edges alone, so small objects count
   depth's own normals  the angle between the normals of the surface the
              predicted depth makes (what the mesh stage shades with) and
              the true depth's, on smooth surfaces; without it a depth
@@ -42,9 +43,9 @@ cameras):
   roughness, metallic  L1
   photos     exposure (x0.5-2), white balance (+-15 % a channel), zoom
              crops (75-100 %), mirror, blur, sensor noise, JPEG
-  schedule   most steps at 128 x 128: whole images halved, or (half of
-             them) full-resolution windows; the rest at 256 x 256 (the
-             contract's size)
+  schedule   most steps at 128 x 128: whole images halved, or (a share,
+             --crop-share, 0 by default) full-resolution windows; the rest
+             at 256 x 256 (the contract's size)
 
 Data: `matflow dataset train/matnet/kinds.yaml --out out/matnet/train` and
 `matflow dataset train/matnet/kinds-heldout.yaml --out out/matnet/heldout`
@@ -353,10 +354,13 @@ def true_facets(y, zoom):
 
 
 def silhouette_loss(depth, y):
-    """L1 of the predicted ln z step against the true one across the
-    true depth's silhouettes (neighbours whose ln z differs by > 0.1,
+    """L1 of the predicted ln z step's size against the true one's across
+    the true depth's silhouettes (neighbours whose ln z differs by > 0.1,
     both with geometry), averaged over the silhouettes alone: an object
-    counts however few its edge pixels are against the layout's."""
+    counts however few its edge pixels are against the layout's. The
+    sign is left to the depth loss: on a signed step, L1 is least at 0
+    while the network doubts which side is nearer, and a run with it
+    learnt no steps at all."""
     lp, lt, v = torch.log(depth), torch.log(y["depth"].clamp(min=1e-3)), y["valid"]
     total = 0.0
     for dim in (3, 2):
@@ -364,7 +368,7 @@ def silhouette_loss(depth, y):
         dp = lp.narrow(dim, 1, n) - lp.narrow(dim, 0, n)
         dt = lt.narrow(dim, 1, n) - lt.narrow(dim, 0, n)
         on = v.narrow(dim, 1, n) * v.narrow(dim, 0, n) * (dt.abs() > 0.1).float()
-        total = total + ((dp - dt).abs() * on).sum() / on.sum().clamp(min=1.0)
+        total = total + ((dp.abs() - dt.abs()).abs() * on).sum() / on.sum().clamp(min=1.0)
     return total
 
 
@@ -571,8 +575,8 @@ def main():
     ap.add_argument("--zoom-share", type=float, default=0.3, help="share of photos zoom-cropped (75-100 %%)")
     ap.add_argument("--level-weight", type=float, default=0.2, help="weight of the depth scale and albedo level")
     ap.add_argument("--depth-normal-weight", type=float, default=1.0, help="weight of the depth's own normals")
-    ap.add_argument("--silhouette-weight", type=float, default=1.0, help="weight of the depth's steps at true silhouettes")
-    ap.add_argument("--crop-share", type=float, default=0.5, help="share of the 128 x 128 images that are full-resolution windows")
+    ap.add_argument("--silhouette-weight", type=float, default=0.0, help="weight of the depth's step sizes at true silhouettes")
+    ap.add_argument("--crop-share", type=float, default=0.0, help="share of the 128 x 128 images that are full-resolution windows")
     ap.add_argument("--data", default="matflow dataset train/matnet/kinds.yaml", help="what the data is, for the record")
     args = ap.parse_args()
 
