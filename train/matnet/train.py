@@ -353,6 +353,17 @@ def true_facets(y, zoom):
     return nt, m
 
 
+def neighbour_steps(z, valid):
+    """ln z's steps to the right and to the lower neighbour, each with
+    where both pixels are valid: [(step, both)] for x, then y."""
+    lz = torch.log(z.clamp(min=1e-3))
+    out = []
+    for dim in (3, 2):
+        n = lz.shape[dim] - 1
+        out.append((lz.narrow(dim, 1, n) - lz.narrow(dim, 0, n), valid.narrow(dim, 1, n) * valid.narrow(dim, 0, n)))
+    return out
+
+
 def silhouette_loss(depth, y):
     """L1 of the predicted ln z step's size against the true one's across
     the true depth's silhouettes (neighbours whose ln z differs by > 0.1,
@@ -361,18 +372,15 @@ def silhouette_loss(depth, y):
     sign is left to the depth loss: on a signed step, L1 is least at 0
     while the network doubts which side is nearer, and a run with it
     learnt no steps at all."""
-    lp, lt, v = torch.log(depth), torch.log(y["depth"].clamp(min=1e-3)), y["valid"]
     total = 0.0
-    for dim in (3, 2):
-        n = lp.shape[dim] - 1
-        dp = lp.narrow(dim, 1, n) - lp.narrow(dim, 0, n)
-        dt = lt.narrow(dim, 1, n) - lt.narrow(dim, 0, n)
-        on = v.narrow(dim, 1, n) * v.narrow(dim, 0, n) * (dt.abs() > 0.1).float()
+    pred, true = neighbour_steps(depth, y["valid"]), neighbour_steps(y["depth"], y["valid"])
+    for (dp, _), (dt, both) in zip(pred, true):
+        on = both * (dt.abs() > 0.1).float()
         total = total + ((dp.abs() - dt.abs()).abs() * on).sum() / on.sum().clamp(min=1.0)
     return total
 
 
-def losses(pred, y, w_level, w_dn=1.0, w_sil=1.0):
+def losses(pred, y, w_level, w_dn=1.0, w_sil=0.0):
     depth, albedo, rough, metal, normal = pred
     v = y["valid"]
     has = (v.sum((1, 2, 3)) > 0).float()
@@ -424,12 +432,10 @@ def depth_steps(z, valid, step):
     """Where log depth `z` [N, 1, H, W] steps by more than `step` to a
     right or lower neighbour (both valid), [N, 1, H, W] (0/1): the
     silhouettes of objects against what is behind them."""
-    lz = torch.log(z.clamp(min=1e-3))
-    e = torch.zeros_like(lz)
-    vx = valid[..., :, 1:] * valid[..., :, :-1]
-    vy = valid[..., 1:, :] * valid[..., :-1, :]
-    e[..., :, :-1] = torch.maximum(e[..., :, :-1], ((lz[..., :, 1:] - lz[..., :, :-1]).abs() > step).float() * vx)
-    e[..., :-1, :] = torch.maximum(e[..., :-1, :], ((lz[..., 1:, :] - lz[..., :-1, :]).abs() > step).float() * vy)
+    (dx, vx), (dy, vy) = neighbour_steps(z, valid)
+    e = torch.zeros_like(z)
+    e[..., :, :-1] = (dx.abs() > step).float() * vx
+    e[..., :-1, :] = torch.maximum(e[..., :-1, :], (dy.abs() > step).float() * vy)
     return e
 
 

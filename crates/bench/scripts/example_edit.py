@@ -37,8 +37,7 @@ SEED = (80, 400)  # x, y: pipelines/photo.yaml's mask_object
 def read(path):
     ch = OpenEXR.File(path).channels()
     key = "RGB" if "RGB" in ch else next(iter(ch))
-    a = np.asarray(ch[key].pixels, np.float64)
-    return a
+    return np.asarray(ch[key].pixels, np.float64)
 
 
 def main():

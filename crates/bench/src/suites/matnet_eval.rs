@@ -414,12 +414,12 @@ pub fn bundle_scenes(dir: &Path) -> Result<Vec<Scene>> {
     Ok(out)
 }
 
-/// Prints the per-scene table, the per-kind medians and the targets.
 /// A share as a percentage, or "–" where there is none.
 fn share(v: Option<f64>) -> String {
     v.map_or_else(|| "–".to_string(), |v| format!("{:.0} %", 100.0 * v))
 }
 
+/// Prints the per-scene table, the per-kind medians and the targets.
 pub fn print_tables(title: &str, rows: &[(Scene, Scores)]) {
     println!("\n{title}: per scene");
     println!(
