@@ -182,7 +182,8 @@ const OBJECT_EDGES: ParamSpec = ParamSpec {
     default: Some("0.03"),
     unit: "γ-encoded",
     doc: "with mask_object: the region also stops where the photo steps by more than this \
-          between neighbours (3×3 means, any channel): an object's outline, where blurred \
+          across neighbours (3×3 means, any channel, from the pixel before the pair to the \
+          one beyond): an object's outline, where blurred \
           predictions run smoothly into what is behind it (0: the predictions alone, as \
           the studio's click)",
 };
