@@ -6,10 +6,11 @@ where the photo steps by more than `object_edges` (γ-encoded 3×3 means).
 This measures that edge rule alone, with no predictions, on the
 held-out generated scenes, three ways:
 
-- adjacent: the step between the two neighbours' means (matflow before
-  2026-11-30): a soft or anti-aliased outline steps by a third of its
-  contrast there;
-- across: from the pixel before the pair to the one beyond (matflow now);
+- adjacent: the step between the two neighbours' means (matflow's rule):
+  a soft or anti-aliased outline steps by a third of its contrast there;
+- across: from the pixel before the pair to the one beyond (tried and
+  reverted: texture and render noise step as much across three pixels,
+  see docs/notes/2026-11-matnet-kinds.md);
 - pixels: no pixel whose own central difference exceeds the step.
 
 True objects: each connected region of one true albedo without a depth

@@ -1,6 +1,8 @@
 //! `matflow-bench select`: one click's selection on a bundle's
-//! predictions (`matflow_scene::select`), with the bundle's own normals
-//! and with normals estimated from its depth, at two colour tolerances:
+//! predictions (`matflow_scene::select`), with the bundle's own normals,
+//! with normals estimated from its depth, and with the bundle's normals
+//! within the photo's own edges (the `edit` stage's `mask_object`), at
+//! two colour tolerances:
 //! the pixels taken per click, and an overlay per click written beside
 //! for a person to judge (the photo, the region tinted blue, the click
 //! red). Real photos have no ground truth here: the images are the check.
@@ -9,7 +11,7 @@ use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use matflow_scene::select::{grow_object, Grow};
+use matflow_scene::select::{grow_object, grow_object_within_edges, Grow};
 use matflow_scene::{io, Bundle, Camera, MaterialSource};
 
 #[derive(Args)]
@@ -22,6 +24,10 @@ pub struct BenchSelectArgs {
     /// Colour tolerances to try.
     #[arg(long, value_delimiter = ',', default_values_t = [0.1, 0.2])]
     pub tolerances: Vec<f32>,
+    /// The photo's step that stops a region in the last column (the
+    /// `edit` stage's `object_edges`; its default).
+    #[arg(long, default_value_t = 0.03)]
+    pub edges: f32,
     /// Where the overlays go.
     #[arg(long, default_value = "/tmp/matflow-bench-select")]
     pub out: PathBuf,
@@ -37,8 +43,8 @@ pub fn bench_select(a: BenchSelectArgs) -> Result<()> {
     std::fs::create_dir_all(&a.out)?;
     outln!("{} ({w}x{h}): pixels one click selects", a.bundle.display());
     outln!();
-    outln!("| click | tolerance | bundle's normals | normals from depth |");
-    outln!("|---|---|---|---|");
+    outln!("| click | tolerance | bundle's normals | normals from depth | bundle's normals, within the photo's edges |");
+    outln!("|---|---|---|---|---|");
     for click in &a.clicks {
         let v: Vec<usize> = click
             .split(',')
@@ -54,8 +60,27 @@ pub fn bench_select(a: BenchSelectArgs) -> Result<()> {
                 ..Grow::default()
             };
             let mut counts = Vec::new();
-            for (tag, n) in [("given", maps.normal.as_ref()), ("depth", None)] {
-                let m = grow_object(&maps.albedo, &depth, n, &cam, (v[0], v[1]), &g);
+            let given = maps.normal.as_ref();
+            for (tag, n, edges) in [
+                ("given", given, false),
+                ("depth", None, false),
+                ("edges", given, true),
+            ] {
+                let seed = (v[0], v[1]);
+                let m = if edges {
+                    grow_object_within_edges(
+                        &maps.albedo,
+                        &depth,
+                        n,
+                        &photo,
+                        a.edges,
+                        &cam,
+                        seed,
+                        &g,
+                    )
+                } else {
+                    grow_object(&maps.albedo, &depth, n, &cam, seed, &g)
+                };
                 counts.push(m.data.iter().filter(|&&s| s).count());
                 let shown = matflow_scene::Image::from_fn(w, h, |x, y| {
                     let near = x.abs_diff(v[0]) < 3 && y.abs_diff(v[1]) < 3;
@@ -71,7 +96,12 @@ pub fn bench_select(a: BenchSelectArgs) -> Result<()> {
                 let file = a.out.join(format!("{}_{}_{tol}_{tag}.png", v[0], v[1]));
                 io::write_png_gamma(&file, &shown)?;
             }
-            outln!("| {click} | {tol} | {} px | {} px |", counts[0], counts[1]);
+            outln!(
+                "| {click} | {tol} | {} px | {} px | {} px |",
+                counts[0],
+                counts[1],
+                counts[2]
+            );
         }
     }
     outln!();

@@ -182,10 +182,9 @@ const OBJECT_EDGES: ParamSpec = ParamSpec {
     default: Some("0.03"),
     unit: "γ-encoded",
     doc: "with mask_object: the region also stops where the photo steps by more than this \
-          across neighbours (3×3 means, any channel, from the pixel before the pair to the \
-          one beyond): an object's outline, where blurred \
-          predictions run smoothly into what is behind it (0: the predictions alone; the \
-          studio's click takes the default)",
+          between neighbours (3×3 means, any channel): an object's outline, where blurred \
+          predictions run smoothly into what is behind it (0: the predictions alone, as \
+          the studio's click)",
 };
 
 const OBJECT_TOLERANCE: ParamSpec = ParamSpec {
@@ -454,16 +453,4 @@ pub(crate) fn check_mask_choice(p: &Params, offered: &[&str]) -> Result<(), Stri
         ));
     }
     Ok(())
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// The studio's click and the stage's default stop at the same edges.
-    #[test]
-    fn object_edges_defaults_to_the_shared_step() {
-        let d: f32 = OBJECT_EDGES.default.unwrap().parse().unwrap();
-        assert_eq!(d, matflow_scene::select::PHOTO_EDGE_STEP);
-    }
 }
