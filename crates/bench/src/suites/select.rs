@@ -60,26 +60,24 @@ pub fn bench_select(a: BenchSelectArgs) -> Result<()> {
                 ..Grow::default()
             };
             let mut counts = Vec::new();
-            let given = maps.normal.as_ref();
+            let (given, seed) = (maps.normal.as_ref(), (v[0], v[1]));
             for (tag, n, edges) in [
-                ("given", given, false),
-                ("depth", None, false),
-                ("edges", given, true),
+                ("given", given, None),
+                ("depth", None, None),
+                ("edges", given, Some(a.edges)),
             ] {
-                let seed = (v[0], v[1]);
-                let m = if edges {
-                    grow_object_within_edges(
+                let m = match edges {
+                    Some(step) => grow_object_within_edges(
                         &maps.albedo,
                         &depth,
                         n,
                         &photo,
-                        a.edges,
+                        step,
                         &cam,
                         seed,
                         &g,
-                    )
-                } else {
-                    grow_object(&maps.albedo, &depth, n, &cam, seed, &g)
+                    ),
+                    None => grow_object(&maps.albedo, &depth, n, &cam, seed, &g),
                 };
                 counts.push(m.data.iter().filter(|&&s| s).count());
                 let shown = matflow_scene::Image::from_fn(w, h, |x, y| {
