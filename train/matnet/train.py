@@ -17,8 +17,9 @@ network's dict:
                                matflow.depth = "z"; MatNet's own depth is
                                disparity-like, and a model without that key
                                is read as disparity)
-  albedo     [N, 3, 256, 256]  linear, sigmoid (with --albedo-from-photo:
-                               tanh of the photo times a predicted gain)
+  albedo     [N, 3, 256, 256]  linear, sigmoid (with --albedo photo: tanh
+                               of the photo times a predicted gain; blend:
+                               the two mixed per pixel)
   roughness  [N, 1, 256, 256]  sigmoid
   metallic   [N, 1, 256, 256]  sigmoid
   normal     [N, 3, 256, 256]  camera space, +z towards the camera; tanh,
@@ -181,23 +182,33 @@ class UNet(nn.Module):
     same as two more input channels, but a constant once the size is
     fixed, so the export holds no shape arithmetic for tract to run); at
     the bottom, the image's mean features through a 1x1 convolution added
-    to every position. With `albedo_from_photo`, the albedo is the photo
-    corrected for its shading, tanh(photo * exp(g)) with g (a gain per
-    pixel and channel) from the network: an albedo of the photo's own
-    detail, where a free albedo comes out blurred, and the photo as
-    albedo (a constant g) is where training starts from."""
+    to every position. The albedo (`albedo`):
+      free   sigmoid of the network's own three channels;
+      photo  the photo corrected for its shading, tanh(photo * exp(g)) with
+             g (a gain per pixel and channel) from the network: an albedo
+             of the photo's own detail, where a free albedo comes out
+             blurred, and the photo as albedo (a constant g) is where
+             training starts from;
+      blend  m * free + (1 - m) * photo (free from three more channels, m
+             the sigmoid of one more):
+             the photo's detail where its light carries it, the network's
+             own albedo where it does not (deep shadow, clipped light)."""
 
     LEVELS = 6
 
-    def __init__(self, c=16, position=False, albedo_from_photo=False):
+    ALBEDO = ("free", "photo", "blend")
+
+    def __init__(self, c=16, position=False, albedo="free"):
         super().__init__()
-        self.albedo_from_photo = albedo_from_photo
+        if albedo not in self.ALBEDO:
+            raise ValueError(f"albedo: {albedo!r} is not one of {self.ALBEDO}")
+        self.albedo = albedo
         w = [c, 2 * c, 4 * c, 8 * c, 8 * c, 8 * c][: self.LEVELS]
         self.enc = nn.ModuleList([block(3, w[0])] + [block(w[i], w[i + 1]) for i in range(len(w) - 1)])
         self.position = nn.Conv2d(2, w[0], 3, padding=1, bias=False) if position else None
         self.context = nn.Conv2d(w[-1], w[-1], 1)
         self.dec = nn.ModuleList([block(w[i + 1] + w[i], w[i]) for i in reversed(range(len(w) - 1))])
-        self.head = nn.Conv2d(w[0], sum(CHANNELS), 1)
+        self.head = nn.Conv2d(w[0], sum(CHANNELS) + (4 if albedo == "blend" else 0), 1)
         self.fixed = None  # (h, w) to export at: the position term is then a constant
 
     def position_term(self, h, w):
@@ -229,11 +240,14 @@ class UNet(nn.Module):
             x = d(torch.cat([F.interpolate(x, scale_factor=2.0, mode="bilinear", align_corners=False), s], 1))
         o = self.head(x)
         depth = torch.exp(torch.clamp(o[:, 0:1], -4.0, 6.0))
-        if self.albedo_from_photo:
+        if self.albedo == "free":
+            albedo = torch.sigmoid(o[:, 1:4])
+        else:
             # 0.7: exp(0.7) = 2, a photo's mid-grey to a wall's albedo.
             albedo = torch.tanh(photo * torch.exp(torch.clamp(o[:, 1:4] + 0.7, -6.0, 6.0)))
-        else:
-            albedo = torch.sigmoid(o[:, 1:4])
+            if self.albedo == "blend":
+                m = torch.sigmoid(o[:, 12:13])
+                albedo = m * torch.sigmoid(o[:, 9:12]) + (1.0 - m) * albedo
         rough = torch.sigmoid(o[:, 4:5])
         metal = torch.sigmoid(o[:, 5:6])
         n = torch.tanh(o[:, 6:9])
@@ -584,9 +598,11 @@ def main():
     ap.add_argument("--width", type=int, default=16)
     ap.add_argument("--position", action="store_true", help="the pixel's position as an input (learns the layout, loses objects)")
     ap.add_argument(
-        "--albedo-from-photo",
-        action="store_true",
-        help="the albedo as the photo times a predicted gain per pixel (keeps the photo's detail)",
+        "--albedo",
+        choices=UNet.ALBEDO,
+        default="free",
+        help="free: the network's own; photo: the photo times a predicted gain per pixel (keeps the "
+        "photo's detail); blend: the two mixed per pixel by the network",
     )
     ap.add_argument("--lr", type=float, default=2e-3)
     ap.add_argument("--threads", type=int, default=2, help="CPU threads")
@@ -613,7 +629,7 @@ def main():
           f"{len(heldout['photo'])} held out ({time.time() - t0:.0f} s)", flush=True)
 
     device = ("cuda" if torch.cuda.is_available() else "cpu") if args.device == "auto" else args.device
-    model = UNet(args.width, args.position, args.albedo_from_photo).to(device, memory_format=torch.channels_last)
+    model = UNet(args.width, args.position, args.albedo).to(device, memory_format=torch.channels_last)
     params = sum(p.numel() for p in model.parameters())
     print(f"U-Net width {args.width}: {params} parameters", flush=True)
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
@@ -662,7 +678,7 @@ def main():
         "parameters": params,
         "width": args.width,
         "position": args.position,
-        "albedo_from_photo": args.albedo_from_photo,
+        "albedo": args.albedo,
         "steps": step,
         "minutes": args.minutes,
         "full_share": args.full_share,
