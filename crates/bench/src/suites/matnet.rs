@@ -9,9 +9,10 @@
 //!   of scene, on held-out generated scenes and on another renderer's,
 //!   against the predictors that need no network
 //!   ([`super::matnet_eval`]).
-//! - On the reference bundles: the bundled model's maps against the
-//!   official MatNet's stored predictions, and (`--e2e-budget`) the
-//!   re-render PSNR of `pipelines/photo.yaml` started from each.
+//! - On the reference bundles: the bundled model's (or `--model`'s) maps
+//!   against the official MatNet's stored predictions, and
+//!   (`--e2e-budget`) the re-render PSNR of `pipelines/photo.yaml` started
+//!   from each.
 
 use std::path::PathBuf;
 use std::process::Command;
@@ -38,7 +39,8 @@ pub struct BenchMatnetArgs {
     /// accuracy tables; skipped when absent.
     #[arg(long, default_value = "out/kinds")]
     pub scenes: PathBuf,
-    /// The model the accuracy tables evaluate (default: the bundled one).
+    /// The model the accuracy tables and the end-to-end runs evaluate
+    /// (default: the bundled one); the timing is the bundled model's.
     #[arg(long)]
     pub model: Option<PathBuf>,
     /// Only the accuracy tables (no timing, no reference bundles).
@@ -60,9 +62,10 @@ pub struct BenchMatnetArgs {
     /// Repetitions for the extra model.
     #[arg(long, default_value_t = 2)]
     pub extra_runs: usize,
-    /// Run pipelines/photo.yaml on each reference bundle from the bundled
-    /// model's predictions and from the official ones, with this
-    /// material_opt budget (seconds), and report re-render PSNR; 0 skips.
+    /// Run pipelines/photo.yaml on each reference bundle from the model's
+    /// predictions (the bundled one or `--model`) and from the official
+    /// ones, with this material_opt budget (seconds), and report re-render
+    /// PSNR; 0 skips.
     #[arg(long, default_value_t = 0.0)]
     pub e2e_budget: f64,
     /// A parameter of pipelines/photo.yaml for both end-to-end runs
@@ -244,15 +247,21 @@ fn compare(pred: &MaterialMaps, z: &GrayImage, truth: &MaterialMaps, tz: &GrayIm
     e
 }
 
+/// What the accuracy tables and the end-to-end runs evaluate: `--model`,
+/// or the bundled model.
+fn model_name(a: &BenchMatnetArgs) -> String {
+    match &a.model {
+        Some(p) => p.display().to_string(),
+        None => "the bundled model".to_string(),
+    }
+}
+
 /// The accuracy tables ([`super::matnet_eval`]): the held-out `rooms`
 /// scenes and the other renderer's scenes, each per scene and per kind.
 fn kinds_tables(a: &BenchMatnetArgs) -> Result<()> {
     use super::matnet_eval::{bundle_scenes, dataset_scenes, print_tables, score};
     let m = load_matnet_model(a.model.as_deref(), Backend::Tract).map_err(anyhow::Error::msg)?;
-    let what = match &a.model {
-        Some(p) => p.display().to_string(),
-        None => "the bundled model".to_string(),
-    };
+    let what = model_name(a);
     let tmp = std::env::temp_dir().join(format!("matflow-bench-matnet-{}", std::process::id()));
     let sets = [
         (
@@ -267,8 +276,8 @@ fn kinds_tables(a: &BenchMatnetArgs) -> Result<()> {
             format!("scenes of another renderer ({})", a.scenes.display()),
             bundle_scenes(&a.scenes)?,
             format!(
-                "`python3 crates/bench/scripts/relight_scenes.py --out {} --scenes 24 --kinds \
-                 closed open stage outdoor --size 256 --spp 256` makes them (Mitsuba 3)",
+                "`python3 crates/bench/scripts/relight_scenes.py --out {} --scenes 8 --kinds \
+                 closed open stage outdoor --size 256 --spp 128` makes them (Mitsuba 3)",
                 a.scenes.display()
             ),
         ),
@@ -306,8 +315,11 @@ fn reference_table(a: &BenchMatnetArgs) -> Result<()> {
         println!("\n(no reference bundles under {})", a.reference.display());
         return Ok(());
     }
-    let m = load_matnet_model(None, Backend::Tract).map_err(anyhow::Error::msg)?;
-    println!("\nthe bundled model against the official MatNet's stored predictions (reference bundles; from gt_image.png)");
+    let m = load_matnet_model(a.model.as_deref(), Backend::Tract).map_err(anyhow::Error::msg)?;
+    println!(
+        "\n{} against the official MatNet's stored predictions (reference bundles; from gt_image.png)",
+        model_name(a)
+    );
     println!("| bundle | albedo MAE | roughness MAE | metallic MAE | normal angle | depth AbsRel | AbsRel, median-aligned |\n|---|---|---|---|---|---|---|");
     for n in names {
         let dir = a.reference.join(n);
@@ -323,8 +335,8 @@ fn reference_table(a: &BenchMatnetArgs) -> Result<()> {
     Ok(())
 }
 
-/// pipelines/photo.yaml's re-render from the bundled model's predictions
-/// and from the official ones (the `predict` stage swapped for a `bundle`
+/// pipelines/photo.yaml's re-render from the model's predictions (the
+/// bundled one or `--model`) and from the official ones (the `predict` stage swapped for a `bundle`
 /// stage), each against the photo.
 fn e2e(a: &BenchMatnetArgs, names: &[&str]) -> Result<()> {
     println!(
@@ -334,8 +346,16 @@ fn e2e(a: &BenchMatnetArgs, names: &[&str]) -> Result<()> {
         a.e2e_set.iter().map(|s| format!(", {s}")).collect::<String>()
     );
     println!(
-        "| bundle | from the bundled model | from the official MatNet predictions |\n|---|---|---|"
+        "| bundle | from {} | from the official MatNet predictions |\n|---|---|---|",
+        model_name(a)
     );
+    // The pipeline's paths are relative to its own folder.
+    let model = match &a.model {
+        Some(p) => {
+            Some(std::fs::canonicalize(p).with_context(|| format!("--model {}", p.display()))?)
+        }
+        None => None,
+    };
     let _ = std::fs::remove_dir_all(&a.work);
     std::fs::create_dir_all(&a.work)?;
     for n in names {
@@ -374,6 +394,9 @@ fn e2e(a: &BenchMatnetArgs, names: &[&str]) -> Result<()> {
                         "predict.output={}",
                         a.work.join(format!("{n}-bundle")).display()
                     ));
+                if let Some(m) = &model {
+                    c.arg("--set").arg(format!("predict.model={}", m.display()));
+                }
             } else {
                 c.args(["--set", "predict.kind=bundle", "--set"])
                     .arg(format!("predict.path={}", dir.display()));

@@ -43,8 +43,8 @@ pub fn bench_select(a: BenchSelectArgs) -> Result<()> {
     std::fs::create_dir_all(&a.out)?;
     outln!("{} ({w}x{h}): pixels one click selects", a.bundle.display());
     outln!();
-    outln!("| click | tolerance | bundle's normals | normals from depth | bundle's normals, within the photo's edges |");
-    outln!("|---|---|---|---|---|");
+    outln!("| click | tolerance | bundle's normals | normals from depth | bundle's normals, within the photo's edges | normals from depth, within the photo's edges (the edit's rule) |");
+    outln!("|---|---|---|---|---|---|");
     for click in &a.clicks {
         let v: Vec<usize> = click
             .split(',')
@@ -65,6 +65,7 @@ pub fn bench_select(a: BenchSelectArgs) -> Result<()> {
                 ("given", given, None),
                 ("depth", None, None),
                 ("edges", given, Some(a.edges)),
+                ("depth_edges", None, Some(a.edges)),
             ] {
                 let m = match edges {
                     Some(step) => grow_object_within_edges(
@@ -95,10 +96,11 @@ pub fn bench_select(a: BenchSelectArgs) -> Result<()> {
                 io::write_png_gamma(&file, &shown)?;
             }
             outln!(
-                "| {click} | {tol} | {} px | {} px | {} px |",
+                "| {click} | {tol} | {} px | {} px | {} px | {} px |",
                 counts[0],
                 counts[1],
-                counts[2]
+                counts[2],
+                counts[3]
             );
         }
     }
