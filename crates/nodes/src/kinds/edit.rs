@@ -91,9 +91,10 @@ impl EditNode {
                 albedo_tol: p.f32("object_tolerance"),
                 ..Grow::default()
             };
-            // Normals from the depth: a weak model's predicted normal map
-            // breaks a curved object into patches at its blotches.
-            let normals = None;
+            let normals = match p.str("object_normals") {
+                "predicted" => pred.normal.as_ref(),
+                _ => None,
+            };
             let cam = Camera::new(w, h);
             let step = p.f32("object_edges");
             match &scene.target {
@@ -171,7 +172,7 @@ pub(crate) const MASK_FLOOD: ParamSpec = seed_pixel(
 const MASK_OBJECT: ParamSpec = seed_pixel(
     "mask_object",
     "[x, y] a pixel of the object to edit: the region grows from it over the scene's \
-     predicted albedo and depth (normals from the depth) and stops at occlusion edges, \
+     predicted albedo, depth and normals (object_normals) and stops at occlusion edges, \
      inward folds (where the object meets its support) and the photo's own edges \
      (object_edges) (needs `scene`)",
 );
@@ -185,6 +186,17 @@ const OBJECT_EDGES: ParamSpec = ParamSpec {
           between neighbours (3×3 means, any channel): an object's outline, where blurred \
           predictions run smoothly into what is behind it (0: the predictions alone, as \
           the studio's click)",
+};
+
+const OBJECT_NORMALS: ParamSpec = ParamSpec {
+    name: "object_normals",
+    ty: ParamType::Choice(&["depth", "predicted"]),
+    default: Some("predicted"),
+    unit: "",
+    doc: "with mask_object: the normals the region grows over: predicted (the model's own, \
+          where the scene has them; else estimated from the depth) or depth (estimated from \
+          the depth: for a model whose normal map is blotchy, which breaks a curved object \
+          into patches)",
 };
 
 const OBJECT_TOLERANCE: ParamSpec = ParamSpec {
@@ -206,7 +218,7 @@ pub(crate) const FLOOD_TOLERANCE: ParamSpec = ParamSpec {
 
 const EDIT_INFO: NodeInfo = NodeInfo {
     kind: "edit",
-    version: 2,
+    version: 3,
     doc: "Edits materials inside a mask: set or scale roughness and metallic, set the albedo \
          colour or shift its hue, saturation and value (on γ-encoded albedo, as a colour \
          picker shows it). Exactly one of mask_png, mask_rect, mask_flood, mask_object; \
@@ -226,6 +238,7 @@ const EDIT_INFO: NodeInfo = NodeInfo {
         MASK_OBJECT,
         OBJECT_EDGES,
         OBJECT_TOLERANCE,
+        OBJECT_NORMALS,
         ParamSpec {
             name: "scene",
             ty: ParamType::Ref(&["scene"]),

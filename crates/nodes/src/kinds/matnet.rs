@@ -31,7 +31,7 @@ pub const BUNDLED_MODEL: &[u8] = include_bytes!("../../../../models/matnet_rooms
 /// Its BLAKE3, checked by a test: a new model must come with a new node
 /// version (the version is in every key).
 pub const BUNDLED_MODEL_BLAKE3: &str =
-    "ed7ff04d37bab551cefa862617a07d0ef13502e5e8ce9b5f8941bb1de98785c0";
+    "007367855c80be5964d836b2459971c626507faea5d97ccf0362cc3f50167df4";
 
 /// The shortest photo side accepted: below it there is nothing to
 /// predict from (the contract resizes everything to 512²).
@@ -62,7 +62,7 @@ const fn file(name: &'static str, doc: &'static str) -> OutputSpec {
 
 const INFO: NodeInfo = NodeInfo {
     kind: "matnet",
-    version: 2,
+    version: 3,
     doc: "MatNet's prediction stage: a photo (PNG/JPEG of 8 or 16 bits, grey or colour, or a \
          linear EXR; any size and aspect) is centre-cropped, resized to 512² and run through an \
          ONNX model under MatNet's contract (input size and output layout read from the model); \
@@ -84,7 +84,7 @@ const INFO: NodeInfo = NodeInfo {
             default: Some("~"),
             unit: "",
             doc: "an ONNX model honouring MatNet's contract (default: the bundled one, trained \
-                  here on synthetic rooms)",
+                  here on matflow's generated scenes)",
         },
         BACKEND,
         ParamSpec {
