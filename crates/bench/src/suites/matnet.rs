@@ -336,8 +336,8 @@ fn reference_table(a: &BenchMatnetArgs) -> Result<()> {
 }
 
 /// pipelines/photo.yaml's re-render from the model's predictions (the
-/// bundled one or `--model`) and from the official ones (the `predict` stage swapped for a `bundle`
-/// stage), each against the photo.
+/// bundled one or `--model`) and from the official ones (the `predict`
+/// stage swapped for a `bundle` stage), each against the photo.
 fn e2e(a: &BenchMatnetArgs, names: &[&str]) -> Result<()> {
     println!(
         "\nend to end: pipelines/photo.yaml (lighting {:.0} s, material_opt {:.0} s budgets{}), re-render PSNR against the photo (sRGB)",

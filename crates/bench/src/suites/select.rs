@@ -43,7 +43,7 @@ pub fn bench_select(a: BenchSelectArgs) -> Result<()> {
     std::fs::create_dir_all(&a.out)?;
     outln!("{} ({w}x{h}): pixels one click selects", a.bundle.display());
     outln!();
-    outln!("| click | tolerance | bundle's normals | normals from depth | bundle's normals, within the photo's edges | normals from depth, within the photo's edges (the edit's rule) |");
+    outln!("| click | tolerance | bundle's normals | normals from depth | bundle's normals, within the photo's edges (the edit's rule) | normals from depth, within the photo's edges (the edit with object_normals: depth) |");
     outln!("|---|---|---|---|---|---|");
     for click in &a.clicks {
         let v: Vec<usize> = click
