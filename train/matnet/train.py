@@ -38,6 +38,11 @@ cameras):
              step's size against the true one's where the true depth
              steps (objects against what is behind them), averaged over
              those edges alone, so small objects count
+  affine z   (--affine-weight, off by default) 1 - the correlation of the
+             predicted and the true z per image: the log loss lets a far
+             floor or ground shrink towards the camera (an uncertain far
+             depth regresses to the mean in log z), which z itself, the
+             mesh's, does not forgive
   depth's own normals  the angle between the normals of the surface the
              predicted depth makes (what the mesh stage shades with) and
              the true depth's, on smooth surfaces; without it a depth
@@ -63,7 +68,9 @@ Usage:
 It trains on the GPU when PyTorch sees one (`--device auto`), else on the
 CPU (`--threads`); the export, its check and the fixture run on the CPU.
 
-Besides the model it writes <out>.json (steps, time, held-out errors) and a
+Besides the model it writes <stem>.train.json (steps, time, held-out
+errors), <stem>.pt (the PyTorch weights, for --init: fine-tuning; not for
+the repository) and a
 fixture for matflow's Rust test: a small photo the test pre-processes itself
 (tests/data/matnet_photo.png, a held-out render cut to 256 x 192) and the
 network's outputs for it as PyTorch computes them, every 4th pixel
@@ -405,7 +412,25 @@ def silhouette_loss(depth, y):
     return total
 
 
-def losses(pred, y, w_level, w_dn=1.0, w_sil=0.0):
+def affine_loss(depth, y):
+    """1 - the Pearson correlation of the predicted and the true z over an
+    image's geometry (the R² of the best affine map from one to the other
+    is its square). In z itself, as the mesh stage builds the scene: a far
+    floor squeezed towards the camera costs what it costs the mesh, where
+    the log loss weighs it as it weighs the near wall."""
+    v = y["valid"]
+    n = v.sum((1, 2, 3)).clamp(min=1.0)
+    p, t = depth, y["depth"].clamp(min=1e-3)
+    dp = (p - (p * v).sum((1, 2, 3), keepdim=True) / n[:, None, None, None]) * v
+    dt = (t - (t * v).sum((1, 2, 3), keepdim=True) / n[:, None, None, None]) * v
+    cov = (dp * dt).sum((1, 2, 3))
+    den = torch.sqrt((dp * dp).sum((1, 2, 3)) * (dt * dt).sum((1, 2, 3)) + 1e-12)
+    corr = cov / den
+    has = (v.sum((1, 2, 3)) > 1).float()
+    return ((1.0 - corr) * has).sum() / has.sum().clamp(min=1.0)
+
+
+def losses(pred, y, w_level, w_dn=1.0, w_sil=0.0, w_affine=0.0):
     depth, albedo, rough, metal, normal = pred
     v = y["valid"]
     has = (v.sum((1, 2, 3)) > 0).float()
@@ -441,6 +466,7 @@ def losses(pred, y, w_level, w_dn=1.0, w_sil=0.0):
     cos_d = (depth_normals(depth, zoom) * nt).sum(1, keepdim=True).clamp(-0.9999, 0.9999)
     l_dn = w_dn * per_image(masked_mean(torch.acos(cos_d), vv)[:, 0])
     l_sil = w_sil * silhouette_loss(depth, y) if w_sil > 0 else torch.zeros((), device=depth.device)
+    l_affine = w_affine * affine_loss(depth, y) if w_affine > 0 else torch.zeros((), device=depth.device)
     return {
         "depth": l_depth,
         "depth_grad": l_grad,
@@ -450,6 +476,7 @@ def losses(pred, y, w_level, w_dn=1.0, w_sil=0.0):
         "normal": l_normal,
         "depth_normal": l_dn,
         "silhouette": l_sil,
+        "affine_z": l_affine,
     }
 
 
@@ -614,6 +641,10 @@ def main():
     ap.add_argument("--level-weight", type=float, default=0.2, help="weight of the depth scale and albedo level")
     ap.add_argument("--depth-normal-weight", type=float, default=1.0, help="weight of the depth's own normals")
     ap.add_argument("--silhouette-weight", type=float, default=0.0, help="weight of the depth's step sizes at true silhouettes")
+    ap.add_argument(
+        "--affine-weight", type=float, default=0.0, help="weight of 1 - the correlation of predicted and true z (not log z)"
+    )
+    ap.add_argument("--init", default="", help="start from this state dict (a .pt the script wrote) instead of at random")
     ap.add_argument("--crop-share", type=float, default=0.0, help="share of the 128 x 128 images that are full-resolution windows")
     ap.add_argument("--data", default="matflow dataset train/matnet/kinds.yaml", help="what the data is, for the record")
     args = ap.parse_args()
@@ -630,6 +661,9 @@ def main():
 
     device = ("cuda" if torch.cuda.is_available() else "cpu") if args.device == "auto" else args.device
     model = UNet(args.width, args.position, args.albedo).to(device, memory_format=torch.channels_last)
+    if args.init:
+        model.load_state_dict(torch.load(args.init, map_location=device))
+        print(f"started from {args.init}", flush=True)
     params = sum(p.numel() for p in model.parameters())
     print(f"U-Net width {args.width}: {params} parameters", flush=True)
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
@@ -655,7 +689,7 @@ def main():
         x, y = batch_tensors(train, idx, size, rng, args)
         x = x.to(device).contiguous(memory_format=torch.channels_last)
         y = {k: v.to(device) for k, v in y.items()}
-        parts = losses(model(x), y, args.level_weight, args.depth_normal_weight, args.silhouette_weight)
+        parts = losses(model(x), y, args.level_weight, args.depth_normal_weight, args.silhouette_weight, args.affine_weight)
         loss = sum(parts.values())
         opt.zero_grad()
         loss.backward()
@@ -691,6 +725,8 @@ def main():
         "level_weight": args.level_weight,
         "depth_normal_weight": args.depth_normal_weight,
         "silhouette_weight": args.silhouette_weight,
+        "affine_weight": args.affine_weight,
+        "init": args.init or None,
         "crop_share": args.crop_share,
         "threads": args.threads,
         "device": device,
@@ -699,9 +735,12 @@ def main():
         "torch": torch.__version__,
     }
     model = model.to("cpu", memory_format=torch.contiguous_format)
+    stem = args.out[: -len(".onnx")] if args.out.endswith(".onnx") else args.out
+    # The weights as PyTorch holds them (the export folds the batch norms
+    # into the convolutions), for --init: not a file to commit.
+    torch.save(model.state_dict(), stem + ".pt")
     worst = export(model, args.out, info, heldout)
     info["onnxruntime_vs_torch_max_abs"] = worst
-    stem = args.out[: -len(".onnx")] if args.out.endswith(".onnx") else args.out
     with open(stem + ".train.json", "w") as f:
         json.dump(info, f, indent=2)
     print(f"wrote {args.out} ({os.path.getsize(args.out)} bytes)")
