@@ -419,10 +419,9 @@ def affine_loss(depth, y):
     floor squeezed towards the camera costs what it costs the mesh, where
     the log loss weighs it as it weighs the near wall."""
     v = y["valid"]
-    n = v.sum((1, 2, 3)).clamp(min=1.0)
     p, t = depth, y["depth"].clamp(min=1e-3)
-    dp = (p - (p * v).sum((1, 2, 3), keepdim=True) / n[:, None, None, None]) * v
-    dt = (t - (t * v).sum((1, 2, 3), keepdim=True) / n[:, None, None, None]) * v
+    dp = (p - masked_mean(p, v)[:, :, None, None]) * v
+    dt = (t - masked_mean(t, v)[:, :, None, None]) * v
     cov = (dp * dt).sum((1, 2, 3))
     den = torch.sqrt((dp * dp).sum((1, 2, 3)) * (dt * dt).sum((1, 2, 3)) + 1e-12)
     corr = cov / den
