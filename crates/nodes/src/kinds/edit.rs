@@ -183,9 +183,10 @@ const OBJECT_EDGES: ParamSpec = ParamSpec {
     default: Some("0.03"),
     unit: "γ-encoded",
     doc: "with mask_object: the region also stops where the photo steps by more than this \
-          between neighbours (3×3 means, any channel): an object's outline, where blurred \
-          predictions run smoothly into what is behind it (0: the predictions alone, as \
-          the studio's click)",
+          between neighbours (3×3 means, any channel), and does not enter a pixel on a \
+          strong edge (a step of 3× this to a neighbour; the outline's ring joins after): \
+          an object's outline, where blurred predictions run smoothly into what is behind \
+          it (0: the predictions alone, as the studio's click)",
 };
 
 const OBJECT_NORMALS: ParamSpec = ParamSpec {
@@ -218,7 +219,7 @@ pub(crate) const FLOOD_TOLERANCE: ParamSpec = ParamSpec {
 
 const EDIT_INFO: NodeInfo = NodeInfo {
     kind: "edit",
-    version: 3,
+    version: 4,
     doc: "Edits materials inside a mask: set or scale roughness and metallic, set the albedo \
          colour or shift its hue, saturation and value (on γ-encoded albedo, as a colour \
          picker shows it). Exactly one of mask_png, mask_rect, mask_flood, mask_object; \
