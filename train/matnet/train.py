@@ -43,6 +43,10 @@ cameras):
              floor or ground shrink towards the camera (an uncertain far
              depth regresses to the mean in log z), which z itself, the
              mesh's, does not forgive
+  depth order  (--order-weight, off by default) pixel pairs 2, 6 and 16
+             apart across a true silhouette must have the true order in
+             depth, by a margin (a hinge): an object's inside, not just
+             its outline, stands in front of what is behind it
   depth's own normals  the angle between the normals of the surface the
              predicted depth makes (what the mesh stage shades with) and
              the true depth's, on smooth surfaces; without it a depth
@@ -412,6 +416,35 @@ def silhouette_loss(depth, y):
     return total
 
 
+ORDER_SPANS = (2, 6, 16)
+
+
+def order_loss(depth, y):
+    """Depth order across the true silhouettes, at a distance: for pixel
+    pairs 2, 6 and 16 apart (across and down) whose true ln z differs by
+    more than 0.1, a hinge on the predicted difference, which must have
+    the true sign and at least the true size (up to 0.3). A step one
+    pixel wide that comes back at the next pixel (an outline) fails the
+    wider pairs, so the object's inside must stand in front of what is
+    behind it; while the network doubts the side, any answer inside the
+    margin costs the same (the loss does not pull the step to 0). Averaged
+    over the pairs of each span."""
+    total = 0.0
+    lp, lt = torch.log(depth.clamp(min=1e-3)), torch.log(y["depth"].clamp(min=1e-3))
+    v = y["valid"]
+    for s in ORDER_SPANS:
+        for dim in (3, 2):
+            n = lt.shape[dim] - s
+            if n <= 0:
+                continue
+            dt = lt.narrow(dim, s, n) - lt.narrow(dim, 0, n)
+            dp = lp.narrow(dim, s, n) - lp.narrow(dim, 0, n)
+            on = v.narrow(dim, s, n) * v.narrow(dim, 0, n) * (dt.abs() > 0.1).float()
+            margin = dt.abs().clamp(max=0.3)
+            total = total + (F.relu(margin - torch.sign(dt) * dp) * on).sum() / on.sum().clamp(min=1.0)
+    return total / len(ORDER_SPANS)
+
+
 def affine_loss(depth, y):
     """1 - the Pearson correlation of the predicted and the true z over an
     image's geometry (the R² of the best affine map from one to the other
@@ -429,7 +462,7 @@ def affine_loss(depth, y):
     return ((1.0 - corr) * has).sum() / has.sum().clamp(min=1.0)
 
 
-def losses(pred, y, w_level, w_dn=1.0, w_sil=0.0, w_affine=0.0):
+def losses(pred, y, w_level, w_dn=1.0, w_sil=0.0, w_affine=0.0, w_order=0.0):
     depth, albedo, rough, metal, normal = pred
     v = y["valid"]
     has = (v.sum((1, 2, 3)) > 0).float()
@@ -466,6 +499,7 @@ def losses(pred, y, w_level, w_dn=1.0, w_sil=0.0, w_affine=0.0):
     l_dn = w_dn * per_image(masked_mean(torch.acos(cos_d), vv)[:, 0])
     l_sil = w_sil * silhouette_loss(depth, y) if w_sil > 0 else torch.zeros((), device=depth.device)
     l_affine = w_affine * affine_loss(depth, y) if w_affine > 0 else torch.zeros((), device=depth.device)
+    l_order = w_order * order_loss(depth, y) if w_order > 0 else torch.zeros((), device=depth.device)
     return {
         "depth": l_depth,
         "depth_grad": l_grad,
@@ -476,6 +510,7 @@ def losses(pred, y, w_level, w_dn=1.0, w_sil=0.0, w_affine=0.0):
         "depth_normal": l_dn,
         "silhouette": l_sil,
         "affine_z": l_affine,
+        "order": l_order,
     }
 
 
@@ -643,6 +678,9 @@ def main():
     ap.add_argument(
         "--affine-weight", type=float, default=0.0, help="weight of 1 - the correlation of predicted and true z (not log z)"
     )
+    ap.add_argument(
+        "--order-weight", type=float, default=0.0, help="weight of the depth order across true silhouettes, 2-16 px apart"
+    )
     ap.add_argument("--init", default="", help="start from this state dict (a .pt the script wrote) instead of at random")
     ap.add_argument("--crop-share", type=float, default=0.0, help="share of the 128 x 128 images that are full-resolution windows")
     ap.add_argument("--data", default="matflow dataset train/matnet/kinds.yaml", help="what the data is, for the record")
@@ -688,7 +726,8 @@ def main():
         x, y = batch_tensors(train, idx, size, rng, args)
         x = x.to(device).contiguous(memory_format=torch.channels_last)
         y = {k: v.to(device) for k, v in y.items()}
-        parts = losses(model(x), y, args.level_weight, args.depth_normal_weight, args.silhouette_weight, args.affine_weight)
+        parts = losses(model(x), y, args.level_weight, args.depth_normal_weight, args.silhouette_weight, args.affine_weight,
+                       args.order_weight)
         loss = sum(parts.values())
         opt.zero_grad()
         loss.backward()
@@ -725,6 +764,7 @@ def main():
         "depth_normal_weight": args.depth_normal_weight,
         "silhouette_weight": args.silhouette_weight,
         "affine_weight": args.affine_weight,
+        "order_weight": args.order_weight,
         "init": args.init or None,
         "crop_share": args.crop_share,
         "threads": args.threads,
