@@ -40,6 +40,11 @@ use glam::Vec3;
 use crate::color::linear_to_gamma3;
 use crate::{Camera, GrayImage, Image, RgbImage};
 
+/// The photo's step (γ-encoded, between neighbours' 3×3 means) that
+/// stops a region in [`grow_object_within_edges`] by default: the `edit`
+/// stage's `object_edges` and the studio's click.
+pub const PHOTO_EDGE_STEP: f32 = 0.03;
+
 /// How far a region may grow; see the module's rule.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Grow {

@@ -186,7 +186,7 @@ const OBJECT_EDGES: ParamSpec = ParamSpec {
           between neighbours (3×3 means, any channel), and does not enter a pixel on a \
           strong edge (a step of 3× this to a neighbour; the outline's ring joins after): \
           an object's outline, where blurred predictions run smoothly into what is behind \
-          it (0: the predictions alone, as the studio's click)",
+          it (0: the predictions alone; the studio's click takes the default)",
 };
 
 const OBJECT_NORMALS: ParamSpec = ParamSpec {
@@ -467,4 +467,16 @@ pub(crate) fn check_mask_choice(p: &Params, offered: &[&str]) -> Result<(), Stri
         ));
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The studio's click and the stage's default stop at the same edges.
+    #[test]
+    fn object_edges_defaults_to_the_shared_step() {
+        let d: f32 = OBJECT_EDGES.default.unwrap().parse().unwrap();
+        assert_eq!(d, matflow_scene::select::PHOTO_EDGE_STEP);
+    }
 }
