@@ -389,14 +389,16 @@ def true_facets(y, zoom):
     return nt, m
 
 
-def neighbour_steps(z, valid):
-    """ln z's steps to the right and to the lower neighbour, each with
-    where both pixels are valid: [(step, both)] for x, then y."""
+def neighbour_steps(z, valid, span=1):
+    """ln z's steps to the pixel `span` to the right and `span` below,
+    each with where both pixels are valid: [(step, both)] for x, then y
+    (none along an axis shorter than the span)."""
     lz = torch.log(z.clamp(min=1e-3))
     out = []
     for dim in (3, 2):
-        n = lz.shape[dim] - 1
-        out.append((lz.narrow(dim, 1, n) - lz.narrow(dim, 0, n), valid.narrow(dim, 1, n) * valid.narrow(dim, 0, n)))
+        n = lz.shape[dim] - span
+        if n > 0:
+            out.append((lz.narrow(dim, span, n) - lz.narrow(dim, 0, n), valid.narrow(dim, span, n) * valid.narrow(dim, 0, n)))
     return out
 
 
@@ -430,16 +432,10 @@ def order_loss(depth, y):
     margin costs the same (the loss does not pull the step to 0). Averaged
     over the pairs of each span."""
     total = 0.0
-    lp, lt = torch.log(depth.clamp(min=1e-3)), torch.log(y["depth"].clamp(min=1e-3))
-    v = y["valid"]
     for s in ORDER_SPANS:
-        for dim in (3, 2):
-            n = lt.shape[dim] - s
-            if n <= 0:
-                continue
-            dt = lt.narrow(dim, s, n) - lt.narrow(dim, 0, n)
-            dp = lp.narrow(dim, s, n) - lp.narrow(dim, 0, n)
-            on = v.narrow(dim, s, n) * v.narrow(dim, 0, n) * (dt.abs() > 0.1).float()
+        pred, true = neighbour_steps(depth, y["valid"], s), neighbour_steps(y["depth"], y["valid"], s)
+        for (dp, _), (dt, both) in zip(pred, true):
+            on = both * (dt.abs() > 0.1).float()
             margin = dt.abs().clamp(max=0.3)
             total = total + (F.relu(margin - torch.sign(dt) * dp) * on).sum() / on.sum().clamp(min=1.0)
     return total / len(ORDER_SPANS)

@@ -78,31 +78,19 @@ pub fn grow_object(
     seed: (usize, usize),
     g: &Grow,
 ) -> Image<bool> {
-    grow(albedo, depth, normals, None, camera, seed, g)
+    grow_object_within_edges(albedo, depth, normals, None, camera, seed, g)
 }
 
-/// [`grow_object`], and also stopped by the photo's own edges: a
-/// neighbour does not join where the photo (γ-encoded, 3×3 means)
-/// steps by more than `step` in any channel between the two. Shading
-/// varies slowly across a surface, an object's outline is a step, so
-/// this holds a region to its object where the predictions are too
-/// blurred to (a weak model's albedo and depth run smoothly from an
-/// object into what is behind it).
-#[allow(clippy::too_many_arguments)]
+/// [`grow_object`], and also stopped by the photo's own edges where
+/// `edges` is `Some((photo, step))`: a neighbour does not join where the
+/// photo (γ-encoded, 3×3 means) steps by more than `step` in any channel
+/// between the two, and a pixel on a strong edge (3× `step`) is
+/// not entered. Shading varies slowly across a surface, an object's
+/// outline is a step, so this holds a region to its object where the
+/// predictions are too blurred to (a weak model's albedo and depth run
+/// smoothly from an object into what is behind it). `None`, or a photo
+/// of another size: the predictions alone, as [`grow_object`].
 pub fn grow_object_within_edges(
-    albedo: &RgbImage,
-    depth: &GrayImage,
-    normals: Option<&RgbImage>,
-    photo: &RgbImage,
-    step: f32,
-    camera: &Camera,
-    seed: (usize, usize),
-    g: &Grow,
-) -> Image<bool> {
-    grow(albedo, depth, normals, Some((photo, step)), camera, seed, g)
-}
-
-fn grow(
     albedo: &RgbImage,
     depth: &GrayImage,
     normals: Option<&RgbImage>,
@@ -165,7 +153,7 @@ fn grow(
         a <= 0.0 && b <= 0.0 && a + b <= -0.5 * width
     };
     let step_between = |img: &RgbImage, p: (usize, usize), q: (usize, usize)| {
-        (img.get(q.0, q.1) - img.get(p.0, p.1)).abs().max_element()
+        step(img.get(p.0, p.1), img.get(q.0, q.1))
     };
     let strong = edges
         .as_ref()
@@ -180,13 +168,7 @@ fn grow(
     let mut queue = VecDeque::from([seed]);
     m.set(seed.0, seed.1, true);
     while let Some((x, y)) = queue.pop_front() {
-        let nb = [
-            (x.wrapping_sub(1), y),
-            (x + 1, y),
-            (x, y.wrapping_sub(1)),
-            (x, y + 1),
-        ];
-        for q in nb {
+        for q in neighbours4(x, y) {
             if q.0 < w && q.1 < h && !m.get(q.0, q.1) && joins((x, y), q) {
                 m.set(q.0, q.1, true);
                 queue.push_back(q);
@@ -204,14 +186,8 @@ fn grow(
                 if m.get(x, y) {
                     continue;
                 }
-                let nb = [
-                    (x.wrapping_sub(1), y),
-                    (x + 1, y),
-                    (x, y.wrapping_sub(1)),
-                    (x, y + 1),
-                ];
                 let q = (x, y);
-                if nb.iter().any(|&p| {
+                if neighbours4(x, y).into_iter().any(|p| {
                     p.0 < w
                         && p.1 < h
                         && m.get(p.0, p.1)
@@ -248,17 +224,26 @@ fn strong_edges(smooth: &RgbImage, limit: f32) -> Image<bool> {
     let (w, h) = (smooth.width, smooth.height);
     Image::from_fn(w, h, |x, y| {
         let c = smooth.get(x, y);
-        [
-            (x.wrapping_sub(1), y),
-            (x + 1, y),
-            (x, y.wrapping_sub(1)),
-            (x, y + 1),
-        ]
-        .iter()
-        .any(|&(xx, yy)| {
-            xx < w && yy < h && !((smooth.get(xx, yy) - c).abs().max_element() <= limit)
-        })
+        neighbours4(x, y)
+            .into_iter()
+            .any(|(xx, yy)| xx < w && yy < h && !(step(c, smooth.get(xx, yy)) <= limit))
     })
+}
+
+/// The largest per-channel difference between two colours.
+fn step(a: Vec3, b: Vec3) -> f32 {
+    (b - a).abs().max_element()
+}
+
+/// A pixel's 4-neighbours; those off the image's left or top edge wrap
+/// to `usize::MAX` and fail the caller's `< w`, `< h` test.
+fn neighbours4(x: usize, y: usize) -> [(usize, usize); 4] {
+    [
+        (x.wrapping_sub(1), y),
+        (x + 1, y),
+        (x, y.wrapping_sub(1)),
+        (x, y + 1),
+    ]
 }
 
 /// The image γ-encoded, per channel.
@@ -486,6 +471,16 @@ mod tests {
         assert!((0..4).all(|x| sky.get(x, 0)));
     }
 
+    /// Predictions too blurred to tell anything apart: one albedo and a
+    /// flat depth over an n² image, with its camera.
+    fn blurred(n: usize) -> (Camera, RgbImage, GrayImage) {
+        (
+            Camera::new(n, n),
+            RgbImage::new(n, n, Vec3::splat(0.5)),
+            GrayImage::new(n, n, 4.0),
+        )
+    }
+
     /// Blurred predictions (one albedo, one flat depth) cannot tell a
     /// painted panel from the wall it is on; the photo can. Grown within
     /// the photo's edges, the region is the panel, shading ramp and all;
@@ -493,9 +488,7 @@ mod tests {
     #[test]
     fn the_photo_s_edges_hold_a_region_to_its_object() {
         let n = 48;
-        let cam = Camera::new(n, n);
-        let albedo = RgbImage::new(n, n, Vec3::splat(0.5));
-        let depth = GrayImage::new(n, n, 4.0);
+        let (cam, albedo, depth) = blurred(n);
         let inside = |x: usize, y: usize| (12..30).contains(&x) && (16..36).contains(&y);
         // The panel a step brighter than the wall; across both, a smooth
         // shading ramp (0.3 over the image) and a little noise.
@@ -507,8 +500,15 @@ mod tests {
         let g = Grow::default();
         let alone = grow_object(&albedo, &depth, None, &cam, (20, 25), &g);
         assert_eq!(alone.data.iter().filter(|&&b| b).count(), n * n);
-        let held =
-            grow_object_within_edges(&albedo, &depth, None, &photo, 0.03, &cam, (20, 25), &g);
+        let held = grow_object_within_edges(
+            &albedo,
+            &depth,
+            None,
+            Some((&photo, PHOTO_EDGE_STEP)),
+            &cam,
+            (20, 25),
+            &g,
+        );
         for y in 0..n {
             for x in 0..n {
                 assert_eq!(held.get(x, y), inside(x, y), "({x}, {y})");
@@ -516,8 +516,15 @@ mod tests {
         }
         // A photo of another size is ignored (the predictions alone).
         let small = RgbImage::new(4, 4, Vec3::ONE);
-        let ignored =
-            grow_object_within_edges(&albedo, &depth, None, &small, 0.03, &cam, (20, 25), &g);
+        let ignored = grow_object_within_edges(
+            &albedo,
+            &depth,
+            None,
+            Some((&small, PHOTO_EDGE_STEP)),
+            &cam,
+            (20, 25),
+            &g,
+        );
         assert_eq!(ignored.data, alone.data);
     }
 
@@ -531,9 +538,7 @@ mod tests {
     #[test]
     fn a_region_does_not_walk_out_along_a_slanted_outline() {
         let n = 64;
-        let cam = Camera::new(n, n);
-        let albedo = RgbImage::new(n, n, Vec3::splat(0.5));
-        let depth = GrayImage::new(n, n, 4.0);
+        let (cam, albedo, depth) = blurred(n);
         // The outline's centre moves 8 px across over the height; the
         // ramp from 0.25 (the object, left) to 0.65 is 3 px wide, so its
         // steps across (0.13) stop a region and those down it (0.017)
@@ -542,7 +547,15 @@ mod tests {
         let cover = |x: usize, y: usize| ((x as f32 + 0.5 - centre(y)) / 3.0 + 0.5).clamp(0.0, 1.0);
         let photo = Image::from_fn(n, n, |x, y| Vec3::splat(0.25 + 0.4 * cover(x, y)));
         let g = Grow::default();
-        let held = grow_object_within_edges(&albedo, &depth, None, &photo, 0.03, &cam, (8, 32), &g);
+        let held = grow_object_within_edges(
+            &albedo,
+            &depth,
+            None,
+            Some((&photo, PHOTO_EDGE_STEP)),
+            &cam,
+            (8, 32),
+            &g,
+        );
         let mut outside = 0;
         for y in 0..n {
             for x in 0..n {

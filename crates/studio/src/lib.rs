@@ -28,7 +28,7 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::{Json, Router};
 use matflow_rpc::auth::Token;
-use matflow_scene::select::{grow_object, grow_object_within_edges, Grow, PHOTO_EDGE_STEP};
+use matflow_scene::select::{grow_object_within_edges, Grow, PHOTO_EDGE_STEP};
 use matflow_scene::Image;
 
 use live::{request_error, Shared};
@@ -441,19 +441,15 @@ async fn select_point(State(app): State<Arc<App>>, Json(p): Json<Point>) -> Answ
         // Within the photo's own edges, as the `edit` stage's
         // `mask_object`: where the predictions are blurred, they run from
         // an object into what is behind it.
-        Ok(match &s.photo {
-            Some(photo) => grow_object_within_edges(
-                &s.albedo,
-                &s.depth,
-                s.normals.as_ref(),
-                photo,
-                PHOTO_EDGE_STEP,
-                &s.camera,
-                seed,
-                &g,
-            ),
-            None => grow_object(&s.albedo, &s.depth, s.normals.as_ref(), &s.camera, seed, &g),
-        })
+        Ok(grow_object_within_edges(
+            &s.albedo,
+            &s.depth,
+            s.normals.as_ref(),
+            s.photo.as_ref().map(|p| (p, PHOTO_EDGE_STEP)),
+            &s.camera,
+            seed,
+            &g,
+        ))
     })
 }
 

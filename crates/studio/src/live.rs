@@ -78,8 +78,8 @@ pub struct Surfaces {
     pub albedo: RgbImage,
     pub depth: GrayImage,
     pub normals: Option<RgbImage>,
-    /// The photo, whose own edges also stop a click (where there is one
-    /// of the maps' size).
+    /// The photo, whose own edges also stop a click (where there is one;
+    /// one of another size is ignored).
     pub photo: Option<RgbImage>,
     pub camera: Camera,
 }
@@ -491,7 +491,7 @@ fn load_scene(
         // at the tree, where normals from the depth let it through
         // (`matflow-bench select`); without them, from the depth.
         normals: s.pred.normal,
-        photo: s.target.filter(|t| t.width == w && t.height == h),
+        photo: s.target,
         camera: Camera::new(w, h),
     });
     l.status.message = "recovering the lighting and materials".into();

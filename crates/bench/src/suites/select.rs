@@ -11,7 +11,7 @@ use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use matflow_scene::select::{grow_object, grow_object_within_edges, Grow};
+use matflow_scene::select::{grow_object_within_edges, Grow};
 use matflow_scene::{io, Bundle, Camera, MaterialSource};
 
 #[derive(Args)]
@@ -67,19 +67,8 @@ pub fn bench_select(a: BenchSelectArgs) -> Result<()> {
                 ("edges", given, Some(a.edges)),
                 ("depth_edges", None, Some(a.edges)),
             ] {
-                let m = match edges {
-                    Some(step) => grow_object_within_edges(
-                        &maps.albedo,
-                        &depth,
-                        n,
-                        &photo,
-                        step,
-                        &cam,
-                        seed,
-                        &g,
-                    ),
-                    None => grow_object(&maps.albedo, &depth, n, &cam, seed, &g),
-                };
+                let edges = edges.map(|step| (&photo, step));
+                let m = grow_object_within_edges(&maps.albedo, &depth, n, edges, &cam, seed, &g);
                 counts.push(m.data.iter().filter(|&&s| s).count());
                 let shown = matflow_scene::Image::from_fn(w, h, |x, y| {
                     let near = x.abs_diff(v[0]) < 3 && y.abs_diff(v[1]) < 3;

@@ -10,7 +10,7 @@ use glam::Vec3;
 use matflow_engine::node::Params;
 use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
 use matflow_scene::edit::{apply_ops, flood_mask, EditOps};
-use matflow_scene::select::{grow_object, grow_object_within_edges, Grow};
+use matflow_scene::select::{grow_object_within_edges, Grow};
 use matflow_scene::{io, Camera, Image, MaterialMaps};
 
 use crate::artifact::Artifact;
@@ -97,21 +97,12 @@ impl EditNode {
             };
             let cam = Camera::new(w, h);
             let step = p.f32("object_edges");
-            match &scene.target {
-                Some(photo) if step > 0.0 && photo.same_size(&pred.albedo) => {
-                    grow_object_within_edges(
-                        &pred.albedo,
-                        &scene.depth,
-                        normals,
-                        photo,
-                        step,
-                        &cam,
-                        (x, y),
-                        &g,
-                    )
-                }
-                _ => grow_object(&pred.albedo, &scene.depth, normals, &cam, (x, y), &g),
-            }
+            let edges = scene
+                .target
+                .as_ref()
+                .filter(|_| step > 0.0)
+                .map(|p| (p, step));
+            grow_object_within_edges(&pred.albedo, &scene.depth, normals, edges, &cam, (x, y), &g)
         } else {
             let s = p.floats("mask_flood").unwrap_or_default();
             let (x, y) = (s[0] as usize, s[1] as usize);
