@@ -481,6 +481,14 @@ mod tests {
         )
     }
 
+    /// The region grown from `seed` over [`blurred`] predictions of n²
+    /// within `photo`'s edges at the default step.
+    fn within_edges(n: usize, photo: &RgbImage, seed: (usize, usize)) -> Image<bool> {
+        let (cam, albedo, depth) = blurred(n);
+        let edges = Some((photo, PHOTO_EDGE_STEP));
+        grow_object_within_edges(&albedo, &depth, None, edges, &cam, seed, &Grow::default())
+    }
+
     /// Blurred predictions (one albedo, one flat depth) cannot tell a
     /// painted panel from the wall it is on; the photo can. Grown within
     /// the photo's edges, the region is the panel, shading ramp and all;
@@ -500,15 +508,7 @@ mod tests {
         let g = Grow::default();
         let alone = grow_object(&albedo, &depth, None, &cam, (20, 25), &g);
         assert_eq!(alone.data.iter().filter(|&&b| b).count(), n * n);
-        let held = grow_object_within_edges(
-            &albedo,
-            &depth,
-            None,
-            Some((&photo, PHOTO_EDGE_STEP)),
-            &cam,
-            (20, 25),
-            &g,
-        );
+        let held = within_edges(n, &photo, (20, 25));
         for y in 0..n {
             for x in 0..n {
                 assert_eq!(held.get(x, y), inside(x, y), "({x}, {y})");
@@ -516,15 +516,7 @@ mod tests {
         }
         // A photo of another size is ignored (the predictions alone).
         let small = RgbImage::new(4, 4, Vec3::ONE);
-        let ignored = grow_object_within_edges(
-            &albedo,
-            &depth,
-            None,
-            Some((&small, PHOTO_EDGE_STEP)),
-            &cam,
-            (20, 25),
-            &g,
-        );
+        let ignored = within_edges(n, &small, (20, 25));
         assert_eq!(ignored.data, alone.data);
     }
 
@@ -538,7 +530,6 @@ mod tests {
     #[test]
     fn a_region_does_not_walk_out_along_a_slanted_outline() {
         let n = 64;
-        let (cam, albedo, depth) = blurred(n);
         // The outline's centre moves 8 px across over the height; the
         // ramp from 0.25 (the object, left) to 0.65 is 3 px wide, so its
         // steps across (0.13) stop a region and those down it (0.017)
@@ -546,16 +537,7 @@ mod tests {
         let centre = |y: usize| 26.0 + 8.0 * y as f32 / n as f32;
         let cover = |x: usize, y: usize| ((x as f32 + 0.5 - centre(y)) / 3.0 + 0.5).clamp(0.0, 1.0);
         let photo = Image::from_fn(n, n, |x, y| Vec3::splat(0.25 + 0.4 * cover(x, y)));
-        let g = Grow::default();
-        let held = grow_object_within_edges(
-            &albedo,
-            &depth,
-            None,
-            Some((&photo, PHOTO_EDGE_STEP)),
-            &cam,
-            (8, 32),
-            &g,
-        );
+        let held = within_edges(n, &photo, (8, 32));
         let mut outside = 0;
         for y in 0..n {
             for x in 0..n {
