@@ -93,7 +93,7 @@ def main():
     if args.keep and args.model:
         sys.exit("--keep and --model exclude each other")
 
-    if not os.path.exists(args.matflow):
+    if not args.keep and not os.path.exists(args.matflow):
         sys.exit(f"{args.matflow} not found: cargo build --release -p matflow-cli")
     if os.path.exists(args.out):
         shutil.rmtree(args.out)
@@ -114,10 +114,12 @@ def main():
                 if args.keep or f not in REPLACED:
                     os.symlink(os.path.join(src, f), os.path.join(dst, f))
             n = scene_size(src)
-            meta = json.load(open(os.path.join(src, "scene.json")))
+            with open(os.path.join(src, "scene.json")) as f:
+                meta = json.load(f)
+            kind = meta.get("kind", "closed")
             index["heldback" if meta.get("split") == "heldback" else "tuning"].append(new)
-            index["kinds"][new] = meta.get("kind", "closed")
-            print(f"{new}: {meta.get('kind', 'closed')}, {n}²", flush=True)
+            index["kinds"][new] = kind
+            print(f"{new}: {kind}, {n}²", flush=True)
             if args.keep:
                 continue
             with tempfile.TemporaryDirectory() as tmp:
