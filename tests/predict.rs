@@ -350,21 +350,35 @@ fn a_dynamic_two_head_model_gets_518_and_its_depth_is_disparity() {
 /// within 1e-4 (the maps are values of order 1).
 #[test]
 fn tract_and_onnxruntime_agree() {
+    backends_agree(None, "backends");
+}
+
+fn have_onnxruntime() -> bool {
     let have = Command::new("python3")
         .args(["-c", "import onnxruntime"])
         .status()
         .map(|s| s.success())
         .unwrap_or(false);
-    if !have && std::env::var_os("ORT_DYLIB_PATH").is_none() {
+    have || std::env::var_os("ORT_DYLIB_PATH").is_some()
+}
+
+/// `matflow predict` on the fixture photo with `model` (default: the
+/// bundled one) on both backends: the maps agree within 1e-4.
+fn backends_agree(model: Option<&Path>, tag: &str) {
+    if !have_onnxruntime() {
         eprintln!("onnxruntime is not installed: only tract is tested");
         return;
     }
-    let d = scratch("predict", "backends");
+    let d = scratch("predict", tag);
     let photo = repo().join("tests/data/matnet_photo.png");
     let mut maps = vec![];
     for b in ["tract", "onnxruntime"] {
         let out = d.join(b);
-        let o = predict(&photo, &out, &d.join("cache"), &["--backend", b]);
+        let mut extra = vec!["--backend", b];
+        if let Some(m) = model {
+            extra.extend(["--model", s(m)]);
+        }
+        let o = predict(&photo, &out, &d.join("cache"), &extra);
         let t = text(&o);
         assert!(o.status.success(), "{b}: {t}");
         assert!(t.contains(&format!("{b} backend")), "{t}");
@@ -392,6 +406,36 @@ fn tract_and_onnxruntime_agree() {
         eprintln!("map {k}: max |tract - onnxruntime| = {worst:e}");
         assert!(worst < 1e-4, "map {k}: {worst}");
     }
+}
+
+/// The ensemble tool (`train/matnet/ensemble.py`): its own tests on small
+/// models (the combination it documents, against onnxruntime), then the
+/// bundled model with its mirrored pass, built by the tool, runs on tract
+/// as onnxruntime runs it (the mirror is a Gather, the depth's geometric
+/// mean Log and Exp).
+#[test]
+fn the_ensemble_tool_builds_models_tract_runs() {
+    let o = Command::new("python3")
+        .arg(repo().join("train/matnet/test_ensemble.py"))
+        .env("PYTHONDONTWRITEBYTECODE", "1")
+        .output()
+        .expect("python3");
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    assert!(t.contains("Ran 3 tests"), "{t}");
+    let d = scratch("predict", "ensemble-model");
+    let model = d.join("flip.onnx");
+    let o = Command::new("python3")
+        .arg(repo().join("train/matnet/ensemble.py"))
+        .arg(repo().join("models/matnet_rooms.onnx"))
+        .args(["--flip", "--out", s(&model)])
+        .env("PYTHONDONTWRITEBYTECODE", "1")
+        .output()
+        .expect("python3");
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    assert!(t.contains("2 passes"), "{t}");
+    backends_agree(Some(&model), "ensemble");
 }
 
 #[test]
