@@ -415,14 +415,7 @@ fn backends_agree(model: Option<&Path>, tag: &str) {
 /// mean Log and Exp).
 #[test]
 fn the_ensemble_tool_builds_models_tract_runs() {
-    let o = Command::new("python3")
-        .arg(repo().join("train/matnet/test_ensemble.py"))
-        .env("PYTHONDONTWRITEBYTECODE", "1")
-        .output()
-        .expect("python3");
-    let t = text(&o);
-    assert!(o.status.success(), "{t}");
-    assert!(t.contains("Ran 3 tests"), "{t}");
+    python_tests("train/matnet/test_ensemble.py", 3);
     let d = scratch("predict", "ensemble-model");
     let model = d.join("flip.onnx");
     let o = Command::new("python3")
@@ -520,12 +513,17 @@ fn the_photo_pipeline_runs_and_an_edit_does_not_rerun_the_prediction() {
 /// PyTorch half of the path is `train/matnet/test_export_matnet.py`.
 #[test]
 fn the_export_tool_maps_official_checkpoints() {
+    python_tests("train/matnet/test_checkpoint.py", 11);
+}
+
+/// Runs a Python unittest file of the repository: it passes, all `tests`.
+fn python_tests(script: &str, tests: usize) {
     let o = Command::new("python3")
-        .arg(repo().join("train/matnet/test_checkpoint.py"))
+        .arg(repo().join(script))
         .env("PYTHONDONTWRITEBYTECODE", "1")
         .output()
         .expect("python3");
     let t = text(&o);
-    assert!(o.status.success(), "{t}");
-    assert!(t.contains("Ran 11 tests"), "{t}");
+    assert!(o.status.success(), "{script}: {t}");
+    assert!(t.contains(&format!("Ran {tests} tests")), "{script}: {t}");
 }

@@ -101,6 +101,8 @@ def build(paths, flip):
         opsets = ops if opsets is None else opsets
         if ops.get("", 0) != opsets.get("", 0):
             fail(f"{p}: opset {ops.get('')} differs from the first model's {opsets.get('')}")
+    if opsets.get("", 0) < 13:
+        fail(f"opset {opsets.get('', 0)}: the averaging needs 13 or later (train.py exports 17)")
     if len(sizes) != 1:
         fail(f"models take different input sizes {sorted(sizes)}")
     size = sizes.pop()

@@ -28,9 +28,10 @@ network's dict:
 Training (losses fit to what a photo cannot tell; augmentation for real
 cameras):
 
-  depth      L1 of log z less its mean over the image (scale-invariant),
-             the same residual's gradients at 3 scales (edges), and a
-             small weight on the mean itself (the scale)
+  depth      L1 of log z less its mean over the image (scale-invariant;
+             --depth-loss berhu: L2 beyond a fifth of the largest
+             residual), the same residual's gradients at 3 scales
+             (edges), and a small weight on the mean itself (the scale)
   albedo     L1 after the best single gain (gain-invariant), and a small
              weight on plain L1 (the level)
   normals    the angle between prediction and truth
@@ -458,7 +459,17 @@ def affine_loss(depth, y):
     return ((1.0 - corr) * has).sum() / has.sum().clamp(min=1.0)
 
 
-def losses(pred, y, w_level, w_dn=1.0, w_sil=0.0, w_affine=0.0, w_order=0.0):
+def berhu(r, v):
+    """The reverse Huber penalty of residuals `r` [N, 1, H, W] over `v`:
+    |r| up to c, (r² + c²) / 2c beyond, c a fifth of the image's largest
+    |r| (Laina et al. 2016). Small residuals keep L1's sharpness; large
+    ones (a far floor drawn near) pull in proportion to their size."""
+    a = r.abs()
+    c = (0.2 * (a * v).amax((1, 2, 3), keepdim=True)).detach().clamp(min=1e-3)
+    return torch.where(a <= c, a, (a * a + c * c) / (2.0 * c))
+
+
+def losses(pred, y, w_level, w_dn=1.0, w_sil=0.0, w_affine=0.0, w_order=0.0, depth_loss="l1"):
     depth, albedo, rough, metal, normal = pred
     v = y["valid"]
     has = (v.sum((1, 2, 3)) > 0).float()
@@ -467,7 +478,8 @@ def losses(pred, y, w_level, w_dn=1.0, w_sil=0.0, w_affine=0.0, w_order=0.0):
     r = torch.log(depth) - torch.log(y["depth"].clamp(min=1e-3))
     shift = masked_mean(r, v)[:, :, None, None]
     ri = r - shift
-    l_depth = per_image(masked_mean(ri.abs(), v)[:, 0]) + w_level * per_image(shift[:, 0, 0, 0].abs())
+    pen = berhu(ri, v) if depth_loss == "berhu" else ri.abs()
+    l_depth = per_image(masked_mean(pen, v)[:, 0]) + w_level * per_image(shift[:, 0, 0, 0].abs())
     l_grad = 0.0
     rr, vv = ri, v
     for _ in range(3):
@@ -677,6 +689,12 @@ def main():
     ap.add_argument(
         "--order-weight", type=float, default=0.0, help="weight of the depth order across true silhouettes, 2-16 px apart"
     )
+    ap.add_argument(
+        "--depth-loss",
+        choices=("l1", "berhu"),
+        default="l1",
+        help="penalty of the log-depth residual: l1, or berhu (L2 on the large residuals)",
+    )
     ap.add_argument("--init", default="", help="start from this state dict (a .pt the script wrote) instead of at random")
     ap.add_argument("--crop-share", type=float, default=0.0, help="share of the 128 x 128 images that are full-resolution windows")
     ap.add_argument("--data", default="matflow dataset train/matnet/kinds.yaml", help="what the data is, for the record")
@@ -723,7 +741,7 @@ def main():
         x = x.to(device).contiguous(memory_format=torch.channels_last)
         y = {k: v.to(device) for k, v in y.items()}
         parts = losses(model(x), y, args.level_weight, args.depth_normal_weight, args.silhouette_weight, args.affine_weight,
-                       args.order_weight)
+                       args.order_weight, args.depth_loss)
         loss = sum(parts.values())
         opt.zero_grad()
         loss.backward()
@@ -761,6 +779,7 @@ def main():
         "silhouette_weight": args.silhouette_weight,
         "affine_weight": args.affine_weight,
         "order_weight": args.order_weight,
+        "depth_loss": args.depth_loss,
         "init": args.init or None,
         "crop_share": args.crop_share,
         "threads": args.threads,
