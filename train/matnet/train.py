@@ -693,7 +693,7 @@ def main():
         "--depth-loss",
         choices=("l1", "berhu"),
         default="l1",
-        help="penalty of the log-depth residual: l1, or berhu (L2 on the large residuals)",
+        help="penalty of the log-depth residual: l1, or berhu (L2 on the large residuals; tried, worse: the notes)",
     )
     ap.add_argument("--init", default="", help="start from this state dict (a .pt the script wrote) instead of at random")
     ap.add_argument("--crop-share", type=float, default=0.0, help="share of the 128 x 128 images that are full-resolution windows")
