@@ -418,13 +418,15 @@ fn the_ensemble_tool_builds_models_tract_runs() {
     python_tests("train/matnet/test_ensemble.py", 3);
     let d = scratch("predict", "ensemble-model");
     let model = d.join("flip.onnx");
-    let o = Command::new("python3")
-        .arg(repo().join("train/matnet/ensemble.py"))
-        .arg(repo().join("models/matnet_rooms.onnx"))
-        .args(["--flip", "--out", s(&model)])
-        .env("PYTHONDONTWRITEBYTECODE", "1")
-        .output()
-        .expect("python3");
+    let o = python(
+        "train/matnet/ensemble.py",
+        &[
+            s(&repo().join("models/matnet_rooms.onnx")),
+            "--flip",
+            "--out",
+            s(&model),
+        ],
+    );
     let t = text(&o);
     assert!(o.status.success(), "{t}");
     assert!(t.contains("2 passes"), "{t}");
@@ -516,13 +518,19 @@ fn the_export_tool_maps_official_checkpoints() {
     python_tests("train/matnet/test_checkpoint.py", 11);
 }
 
-/// Runs a Python unittest file of the repository: it passes, all `tests`.
-fn python_tests(script: &str, tests: usize) {
-    let o = Command::new("python3")
+/// Runs a Python script of the repository with `args`.
+fn python(script: &str, args: &[&str]) -> Output {
+    Command::new("python3")
         .arg(repo().join(script))
+        .args(args)
         .env("PYTHONDONTWRITEBYTECODE", "1")
         .output()
-        .expect("python3");
+        .expect("python3")
+}
+
+/// Runs a Python unittest file of the repository: it passes, all `tests`.
+fn python_tests(script: &str, tests: usize) {
+    let o = python(script, &[]);
     let t = text(&o);
     assert!(o.status.success(), "{script}: {t}");
     assert!(t.contains(&format!("Ran {tests} tests")), "{script}: {t}");

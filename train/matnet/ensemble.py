@@ -92,7 +92,11 @@ def add_pass(graph, m, model_tag, pass_tag, source):
 
 
 def build(paths, flip):
-    models = [onnx.load(p) for p in paths]
+    raw = []
+    for p in paths:
+        with open(p, "rb") as f:
+            raw.append(f.read())
+    models = [onnx.load_from_string(b) for b in raw]
     sizes = set()
     opsets = None
     for p, m in zip(paths, models):
@@ -110,9 +114,10 @@ def build(paths, flip):
     g = helper.make_graph([], "matnet_ensemble", [], [])
     g.input.extend([models[0].graph.input[0]])
     g.input[0].name = "image"
-    # The mirror: gather along the width with the indices reversed.
     g.initializer.append(numpy_helper.from_array(np.array(1e-8, np.float32), "ens/eps"))
+    g.initializer.append(numpy_helper.from_array(np.array([1], np.int64), "ens/axes"))
     if flip:
+        # The mirror: gather along the width with the indices reversed.
         g.initializer.append(numpy_helper.from_array(np.arange(size - 1, -1, -1, dtype=np.int64), "ens/reverse"))
         mirror_n = np.array([-1.0, 1.0, 1.0], np.float32).reshape(1, 3, 1, 1)
         g.initializer.append(numpy_helper.from_array(mirror_n, "ens/mirror_n"))
@@ -144,30 +149,28 @@ def build(paths, flip):
     k = len(passes)
     g.initializer.append(numpy_helper.from_array(np.array(1.0 / k, np.float32), "ens/share"))
 
-    def mean(values, name):
+    def mean(values, name, out=None):
+        """The mean of `values` as `out` (default ens/NAME_mean)."""
         acc = values[0]
         for i, v in enumerate(values[1:]):
             s = f"ens/{name}_sum{i}"
             g.node.append(helper.make_node("Add", [acc, v], [s], name=s))
             acc = s
-        out = f"ens/{name}_mean"
-        g.node.append(helper.make_node("Mul", [acc, "ens/share"], [out], name=out))
+        out = out or f"ens/{name}_mean"
+        g.node.append(helper.make_node("Mul", [acc, "ens/share"], [out], name=f"ens/{name}_share"))
         return out
 
-    finals = {}
     logs = []
     for i, p in enumerate(passes):
         lg = f"ens/depth_log{i}"
         g.node.append(helper.make_node("Log", [p[0]], [lg], name=lg))
         logs.append(lg)
     g.node.append(helper.make_node("Exp", [mean(logs, "log_depth")], ["depth"], name="ens/depth"))
-    finals["depth"] = "depth"
     for c, name in enumerate(NAMES[1:4], start=1):
-        g.node.append(helper.make_node("Identity", [mean([p[c] for p in passes], name)], [name], name=f"ens/{name}"))
+        mean([p[c] for p in passes], name, out=name)
     n = mean([p[4] for p in passes], "normal")
     g.node.append(helper.make_node("Mul", [n, n], ["ens/n2"], name="ens/n2"))
     g.node.append(helper.make_node("ReduceSum", ["ens/n2", "ens/axes"], ["ens/n2sum"], keepdims=1, name="ens/n2sum"))
-    g.initializer.append(numpy_helper.from_array(np.array([1], np.int64), "ens/axes"))
     g.node.append(helper.make_node("Add", ["ens/n2sum", "ens/eps"], ["ens/n2eps"], name="ens/n2eps"))
     g.node.append(helper.make_node("Sqrt", ["ens/n2eps"], ["ens/nlen"], name="ens/nlen"))
     g.node.append(helper.make_node("Div", [n, "ens/nlen"], ["normal"], name="ens/normal"))
@@ -180,10 +183,7 @@ def build(paths, flip):
     for p in models[0].metadata_props:
         q = out.metadata_props.add()
         q.key, q.value = p.key, p.value
-    desc = []
-    for p in paths:
-        with open(p, "rb") as f:
-            desc.append(f"{os.path.basename(p)} (sha256 {hashlib.sha256(f.read()).hexdigest()[:16]})")
+    desc = [f"{os.path.basename(p)} (sha256 {hashlib.sha256(b).hexdigest()[:16]})" for p, b in zip(paths, raw)]
     q = out.metadata_props.add()
     q.key = "matflow.ensemble"
     q.value = f"{k} passes: " + ", ".join(desc) + (", each also on the mirrored photo" if flip else "")
