@@ -7,7 +7,9 @@ The network is a U-Net of six levels with the image's mean features added
 at the bottom (the layout of a scene is a strong cue to its depth and
 normals). The pixel's position as an input (`--position`) is off by
 default: with it, the network learnt the average layout from where a pixel
-is and ignored what the photo shows (the objects vanished). It takes what
+is and ignored what the photo shows (the objects vanished). With
+`--depth-range` the mean features also set each image's gain and offset
+of log z (`UNet`; tests: test_train.py, which needs PyTorch). It takes what
 MatNet takes (the photo, centre-cropped, /255, raised to 2.2; no mean or
 std) at 256 x 256 and gives MatNet's five outputs, named as the official
 network's dict:
@@ -194,7 +196,12 @@ class UNet(nn.Module):
     same as two more input channels, but a constant once the size is
     fixed, so the export holds no shape arithmetic for tract to run); at
     the bottom, the image's mean features through a 1x1 convolution added
-    to every position. The albedo (`albedo`):
+    to every position. With `depth_range`, the same mean features also give
+    each image a gain and an offset of the log depth (a linear layer, zero
+    at the start: gain 1, offset 0): log z = b + exp(a) * o, so that a
+    scene whose depth spans two orders of magnitude (ground out to the
+    horizon) is not held to the range of log z that the last features
+    span in a room. The albedo (`albedo`):
       free   sigmoid of the network's own three channels;
       photo  the photo corrected for its shading, tanh(photo * exp(g)) with
              g (a gain per pixel and channel) from the network: an albedo
@@ -210,7 +217,7 @@ class UNet(nn.Module):
 
     ALBEDO = ("free", "photo", "blend")
 
-    def __init__(self, c=16, position=False, albedo="free"):
+    def __init__(self, c=16, position=False, albedo="free", depth_range=False):
         super().__init__()
         if albedo not in self.ALBEDO:
             raise ValueError(f"albedo: {albedo!r} is not one of {self.ALBEDO}")
@@ -219,6 +226,10 @@ class UNet(nn.Module):
         self.enc = nn.ModuleList([block(3, w[0])] + [block(w[i], w[i + 1]) for i in range(len(w) - 1)])
         self.position = nn.Conv2d(2, w[0], 3, padding=1, bias=False) if position else None
         self.context = nn.Conv2d(w[-1], w[-1], 1)
+        self.depth_range = nn.Linear(w[-1], 2) if depth_range else None
+        if self.depth_range is not None:
+            nn.init.zeros_(self.depth_range.weight)
+            nn.init.zeros_(self.depth_range.bias)
         self.dec = nn.ModuleList([block(w[i + 1] + w[i], w[i]) for i in reversed(range(len(w) - 1))])
         self.head = nn.Conv2d(w[0], sum(CHANNELS) + (4 if albedo == "blend" else 0), 1)
         self.fixed = None  # (h, w) to export at: the position term is then a constant
@@ -246,12 +257,18 @@ class UNet(nn.Module):
                 x = e(F.max_pool2d(x, 2))
             skips.append(x)
         x = skips.pop()
-        x = x + self.context(x.mean((2, 3), keepdim=True))
+        pooled = x.mean((2, 3), keepdim=True)
+        span = self.depth_range(pooled.flatten(1))[:, :, None, None] if self.depth_range is not None else None
+        x = x + self.context(pooled)
         for d in self.dec:
             s = skips.pop()
             x = d(torch.cat([F.interpolate(x, scale_factor=2.0, mode="bilinear", align_corners=False), s], 1))
         o = self.head(x)
-        depth = torch.exp(torch.clamp(o[:, 0:1], -4.0, 6.0))
+        lz = o[:, 0:1]
+        if span is not None:
+            # The gain's clamp: a third to 4.5 times the features' range.
+            lz = span[:, 1:2] + torch.exp(torch.clamp(span[:, 0:1], -1.1, 1.5)) * lz
+        depth = torch.exp(torch.clamp(lz, -4.0, 6.0))
         if self.albedo == "free":
             albedo = torch.sigmoid(o[:, 1:4])
         else:
@@ -665,6 +682,11 @@ def main():
     ap.add_argument("--full-share", type=float, default=0.2, help="share of the time at 256 x 256 (the rest at 128)")
     ap.add_argument("--batch", type=int, default=8, help="images a step at 128 x 128 (a quarter of that at 256)")
     ap.add_argument("--width", type=int, default=16)
+    ap.add_argument(
+        "--depth-range",
+        action="store_true",
+        help="a gain and offset of log z per image from the image's mean features (the range a scene's depth spans)",
+    )
     ap.add_argument("--position", action="store_true", help="the pixel's position as an input (learns the layout, loses objects)")
     ap.add_argument(
         "--albedo",
@@ -711,10 +733,14 @@ def main():
           f"{len(heldout['photo'])} held out ({time.time() - t0:.0f} s)", flush=True)
 
     device = ("cuda" if torch.cuda.is_available() else "cpu") if args.device == "auto" else args.device
-    model = UNet(args.width, args.position, args.albedo).to(device, memory_format=torch.channels_last)
+    model = UNet(args.width, args.position, args.albedo, args.depth_range).to(device, memory_format=torch.channels_last)
     if args.init:
-        model.load_state_dict(torch.load(args.init, map_location=device))
-        print(f"started from {args.init}", flush=True)
+        # A state dict without the depth range's layer starts it at zero
+        # (the plain model's output); any other difference is an error.
+        missing, unexpected = model.load_state_dict(torch.load(args.init, map_location=device), strict=False)
+        if unexpected or any(not k.startswith("depth_range.") for k in missing):
+            raise SystemExit(f"train.py: --init {args.init}: does not fit this network (missing {missing}, unexpected {unexpected})")
+        print(f"started from {args.init}" + (f" (new: {', '.join(missing)})" if missing else ""), flush=True)
     params = sum(p.numel() for p in model.parameters())
     print(f"U-Net width {args.width}: {params} parameters", flush=True)
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
@@ -764,6 +790,7 @@ def main():
         "parameters": params,
         "width": args.width,
         "position": args.position,
+        "depth_range": args.depth_range,
         "albedo": args.albedo,
         "steps": step,
         "minutes": args.minutes,
