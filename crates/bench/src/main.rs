@@ -58,6 +58,10 @@ enum Suite {
     /// each backend, accuracy on held-out rooms and against the official
     /// MatNet's predictions, end-to-end re-render PSNR.
     Matnet(suites::matnet::BenchMatnetArgs),
+    /// A `rooms` dataset's scenes written for Mitsuba 3 beside their
+    /// bundles (`scripts/mitsuba_rooms.py` photographs them): the
+    /// prediction network scored on two renderers' photos of one scene.
+    ExportRooms(suites::export_rooms::ExportRoomsArgs),
     /// One click's selection on a bundle's predictions, with its normals
     /// and with normals from its depth: pixels taken, overlays to look at.
     Select(suites::select::BenchSelectArgs),
@@ -78,6 +82,7 @@ fn run(s: Suite) -> Result<()> {
         Suite::Dataset(a) => suites::dataset::bench_dataset(a),
         Suite::Refraction(a) => suites::dataset::bench_refraction(a),
         Suite::Matnet(a) => suites::matnet::bench_matnet(a),
+        Suite::ExportRooms(a) => suites::export_rooms::export_rooms(a),
         Suite::Studio(a) => suites::studio::bench_studio(a),
         Suite::Select(a) => suites::select::bench_select(a),
     }

@@ -3,6 +3,7 @@
 pub mod compare;
 pub mod dataset;
 pub mod distributed;
+pub mod export_rooms;
 pub mod glass;
 pub mod insert;
 pub mod invert;
