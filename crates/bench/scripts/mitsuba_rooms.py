@@ -30,10 +30,17 @@ the scene in `KEY/mitsuba/`:
   ``directional`` ones;
 * the exposure as the dataset's: the render times 0.18 over its
   log-average luminance, times 2^EV of the scene (``exposure_ev``).
+
+``--zoom F`` (below 1) photographs the central F of the view instead (a
+longer lens: tan of the half field of view times F, at full resolution),
+and crops the bundle's depth and true maps alike (nearest pixel, so the
+truth is the dataset's, magnified): the same scenes framed tighter, their
+objects larger in the frame.
 """
 
 import argparse
 import json
+import math
 import os
 import shutil
 import sys
@@ -46,6 +53,8 @@ import drjit_llvm  # noqa: E402
 
 MAX_DEPTH = 8
 RR_DEPTH = 5
+# The bundle's per-pixel truth (besides depth.exr), cropped with --zoom.
+TRUTH_MAPS = ("albedo.exr", "roughness.exr", "metallic.exr", "normal.exr")
 
 
 def bsdf(mi, surface, texture):
@@ -71,14 +80,15 @@ def bsdf(mi, surface, texture):
     return {"type": "twosided", "bsdf": inner}
 
 
-def build(mi, folder, spp):
+def build(mi, folder, spp, zoom):
     desc = json.load(open(os.path.join(folder, "scene.json")))
     n = int(desc["size"])
+    fov = math.degrees(2.0 * math.atan(zoom * math.tan(math.radians(float(desc["fov_x_deg"]) / 2.0))))
     d = {
         "type": "scene",
         "integrator": {"type": "path", "max_depth": MAX_DEPTH, "rr_depth": RR_DEPTH, "hide_emitters": False},
         "sensor": {
-            "type": "perspective", "fov": float(desc["fov_x_deg"]), "fov_axis": "x",
+            "type": "perspective", "fov": fov, "fov_axis": "x",
             "to_world": mi.ScalarTransform4f().look_at(origin=[0.0, 0, 0], target=[0.0, 0, -1], up=[0.0, 1, 0]),
             "sampler": {"type": "independent", "sample_count": spp},
             "film": {"type": "hdrfilm", "width": n, "height": n, "pixel_format": "rgb",
@@ -102,6 +112,18 @@ def build(mi, folder, spp):
     return desc, mi.load_dict(d, optimize=False)
 
 
+def magnify(mi, path, zoom):
+    """The central `zoom` of the EXR at `path`, back at its size (nearest
+    pixel), written over it."""
+    bm = mi.Bitmap(path)
+    a = np.array(bm)
+    n = a.shape[0]
+    idx = (n - n * zoom) / 2.0 + (np.arange(n) + 0.5) * zoom
+    idx = np.clip(idx.astype(np.int64), 0, n - 1)
+    out = np.ascontiguousarray(a[idx][:, idx])
+    mi.Bitmap(out, bm.pixel_format()).write(path)
+
+
 def exposed(img, ev):
     lum = np.maximum(img @ np.array([0.2126, 0.7152, 0.0722]), 0.0)
     log_avg = float(np.exp(np.mean(np.log(lum.astype(np.float64) + 1e-4))))
@@ -116,8 +138,11 @@ def main():
     ap.add_argument("--spp", type=int, default=128)
     ap.add_argument("--pass-spp", type=int, default=32)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--zoom", type=float, default=1.0, help="photograph the central share of the view (0 < F <= 1)")
     ap.add_argument("--llvm", help="libLLVM for Dr.Jit (>= 17); see drjit_llvm.py")
     args = ap.parse_args()
+    if not 0.0 < args.zoom <= 1.0:
+        ap.error(f"--zoom {args.zoom}: a share of the view, in (0, 1]")
     drjit_llvm.choose(args.llvm)
     import drjit as dr
     import mitsuba as mi
@@ -129,7 +154,7 @@ def main():
     for key in sorted(index["kinds"]):
         src, dst = os.path.join(args.scenes, key), os.path.join(args.out, key)
         t0 = time.time()
-        desc, scene = build(mi, os.path.join(src, "mitsuba"), args.pass_spp)
+        desc, scene = build(mi, os.path.join(src, "mitsuba"), args.pass_spp, args.zoom)
         passes = max(1, -(-args.spp // args.pass_spp))
         acc = None
         for p in range(passes):
@@ -140,12 +165,18 @@ def main():
         tmp = dst + ".partial"
         shutil.rmtree(tmp, ignore_errors=True)
         shutil.copytree(src, tmp, ignore=shutil.ignore_patterns("mitsuba", "gt_image.exr", "gt_image.png"))
+        if args.zoom < 1.0:
+            truth = [os.path.join(tmp, "ground_truth", f) for f in TRUTH_MAPS]
+            own = [os.path.join(tmp, f) for f in ("depth.exr", "mesh_mask.png")]
+            for path in own + truth:
+                if os.path.exists(path):
+                    magnify(mi, path, args.zoom)
         mi.Bitmap(img, mi.Bitmap.PixelFormat.RGB).write(os.path.join(tmp, "gt_image.exr"))
         shutil.rmtree(dst, ignore_errors=True)
         os.rename(tmp, dst)
         print(f"mitsuba_rooms: {key} ({desc['kind']}, {len(desc['objects'])} objects, "
               f"{len(desc['lamps'])} lamps) in {time.time() - t0:.1f} s", flush=True)
-    index["renderer"] = f"Mitsuba 3 (mitsuba_rooms.py, {args.spp} spp)"
+    index["renderer"] = f"Mitsuba 3 (mitsuba_rooms.py, {args.spp} spp, zoom {args.zoom})"
     with open(os.path.join(args.out, "validation.json"), "w") as f:
         json.dump(index, f, indent=1)
 
