@@ -725,6 +725,9 @@ def main():
     torch.manual_seed(args.seed)
     torch.set_num_threads(args.threads)
     rng = np.random.default_rng(args.seed)
+    # The outputs' folder now, not after the run: a run must not end in a
+    # failed save.
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     t0 = time.time()
     train = load(args.train)
     heldout = load(args.heldout)
