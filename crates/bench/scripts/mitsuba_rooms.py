@@ -19,7 +19,7 @@ the scene in `KEY/mitsuba/`:
 * the camera at the origin looking down -z, +y up, the export's field of
   view (35 deg horizontal), Mitsuba's Gaussian pixel filter;
 * Mitsuba's ``path`` integrator, max_depth 8, Russian roulette after 5
-  (as ``relight_scenes.py``);
+  (``relight_scenes.py``'s integrator and camera);
 * materials: Mitsuba's ``principled`` BSDF (specular 0.5, i.e. F0 = 0.04 on
   dielectrics; alpha = roughness^2, as matflow's), two-sided (matflow's
   surfaces are); a texture times the albedo as ``base_color`` where the
@@ -50,9 +50,8 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import drjit_llvm  # noqa: E402
+from relight_scenes import camera_and_integrator  # noqa: E402
 
-MAX_DEPTH = 8
-RR_DEPTH = 5
 # The bundle's per-pixel truth (besides depth.exr), cropped with --zoom.
 TRUTH_MAPS = ("albedo.exr", "roughness.exr", "metallic.exr", "normal.exr")
 
@@ -84,18 +83,8 @@ def build(mi, folder, spp, zoom):
     desc = json.load(open(os.path.join(folder, "scene.json")))
     n = int(desc["size"])
     fov = math.degrees(2.0 * math.atan(zoom * math.tan(math.radians(float(desc["fov_x_deg"]) / 2.0))))
-    d = {
-        "type": "scene",
-        "integrator": {"type": "path", "max_depth": MAX_DEPTH, "rr_depth": RR_DEPTH, "hide_emitters": False},
-        "sensor": {
-            "type": "perspective", "fov": fov, "fov_axis": "x",
-            "to_world": mi.ScalarTransform4f().look_at(origin=[0.0, 0, 0], target=[0.0, 0, -1], up=[0.0, 1, 0]),
-            "sampler": {"type": "independent", "sample_count": spp},
-            "film": {"type": "hdrfilm", "width": n, "height": n, "pixel_format": "rgb",
-                     "component_format": "float32", "rfilter": {"type": "gaussian", "stddev": 0.5}},
-        },
-        "sky": {"type": "envmap", "filename": os.path.join(folder, desc["envmap"]), "scale": 1.0},
-    }
+    d = camera_and_integrator(mi, n, spp, fov)
+    d["sky"] = {"type": "envmap", "filename": os.path.join(folder, desc["envmap"]), "scale": 1.0}
     for k, o in enumerate(desc["objects"]):
         tex = os.path.join(folder, o["texture"]) if o.get("texture") else None
         d[f"obj{k:03d}"] = {"type": "ply", "filename": os.path.join(folder, o["ply"]),

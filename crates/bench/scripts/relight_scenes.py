@@ -734,19 +734,26 @@ def mitsuba_shapes(mi, geo, w2c, tmp):
     return out, mats
 
 
-def build_scene(mi, shapes, env_path, lamps, w2c, size, spp):
-    d = {
+def camera_and_integrator(mi, size, spp, fov=FOV_X_DEG):
+    """A scene dict with the set's integrator and camera (matflow's: at the
+    origin looking down -z, +y up, `fov` degrees across, size x size),
+    shared with mitsuba_rooms.py."""
+    return {
         "type": "scene",
         "integrator": {"type": "path", "max_depth": MAX_DEPTH, "rr_depth": RR_DEPTH, "hide_emitters": False},
         "sensor": {
-            "type": "perspective", "fov": FOV_X_DEG, "fov_axis": "x",
+            "type": "perspective", "fov": fov, "fov_axis": "x",
             "to_world": mi.ScalarTransform4f().look_at(origin=[0.0, 0, 0], target=[0.0, 0, -1], up=[0.0, 1, 0]),
             "sampler": {"type": "independent", "sample_count": spp},
             "film": {"type": "hdrfilm", "width": size, "height": size, "pixel_format": "rgb",
                      "component_format": "float32", "rfilter": {"type": "gaussian", "stddev": 0.5}},
         },
-        "sky": {"type": "envmap", "filename": env_path, "scale": 1.0},
     }
+
+
+def build_scene(mi, shapes, env_path, lamps, w2c, size, spp):
+    d = camera_and_integrator(mi, size, spp)
+    d["sky"] = {"type": "envmap", "filename": env_path, "scale": 1.0}
     d.update(shapes)
     for i, l in enumerate(lamps):
         c = (w2c @ np.r_[l["position"], 1.0])[:3]
