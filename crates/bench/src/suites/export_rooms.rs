@@ -25,18 +25,19 @@
 //! the same way (the linear EXR written as 8-bit sRGB), and `validation.json`
 //! lists the kinds.
 
-use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use glam::Vec3;
+use glam::{Vec2, Vec3};
 use matflow_procgen::envgen::procedural_envmap;
 use matflow_procgen::rooms::{scene, SceneKind};
 use matflow_render::envmap::rotated;
-use matflow_render::scene::{SceneObject, Surface};
+use matflow_render::scene::Surface;
 use matflow_scene::lamps::LampAt;
 use matflow_scene::{io, Camera, RgbImage};
+
+use crate::suites::ply::write_ply;
 
 #[derive(Args)]
 pub struct ExportRoomsArgs {
@@ -125,7 +126,14 @@ fn export_scene(kind: SceneKind, seed: u64, size: usize, ew: usize, to: &Path) -
     for (k, o) in r.objects.iter().enumerate() {
         let ply = format!("obj-{k:03}.ply");
         let textured = o.texture.is_some() && o.uvs.len() == o.mesh.positions.len();
-        write_ply(&to.join(&ply), o, textured)?;
+        let normals: Vec<Vec3> = o.normals.iter().map(|n| n.normalize_or(Vec3::Z)).collect();
+        // Mitsuba's v runs down the texture, matflow's up.
+        let uvs: Vec<Vec2> = if textured {
+            o.uvs.iter().map(|uv| Vec2::new(uv.x, 1.0 - uv.y)).collect()
+        } else {
+            vec![]
+        };
+        write_ply(&to.join(&ply), &o.mesh, &normals, &uvs)?;
         let mut obj = serde_json::json!({
             "ply": ply,
             "vertex_normals": o.normals.len() == o.mesh.positions.len(),
@@ -195,52 +203,6 @@ fn surface_json(s: &Surface) -> serde_json::Value {
             "roughness": g.roughness,
         }),
     }
-}
-
-/// A binary little-endian PLY of the object's triangles, with its vertex
-/// normals where it has one per vertex, and texture coordinates (v
-/// flipped to Mitsuba's) when `textured`.
-fn write_ply(path: &Path, o: &SceneObject, textured: bool) -> Result<()> {
-    let m = &o.mesh;
-    let normals = o.normals.len() == m.positions.len();
-    let mut head = format!(
-        "ply\nformat binary_little_endian 1.0\nelement vertex {}\n\
-         property float x\nproperty float y\nproperty float z\n",
-        m.positions.len()
-    );
-    if normals {
-        head.push_str("property float nx\nproperty float ny\nproperty float nz\n");
-    }
-    if textured {
-        head.push_str("property float u\nproperty float v\n");
-    }
-    head.push_str(&format!(
-        "element face {}\nproperty list uchar int vertex_indices\nend_header\n",
-        m.indices.len()
-    ));
-    let mut b = head.into_bytes();
-    for (i, p) in m.positions.iter().enumerate() {
-        let mut vals = p.to_array().to_vec();
-        if normals {
-            vals.extend(o.normals[i].normalize_or(Vec3::Z).to_array());
-        }
-        if textured {
-            vals.extend([o.uvs[i].x, 1.0 - o.uvs[i].y]);
-        }
-        for v in vals {
-            b.extend_from_slice(&v.to_le_bytes());
-        }
-    }
-    for t in &m.indices {
-        b.push(3);
-        for &i in t {
-            b.extend_from_slice(&(i as i32).to_le_bytes());
-        }
-    }
-    let mut f = std::fs::File::create(path).with_context(|| path.display().to_string())?;
-    f.write_all(&b)
-        .with_context(|| path.display().to_string())?;
-    Ok(())
 }
 
 #[cfg(test)]

@@ -7,8 +7,7 @@
 //! says how much of the difference is noise: matflow vs Mitsuba PSNR next
 //! to each renderer's seed-to-seed PSNR, and the mean radiance ratio.
 
-use std::io::Write;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::Command;
 use std::time::Instant;
 
@@ -24,6 +23,7 @@ use matflow_scene::metrics::psnr_gamma;
 use matflow_scene::{io, Camera, Image, MaterialMaps, RgbImage};
 
 use crate::suites::compare::{default_bench_dir, mitsuba_installed};
+use crate::suites::ply::write_ply;
 
 #[derive(Args)]
 pub struct BenchGlassArgs {
@@ -36,38 +36,6 @@ pub struct BenchGlassArgs {
     /// Working folder (scene export and renders).
     #[arg(long, default_value = "/tmp/matflow-bench-glass")]
     pub work: PathBuf,
-}
-
-fn write_ply(path: &Path, mesh: &TriMesh, normals: &[Vec3]) -> Result<()> {
-    let with_n = normals.len() == mesh.positions.len();
-    let mut b = Vec::new();
-    write!(
-        b,
-        "ply\nformat binary_little_endian 1.0\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\n{}element face {}\nproperty list uchar int vertex_indices\nend_header\n",
-        mesh.positions.len(),
-        if with_n {
-            "property float nx\nproperty float ny\nproperty float nz\n"
-        } else {
-            ""
-        },
-        mesh.indices.len()
-    )?;
-    for (k, p) in mesh.positions.iter().enumerate() {
-        let mut v = p.to_array().to_vec();
-        if with_n {
-            v.extend(normals[k].to_array());
-        }
-        for c in v {
-            b.extend(c.to_le_bytes());
-        }
-    }
-    for t in &mesh.indices {
-        b.push(3);
-        for i in t {
-            b.extend((*i as i32).to_le_bytes());
-        }
-    }
-    std::fs::write(path, b).with_context(|| path.display().to_string())
 }
 
 fn mean(img: &RgbImage) -> Vec3 {
@@ -100,8 +68,8 @@ pub fn bench_glass(a: BenchGlassArgs) -> Result<()> {
         ..Default::default()
     };
     let jug = shapes::jug(96).transformed(1.8, Vec3::new(0.0, -1.0, -5.5));
-    write_ply(&a.work.join("floor.ply"), &floor, &[])?;
-    write_ply(&a.work.join("jug.ply"), &jug.mesh, &jug.normals)?;
+    write_ply(&a.work.join("floor.ply"), &floor, &[], &[])?;
+    write_ply(&a.work.join("jug.ply"), &jug.mesh, &jug.normals, &[])?;
     let threads = rayon::current_num_threads();
     outln!(
         "bench glass: a glass jug on a Lambertian floor under a sky with a sun, {n}x{n}, {} spp, box filter, {threads} thread(s)",

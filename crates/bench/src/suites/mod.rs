@@ -11,6 +11,7 @@ pub mod lanes;
 pub mod matnet;
 pub mod matnet_eval;
 pub mod pipeline;
+pub mod ply;
 pub mod relight;
 pub mod render;
 pub mod select;
