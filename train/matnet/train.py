@@ -674,7 +674,8 @@ def export(model, path, info, heldout):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--train", required=True)
+    ap.add_argument("--train", required=True, action="append",
+                    help="a rooms dataset's folder (again for more: their samples are pooled)")
     ap.add_argument("--heldout", required=True)
     ap.add_argument("--out", required=True)
     ap.add_argument("--minutes", type=float, default=50.0, help="training time; the steps follow from it")
@@ -729,7 +730,9 @@ def main():
     # failed save.
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     t0 = time.time()
-    train = load(args.train)
+    parts = [load(folder) for folder in args.train]
+    train = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    del parts
     heldout = load(args.heldout)
     kinds, counts = np.unique(train["kind"], return_counts=True)
     print(f"data: {len(train['photo'])} train ({dict(zip(kinds.tolist(), counts.tolist()))}), "

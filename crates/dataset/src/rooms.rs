@@ -22,6 +22,10 @@ pub struct RoomsGenerator;
 /// in turn (sample i is of kind i mod 4, in [`SceneKind::ALL`]'s order).
 const KINDS: &[&str] = &["open", "closed", "stage", "outdoor", "all"];
 
+/// The camera placements a dataset may ask for (`matflow_procgen::framing`),
+/// or both in turn.
+const FRAMINGS: &[&str] = &["drawn", "near", "mixed"];
+
 const PARAMS: &[ParamSpec] = &[
     ParamSpec {
         name: "scenes",
@@ -30,6 +34,15 @@ const PARAMS: &[ParamSpec] = &[
         unit: "",
         doc: "the kind of scene: open (rooms open to the sky), closed, stage, outdoor, or all \
               four in turn",
+    },
+    ParamSpec {
+        name: "framing",
+        ty: ParamType::Choice(FRAMINGS),
+        default: Some("drawn"),
+        unit: "",
+        doc: "where the camera stands: drawn (where each kind's layout puts it), near (walked up \
+              to one of the scene's objects), or mixed (the four kinds drawn, then the four \
+              near, in turn)",
     },
     ParamSpec {
         name: "size",
@@ -77,6 +90,7 @@ pub const MEMBERS: &[&str] = &[
 
 struct RoomsPlan {
     kind: String,
+    framing: String,
     denoise: bool,
     seed: u64,
     size: i64,
@@ -106,8 +120,13 @@ impl Generator for RoomsGenerator {
             Value::Str(s) => s.clone(),
             _ => "open".to_string(),
         };
+        let framing = match spec.param("framing") {
+            Value::Str(s) => s.clone(),
+            _ => "drawn".to_string(),
+        };
         Ok(Box::new(RoomsPlan {
             kind,
+            framing,
             denoise: !matches!(spec.param("denoise"), Value::Bool(false)),
             seed: spec.seed,
             size: int("size"),
@@ -125,8 +144,14 @@ impl Plan for RoomsPlan {
         } else {
             self.kind.as_str()
         };
+        let framing = match self.framing.as_str() {
+            "mixed" if (i / 4) % 2 == 1 => "near",
+            "mixed" => "drawn",
+            f => f,
+        };
         let mut meta = serde_json::Map::new();
         meta.insert("kind".into(), kind.into());
+        meta.insert("framing".into(), framing.into());
         meta.insert("room_seed".into(), room_seed.into());
         meta.insert("size".into(), self.size.into());
         meta.insert("spp".into(), self.spp.into());
@@ -137,6 +162,7 @@ impl Plan for RoomsPlan {
                 params: vec![
                     ("scene".into(), Value::Str(kind.to_string())),
                     ("seed".into(), Value::Int(room_seed as i64)),
+                    ("framing".into(), Value::Str(framing.to_string())),
                     ("size".into(), Value::Int(self.size)),
                     ("spp".into(), Value::Int(self.spp)),
                     ("envmap_width".into(), Value::Int(self.envmap_width)),
@@ -176,6 +202,7 @@ mod tests {
     fn plan(kind: &str) -> RoomsPlan {
         RoomsPlan {
             kind: kind.to_string(),
+            framing: "mixed".to_string(),
             denoise: true,
             seed: 3,
             size: 32,
@@ -215,5 +242,21 @@ mod tests {
             "seeds follow the sample, not the kind"
         );
         assert!((0..4).all(|i| scene_of(&open.sample(i)) == "open"));
+        // Mixed framing: each kind drawn, then each near, in turn; the
+        // node is told which.
+        let framings: Vec<String> = (0..12)
+            .map(|i| {
+                all.sample(i).meta["framing"]
+                    .as_str()
+                    .unwrap_or("")
+                    .to_string()
+            })
+            .collect();
+        assert_eq!(&framings[..4], ["drawn"; 4]);
+        assert_eq!(&framings[4..8], ["near"; 4]);
+        assert_eq!(&framings[8..], ["drawn"; 4]);
+        assert!(all.sample(5).stages[0]
+            .params
+            .contains(&("framing".into(), Value::Str("near".into()))));
     }
 }

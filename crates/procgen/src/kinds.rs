@@ -14,6 +14,7 @@ use matflow_scene::lamps::Lamp;
 use matflow_scene::{Image, RgbImage};
 
 use crate::envgen::EnvKind;
+use crate::framing::Stand;
 use crate::rooms::{
     floor_material, floor_quad, floor_texture, object_material, scatter, Objects, Room, SceneKind,
 };
@@ -171,7 +172,7 @@ fn camera_turn(r: &mut Rng, yaw: f32, pitch: (f32, f32)) -> Mat3 {
 
 /// A scene of `kind` made of `o`'s objects, lit by a sky (its seed drawn
 /// here, then the photograph's exposure in EV about the log-average), the
-/// lamps and the portals.
+/// lamps and the portals; a camera may stand on `stand`.
 fn under_the_sky(
     kind: SceneKind,
     o: Objects,
@@ -179,6 +180,7 @@ fn under_the_sky(
     to_world: Mat3,
     lamps: Vec<Lamp>,
     portals: Vec<Portal>,
+    stand: Stand,
 ) -> Room {
     Room {
         kind,
@@ -189,6 +191,7 @@ fn under_the_sky(
         exposure: r.range(-0.7, 0.7),
         lamps,
         portals,
+        stand,
     }
 }
 
@@ -306,7 +309,20 @@ pub fn closed(seed: u64) -> Room {
         let power = r.range(0.6, 3.0) * h * h / 9.0;
         lamps.push(Lamp::point(o.turn * p, lamp_colour(&mut r, 0.1) * power));
     }
-    under_the_sky(SceneKind::Closed, o, &mut r, to_world, lamps, portals)
+    let stand = Stand {
+        xs: (x0 + 0.4, x1 - 0.4),
+        zs: (z0 + 0.6, z1 - 0.4),
+        ground: floor,
+    };
+    under_the_sky(
+        SceneKind::Closed,
+        o,
+        &mut r,
+        to_world,
+        lamps,
+        portals,
+        stand,
+    )
 }
 
 /// A ground material for outdoor scenes and the ground before a stage:
@@ -482,7 +498,21 @@ pub fn stage(seed: u64) -> Room {
         let power = r.range(1.0, 6.0);
         lamps.push(Lamp::point(o.turn * p, lamp_colour(&mut r, 0.3) * power));
     }
-    under_the_sky(SceneKind::Stage, o, &mut r, to_world, lamps, Vec::new())
+    // On the ground before the platform.
+    let stand = Stand {
+        xs: (-4.0, 4.0),
+        zs: (zf + 0.6, 4.0),
+        ground: g,
+    };
+    under_the_sky(
+        SceneKind::Stage,
+        o,
+        &mut r,
+        to_world,
+        lamps,
+        Vec::new(),
+        stand,
+    )
 }
 
 /// An outdoor scene: a wide ground (grass, asphalt, sand or paving),
@@ -527,6 +557,11 @@ pub fn outdoor(seed: u64) -> Room {
         to_world,
         Vec::new(),
         Vec::new(),
+        Stand {
+            xs: (-12.0, 12.0),
+            zs: (-25.0, 8.0),
+            ground: g,
+        },
     )
 }
 

@@ -7,6 +7,7 @@
 //! - [`rooms`]: whole scenes with ground truth — open rooms there,
 //!   closed rooms, stages and outdoor scenes in [`kinds`] (the `rooms`
 //!   dataset, the prediction network's training data);
+//! - [`framing`]: where the camera stands (as drawn, or near an object);
 //! - [`shapes`]: meshes for insertion and for the refraction dataset (jug,
 //!   torus, sphere, cup, …);
 //! - [`refraction`]: the refraction dataset's labels of an object in view.
@@ -15,6 +16,7 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord, clippy::needless_range_loop)]
 
 pub mod envgen;
+pub mod framing;
 pub mod kinds;
 pub mod refraction;
 pub mod rooms;

@@ -12,6 +12,7 @@
 use std::sync::Arc;
 
 use crate::envgen::EnvKind;
+use crate::framing::{frame_near, Framing, Stand};
 use crate::shapes::{cuboid, jug, revolve, sphere, torus, Shape};
 use crate::synthetic::{hsv, Rng};
 use glam::{Mat3, Vec2, Vec3};
@@ -27,7 +28,7 @@ use matflow_render::scene::{RenderScene, SceneObject, Surface};
 /// camera is turned (camera frame → world, for turning the map), the
 /// exposure (EV) a photograph of it should get, and, for the kinds that
 /// have them, lamps and the windows light comes in through (both in the
-/// camera's frame).
+/// camera's frame), and where else a camera may stand in it.
 pub struct Room {
     pub kind: SceneKind,
     pub objects: Vec<SceneObject>,
@@ -37,6 +38,7 @@ pub struct Room {
     pub exposure: f32,
     pub lamps: Vec<Lamp>,
     pub portals: Vec<Portal>,
+    pub stand: Stand,
 }
 
 /// The kinds of scene the generator draws (`crate::kinds` has all but
@@ -479,6 +481,16 @@ pub(crate) fn item(r: &mut Rng, kind: u64, radius: f32, at: Vec3, m: Material, o
 }
 
 /// The scene of `kind` and `seed`.
+/// The scene of `kind` drawn from `seed`, its camera placed as `framing`
+/// says (near: [`frame_near`], drawing from the same seed).
+pub fn scene_framed(kind: SceneKind, seed: u64, framing: Framing) -> Room {
+    let r = scene(kind, seed);
+    match framing {
+        Framing::Drawn => r,
+        Framing::Near => frame_near(r, seed),
+    }
+}
+
 pub fn scene(kind: SceneKind, seed: u64) -> Room {
     match kind {
         SceneKind::Open => room(seed),
@@ -515,6 +527,24 @@ pub fn room(seed: u64) -> Room {
         exposure: r.range(-0.7, 0.7),
         lamps: Vec::new(),
         portals: Vec::new(),
+        // On the floor, inside the walls there are (0.4 m off them), off
+        // the back wall; the floor runs 20 m on where a side is open.
+        stand: Stand {
+            xs: (
+                if shell.has_left {
+                    shell.x0 + 0.4
+                } else {
+                    shell.x0 - 6.0
+                },
+                if shell.has_right {
+                    shell.x1 - 0.4
+                } else {
+                    shell.x1 + 6.0
+                },
+            ),
+            zs: (shell.z0 + 0.6, shell.z1 - 0.2),
+            ground: shell.floor,
+        },
     }
 }
 

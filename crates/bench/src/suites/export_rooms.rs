@@ -31,7 +31,8 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 use glam::{Vec2, Vec3};
 use matflow_procgen::envgen::procedural_envmap;
-use matflow_procgen::rooms::{scene, SceneKind};
+use matflow_procgen::framing::Framing;
+use matflow_procgen::rooms::{scene_framed, SceneKind};
 use matflow_render::envmap::rotated;
 use matflow_render::scene::Surface;
 use matflow_scene::lamps::LampAt;
@@ -90,6 +91,9 @@ pub fn export_rooms(a: ExportRoomsArgs) -> Result<()> {
             .as_u64()
             .with_context(|| format!("{}: no params.room_seed", at()))?;
         let size = v["params"]["size"].as_u64().unwrap_or(256) as usize;
+        let framing_name = v["params"]["framing"].as_str().unwrap_or("drawn");
+        let framing = Framing::from_name(framing_name)
+            .with_context(|| format!("{}: framing {framing_name:?}", at()))?;
         let dir = a.out.join(key);
         matflow_dataset::shards::unpack(&a.dataset, key, &dir)
             .with_context(|| format!("unpacking {key}"))?;
@@ -97,7 +101,7 @@ pub fn export_rooms(a: ExportRoomsArgs) -> Result<()> {
         if png.is_file() {
             std::fs::remove_file(&png).with_context(|| png.display().to_string())?;
         }
-        export_scene(kind, seed, size, ew, &dir.join("mitsuba"))
+        export_scene(kind, seed, framing, size, ew, &dir.join("mitsuba"))
             .with_context(|| format!("exporting {key}"))?;
         kinds.insert(key.to_string(), kind_name.into());
     }
@@ -115,11 +119,18 @@ pub fn export_rooms(a: ExportRoomsArgs) -> Result<()> {
     Ok(())
 }
 
-/// Writes the scene of (kind, seed) as `scene.json`, PLY meshes, textures
+/// Writes the scene of (kind, seed, framing) as `scene.json`, PLY meshes, textures
 /// and the sky into `to`.
-fn export_scene(kind: SceneKind, seed: u64, size: usize, ew: usize, to: &Path) -> Result<()> {
+fn export_scene(
+    kind: SceneKind,
+    seed: u64,
+    framing: Framing,
+    size: usize,
+    ew: usize,
+    to: &Path,
+) -> Result<()> {
     std::fs::create_dir_all(to)?;
-    let r = scene(kind, seed);
+    let r = scene_framed(kind, seed, framing);
     let world = procedural_envmap(r.env_kind, r.env_seed, ew, (ew / 2).max(2));
     io::write_exr_rgb(&to.join("envmap.exr"), &rotated(&world, r.to_world))?;
     let mut objects = vec![];
@@ -240,14 +251,14 @@ mod tests {
     fn an_exported_scene_is_the_generators_scene() {
         let d = std::env::temp_dir().join(format!("matflow-export-rooms-{}", std::process::id()));
         let mut textured = 0;
-        for (kind, seed) in [
-            (SceneKind::Closed, 5),
-            (SceneKind::Stage, 8),
-            (SceneKind::Open, 2),
+        for (kind, seed, framing) in [
+            (SceneKind::Closed, 5, Framing::Drawn),
+            (SceneKind::Stage, 8, Framing::Drawn),
+            (SceneKind::Open, 2, Framing::Near),
         ] {
             let to = d.join(format!("{}-{seed}", kind.name()));
-            export_scene(kind, seed, 32, 16, &to).unwrap();
-            let r = scene(kind, seed);
+            export_scene(kind, seed, framing, 32, 16, &to).unwrap();
+            let r = scene_framed(kind, seed, framing);
             let desc: serde_json::Value =
                 serde_json::from_str(&std::fs::read_to_string(to.join("scene.json")).unwrap())
                     .unwrap();

@@ -11,7 +11,8 @@ use matflow_engine::node::Params;
 use matflow_engine::{Node, NodeError, NodeInfo, OutputSpec, ParamSpec, ParamType, RunContext};
 use matflow_geom::TriMesh;
 use matflow_procgen::envgen::procedural_envmap;
-use matflow_procgen::rooms::{ground_truth, scene, SceneKind};
+use matflow_procgen::framing::Framing;
+use matflow_procgen::rooms::{ground_truth, scene_framed, SceneKind};
 use matflow_render::denoise::{denoise_objects, Guide, RENDER_PASSES, SECOND_HALF_SEED};
 use matflow_render::envmap::rotated;
 use matflow_render::{render, EnvMap, RenderOptions, RenderScene};
@@ -46,6 +47,15 @@ const ROOM_INFO: NodeInfo = NodeInfo {
             default: Some("0"),
             unit: "",
             doc: "the room, its materials, camera and lighting",
+        },
+        ParamSpec {
+            name: "framing",
+            ty: ParamType::Choice(Framing::NAMES),
+            default: Some("drawn"),
+            unit: "",
+            doc:
+                "where the camera stands: drawn (where the kind's layout puts it) or near (walked \
+                  up to one of the scene's objects, looking at it)",
         },
         ParamSpec {
             name: "size",
@@ -141,7 +151,8 @@ impl Node for RoomSampleNode {
         let p = ctx.params;
         let n = p.i64("size") as usize;
         let kind = SceneKind::from_name(p.str("scene")).unwrap_or(SceneKind::Open);
-        let r = scene(kind, p.i64("seed") as u64);
+        let framing = Framing::from_name(p.str("framing")).unwrap_or(Framing::Drawn);
+        let r = scene_framed(kind, p.i64("seed") as u64, framing);
         let ew = p.i64("envmap_width") as usize;
         let world = procedural_envmap(r.env_kind, r.env_seed, ew, (ew / 2).max(2));
         let env_img = rotated(&world, r.to_world);
