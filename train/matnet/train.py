@@ -77,7 +77,8 @@ CPU (`--threads`); the export, its check and the fixture run on the CPU.
 
 Besides the model it writes <stem>.train.json (steps, time, held-out
 errors), <stem>.pt (the PyTorch weights, for --init: fine-tuning; not for
-the repository) and a
+the repository), with --ema the same three for the weights' moving
+average (<stem>-ema.onnx; the training run itself is unchanged), and a
 fixture for matflow's Rust test: a small photo the test pre-processes itself
 (tests/data/matnet_photo.png, a held-out render cut to 256 x 192) and the
 network's outputs for it as PyTorch computes them, every 4th pixel
@@ -85,6 +86,7 @@ network's outputs for it as PyTorch computes them, every 4th pixel
 """
 
 import argparse
+import copy
 import io
 import json
 import math
@@ -719,6 +721,13 @@ def main():
         help="penalty of the log-depth residual: l1, or berhu (L2 on the large residuals; tried, worse: the notes)",
     )
     ap.add_argument("--init", default="", help="start from this state dict (a .pt the script wrote) instead of at random")
+    ap.add_argument(
+        "--ema",
+        type=float,
+        default=0.0,
+        help="also keep an exponential moving average of the weights with this decay (e.g. 0.999) and write it "
+        "beside the model as <stem>-ema.onnx (training itself is unchanged)",
+    )
     ap.add_argument("--crop-share", type=float, default=0.0, help="share of the 128 x 128 images that are full-resolution windows")
     ap.add_argument("--data", default="matflow dataset train/matnet/kinds.yaml", help="what the data is, for the record")
     args = ap.parse_args()
@@ -750,6 +759,12 @@ def main():
     params = sum(p.numel() for p in model.parameters())
     print(f"U-Net width {args.width}: {params} parameters", flush=True)
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
+    if not 0.0 <= args.ema < 1.0:
+        raise SystemExit(f"train.py: --ema {args.ema}: a decay in [0, 1)")
+    # The average of the weights (and the batch norms' running statistics)
+    # along the run: it smooths the last steps' noise, which at a batch of
+    # 2 at 256 x 256 is what separates one seed from another.
+    ema = copy.deepcopy(model) if args.ema > 0 else None
     budget = args.minutes * 60.0
     n = len(train["photo"])
     t_train = time.time()
@@ -779,6 +794,16 @@ def main():
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
         opt.step()
+        if ema is not None:
+            # Early on the average follows the weights closely (the decay
+            # ramps up), so it does not keep the random start.
+            d = min(args.ema, (1.0 + step) / (10.0 + step))
+            with torch.no_grad():
+                for (_, e), (_, w) in zip(ema.state_dict().items(), model.state_dict().items()):
+                    if e.dtype.is_floating_point:
+                        e.mul_(d).add_(w, alpha=1.0 - d)
+                    else:
+                        e.copy_(w)
         cur = {k: float(v.detach()) for k, v in parts.items()}
         run = cur if run is None else {k: 0.98 * run[k] + 0.02 * cur[k] for k in cur}
         if step % 100 == 0:
@@ -815,6 +840,7 @@ def main():
         "depth_loss": args.depth_loss,
         "init": args.init or None,
         "crop_share": args.crop_share,
+        "ema": args.ema or None,
         "threads": args.threads,
         "device": device,
         "train_seconds": round(train_s, 1),
@@ -831,6 +857,16 @@ def main():
     with open(stem + ".train.json", "w") as f:
         json.dump(info, f, indent=2)
     print(f"wrote {args.out} ({os.path.getsize(args.out)} bytes)")
+    if ema is not None:
+        errs = evaluate(ema, heldout, device=device)
+        print("held out, averaged weights:", json.dumps(errs), flush=True)
+        ema_info = dict(info, heldout_medians_per_kind=errs, weights=f"exponential moving average, decay {args.ema}")
+        ema = ema.to("cpu", memory_format=torch.contiguous_format)
+        torch.save(ema.state_dict(), stem + "-ema.pt")
+        ema_info["onnxruntime_vs_torch_max_abs"] = export(ema, stem + "-ema.onnx", ema_info, heldout)
+        with open(stem + "-ema.train.json", "w") as f:
+            json.dump(ema_info, f, indent=2)
+        print(f"wrote {stem}-ema.onnx ({os.path.getsize(stem + '-ema.onnx')} bytes)")
 
 
 if __name__ == "__main__":
