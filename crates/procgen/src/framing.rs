@@ -199,28 +199,11 @@ fn reframe(room: &mut Room, c: Vec3, to_world: Mat3) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::rooms::{ground_truth, scene, SceneKind};
-    use matflow_render::{EnvMap, RenderScene};
-    use matflow_scene::{Camera, Image, MaterialMaps};
-
-    fn truth_of(room: &Room, n: usize) -> crate::rooms::GroundTruth {
-        let cam = Camera::new(n, n);
-        let maps = MaterialMaps::uniform(n, n, Vec3::splat(0.5), 0.5, 0.0);
-        let env = EnvMap::new(&Image::new(8, 4, Vec3::ONE)).unwrap();
-        let s =
-            RenderScene::with_objects(cam, TriMesh::default(), &maps, env, &room.objects).unwrap();
-        ground_truth(&s, &cam)
-    }
+    use crate::rooms::test_support::{surface_depths, truth_of};
+    use crate::rooms::{scene, SceneKind};
 
     fn median_depth(gt: &crate::rooms::GroundTruth) -> f32 {
-        let mut z: Vec<f32> = gt
-            .depth
-            .data
-            .iter()
-            .zip(&gt.sky.data)
-            .filter(|(_, &s)| !s)
-            .map(|(&z, _)| z)
-            .collect();
+        let mut z = surface_depths(gt);
         z.sort_by(f32::total_cmp);
         z.get(z.len() / 2).copied().unwrap_or(f32::INFINITY)
     }
@@ -286,13 +269,8 @@ mod tests {
                 if kind == SceneKind::Closed && near.portals.is_empty() {
                     assert!(gt.sky.data.iter().all(|&s| !s), "{kind:?} {seed}");
                 }
-                let zmin = gt
-                    .depth
-                    .data
-                    .iter()
-                    .zip(&gt.sky.data)
-                    .filter(|(_, &s)| !s)
-                    .map(|(&z, _)| z)
+                let zmin = surface_depths(&gt)
+                    .into_iter()
                     .fold(f32::INFINITY, f32::min);
                 assert!(zmin > 0.2, "{kind:?} {seed}: a surface at {zmin} m");
                 assert!(near.portals.iter().all(|p| p.is_valid()));

@@ -568,19 +568,8 @@ pub fn outdoor(seed: u64) -> Room {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::rooms::{ground_truth, scene};
-    use matflow_geom::TriMesh;
-    use matflow_render::{EnvMap, RenderScene};
-    use matflow_scene::{Camera, MaterialMaps};
-
-    fn truth_of(room: &Room, n: usize) -> crate::rooms::GroundTruth {
-        let cam = Camera::new(n, n);
-        let maps = MaterialMaps::uniform(n, n, Vec3::splat(0.5), 0.5, 0.0);
-        let env = EnvMap::new(&Image::new(8, 4, Vec3::ONE)).unwrap();
-        let s =
-            RenderScene::with_objects(cam, TriMesh::default(), &maps, env, &room.objects).unwrap();
-        ground_truth(&s, &cam)
-    }
+    use crate::rooms::scene;
+    use crate::rooms::test_support::truth_of;
 
     fn sky_share(gt: &crate::rooms::GroundTruth) -> f32 {
         gt.sky.data.iter().filter(|&&s| s).count() as f32 / gt.sky.data.len() as f32

@@ -605,13 +605,15 @@ pub fn ground_truth(scene: &RenderScene, camera: &Camera) -> GroundTruth {
     }
 }
 
+/// What the generators' tests look at: a scene's objects seen by an
+/// n x n camera, and their ground truth.
 #[cfg(test)]
-mod tests {
+pub(crate) mod test_support {
     use super::*;
     use matflow_render::EnvMap;
     use matflow_scene::MaterialMaps;
 
-    fn scene_of(room: &Room, n: usize) -> (RenderScene, Camera) {
+    pub(crate) fn scene_of(room: &Room, n: usize) -> (RenderScene, Camera) {
         let cam = Camera::new(n, n);
         let maps = MaterialMaps::uniform(n, n, Vec3::splat(0.5), 0.5, 0.0);
         let env = EnvMap::new(&Image::new(8, 4, Vec3::ONE)).unwrap();
@@ -619,6 +621,23 @@ mod tests {
             RenderScene::with_objects(cam, TriMesh::default(), &maps, env, &room.objects).unwrap();
         (s, cam)
     }
+
+    pub(crate) fn truth_of(room: &Room, n: usize) -> GroundTruth {
+        let (s, cam) = scene_of(room, n);
+        ground_truth(&s, &cam)
+    }
+
+    /// The depths of the pixels that see a surface.
+    pub(crate) fn surface_depths(gt: &GroundTruth) -> Vec<f32> {
+        let seen = gt.depth.data.iter().zip(&gt.sky.data);
+        seen.filter(|(_, &s)| !s).map(|(&z, _)| z).collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::test_support::scene_of;
+    use super::*;
 
     #[test]
     fn rooms_vary_and_their_ground_truth_is_valid() {
