@@ -762,9 +762,10 @@ def main():
     if not 0.0 <= args.ema < 1.0:
         raise SystemExit(f"train.py: --ema {args.ema}: a decay in [0, 1)")
     # The average of the weights (and the batch norms' running statistics)
-    # along the run: it smooths the last steps' noise, which at a batch of
-    # 2 at 256 x 256 is what separates one seed from another.
+    # along the run, against the last steps' noise (a batch of 2 at
+    # 256 x 256). The state dicts' tensors are the live ones, paired once.
     ema = copy.deepcopy(model) if args.ema > 0 else None
+    ema_pairs = list(zip(ema.state_dict().values(), model.state_dict().values())) if ema is not None else []
     budget = args.minutes * 60.0
     n = len(train["photo"])
     t_train = time.time()
@@ -799,7 +800,7 @@ def main():
             # ramps up), so it does not keep the random start.
             d = min(args.ema, (1.0 + step) / (10.0 + step))
             with torch.no_grad():
-                for (_, e), (_, w) in zip(ema.state_dict().items(), model.state_dict().items()):
+                for e, w in ema_pairs:
                     if e.dtype.is_floating_point:
                         e.mul_(d).add_(w, alpha=1.0 - d)
                     else:
@@ -847,26 +848,26 @@ def main():
         "heldout_medians_per_kind": errs,
         "torch": torch.__version__,
     }
-    model = model.to("cpu", memory_format=torch.contiguous_format)
     stem = args.out[: -len(".onnx")] if args.out.endswith(".onnx") else args.out
-    # The weights as PyTorch holds them (the export folds the batch norms
-    # into the convolutions), for --init: not a file to commit.
-    torch.save(model.state_dict(), stem + ".pt")
-    worst = export(model, args.out, info, heldout)
-    info["onnxruntime_vs_torch_max_abs"] = worst
-    with open(stem + ".train.json", "w") as f:
-        json.dump(info, f, indent=2)
-    print(f"wrote {args.out} ({os.path.getsize(args.out)} bytes)")
+    write_model(model, args.out, info, heldout)
     if ema is not None:
         errs = evaluate(ema, heldout, device=device)
         print("held out, averaged weights:", json.dumps(errs), flush=True)
-        ema_info = dict(info, heldout_medians_per_kind=errs, weights=f"exponential moving average, decay {args.ema}")
-        ema = ema.to("cpu", memory_format=torch.contiguous_format)
-        torch.save(ema.state_dict(), stem + "-ema.pt")
-        ema_info["onnxruntime_vs_torch_max_abs"] = export(ema, stem + "-ema.onnx", ema_info, heldout)
-        with open(stem + "-ema.train.json", "w") as f:
-            json.dump(ema_info, f, indent=2)
-        print(f"wrote {stem}-ema.onnx ({os.path.getsize(stem + '-ema.onnx')} bytes)")
+        weights = f"exponential moving average, decay {args.ema}"
+        write_model(ema, stem + "-ema.onnx", dict(info, heldout_medians_per_kind=errs, weights=weights), heldout)
+
+
+def write_model(model, path, info, heldout):
+    """The ONNX export at path (and its fixture), <stem>.pt and <stem>.train.json."""
+    stem = path[: -len(".onnx")] if path.endswith(".onnx") else path
+    model = model.to("cpu", memory_format=torch.contiguous_format)
+    # The weights as PyTorch holds them (the export folds the batch norms
+    # into the convolutions), for --init: not a file to commit.
+    torch.save(model.state_dict(), stem + ".pt")
+    info = dict(info, onnxruntime_vs_torch_max_abs=export(model, path, info, heldout))
+    with open(stem + ".train.json", "w") as f:
+        json.dump(info, f, indent=2)
+    print(f"wrote {path} ({os.path.getsize(path)} bytes)")
 
 
 if __name__ == "__main__":
