@@ -6,7 +6,10 @@
 //! up the picture. [`frame_near`] re-places the camera so: it picks one
 //! of the scene's objects, stands 0.9–2.6 m (plus the object's size) from
 //! it, 0.5–1.8 m above the ground, where the layout allows a camera
-//! ([`Stand`]), and looks at it, a little off centre. The scene itself
+//! ([`Stand`]), and looks at it, a little off centre. Before a stage it
+//! stands, half the time, in the front row instead: 0.6–4 m from the
+//! platform's front, the eye 0.1–1.3 m above its top, looking over it,
+//! so that the front face fills the bottom of the frame. The scene itself
 //! (objects, lamps, windows, sky, exposure) is unchanged: only its frame
 //! turns and moves. A placement that would put the camera within 0.35 m
 //! of a surface, or with something between it and the object, is
@@ -47,12 +50,24 @@ impl Framing {
 
 /// Where in a scene a camera may stand (world frame, the drawn camera at
 /// the origin, +y up): x and z ranges (inside the walls, off the stage),
-/// and the height of the ground there.
+/// and the height of the ground there; for a stage, its platform's
+/// front, which a camera may stand close before.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Stand {
     pub xs: (f32, f32),
     pub zs: (f32, f32),
     pub ground: f32,
+    pub front: Option<Front>,
+}
+
+/// A raised platform's front edge (world frame, as [`Stand`]): the
+/// front face's z (the platform lies at smaller z), its top's height and
+/// the face's x extent.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Front {
+    pub z: f32,
+    pub top: f32,
+    pub xs: (f32, f32),
 }
 
 /// Nearest a placed camera may be to any surface (m).
@@ -125,6 +140,34 @@ pub fn frame_near(mut room: Room, seed: u64) -> Room {
     let fwd = world * Vec3::NEG_Z;
     let heading = (-fwd.x).atan2(-fwd.z);
     let stand = room.stand;
+    let inside = |c: Vec3| {
+        (stand.xs.0..=stand.xs.1).contains(&c.x) && (stand.zs.0..=stand.zs.1).contains(&c.z)
+    };
+    let clear = |at: Vec3| {
+        probes
+            .iter()
+            .all(|&dir| bvh.intersect(at, turn * dir, 0.0, CLEARANCE).is_none())
+    };
+    // Before a stage, half the time: the front row, close to the
+    // platform's front, the eye a little above its top, looking over it
+    // (the front face fills the bottom of the frame, no ground before it).
+    if let Some(f) = stand.front {
+        if r.chance(0.5) {
+            for _ in 0..8 {
+                let x = f.xs.0 + (f.xs.1 - f.xs.0) * r.range(0.2, 0.8);
+                let z = f.z + r.range(0.6, 4.0);
+                let y = (f.top + r.range(0.1, 1.3)).max(stand.ground + 0.6);
+                let yaw = heading + r.range(-15.0, 15.0).to_radians();
+                let pitch = r.range(-15.0, 2.0).to_radians();
+                let c = Vec3::new(x, y, z);
+                if inside(c) && clear(turn * c) {
+                    let to_world = Mat3::from_rotation_y(yaw) * Mat3::from_rotation_x(pitch);
+                    reframe(&mut room, c, to_world);
+                    return room;
+                }
+            }
+        }
+    }
     for _ in 0..16 {
         let (lo, hi) = targets[r.below(targets.len() as u64) as usize];
         let centre = (lo + hi) * 0.5;
@@ -139,20 +182,17 @@ pub fn frame_near(mut room: Room, seed: u64) -> Room {
         let yaw = yaw + r.range(-7.0, 7.0).to_radians();
         let pitch = (pitch + r.range(-6.0, 6.0).to_radians())
             .clamp(-55f32.to_radians(), 10f32.to_radians());
-        if !(stand.xs.0..=stand.xs.1).contains(&c.x) || !(stand.zs.0..=stand.zs.1).contains(&c.z) {
+        if !inside(c) {
             continue;
         }
         let at = turn * c;
-        let clear = probes
-            .iter()
-            .all(|&dir| bvh.intersect(at, turn * dir, 0.0, CLEARANCE).is_none());
         let to_target = turn * (centre - c);
         let dist = to_target.length();
         let seen = match bvh.intersect(at, to_target / dist.max(1e-6), 0.0, dist) {
             None => true,
             Some(h) => h.t >= dist - radius - 0.05,
         };
-        if !clear || !seen {
+        if !clear(at) || !seen {
             continue;
         }
         let to_world = Mat3::from_rotation_y(yaw) * Mat3::from_rotation_x(pitch);
@@ -193,6 +233,11 @@ fn reframe(room: &mut Room, c: Vec3, to_world: Mat3) {
         xs: (room.stand.xs.0 - c.x, room.stand.xs.1 - c.x),
         zs: (room.stand.zs.0 - c.z, room.stand.zs.1 - c.z),
         ground: room.stand.ground - c.y,
+        front: room.stand.front.map(|f| Front {
+            z: f.z - c.z,
+            top: f.top - c.y,
+            xs: (f.xs.0 - c.x, f.xs.1 - c.x),
+        }),
     };
 }
 
@@ -282,5 +327,54 @@ mod tests {
             }
         }
         assert!(nearer * 4 >= total * 3, "{nearer} of {total} nearer");
+    }
+
+    /// The shares of the frame that see a stage's platform's front face
+    /// and the ground before it.
+    fn front_and_ground(room: &Room, n: usize) -> (f32, f32) {
+        let Some(f) = room.stand.front else {
+            return (0.0, 0.0);
+        };
+        let gt = truth_of(room, n);
+        let cam = matflow_scene::Camera::new(n, n);
+        let (mut front, mut ground) = (0, 0);
+        for k in 0..n * n {
+            if gt.sky.data[k] {
+                continue;
+            }
+            let film = glam::Vec2::new((k % n) as f32 + 0.5, (k / n) as f32 + 0.5);
+            let d = cam.film_to_dir(film);
+            let p = room.to_world * (d * (gt.depth.data[k] / -d.z));
+            if (p.z - f.z).abs() < 0.02 && p.y < f.top - 0.01 {
+                front += 1;
+            } else if (p.y - room.stand.ground).abs() < 0.02 && p.z > f.z {
+                ground += 1;
+            }
+        }
+        let all = (n * n) as f32;
+        (front as f32 / all, ground as f32 / all)
+    }
+
+    #[test]
+    fn near_stages_include_the_front_row() {
+        // Drawn stages show the ground between the camera and the
+        // platform; near-framed ones at times stand in the front row, the
+        // platform's front face across the bottom of the frame and little
+        // or no ground before it.
+        let front_row = |(front, ground): (f32, f32)| front >= 0.25 && ground < 0.01;
+        let (mut drawn, mut near) = (0, 0);
+        for seed in 0..16 {
+            drawn += usize::from(front_row(front_and_ground(
+                &scene(SceneKind::Stage, seed),
+                24,
+            )));
+            let framed = frame_near(scene(SceneKind::Stage, seed), seed);
+            near += usize::from(front_row(front_and_ground(&framed, 24)));
+        }
+        assert!(drawn <= 1, "{drawn} drawn stages in the front row");
+        assert!(
+            (drawn + 3..=12).contains(&near),
+            "{near} of 16 in the front row"
+        );
     }
 }

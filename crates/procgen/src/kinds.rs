@@ -14,7 +14,7 @@ use matflow_scene::lamps::Lamp;
 use matflow_scene::{Image, RgbImage};
 
 use crate::envgen::EnvKind;
-use crate::framing::Stand;
+use crate::framing::{Front, Stand};
 use crate::rooms::{
     floor_material, floor_quad, floor_texture, object_material, scatter, Objects, Room, SceneKind,
 };
@@ -313,6 +313,7 @@ pub fn closed(seed: u64) -> Room {
         xs: (x0 + 0.4, x1 - 0.4),
         zs: (z0 + 0.6, z1 - 0.4),
         ground: floor,
+        front: None,
     };
     under_the_sky(
         SceneKind::Closed,
@@ -503,6 +504,11 @@ pub fn stage(seed: u64) -> Room {
         xs: (-4.0, 4.0),
         zs: (zf + 0.6, 4.0),
         ground: g,
+        front: Some(Front {
+            z: zf,
+            top,
+            xs: (x0, x1),
+        }),
     };
     under_the_sky(
         SceneKind::Stage,
@@ -561,6 +567,7 @@ pub fn outdoor(seed: u64) -> Room {
             xs: (-12.0, 12.0),
             zs: (-25.0, 8.0),
             ground: g,
+            front: None,
         },
     )
 }

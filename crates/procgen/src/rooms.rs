@@ -544,6 +544,7 @@ pub fn room(seed: u64) -> Room {
             ),
             zs: (shell.z0 + 0.6, shell.z1 - 0.2),
             ground: shell.floor,
+            front: None,
         },
     }
 }

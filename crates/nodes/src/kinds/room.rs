@@ -25,7 +25,7 @@ pub struct RoomSampleNode;
 
 const ROOM_INFO: NodeInfo = NodeInfo {
     kind: "room_sample",
-    version: 3,
+    version: 4,
     doc: "One synthetic scene of the `rooms` dataset (an open or closed room, a stage or an \
          outdoor scene; furniture, matte, glossy and metal materials, camera placement, sky, \
          room lighting, windows and lamps), path-traced, with its ground truth in the reference \
@@ -55,7 +55,8 @@ const ROOM_INFO: NodeInfo = NodeInfo {
             unit: "",
             doc:
                 "where the camera stands: drawn (where the kind's layout puts it) or near (walked \
-                  up to one of the scene's objects, looking at it)",
+                  up to one of the scene's objects, looking at it; before a stage, at times its \
+                  front row)",
         },
         ParamSpec {
             name: "size",
