@@ -37,6 +37,10 @@
 //!   them) where the model's depth also steps (by more than 0.03, within
 //!   2 pixels); a depth of the average layout, with no objects, scores
 //!   near 0 (a noisy depth scores high here and badly on its normals);
+//! - false steps: the share of the frame where the model's depth steps
+//!   (by more than 0.1) with no step of the true depth (by more than
+//!   0.03) within 2 pixels — recall's counterpart, what a relight shows
+//!   as lit slivers inside a face or where a floor meets a wall;
 //! - roughness and metallic: mean absolute error, model and oracle
 //!   constant (the truth's means).
 
@@ -77,6 +81,7 @@ pub struct Scores {
     pub mesh_facing: f64,
     /// `None` where the truth has fewer than 16 steps.
     pub silhouettes: Option<f64>,
+    pub false_steps: f64,
     pub rough_model: f64,
     pub rough_oracle: f64,
     pub metal_model: f64,
@@ -141,6 +146,26 @@ fn silhouette_recall(pred: &GrayImage, truth: &GrayImage) -> Option<f64> {
         }
     }
     (all >= 16).then(|| hit as f64 / all as f64)
+}
+
+/// Share of the frame where `pred` steps (ln z by > 0.1) with no step
+/// of `truth` (the same size; by > 0.03) within 2 pixels.
+fn false_steps(pred: &GrayImage, truth: &GrayImage) -> f64 {
+    let (w, h) = (truth.width, truth.height);
+    let (p, t) = (depth_steps(pred, 0.1), depth_steps(truth, 0.03));
+    let near = |x: usize, y: usize| {
+        let (x0, y0) = (x.saturating_sub(2), y.saturating_sub(2));
+        (y0..(y + 3).min(h)).any(|yy| (x0..(x + 3).min(w)).any(|xx| t[yy * w + xx]))
+    };
+    let mut false_px = 0usize;
+    for y in 0..h {
+        for x in 0..w {
+            if p[y * w + x] && !near(x, y) {
+                false_px += 1;
+            }
+        }
+    }
+    false_px as f64 / (w * h).max(1) as f64
 }
 
 /// PSNR of `gain · p` against `t` (clamped to [0, 1]) over `valid`, the
@@ -372,6 +397,7 @@ fn scores_of(p: &MatnetPrediction, truth: &MaterialMaps, tz: &GrayImage) -> Scor
         (s.mesh_model, s.mesh_facing) = mesh_normal_angles(&z, tz, tn);
     }
     s.silhouettes = silhouette_recall(&z, tz);
+    s.false_steps = false_steps(&z, tz);
     s
 }
 
@@ -445,12 +471,12 @@ pub fn print_tables(title: &str, rows: &[(Scene, Scores)]) {
     println!(
         "| scene | kind | albedo PSNR: model / photo / grey / oracle | normals: model / facing | \
          depth R²: model / other form / row | depth's normals: model / facing | silhouettes | roughness MAE: model / oracle | \
-         metallic MAE: model / oracle |\n\
-         |---|---|---|---|---|---|---|---|---|"
+         metallic MAE: model / oracle | false steps |\n\
+         |---|---|---|---|---|---|---|---|---|---|"
     );
     for (sc, s) in rows {
         println!(
-            "| {} | {} | {:.2} / {:.2} / {:.2} / {:.2} dB | {:.1}° / {:.1}° | {:.2} / {:.2} / {:.2} | {:.1}° / {:.1}° | {} | {:.3} / {:.3} | {:.3} / {:.3} |",
+            "| {} | {} | {:.2} / {:.2} / {:.2} / {:.2} dB | {:.1}° / {:.1}° | {:.2} / {:.2} / {:.2} | {:.1}° / {:.1}° | {} | {:.3} / {:.3} | {:.3} / {:.3} | {:.1} % |",
             sc.name,
             sc.kind,
             s.albedo_model,
@@ -468,7 +494,8 @@ pub fn print_tables(title: &str, rows: &[(Scene, Scores)]) {
             s.rough_model,
             s.rough_oracle,
             s.metal_model,
-            s.metal_oracle
+            s.metal_oracle,
+            100.0 * s.false_steps
         );
     }
     let mut kinds: BTreeMap<&str, Vec<&Scores>> = BTreeMap::new();
@@ -478,14 +505,14 @@ pub fn print_tables(title: &str, rows: &[(Scene, Scores)]) {
     }
     println!("\n{title}: medians per kind, and the scenes that meet each target");
     println!(
-        "| kind | scenes | albedo PSNR: model / photo / oracle | ≥ photo + 2 dB | normals: model / facing | ≤ 0.7× facing | depth R²: model / other form | ≥ 0.7 | depth's normals: model / facing | silhouettes |\n\
-         |---|---|---|---|---|---|---|---|---|---|"
+        "| kind | scenes | albedo PSNR: model / photo / oracle | ≥ photo + 2 dB | normals: model / facing | ≤ 0.7× facing | depth R²: model / other form | ≥ 0.7 | depth's normals: model / facing | silhouettes | false steps |\n\
+         |---|---|---|---|---|---|---|---|---|---|---|"
     );
     for (k, v) in &kinds {
         let med = |f: &dyn Fn(&Scores) -> f64| median(v.iter().map(|s| f(s)).collect());
         let count = |f: &dyn Fn(&Scores) -> bool| v.iter().filter(|s| f(s)).count();
         println!(
-            "| {k} | {} | {:.2} / {:.2} / {:.2} dB | {} | {:.1}° / {:.1}° | {} | {:.2} / {:.2} | {} | {:.1}° / {:.1}° | {} |",
+            "| {k} | {} | {:.2} / {:.2} / {:.2} dB | {} | {:.1}° / {:.1}° | {} | {:.2} / {:.2} | {} | {:.1}° / {:.1}° | {} | {:.1} % |",
             v.len(),
             med(&|s| s.albedo_model),
             med(&|s| s.albedo_photo),
@@ -503,6 +530,7 @@ pub fn print_tables(title: &str, rows: &[(Scene, Scores)]) {
                 let v: Vec<f64> = v.iter().filter_map(|s| s.silhouettes).collect();
                 (!v.is_empty()).then(|| median(v))
             }),
+            100.0 * med(&|s| s.false_steps),
         );
     }
 }
@@ -573,6 +601,22 @@ mod tests {
         }
         assert_eq!(silhouette_recall(&moved, &truth), Some(1.0));
         assert_eq!(silhouette_recall(&truth, &scene(false, 1.0)), None);
+        // False steps: none in the truth itself, in a depth missing the
+        // box, or in one with the box 2 pixels off; a 6 × 4 box the truth
+        // lacks makes 19 (its left and upper neighbours, its right column
+        // and bottom row, the corner once).
+        assert_eq!(false_steps(&truth, &truth), 0.0);
+        assert_eq!(false_steps(&scene(false, 1.0), &truth), 0.0);
+        assert_eq!(false_steps(&moved, &truth), 0.0);
+        let mut elsewhere = scene(false, 1.0);
+        for y in 2..6 {
+            for x in 2..8 {
+                elsewhere.data[y * w + x] = 2.0;
+            }
+        }
+        let edge = false_steps(&elsewhere, &scene(false, 1.0));
+        assert_eq!(edge, 19.0 / (w * h) as f64, "{}", edge * (w * h) as f64);
+        assert_eq!(false_steps(&elsewhere, &elsewhere), 0.0);
     }
 
     #[test]
