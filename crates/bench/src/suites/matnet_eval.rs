@@ -126,22 +126,25 @@ fn depth_steps(z: &GrayImage, step: f32) -> Vec<bool> {
     e
 }
 
+/// Whether `mask` (w × h) is set within 2 pixels (a 5 × 5 square) of
+/// (x, y).
+fn within_2px(mask: &[bool], w: usize, h: usize, x: usize, y: usize) -> bool {
+    let (x0, y0) = (x.saturating_sub(2), y.saturating_sub(2));
+    (y0..(y + 3).min(h)).any(|yy| (x0..(x + 3).min(w)).any(|xx| mask[yy * w + xx]))
+}
+
 /// Share of the true depth's silhouettes (ln z steps by > 0.1) where
 /// `pred` (the same size) also steps (by > 0.03) within 2 pixels; `None`
 /// where the truth has fewer than 16 such pixels.
 fn silhouette_recall(pred: &GrayImage, truth: &GrayImage) -> Option<f64> {
     let (w, h) = (truth.width, truth.height);
     let (t, p) = (depth_steps(truth, 0.1), depth_steps(pred, 0.03));
-    let near = |x: usize, y: usize| {
-        let (x0, y0) = (x.saturating_sub(2), y.saturating_sub(2));
-        (y0..(y + 3).min(h)).any(|yy| (x0..(x + 3).min(w)).any(|xx| p[yy * w + xx]))
-    };
     let (mut hit, mut all) = (0usize, 0usize);
     for y in 0..h {
         for x in 0..w {
             if t[y * w + x] {
                 all += 1;
-                hit += near(x, y) as usize;
+                hit += within_2px(&p, w, h, x, y) as usize;
             }
         }
     }
@@ -153,14 +156,10 @@ fn silhouette_recall(pred: &GrayImage, truth: &GrayImage) -> Option<f64> {
 fn false_steps(pred: &GrayImage, truth: &GrayImage) -> f64 {
     let (w, h) = (truth.width, truth.height);
     let (p, t) = (depth_steps(pred, 0.1), depth_steps(truth, 0.03));
-    let near = |x: usize, y: usize| {
-        let (x0, y0) = (x.saturating_sub(2), y.saturating_sub(2));
-        (y0..(y + 3).min(h)).any(|yy| (x0..(x + 3).min(w)).any(|xx| t[yy * w + xx]))
-    };
     let mut false_px = 0usize;
     for y in 0..h {
         for x in 0..w {
-            if p[y * w + x] && !near(x, y) {
+            if p[y * w + x] && !within_2px(&t, w, h, x, y) {
                 false_px += 1;
             }
         }
