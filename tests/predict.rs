@@ -518,13 +518,6 @@ fn the_export_tool_maps_official_checkpoints() {
     python_tests("train/matnet/test_checkpoint.py", 11);
 }
 
-/// The depth-step diagnostic (`train/matnet/depth_steps.py`): its
-/// measure counts steps, false steps and found ones as counted by hand.
-#[test]
-fn the_depth_step_diagnostic_counts_known_steps() {
-    python_tests("train/matnet/test_depth_steps.py", 5);
-}
-
 /// Runs a Python script of the repository with `args`.
 fn python(script: &str, args: &[&str]) -> Output {
     Command::new("python3")
