@@ -5,10 +5,12 @@ CI: run them where train.py runs, `python3 train/matnet/test_train.py`).
 - `--depth-range`: a network with the depth range's layer, given a plain
   network's weights, gives the plain network's outputs (the layer starts
   at zero), and its gain and offset act on log z as documented;
-- it exports to ONNX, and onnxruntime agrees with PyTorch.
+- it exports to ONNX, and onnxruntime agrees with PyTorch;
+- `--false-step-weight`: the false-step term's known answers.
 """
 
 import io
+import math
 import os
 import sys
 import unittest
@@ -68,6 +70,37 @@ class DepthRange(unittest.TestCase):
         got = s.run(None, {"image": self.x[:1].numpy()})
         for g, w in zip(got, want):
             self.assertLess(float(np.abs(g - w.numpy()).max()), 1e-4)
+
+
+class FalseSteps(unittest.TestCase):
+    """`--false-step-weight`: the predicted depth's steps where the true
+    depth is smooth, by known answers on a 16 x 16 scene: a wall at z = 2
+    with a box at z = 1 in columns 8.. (its silhouette: one column of
+    steps by ln 2, 16 pixels)."""
+
+    def setUp(self):
+        z = torch.full((1, 1, 16, 16), 2.0)
+        z[..., 8:] = 1.0
+        self.y = {"depth": z, "valid": torch.ones(1, 1, 16, 16)}
+
+    def test_the_truth_costs_nothing(self):
+        self.assertEqual(float(train.false_step_loss(self.y["depth"] * 3.0, self.y)), 0.0)
+
+    def test_a_step_the_truth_lacks(self):
+        # A step by ln 1.5 between rows 3 and 4, all across: the columns
+        # more than 2 px from the silhouette's (between 7 and 8) count,
+        # 0..4 and 10..15, each beyond the hinge by ln 1.5 - 0.05, per
+        # the 16 silhouette pixels.
+        d = self.y["depth"].clone()
+        d[..., :4, :] *= 1.5
+        want = 11 * (math.log(1.5) - train.FALSE_STEP) / 16
+        self.assertAlmostEqual(float(train.false_step_loss(d, self.y)), want, places=5)
+
+    def test_steps_near_a_true_one_and_small_ones_are_free(self):
+        d = self.y["depth"].clone()
+        d[..., :, 6:] = 1.0  # the silhouette drawn 2 px early
+        d[..., :8, :] *= 1.04  # a step below the hinge
+        self.assertEqual(float(train.false_step_loss(d, self.y)), 0.0)
 
 
 if __name__ == "__main__":

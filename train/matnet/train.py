@@ -50,6 +50,11 @@ cameras):
              apart across a true silhouette must have the true order in
              depth, by a margin (a hinge): an object's inside, not just
              its outline, stands in front of what is behind it
+  false steps  (--false-step-weight, off by default) a hinge on the
+             predicted ln z step beyond the true one's + 0.05 where the
+             true depth is smooth (nothing over 0.03 within 2 px), summed
+             over the silhouettes' count as that term is averaged: what a
+             step the truth lacks costs (the relight sparkles along it)
   depth's own normals  the angle between the normals of the surface the
              predicted depth makes (what the mesh stage shades with) and
              the true depth's, on smooth surfaces; without it a depth
@@ -438,6 +443,32 @@ def silhouette_loss(depth, y):
     return total
 
 
+FALSE_STEP = 0.05  # ln z: a step the truth lacks costs beyond this
+
+
+def false_step_loss(depth, y):
+    """The predicted ln z steps where the true depth is smooth (no step by
+    more than 0.03 within 2 pixels, both with geometry): a hinge on the
+    predicted step's size beyond the true one's plus FALSE_STEP, summed
+    and divided by the number of true silhouette pixels (steps > 0.1), as
+    `silhouette_loss` averages. So a false step costs what missing a true
+    step by as much costs, however few the silhouettes: with the
+    silhouette term alone, a long run learnt steps wherever an edge might
+    be (a cube's face split along an arc, the wall's foot), and the
+    relight sparkled along them."""
+    total = 0.0
+    pred, true = neighbour_steps(depth, y["valid"]), neighbour_steps(y["depth"], y["valid"])
+    near = F.max_pool2d(depth_steps(y["depth"], y["valid"], 0.03), 5, stride=1, padding=2)
+    silhouettes = 0.0
+    for axis, ((dp, _), (dt, both)) in enumerate(zip(pred, true)):
+        # near[..., x] covers the step between x and x+1 along the axis.
+        n = near[..., :, :-1] if axis == 0 else near[..., :-1, :]
+        smooth = both * (1.0 - n)
+        total = total + (F.relu(dp.abs() - dt.abs() - FALSE_STEP) * smooth).sum()
+        silhouettes = silhouettes + (both * (dt.abs() > 0.1).float()).sum()
+    return total / torch.as_tensor(silhouettes).clamp(min=1.0)
+
+
 ORDER_SPANS = (2, 6, 16)
 
 
@@ -488,7 +519,7 @@ def berhu(r, v):
     return torch.where(a <= c, a, (a * a + c * c) / (2.0 * c))
 
 
-def losses(pred, y, w_level, w_dn=1.0, w_sil=0.0, w_affine=0.0, w_order=0.0, depth_loss="l1"):
+def losses(pred, y, w_level, w_dn=1.0, w_sil=0.0, w_affine=0.0, w_order=0.0, depth_loss="l1", w_false=0.0):
     depth, albedo, rough, metal, normal = pred
     v = y["valid"]
     has = (v.sum((1, 2, 3)) > 0).float()
@@ -527,6 +558,7 @@ def losses(pred, y, w_level, w_dn=1.0, w_sil=0.0, w_affine=0.0, w_order=0.0, dep
     l_sil = w_sil * silhouette_loss(depth, y) if w_sil > 0 else torch.zeros((), device=depth.device)
     l_affine = w_affine * affine_loss(depth, y) if w_affine > 0 else torch.zeros((), device=depth.device)
     l_order = w_order * order_loss(depth, y) if w_order > 0 else torch.zeros((), device=depth.device)
+    l_false = w_false * false_step_loss(depth, y) if w_false > 0 else torch.zeros((), device=depth.device)
     return {
         "depth": l_depth,
         "depth_grad": l_grad,
@@ -538,6 +570,7 @@ def losses(pred, y, w_level, w_dn=1.0, w_sil=0.0, w_affine=0.0, w_order=0.0, dep
         "silhouette": l_sil,
         "affine_z": l_affine,
         "order": l_order,
+        "false_steps": l_false,
     }
 
 
@@ -712,6 +745,9 @@ def main():
         "--affine-weight", type=float, default=0.0, help="weight of 1 - the correlation of predicted and true z (not log z)"
     )
     ap.add_argument(
+        "--false-step-weight", type=float, default=0.0, help="weight of the depth's steps where the true depth is smooth"
+    )
+    ap.add_argument(
         "--order-weight", type=float, default=0.0, help="weight of the depth order across true silhouettes, 2-16 px apart"
     )
     ap.add_argument(
@@ -789,7 +825,7 @@ def main():
         x = x.to(device).contiguous(memory_format=torch.channels_last)
         y = {k: v.to(device) for k, v in y.items()}
         parts = losses(model(x), y, args.level_weight, args.depth_normal_weight, args.silhouette_weight, args.affine_weight,
-                       args.order_weight, args.depth_loss)
+                       args.order_weight, args.depth_loss, args.false_step_weight)
         loss = sum(parts.values())
         opt.zero_grad()
         loss.backward()
@@ -838,6 +874,7 @@ def main():
         "silhouette_weight": args.silhouette_weight,
         "affine_weight": args.affine_weight,
         "order_weight": args.order_weight,
+        "false_step_weight": args.false_step_weight,
         "depth_loss": args.depth_loss,
         "init": args.init or None,
         "crop_share": args.crop_share,
