@@ -458,7 +458,7 @@ def false_step_loss(depth, y):
     relight sparkled along them."""
     total = 0.0
     pred, true = neighbour_steps(depth, y["valid"]), neighbour_steps(y["depth"], y["valid"])
-    near = F.max_pool2d(depth_steps(y["depth"], y["valid"], 0.03), 5, stride=1, padding=2)
+    near = F.max_pool2d(depth_steps(y["depth"], y["valid"], 0.03, true), 5, stride=1, padding=2)
     silhouettes = 0.0
     for axis, ((dp, _), (dt, both)) in enumerate(zip(pred, true)):
         # near[..., x] covers the step between x and x+1 along the axis.
@@ -574,11 +574,12 @@ def losses(pred, y, w_level, w_dn=1.0, w_sil=0.0, w_affine=0.0, w_order=0.0, dep
     }
 
 
-def depth_steps(z, valid, step):
+def depth_steps(z, valid, step, steps=None):
     """Where log depth `z` [N, 1, H, W] steps by more than `step` to a
     right or lower neighbour (both valid), [N, 1, H, W] (0/1): the
-    silhouettes of objects against what is behind them."""
-    (dx, vx), (dy, vy) = neighbour_steps(z, valid)
+    silhouettes of objects against what is behind them. `steps`: z's
+    `neighbour_steps`, where the caller has them already."""
+    (dx, vx), (dy, vy) = steps if steps is not None else neighbour_steps(z, valid)
     e = torch.zeros_like(z)
     e[..., :, :-1] = (dx.abs() > step).float() * vx
     e[..., :-1, :] = torch.maximum(e[..., :-1, :], (dy.abs() > step).float() * vy)
