@@ -1197,7 +1197,13 @@ pub fn complete_beyond_frame(
     };
     // The assumed walls' windows, for renderers to sample as lights.
     mesh.portals.extend(portals);
-    if exts.is_empty() {
+    // Without planes to extend, what the border cuts still continues past
+    // it (else the rays through the outer half of the border pixels, past
+    // the last pixel centres, leave the scene: a bright frame on the
+    // render); only a view with no geometry, or no margin, is left as it is.
+    let margin = (p.border_margin.max(0.0) * w.max(h) as f32).round() as usize;
+    let seen = z.data.iter().any(|&d| d > 0.0 && d.is_finite());
+    if exts.is_empty() && (margin == 0 || !seen) {
         return done;
     }
     // Assumed planes continue the walls seen (else the whole view).
@@ -1258,7 +1264,6 @@ pub fn complete_beyond_frame(
     }
     // Objects cut by the border continue past it (what lies on an
     // extended plane is already continued by its extension).
-    let margin = (p.border_margin.max(0.0) * w.max(h) as f32).round() as usize;
     if margin > 0 {
         let extra = border_margins(z, cam, &on_plane, margin);
         append(
@@ -1502,7 +1507,7 @@ fn nearest_seed_map(w: usize, h: usize, seeds: &[u32]) -> Vec<u32> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::planes::testmaps::{render_planes, wavy};
+    use crate::planes::testmaps::render_planes;
     use crate::planes::PlaneKind;
 
     /// The nearest hit of a ray from the origin on `mesh`'s triangles from
@@ -2080,15 +2085,67 @@ mod tests {
     }
 
     #[test]
-    fn a_view_without_planes_is_unchanged() {
+    fn a_view_without_planes_still_continues_past_the_border() {
         let cam = Camera::new(64, 64);
-        let z = wavy(64);
+        // A smooth, curved surface: hills and dales with no plane in them.
+        let mut z = GrayImage::new(64, 64, 0.0);
+        for y in 0..64 {
+            for x in 0..64 {
+                let (u, v) = (x as f32 / 64.0, y as f32 / 64.0);
+                z.data[y * 64 + x] = 3.0 + 1.2 * (u * 4.0).cos() * (v * 3.5 + 0.5).cos();
+            }
+        }
         let mut mesh = TriMesh::default();
         mesh.add_box(Vec3::splat(-1.0), Vec3::splat(1.0));
         let before = mesh.clone();
         let c = complete_beyond_frame(&mut mesh, &z, &cam, &CompleteParams::default());
-        assert_eq!(c.triangles, 0);
-        assert_eq!(mesh, before);
+        // No plane is extended, but the surface the border cuts goes on
+        // past it on every side: the rays through the outer half of the
+        // border pixels (outside the depth mesh's pixel-centre grid) meet
+        // it at about the border pixels' depth, not the sky.
+        assert!(c.extended.is_empty(), "{c:?}");
+        assert!(
+            c.border_triangles > 0 && c.triangles == c.border_triangles,
+            "{c:?}"
+        );
+        assert_eq!(mesh.indices[..before.indices.len()], before.indices[..]);
+        let added = TriMesh {
+            positions: mesh.positions.clone(),
+            indices: mesh.indices[before.indices.len()..].to_vec(),
+            ..TriMesh::default()
+        };
+        // Film positions (pixel i spans [i, i + 1); off the pixel-centre
+        // lines, the mesh's edges) and their border pixel.
+        let rays = [
+            (0.25, 32.3, (0, 32)),
+            (63.75, 20.3, (63, 20)),
+            (40.3, 0.25, (40, 0)),
+            (10.3, 63.75, (10, 63)),
+        ];
+        for (fx, fy, px) in rays {
+            let dir = cam.film_to_dir(Vec2::new(fx, fy));
+            let t = hit(&added, 0, dir)
+                .unwrap_or_else(|| panic!("the ray through ({fx}, {fy}) leaves"));
+            let want = z.data[px.1 * 64 + px.0];
+            let got = -(dir * t).z;
+            assert!(
+                (got - want).abs() < 0.15 * want,
+                "({fx}, {fy}): depth {got}, the border pixel's {want}"
+            );
+        }
+        // Without the margin, a view without planes is unchanged.
+        let mut plain = before.clone();
+        let off = complete_beyond_frame(
+            &mut plain,
+            &z,
+            &cam,
+            &CompleteParams {
+                border_margin: 0.0,
+                ..CompleteParams::default()
+            },
+        );
+        assert_eq!((off.triangles, plain == before), (0, true));
+        let mut mesh = before.clone();
         // Nor is an empty one.
         let c = complete_beyond_frame(
             &mut mesh,

@@ -243,7 +243,7 @@ impl Node for BundleInvertNode {
         static ALL_PARAMS: OnceLock<Vec<ParamSpec>> = OnceLock::new();
         INFO.get_or_init(|| NodeInfo {
             kind: "bundle_invert",
-            version: 3,
+            version: 4,
             doc: "`matflow invert` as a stage: the envmap and the albedo, roughness and \
                   metallic of a bundle folder recovered (the paper's alternation on frozen \
                   paths, on the bundle's depth completed past the frame), written as a bundle \

@@ -53,7 +53,7 @@ const COMPLETE: ParamSpec = ParamSpec {
 
 const INFO: NodeInfo = NodeInfo {
     kind: "bundle_mesh",
-    version: 1,
+    version: 2,
     doc: "`matflow mesh` as a stage: the triangle mesh of a bundle folder's depth map (one \
           vertex per pixel, cut at depth discontinuities), completed past the frame as the \
           bundle declares or as its photo supports, written as a binary PLY.",

@@ -26,7 +26,7 @@ pub struct BundleRenderNode;
 
 const INFO: NodeInfo = NodeInfo {
     kind: "bundle_render",
-    version: 1,
+    version: 2,
     doc: "`matflow render` as a stage: a bundle folder's scene path-traced (its depth meshed \
           and completed past the frame, its maps, its envmap or a new one, its maps' lamps), \
           optionally with objects inserted; writes an EXR (linear), a PNG (γ 2.2) and a JSON \

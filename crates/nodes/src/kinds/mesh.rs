@@ -94,7 +94,7 @@ pub(crate) const SILHOUETTES: ParamSpec = ParamSpec {
 
 const MESH_INFO: NodeInfo = NodeInfo {
     kind: "mesh",
-    version: 11,
+    version: 12,
     doc: "The triangle mesh of a scene's depth map (one vertex per pixel, cut at depth \
          discontinuities found by the reference's angle test), optionally completed past the \
          frame.",
