@@ -16,9 +16,15 @@ edit changed with the true cylinder:
   0.3 in ln z of the seed's;
 - their intersection over union (1: the edit is the cylinder).
 
+It also counts what makes the images a user looks at unclean: in the
+re-render and the relight, sparkles (pixels brighter than twice their
+5 x 5 median + 0.05, the frame's 2 px left out) and the frame's
+brightness against the interior's (1: no bright or dark line round the
+image).
+
   matflow dataset pipelines/photos/rooms.yaml --out out/photos
   matflow dataset unpack out/photos s00000000 --to out/photos/s0
-  python3 crates/bench/scripts/example_edit.py [--model M.onnx] [--work DIR]
+  python3 crates/bench/scripts/example_edit.py [--model M.onnx] [--work DIR] [--set mesh.silhouettes=reference]
 
 Without --model, the bundled one. Needs numpy, scipy and OpenEXR; the
 matflow binary from `cargo build --release -p matflow-cli`."""
@@ -46,6 +52,8 @@ def main():
     ap.add_argument("--truth", default="out/photos/s0", help="the unpacked sample 0 of pipelines/photos/rooms.yaml")
     ap.add_argument("--work", default="target/bench-example-edit")
     ap.add_argument("--matflow", default="target/release/matflow")
+    ap.add_argument("--set", action="append", default=[], metavar="STAGE.PARAM=VALUE",
+                    help="passed on to `matflow run` (again for more)")
     a = ap.parse_args()
     for f in ("ground_truth/albedo.exr", "depth.exr"):
         if not os.path.exists(os.path.join(a.truth, f)):
@@ -56,6 +64,8 @@ def main():
     for k, v in [("predict.output", "bundle"), ("rerender.output", "rerender.exr"),
                  ("edited.output", "edited.exr"), ("relit.output", "relit.exr")]:
         cmd += ["--set", f"{k}={os.path.join(w, v)}"]
+    for kv in a.set:
+        cmd += ["--set", kv]
     if a.model:
         cmd += ["--set", f"predict.model={os.path.abspath(a.model)}"]
     subprocess.run(cmd, check=True)
@@ -74,6 +84,19 @@ def main():
     iou = (changed & obj).sum() / max((changed | obj).sum(), 1)
     print(f"edited {100 * changed.mean():.1f} % of the image; the true object is {100 * obj.mean():.1f} %; "
           f"IoU {iou:.3f} ({a.model or 'the bundled model'}; renders in {w})")
+    for name in ("rerender", "relit"):
+        sparkles, frame = cleanliness(read(os.path.join(w, name + ".exr")))
+        print(f"{name}: {sparkles} sparkles, frame / interior {frame:.2f}")
+
+
+def cleanliness(img):
+    """Isolated bright pixels (over twice their 5 x 5 median + 0.05, the
+    frame's 2 px left out) and the mean of the 1-px frame over the mean of
+    the interior (3 px in)."""
+    y = img.mean(-1) if img.ndim == 3 else img
+    sparkles = int((y > 2.0 * ndimage.median_filter(y, 5) + 0.05)[2:-2, 2:-2].sum())
+    frame = np.concatenate([y[0], y[-1], y[:, 0], y[:, -1]]).mean()
+    return sparkles, float(frame / max(y[3:-3, 3:-3].mean(), 1e-12))
 
 
 if __name__ == "__main__":
