@@ -2019,6 +2019,15 @@ mod tests {
         assert!(hit(&closed, 0, Vec3::new(0.0, -0.5, 1.0).normalize()).is_some());
     }
 
+    /// [`complete_beyond_frame`] with nothing continued past the border.
+    fn without_margin(mesh: &mut TriMesh, z: &GrayImage, cam: &Camera) -> Completion {
+        let p = CompleteParams {
+            border_margin: 0.0,
+            ..CompleteParams::default()
+        };
+        complete_beyond_frame(mesh, z, cam, &p)
+    }
+
     #[test]
     fn an_object_cut_by_the_border_continues_past_it_on_its_own_surface() {
         let cam = Camera::new(96, 72);
@@ -2062,15 +2071,7 @@ mod tests {
         assert!(beyond > 0);
         // Off, nothing of the kind is added.
         let mut plain = TriMesh::default();
-        let off = complete_beyond_frame(
-            &mut plain,
-            &z,
-            &cam,
-            &CompleteParams {
-                border_margin: 0.0,
-                ..CompleteParams::default()
-            },
-        );
+        let off = without_margin(&mut plain, &z, &cam);
         assert_eq!(off.border_triangles, 0);
         assert_eq!(off.triangles, c.triangles - c.border_triangles);
         // The room alone has nothing cut by the border but its planes.
@@ -2135,15 +2136,7 @@ mod tests {
         }
         // Without the margin, a view without planes is unchanged.
         let mut plain = before.clone();
-        let off = complete_beyond_frame(
-            &mut plain,
-            &z,
-            &cam,
-            &CompleteParams {
-                border_margin: 0.0,
-                ..CompleteParams::default()
-            },
-        );
+        let off = without_margin(&mut plain, &z, &cam);
         assert_eq!((off.triangles, plain == before), (0, true));
         let mut mesh = before.clone();
         // Nor is an empty one.
