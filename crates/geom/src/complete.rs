@@ -1202,23 +1202,27 @@ pub fn complete_beyond_frame(
     // the last pixel centres, leave the scene: a bright frame on the
     // render); only a view with no geometry, or no margin, is left as it is.
     let margin = (p.border_margin.max(0.0) * w.max(h) as f32).round() as usize;
-    let seen = z.data.iter().any(|&d| d > 0.0 && d.is_finite());
-    if exts.is_empty() && (margin == 0 || !seen) {
+    let seen = |i: usize| z.data[i] > 0.0 && z.data[i].is_finite();
+    if exts.is_empty() && (margin == 0 || !(0..w * h).any(seen)) {
         return done;
     }
     // Assumed planes continue the walls seen (else the whole view).
-    let mut walls: Vec<u32> = exts
+    let walls: Vec<u32> = exts
         .iter()
         .filter(|e| !e.assumed && e.fit.kind == PlaneKind::Wall)
         .flat_map(|e| e.pixels.iter().copied())
         .collect();
-    let all: Vec<u32> = (0..w * h)
-        .filter(|&i| z.data[i] > 0.0 && z.data[i].is_finite())
-        .map(|i| i as u32)
-        .collect();
-    if walls.is_empty() {
-        walls = all.clone();
-    }
+    // The pixels with geometry, only where a plane has no pixels of its own.
+    let nearest_seen = || {
+        nearest_seed_map(
+            w,
+            h,
+            &(0..w * h)
+                .filter(|&i| seen(i))
+                .map(|i| i as u32)
+                .collect::<Vec<_>>(),
+        )
+    };
     mesh.material_pixel
         .resize(mesh.indices.len(), crate::mesh::PROJECTED);
     let mut on_plane = vec![false; w * h];
@@ -1232,9 +1236,19 @@ pub fn complete_beyond_frame(
     for e in exts {
         let own;
         let nearest: &[u32] = if e.assumed {
-            assumed_map.get_or_insert_with(|| nearest_seed_map(w, h, &walls))
+            assumed_map.get_or_insert_with(|| {
+                if walls.is_empty() {
+                    nearest_seen()
+                } else {
+                    nearest_seed_map(w, h, &walls)
+                }
+            })
         } else {
-            own = nearest_seed_map(w, h, if e.pixels.is_empty() { &all } else { &e.pixels });
+            own = if e.pixels.is_empty() {
+                nearest_seen()
+            } else {
+                nearest_seed_map(w, h, &e.pixels)
+            };
             &own
         };
         let centre = nearest[(h / 2) * w + w / 2];
