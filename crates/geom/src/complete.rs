@@ -1212,16 +1212,12 @@ pub fn complete_beyond_frame(
         .filter(|e| !e.assumed && e.fit.kind == PlaneKind::Wall)
         .flat_map(|e| e.pixels.iter().copied())
         .collect();
-    // The pixels with geometry, only where a plane has no pixels of its own.
-    let nearest_seen = || {
-        nearest_seed_map(
-            w,
-            h,
-            &(0..w * h)
-                .filter(|&i| seen(i))
-                .map(|i| i as u32)
-                .collect::<Vec<_>>(),
-        )
+    // The nearest pixel with geometry: built only where a plane has no
+    // pixels of its own to continue, and then once.
+    let seen_map: std::cell::OnceCell<Vec<u32>> = std::cell::OnceCell::new();
+    let all_seen = || {
+        let pixels: Vec<u32> = (0..w * h).filter(|&i| seen(i)).map(|i| i as u32).collect();
+        nearest_seed_map(w, h, &pixels)
     };
     mesh.material_pixel
         .resize(mesh.indices.len(), crate::mesh::PROJECTED);
@@ -1235,20 +1231,12 @@ pub fn complete_beyond_frame(
     let mut assumed_map: Option<Vec<u32>> = None;
     for e in exts {
         let own;
-        let nearest: &[u32] = if e.assumed {
-            assumed_map.get_or_insert_with(|| {
-                if walls.is_empty() {
-                    nearest_seen()
-                } else {
-                    nearest_seed_map(w, h, &walls)
-                }
-            })
+        let nearest: &[u32] = if e.assumed && !walls.is_empty() {
+            assumed_map.get_or_insert_with(|| nearest_seed_map(w, h, &walls))
+        } else if e.assumed || e.pixels.is_empty() {
+            seen_map.get_or_init(&all_seen)
         } else {
-            own = if e.pixels.is_empty() {
-                nearest_seen()
-            } else {
-                nearest_seed_map(w, h, &e.pixels)
-            };
+            own = nearest_seed_map(w, h, &e.pixels);
             &own
         };
         let centre = nearest[(h / 2) * w + w / 2];
